@@ -1,0 +1,23 @@
+#!/usr/bin/env bash
+# Installs every Debian 12 package slicestation needs to build, test and run.
+# The one list of build and test dependencies; scripts/demo.sh and scripts/test.sh call it.
+set -euo pipefail
+packages=(
+    build-essential cmake ninja-build pkg-config
+    libopencv-dev libeigen3-dev libcgal-dev libgmp-dev libmpfr-dev
+    libtiff-dev zlib1g-dev
+    nlohmann-json3-dev libcli11-dev libtomlplusplus-dev libcpp-httplib-dev
+    libmodbus-dev libcamera-dev libsqlite3-dev libsystemd-dev
+    libgtest-dev libgmock-dev
+)
+missing=()
+for p in "${packages[@]}"; do
+    dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
+done
+if ((${#missing[@]})); then
+    SUDO=""
+    [ "$(id -u)" -eq 0 ] || SUDO="sudo"
+    export DEBIAN_FRONTEND=noninteractive
+    $SUDO apt-get update -qq
+    $SUDO apt-get install -y -qq --no-install-recommends "${missing[@]}"
+fi
