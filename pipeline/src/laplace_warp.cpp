@@ -1,1 +1,131 @@
-// placeholder, filled in by the current work
+#include "slicestation/pipeline/laplace_warp.hpp"
+
+#include <opencv2/imgproc.hpp>
+
+#include <algorithm>
+#include <cmath>
+
+namespace slicestation::pipeline {
+
+DisplacementField::DisplacementField(cv::Mat dx, cv::Mat dy, double cellPx)
+    : dx_(std::move(dx)), dy_(std::move(dy)), cellPx_(cellPx) {
+    CV_Assert(dx_.type() == CV_32F && dy_.type() == CV_32F && dx_.size() == dy_.size());
+}
+
+cv::Point2d DisplacementField::at(cv::Point2d p) const {
+    if (dx_.empty()) return {0, 0};
+    const double gx = std::clamp(p.x / cellPx_, 0.0, double(dx_.cols - 1));
+    const double gy = std::clamp(p.y / cellPx_, 0.0, double(dx_.rows - 1));
+    const int x0 = std::min(static_cast<int>(gx), dx_.cols - 2 < 0 ? 0 : dx_.cols - 2);
+    const int y0 = std::min(static_cast<int>(gy), dx_.rows - 2 < 0 ? 0 : dx_.rows - 2);
+    const int x1 = std::min(x0 + 1, dx_.cols - 1), y1 = std::min(y0 + 1, dx_.rows - 1);
+    const double fx = gx - x0, fy = gy - y0;
+    auto bil = [&](const cv::Mat& m) {
+        return (1 - fy) * ((1 - fx) * m.at<float>(y0, x0) + fx * m.at<float>(y0, x1)) +
+               fy * ((1 - fx) * m.at<float>(y1, x0) + fx * m.at<float>(y1, x1));
+    };
+    return {bil(dx_), bil(dy_)};
+}
+
+namespace {
+
+struct Level {
+    double cell;
+    cv::Mat fixedX, fixedY; ///< CV_32F constrained values
+    cv::Mat isFixed;        ///< CV_8U
+};
+
+Level makeLevel(cv::Size domain, double cell, const std::vector<cv::Point2d>& pts,
+                const std::vector<cv::Point2d>& disp) {
+    const int cols = static_cast<int>(std::ceil((domain.width - 1) / cell)) + 1;
+    const int rows = static_cast<int>(std::ceil((domain.height - 1) / cell)) + 1;
+    Level l{cell, cv::Mat::zeros(rows, cols, CV_32F), cv::Mat::zeros(rows, cols, CV_32F),
+            cv::Mat::zeros(rows, cols, CV_8U)};
+    cv::Mat count = cv::Mat::zeros(rows, cols, CV_32F);
+    for (size_t k = 0; k < pts.size(); ++k) {
+        const int j = std::clamp(static_cast<int>(std::lround(pts[k].x / cell)), 0, cols - 1);
+        const int i = std::clamp(static_cast<int>(std::lround(pts[k].y / cell)), 0, rows - 1);
+        l.fixedX.at<float>(i, j) += float(disp[k].x);
+        l.fixedY.at<float>(i, j) += float(disp[k].y);
+        count.at<float>(i, j) += 1.0f;
+    }
+    for (int i = 0; i < rows; ++i)
+        for (int j = 0; j < cols; ++j)
+            if (const float c = count.at<float>(i, j); c > 0) {
+                l.fixedX.at<float>(i, j) /= c;
+                l.fixedY.at<float>(i, j) /= c;
+                l.isFixed.at<uchar>(i, j) = 1;
+            }
+    return l;
+}
+
+/// SOR sweeps of the five-point Laplacian (Eq. 5 of the paper) with Dirichlet nodes held and
+/// mirror (Neumann) borders.
+void relax(cv::Mat& u, const cv::Mat& fixedVals, const cv::Mat& isFixed, int sweeps, double w) {
+    const int rows = u.rows, cols = u.cols;
+    for (int s = 0; s < sweeps; ++s) {
+        for (int i = 0; i < rows; ++i) {
+            float* r = u.ptr<float>(i);
+            const float* up = u.ptr<float>(i > 0 ? i - 1 : std::min(1, rows - 1));
+            const float* dn = u.ptr<float>(i + 1 < rows ? i + 1 : std::max(rows - 2, 0));
+            const uchar* f = isFixed.ptr<uchar>(i);
+            const float* fv = fixedVals.ptr<float>(i);
+            for (int j = 0; j < cols; ++j) {
+                if (f[j]) {
+                    r[j] = fv[j];
+                    continue;
+                }
+                const float lf = r[j > 0 ? j - 1 : std::min(1, cols - 1)];
+                const float rt = r[j + 1 < cols ? j + 1 : std::max(cols - 2, 0)];
+                const float avg = 0.25f * (lf + rt + up[j] + dn[j]);
+                r[j] += float(w) * (avg - r[j]);
+            }
+        }
+    }
+}
+
+} // namespace
+
+DisplacementField solveLaplaceWarp(cv::Size domain, const std::vector<cv::Point2d>& points,
+                                   const std::vector<cv::Point2d>& displacements,
+                                   const LaplaceOptions& options) {
+    CV_Assert(points.size() == displacements.size());
+    if (points.empty() || domain.area() == 0) return {};
+    // Levels from coarse to fine; each coarse level gives the next its starting guess, which is
+    // what makes plain relaxation converge in a few dozen sweeps (a cascadic multigrid).
+    std::vector<double> cells{options.cellPx};
+    while (std::min(domain.width, domain.height) / (cells.back() * 2) >= options.coarsestNodes)
+        cells.push_back(cells.back() * 2);
+    std::reverse(cells.begin(), cells.end());
+
+    cv::Mat ux, uy;
+    for (size_t li = 0; li < cells.size(); ++li) {
+        Level l = makeLevel(domain, cells[li], points, displacements);
+        int sweeps = options.sweepsPerLevel;
+        if (li == 0) {
+            const cv::Scalar mx = cv::mean(l.fixedX, l.isFixed), my = cv::mean(l.fixedY, l.isFixed);
+            ux = cv::Mat(l.fixedX.size(), CV_32F, cv::Scalar(mx[0]));
+            uy = cv::Mat(l.fixedX.size(), CV_32F, cv::Scalar(my[0]));
+            sweeps = options.sweepsCoarsest;
+        } else {
+            // Prolongation: node positions scale exactly by two (x = j * cell).
+            cv::Mat nx(l.fixedX.size(), CV_32F), ny(l.fixedX.size(), CV_32F);
+            cv::Mat mapX(l.fixedX.size(), CV_32F), mapY(l.fixedX.size(), CV_32F);
+            const double ratio = cells[li] / cells[li - 1];
+            for (int i = 0; i < mapX.rows; ++i)
+                for (int j = 0; j < mapX.cols; ++j) {
+                    mapX.at<float>(i, j) = float(j * ratio);
+                    mapY.at<float>(i, j) = float(i * ratio);
+                }
+            cv::remap(ux, nx, mapX, mapY, cv::INTER_LINEAR, cv::BORDER_REPLICATE);
+            cv::remap(uy, ny, mapX, mapY, cv::INTER_LINEAR, cv::BORDER_REPLICATE);
+            ux = nx;
+            uy = ny;
+        }
+        relax(ux, l.fixedX, l.isFixed, sweeps, options.relaxation);
+        relax(uy, l.fixedY, l.isFixed, sweeps, options.relaxation);
+    }
+    return {ux, uy, options.cellPx};
+}
+
+} // namespace slicestation::pipeline

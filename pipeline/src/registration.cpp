@@ -1,1 +1,322 @@
-// placeholder, filled in by the current work
+#include "slicestation/pipeline/registration.hpp"
+
+#include "slicestation/pipeline/affine.hpp"
+#include "slicestation/pipeline/icp.hpp"
+#include "slicestation/pipeline/obb.hpp"
+#include "slicestation/pipeline/point_grid.hpp"
+
+#include <opencv2/imgproc.hpp>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+
+namespace slicestation::pipeline {
+namespace {
+
+using core::ErrorCode;
+using core::makeError;
+using Clock = std::chrono::steady_clock;
+
+class StepTimer {
+public:
+    explicit StepTimer(std::vector<std::pair<std::string, double>>& out) : out_(out) {}
+    void lap(const char* name) {
+        const auto now = Clock::now();
+        out_.emplace_back(name, std::chrono::duration<double, std::milli>(now - last_).count());
+        last_ = now;
+    }
+    void total() {
+        out_.emplace_back("total",
+                          std::chrono::duration<double, std::milli>(Clock::now() - start_).count());
+    }
+
+private:
+    std::vector<std::pair<std::string, double>>& out_;
+    Clock::time_point start_ = Clock::now(), last_ = start_;
+};
+
+std::vector<cv::Point2f> outerContourSamples(const cv::Mat& mask) {
+    std::vector<std::vector<cv::Point>> contours;
+    cv::findContours(mask.clone(), contours, cv::RETR_EXTERNAL, cv::CHAIN_APPROX_NONE);
+    std::vector<cv::Point2f> out;
+    for (const auto& c : contours)
+        for (const auto& p : c) out.emplace_back(float(p.x), float(p.y));
+    return out;
+}
+
+cv::Mat fillHoles(const cv::Mat& mask) {
+    std::vector<std::vector<cv::Point>> contours;
+    cv::findContours(mask.clone(), contours, cv::RETR_EXTERNAL, cv::CHAIN_APPROX_SIMPLE);
+    cv::Mat filled = cv::Mat::zeros(mask.size(), CV_8U);
+    cv::drawContours(filled, contours, -1, cv::Scalar(255), cv::FILLED);
+    return filled;
+}
+
+/// IoU of the section's (filled) tissue and the atlas brain mapped into the working frame.
+double overlap(const cv::Mat& tissueFilled, const cv::Mat& atlasMask, const cv::Matx23d& t) {
+    cv::Mat mapped;
+    cv::warpAffine(atlasMask, mapped, cv::Mat(t), tissueFilled.size(),
+                   cv::INTER_NEAREST | cv::WARP_INVERSE_MAP, cv::BORDER_CONSTANT, 0);
+    const double inter = cv::countNonZero(mapped & tissueFilled);
+    const double uni = cv::countNonZero(mapped | tissueFilled);
+    return uni > 0 ? inter / uni : 0.0;
+}
+
+/// Initial placement from the two OBBs: centre on centre, axes on axes, per-axis scale (or the
+/// known scale), with the sign choices that the 180-degree ambiguity (and mirroring) leaves.
+cv::Matx23d obbPlacement(const OrientedBox& img, const OrientedBox& atl, double sMaj, double sMin,
+                         bool swapAxes, double knownScale) {
+    const cv::Vec2d aMaj = swapAxes ? atl.minor : atl.major;
+    const cv::Vec2d aMin = swapAxes ? atl.major : atl.minor;
+    const double hMaj = swapAxes ? atl.halfMinor : atl.halfMajor;
+    const double hMin = swapAxes ? atl.halfMajor : atl.halfMinor;
+    const double kMaj = knownScale > 0 ? knownScale : hMaj / std::max(img.halfMajor, 1e-9);
+    const double kMin = knownScale > 0 ? knownScale : hMin / std::max(img.halfMinor, 1e-9);
+    // atlas = cA + [aMaj aMin] diag(kMaj sMaj, kMin sMin) [iMaj iMin]^T (p - cI)
+    const cv::Matx22d A(aMaj[0], aMin[0], aMaj[1], aMin[1]);
+    const cv::Matx22d D(kMaj * sMaj, 0, 0, kMin * sMin);
+    const cv::Matx22d It(img.major[0], img.major[1], img.minor[0], img.minor[1]);
+    const cv::Matx22d L = A * D * It;
+    const cv::Vec2d c = cv::Vec2d(atl.centre.x, atl.centre.y) -
+                        L * cv::Vec2d(img.centre.x, img.centre.y);
+    return {L(0, 0), L(0, 1), c[0], L(1, 0), L(1, 1), c[1]};
+}
+
+double shareMatched(const std::vector<cv::Point2f>& pts, const PointGrid& other, double tol) {
+    if (pts.empty()) return 0;
+    size_t hit = 0;
+    for (const auto& p : pts)
+        if (other.nearest(p, float(tol)) >= 0) ++hit;
+    return double(hit) / double(pts.size());
+}
+
+} // namespace
+
+cv::Point2d Registration::workingFromImage(cv::Point2d p) const {
+    // cv::resize with INTER_AREA aligns pixel centres: x_w = (x + 0.5) s - 0.5.
+    return {(p.x + 0.5) * workingScale - 0.5, (p.y + 0.5) * workingScale - 0.5};
+}
+
+cv::Matx23d Registration::affineAtlasFromImage() const {
+    const double s = workingScale, o = 0.5 * s - 0.5;
+    return compose(atlasFromWorking, cv::Matx23d(s, 0, o, 0, s, o));
+}
+
+cv::Point2d Registration::atlasFromImage(cv::Point2d imagePx) const {
+    const cv::Point2d w = workingFromImage(imagePx);
+    return apply(atlasFromWorking, w) + warp.at(w);
+}
+
+void Registration::atlasMaps(cv::Size size, cv::Mat& mapX, cv::Mat& mapY) const {
+    // Evaluate on the working grid, then resize: the field is smooth, and this keeps an
+    // 8000 x 5000 map at two resizes instead of 40 million bilinear look-ups.
+    const cv::Size ws = workingGrey.size();
+    cv::Mat wx(ws, CV_32F), wy(ws, CV_32F);
+    const bool hasWarp = !warp.empty();
+    cv::Mat fx, fy;
+    if (hasWarp) {
+        // Field nodes sit at multiples of cellPx; resample to every working pixel.
+        cv::Mat mx(ws, CV_32F), my(ws, CV_32F);
+        const float inv = float(1.0 / warp.cellPx());
+        for (int y = 0; y < ws.height; ++y)
+            for (int x = 0; x < ws.width; ++x) {
+                mx.at<float>(y, x) = x * inv;
+                my.at<float>(y, x) = y * inv;
+            }
+        cv::remap(warp.dx(), fx, mx, my, cv::INTER_LINEAR, cv::BORDER_REPLICATE);
+        cv::remap(warp.dy(), fy, mx, my, cv::INTER_LINEAR, cv::BORDER_REPLICATE);
+    }
+    const cv::Matx23d& t = atlasFromWorking;
+    for (int y = 0; y < ws.height; ++y) {
+        float* ox = wx.ptr<float>(y);
+        float* oy = wy.ptr<float>(y);
+        for (int x = 0; x < ws.width; ++x) {
+            ox[x] = float(t(0, 0) * x + t(0, 1) * y + t(0, 2));
+            oy[x] = float(t(1, 0) * x + t(1, 1) * y + t(1, 2));
+            if (hasWarp) {
+                ox[x] += fx.at<float>(y, x);
+                oy[x] += fy.at<float>(y, x);
+            }
+        }
+    }
+    if (size == ws) {
+        mapX = wx;
+        mapY = wy;
+        return;
+    }
+    cv::resize(wx, mapX, size, 0, 0, cv::INTER_LINEAR);
+    cv::resize(wy, mapY, size, 0, 0, cv::INTER_LINEAR);
+}
+
+cv::Mat Registration::warpedLabels(const cv::Mat& atlasLabels, cv::Size size) const {
+    CV_Assert(atlasLabels.type() == CV_32S);
+    cv::Mat mx, my, out;
+    atlasMaps(size, mx, my);
+    // remap has no 32S support; labels go through as float bit patterns untouched by NEAREST.
+    cv::Mat asFloat(atlasLabels.size(), CV_32F, atlasLabels.data, atlasLabels.step);
+    cv::remap(asFloat, out, mx, my, cv::INTER_NEAREST, cv::BORDER_CONSTANT, cv::Scalar(0));
+    return cv::Mat(out.size(), CV_32S, out.data, out.step).clone();
+}
+
+core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat& atlasLabels,
+                                           const RegistrationOptions& options) {
+    if (atlasLabels.empty() || atlasLabels.type() != CV_32S)
+        return makeError(ErrorCode::InvalidArgument, "atlas labels must be a non-empty CV_32S image");
+    if (options.workingMaxSide < 128)
+        return makeError(ErrorCode::InvalidArgument, "working size must be at least 128 px");
+    if (options.imageUmPerPx < 0 || options.atlasUmPerPx < 0)
+        return makeError(ErrorCode::InvalidArgument, "pixel sizes must be positive");
+    const cv::Mat atlasMask = atlasLabels != 0;
+    if (cv::countNonZero(atlasMask) < 16)
+        return makeError(ErrorCode::InvalidArgument, "atlas slice has no labelled brain");
+
+    Registration reg;
+    StepTimer timer(reg.timingsMs);
+    auto prepared = prepareSection(section, options.workingMaxSide);
+    if (!prepared) return prepared.error();
+    reg.imageSize = section.size();
+    reg.workingScale = prepared->scale;
+    reg.contrast = prepared->contrast;
+    reg.workingGrey = prepared->grey;
+    reg.workingTissueMask = prepared->tissueMask;
+    timer.lap("prepare");
+
+    // Section edges (MEI): only where tissue is, not on debris, and not where excluded.
+    cv::Mat mei = dominantEdges(reg.workingGrey, options.edges);
+    cv::Mat near;
+    const int grow = std::max(2, static_cast<int>(std::lround(reg.workingGrey.cols / 200.0)));
+    cv::dilate(reg.workingTissueMask, near, cv::getStructuringElement(
+                                                cv::MORPH_ELLIPSE, cv::Size(2 * grow + 1, 2 * grow + 1)));
+    mei &= near;
+    if (!options.excludeMask.empty()) {
+        cv::Mat ex;
+        cv::resize(options.excludeMask != 0, ex, reg.workingGrey.size(), 0, 0, cv::INTER_NEAREST);
+        mei.setTo(0, ex);
+    }
+    timer.lap("edges");
+
+    const cv::Mat tissueFilled = fillHoles(reg.workingTissueMask);
+    const auto tissueOutline = outerContourSamples(tissueFilled);
+    const auto atlasOutline = outerContourSamples(atlasMask);
+    const OrientedBox imgBox = orientedBox(tissueOutline);
+    const OrientedBox atlBox = orientedBox(atlasOutline);
+    if (imgBox.halfMajor <= 0 || atlBox.halfMajor <= 0)
+        return makeError(ErrorCode::NoTissue, "tissue outline is degenerate");
+    const double knownScale = options.imageUmPerPx > 0 && options.atlasUmPerPx > 0
+                                  ? options.imageUmPerPx / (options.atlasUmPerPx * reg.workingScale)
+                                  : 0.0;
+    const double scaleGuess =
+        knownScale > 0 ? knownScale
+                       : std::sqrt(atlBox.halfMajor * atlBox.halfMinor /
+                                   std::max(imgBox.halfMajor * imgBox.halfMinor, 1e-9));
+
+    // Feature density: the same spacing on both sides, measured in atlas pixels.
+    const double atlasH = std::max(atlBox.halfMajor, atlBox.halfMinor) * 2 * 0.7;
+    const double spacingAtlas = std::max(0.75, atlasH / 300.0);
+    const double spacingImg = spacingAtlas / scaleGuess;
+    reg.atlasEdges = mlsEdgePoints(labelBoundarySamples(atlasLabels), float(spacingAtlas),
+                                   float(3 * spacingAtlas));
+    reg.sectionEdges = mlsEdgePoints(edgePixels(mei), float(spacingImg),
+                                     float(std::max(2.0, 3 * spacingImg)));
+    const EdgePoints atlasOuter = mlsEdgePoints(atlasOutline, float(spacingAtlas),
+                                                float(3 * spacingAtlas));
+    const EdgePoints imgOuter = mlsEdgePoints(tissueOutline, float(spacingImg),
+                                              float(std::max(2.0, 3 * spacingImg)));
+    if (reg.sectionEdges.size() < 20 || imgOuter.size() < 20)
+        return makeError(ErrorCode::NoTissue, "too few tissue edges to register");
+    const PointGrid atlasGrid(reg.atlasEdges.points, float(atlasH / 40));
+    const PointGrid atlasOuterGrid(atlasOuter.points, float(atlasH / 20));
+    timer.lap("features");
+
+    // Candidate placements: the OBB leaves the axis signs (and, for roundish shapes, which axis
+    // is which) open. Each candidate is refined on the outlines and scored by overlap.
+    struct Candidate {
+        double sMaj, sMin;
+        bool swap;
+    };
+    std::vector<Candidate> cands{{1, 1, false}, {-1, -1, false}};
+    if (options.allowMirror) cands.insert(cands.end(), {{1, -1, false}, {-1, 1, false}});
+    const double aspectImg = imgBox.halfMajor / std::max(imgBox.halfMinor, 1e-9);
+    const double aspectAtl = atlBox.halfMajor / std::max(atlBox.halfMinor, 1e-9);
+    if (aspectImg < 1.25 || aspectAtl < 1.25) {
+        const size_t n = cands.size();
+        for (size_t i = 0; i < n; ++i) cands.push_back({cands[i].sMaj, -cands[i].sMin, true});
+    }
+    IcpOptions coarse;
+    coarse.levels = {{30, atlasH / 5}, {20, atlasH / 8}, {15, atlasH / 12}, {10, atlasH / 20}};
+    coarse.maxIterationsPerLevel = 6;
+    cv::Matx23d best;
+    double bestScore = -1;
+    for (const Candidate& c : cands) {
+        const cv::Matx23d init = obbPlacement(imgBox, atlBox, c.sMaj, c.sMin, c.swap, knownScale);
+        const IcpResult r = icpAffine(imgOuter, atlasOuter, atlasOuterGrid, init, coarse);
+        const double score = overlap(tissueFilled, atlasMask, r.targetFromSource);
+        if (score > bestScore) {
+            bestScore = score;
+            best = r.targetFromSource;
+        }
+    }
+    timer.lap("initialise");
+
+    // Global alignment with every edge, thresholds tightened as in the paper's implementation
+    // section: 10, 8, 6, 4 degrees and H/10 .. H/80.
+    IcpOptions fine;
+    fine.levels = {{10, atlasH / 10}, {8, atlasH / 20}, {6, atlasH / 40}, {4, atlasH / 80}};
+    const IcpResult affine = icpAffine(reg.sectionEdges, reg.atlasEdges, atlasGrid, best, fine);
+    reg.atlasFromWorking = affine.targetFromSource;
+    reg.quality.residualAffine = affine.rmsResidual;
+    timer.lap("icp");
+
+    // Non-linear: tight correspondences become Dirichlet conditions of Laplace's equation; a few
+    // rounds let the warp bring in matches the affine left outside the thresholds.
+    const size_t n = reg.sectionEdges.size();
+    std::vector<cv::Point2f> mp(n), mn(n);
+    auto mapAll = [&] {
+        for (size_t i = 0; i < n; ++i) {
+            const cv::Point2d p = reg.sectionEdges.points[i];
+            mp[i] = apply(reg.atlasFromWorking, p) + reg.warp.at(p);
+            mn[i] = mapNormal(reg.atlasFromWorking, reg.sectionEdges.normals[i]);
+        }
+    };
+    std::vector<Match> matches;
+    const double finalDist = atlasH / 60;
+    if (options.nonLinear) {
+        LaplaceOptions lo;
+        lo.cellPx = std::max(2.0, std::max(reg.workingGrey.cols, reg.workingGrey.rows) / 200.0);
+        const std::vector<std::pair<double, double>> rounds{
+            {atlasH / 30, 8}, {atlasH / 45, 6}, {finalDist, 5}};
+        for (const auto& [dist, ang] : rounds) {
+            mapAll();
+            matches = findMatches(mp, mn, reg.atlasEdges, atlasGrid, dist, ang, true);
+            if (matches.size() < 12) break;
+            std::vector<cv::Point2d> pts, disp;
+            pts.reserve(matches.size());
+            disp.reserve(matches.size());
+            for (const Match& m : matches) {
+                const cv::Point2d p = reg.sectionEdges.points[m.source];
+                pts.push_back(p);
+                disp.push_back(m.target - apply(reg.atlasFromWorking, p));
+            }
+            reg.warp = solveLaplaceWarp(reg.workingGrey.size(), pts, disp, lo);
+        }
+    }
+    mapAll();
+    matches = findMatches(mp, mn, reg.atlasEdges, atlasGrid, finalDist, 5, true);
+    timer.lap("warp");
+
+    reg.quality.correspondences = static_cast<int>(matches.size());
+    double ss = 0;
+    for (const Match& m : matches) ss += std::pow(cv::norm(cv::Point2d(mp[m.source]) - m.target), 2);
+    reg.quality.residualFinal = matches.empty() ? 0 : std::sqrt(ss / double(matches.size()));
+    const PointGrid mappedGrid(mp, float(finalDist));
+    reg.quality.atlasBoundaryMatched = shareMatched(reg.atlasEdges.points, mappedGrid, atlasH / 80);
+    reg.quality.sectionEdgesMatched = shareMatched(mp, atlasGrid, atlasH / 80);
+    reg.quality.tissueOverlap = overlap(tissueFilled, atlasMask, reg.atlasFromWorking);
+    reg.quality.scaleAtlasPxPerImagePx = std::sqrt(std::abs(det(reg.affineAtlasFromImage())));
+    timer.lap("quality");
+    timer.total();
+    return reg;
+}
+
+} // namespace slicestation::pipeline

@@ -1,0 +1,51 @@
+#pragma once
+/// A uniform-grid spatial index over 2-D points for fixed-radius neighbour queries.
+
+#include <opencv2/core.hpp>
+
+#include <vector>
+
+namespace slicestation::pipeline {
+
+/// Buckets points into square cells of side `cellSize`. Borrows nothing: points are copied.
+class PointGrid {
+public:
+    PointGrid(const std::vector<cv::Point2f>& points, float cellSize);
+
+    /// Calls fn(index, squaredDistance) for every point within `radius` of p (radius <= a few
+    /// cells keeps this fast).
+    template <class Fn> void forEachWithin(cv::Point2f p, float radius, Fn&& fn) const {
+        const int cx0 = cellX(p.x - radius), cx1 = cellX(p.x + radius);
+        const int cy0 = cellY(p.y - radius), cy1 = cellY(p.y + radius);
+        const float r2 = radius * radius;
+        for (int cy = cy0; cy <= cy1; ++cy) {
+            for (int cx = cx0; cx <= cx1; ++cx) {
+                const int c = cy * cols_ + cx;
+                for (int k = start_[c]; k < start_[c + 1]; ++k) {
+                    const int i = order_[k];
+                    const float dx = points_[i].x - p.x, dy = points_[i].y - p.y;
+                    const float d2 = dx * dx + dy * dy;
+                    if (d2 <= r2) fn(i, d2);
+                }
+            }
+        }
+    }
+
+    /// Index of the nearest point within `radius`, or -1.
+    int nearest(cv::Point2f p, float radius) const;
+
+    const std::vector<cv::Point2f>& points() const { return points_; }
+
+private:
+    int cellX(float x) const;
+    int cellY(float y) const;
+
+    std::vector<cv::Point2f> points_;
+    std::vector<int> order_; ///< point indices sorted by cell
+    std::vector<int> start_; ///< cell -> first position in order_ (size cells + 1)
+    float cell_ = 1.0f;
+    float x0_ = 0.0f, y0_ = 0.0f;
+    int cols_ = 1, rows_ = 1;
+};
+
+} // namespace slicestation::pipeline

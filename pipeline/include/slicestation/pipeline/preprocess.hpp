@@ -1,0 +1,31 @@
+#pragma once
+/// Turning a captured section into the working image the registration uses.
+
+#include "slicestation/core/result.hpp"
+
+#include <opencv2/core.hpp>
+
+namespace slicestation::pipeline {
+
+/// How the glass looks: fluorescence has dark glass, brightfield bright glass.
+enum class Contrast { Fluorescence, Brightfield };
+
+struct PreparedSection {
+    cv::Mat grey;       ///< CV_32F in [0,1], tissue bright whatever the stain, working resolution
+    cv::Mat tissueMask; ///< CV_8U, 255 on tissue (holes such as ventricles and tears stay 0)
+    double scale = 1.0; ///< working pixels per full-resolution pixel (<= 1)
+    Contrast contrast = Contrast::Fluorescence;
+};
+
+/// Converts any supported image (CV_8U/16U/32S/32F; 1 channel grey, 2 channels = channel 0 is the
+/// tissue stain, 3/4 channels BGR(A) = luminance) into a normalised grey working image whose
+/// longer side is at most `workingMaxSide`, tells fluorescence from brightfield by the glass
+/// around the tissue, and segments the tissue.
+/// \return InvalidArgument (empty image, unsupported type, side < 32 px), NoTissue (blank
+///         image, or tissue covering almost all or almost none of it).
+[[nodiscard]] core::Result<PreparedSection> prepareSection(const cv::Mat& image, int workingMaxSide);
+
+/// Grey float copy of `image` (same size), channel rules as above, not normalised.
+[[nodiscard]] core::Result<cv::Mat> toGreyFloat(const cv::Mat& image);
+
+} // namespace slicestation::pipeline

@@ -1,0 +1,77 @@
+#pragma once
+/// Registration of one section image to its annotated atlas slice (paper section 3.2):
+/// dominant edges, OBB initialisation, ICP affine with normals, Laplace warp.
+
+#include "slicestation/core/result.hpp"
+#include "slicestation/pipeline/edge_points.hpp"
+#include "slicestation/pipeline/edges.hpp"
+#include "slicestation/pipeline/laplace_warp.hpp"
+#include "slicestation/pipeline/preprocess.hpp"
+
+#include <opencv2/core.hpp>
+
+#include <string>
+#include <utility>
+#include <vector>
+
+namespace slicestation::pipeline {
+
+struct RegistrationOptions {
+    int workingMaxSide = 1024;   ///< the section is reduced to this longer side for the work
+    double imageUmPerPx = 0;     ///< section pixel size, 0 = unknown (scale is then found)
+    double atlasUmPerPx = 0;     ///< atlas pixel size, 0 = unknown
+    bool nonLinear = true;       ///< add the Laplace warp after the affine
+    bool allowMirror = false;    ///< also try mirrored placements (section mounted face down)
+    /// Section pixels (full resolution, CV_8U, non-zero = exclude) whose edges must not take
+    /// part in the matching, e.g. damaged tissue. Empty = none.
+    cv::Mat excludeMask;
+    DominantEdgeParams edges;
+};
+
+struct RegistrationQuality {
+    int correspondences = 0;         ///< tight correspondences that drive the warp
+    double residualAffine = 0;       ///< RMS distance of those after the affine, atlas px
+    double residualFinal = 0;        ///< RMS distance after affine + warp, atlas px
+    double atlasBoundaryMatched = 0; ///< share of atlas boundary with a section edge nearby
+    double sectionEdgesMatched = 0;  ///< share of section edge points with an atlas edge nearby
+    double tissueOverlap = 0;        ///< IoU of the section's tissue and the mapped atlas brain
+    double scaleAtlasPxPerImagePx = 0;
+};
+
+/// The result: maps full-resolution section pixels to atlas pixels (pixel centres at integers,
+/// origin top-left, x right, y down, in both images).
+struct Registration {
+    cv::Size imageSize;            ///< full-resolution section size
+    double workingScale = 1.0;     ///< working px per full-resolution px
+    cv::Matx23d atlasFromWorking;  ///< the ICP affine, working px -> atlas px
+    DisplacementField warp;        ///< atlas px, over the working image domain
+    Contrast contrast = Contrast::Fluorescence;
+    RegistrationQuality quality;
+    std::vector<std::pair<std::string, double>> timingsMs; ///< step name -> milliseconds
+    cv::Mat workingGrey;           ///< CV_32F [0,1] tissue bright, working resolution
+    cv::Mat workingTissueMask;     ///< CV_8U, working resolution
+    EdgePoints sectionEdges;       ///< working px, after exclusions
+    EdgePoints atlasEdges;         ///< atlas px
+
+    /// Working coordinates of a full-resolution pixel.
+    cv::Point2d workingFromImage(cv::Point2d imagePx) const;
+    /// Affine part only, full resolution -> atlas.
+    cv::Matx23d affineAtlasFromImage() const;
+    /// Affine then warp, full resolution -> atlas.
+    cv::Point2d atlasFromImage(cv::Point2d imagePx) const;
+    /// Atlas coordinates of every pixel of an image of `size` covering the section (full size
+    /// or a reduced copy), CV_32F maps for cv::remap.
+    void atlasMaps(cv::Size size, cv::Mat& mapX, cv::Mat& mapY) const;
+    /// Atlas labels seen in the section frame at `size` (nearest neighbour), CV_32S.
+    cv::Mat warpedLabels(const cv::Mat& atlasLabels, cv::Size size) const;
+};
+
+/// Registers `section` (any supported image, see prepareSection) to `atlasLabels` (CV_32S, 0
+/// outside the brain). Returns a result whenever the inputs are valid, even for a poor match:
+/// `quality` tells.
+/// \return InvalidArgument (empty or invalid atlas, bad options), NoTissue (see prepareSection).
+[[nodiscard]] core::Result<Registration> registerSection(const cv::Mat& section,
+                                                         const cv::Mat& atlasLabels,
+                                                         const RegistrationOptions& options = {});
+
+} // namespace slicestation::pipeline

@@ -1,0 +1,7 @@
+#!/usr/bin/env bash
+# Installs the dependencies (Debian 12 packages) and builds everything into ./build.
+set -euo pipefail
+here=$(cd "$(dirname "$0")/.." && pwd)
+bash "$here/scripts/install-deps.sh"
+cmake -S "$here" -B "$here/build" -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo -DSLST_WERROR=ON >/dev/null
+cmake --build "$here/build" -j "$(nproc)"

@@ -1,0 +1,212 @@
+// Registration benchmark: accuracy against ground truth and speed, ours and elastix side by side.
+// Prints one table; per-case rows go to --csv when given.
+#include "bench_cases.hpp"
+#include "elastix_runner.hpp"
+
+#include "slicestation/core/nrrd.hpp"
+#include "slicestation/pipeline/atlas.hpp"
+#include "slicestation/pipeline/preprocess.hpp"
+#include "slicestation/pipeline/registration.hpp"
+
+#include <CLI/CLI.hpp>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <fstream>
+#include <iostream>
+#include <map>
+
+using namespace slicestation;
+
+namespace {
+
+struct Row {
+    std::string method;
+    bool damaged = false;
+    bool failed = false; ///< the method returned no result at all
+    bench::Errors err;
+    double seconds = 0;
+};
+
+double median(std::vector<double> v) {
+    if (v.empty()) return 0;
+    std::sort(v.begin(), v.end());
+    return v[v.size() / 2];
+}
+
+void printTable(const std::vector<Row>& rows) {
+    std::printf("\n%-10s %-8s %5s %9s %10s %9s %9s %6s %9s\n", "method", "sections", "n",
+                "avg RMSE", "avg median", "avg max", "worst max", "gross", "median s");
+    std::map<std::pair<std::string, bool>, std::vector<const Row*>> groups;
+    for (const auto& r : rows) groups[{r.method, r.damaged}].push_back(&r);
+    for (const auto& [key, g] : groups) {
+        double rmse = 0, med = 0, mx = 0, worst = 0;
+        int gross = 0;
+        std::vector<double> secs;
+        for (const Row* r : g) {
+            rmse += r->err.rmse;
+            med += r->err.median;
+            mx += r->err.max;
+            worst = std::max(worst, r->err.max);
+            if (r->failed || r->err.max > 25) ++gross;
+            secs.push_back(r->seconds);
+        }
+        const double n = double(g.size());
+        std::printf("%-10s %-8s %5zu %9.2f %10.2f %9.2f %9.2f %6d %9.3f\n", key.first.c_str(),
+                    key.second ? "damaged" : "clean", g.size(), rmse / n, med / n, mx / n, worst,
+                    gross, median(secs));
+    }
+    std::printf("(errors in atlas pixels; gross = max landmark error over 25 px or no result)\n");
+}
+
+/// Which way round the Allen template's left-right axis runs relative to the QuickNII volume:
+/// decided from the data by comparing the two annotation volumes, not assumed.
+bool templateMirrored(const core::Volume& ann100, const cv::Mat& qnPlane25, int ap100) {
+    auto p = pipeline::coronalPlane(ann100, pipeline::VolumeAxes::Allen, ap100);
+    if (!p) return false;
+    long same = 0, mirrored = 0;
+    for (int r = 0; r < p->rows; ++r)
+        for (int c = 0; c < p->cols; ++c) {
+            const int rr = std::min(qnPlane25.rows - 1, r * 4 + 1);
+            const int a = p->at<int>(r, c);
+            if (a == 0) continue;
+            if (a == qnPlane25.at<int>(rr, std::min(qnPlane25.cols - 1, c * 4 + 1))) ++same;
+            if (a == qnPlane25.at<int>(rr, std::min(qnPlane25.cols - 1, (p->cols - 1 - c) * 4 + 1)))
+                ++mirrored;
+        }
+    return mirrored > same;
+}
+
+} // namespace
+
+int main(int argc, char** argv) {
+    CLI::App app{"slicestation registration benchmark"};
+    std::string shared = SLST_SHARED_DIR, sizeText = "1500x1100", elastixMode = "auto", csvPath;
+    std::string workDir = "/tmp/slst-bench";
+    int cases = 48, elastixCases = -1;
+    app.add_option("--shared", shared, "Path of ../shared (real atlas)");
+    app.add_option("--cases", cases, "Number of generated sections")->check(CLI::Range(1, 1000));
+    app.add_option("--size", sizeText, "Section image size WxH");
+    app.add_option("--elastix", elastixMode, "auto | on | off")
+        ->check(CLI::IsMember({"auto", "on", "off"}));
+    app.add_option("--elastix-cases", elastixCases, "Run elastix on the first N cases (-1 = all)");
+    app.add_option("--work", workDir, "Scratch directory for elastix");
+    app.add_option("--csv", csvPath, "Write per-case rows here");
+    CLI11_PARSE(app, argc, argv);
+    int w = 0, h = 0;
+    if (std::sscanf(sizeText.c_str(), "%dx%d", &w, &h) != 2 || w < 300 || h < 300) {
+        std::cerr << "--size must be WxH with both at least 300\n";
+        return 2;
+    }
+
+    auto atlas = bench::loadAtlasPlanes(shared, std::max(cases, 8));
+    if (!atlas) {
+        std::cerr << "cannot load the atlas: " << atlas.error().message << "\n";
+        return 1;
+    }
+    bool useElastix = elastixMode == "on" || (elastixMode == "auto" && bench::elastixAvailable());
+    if (elastixMode == "on" && !bench::elastixAvailable()) {
+        std::cerr << "--elastix on, but elastix/transformix are not installed\n";
+        return 1;
+    }
+    core::Volume templ, ann100;
+    bool mirrored = false;
+    if (useElastix) {
+        const auto dir = std::filesystem::path(shared) / "atlas" / "allen-ccf-2017";
+        auto t = core::readNrrd(dir / "average_template_100.nrrd");
+        auto a = core::readNrrd(dir / "annotation_100.nrrd");
+        if (!t || !a || atlas->name != "allen-ccf-25um") {
+            std::cerr << "elastix needs the real atlas template; skipping elastix\n";
+            useElastix = false;
+        } else {
+            templ = std::move(*t);
+            ann100 = std::move(*a);
+        }
+    }
+    std::printf("atlas: %s, %zu planes; %d cases of %dx%d px; elastix: %s\n", atlas->name.c_str(),
+                atlas->planes.size(), cases, w, h, useElastix ? "yes" : "no");
+
+    std::ofstream csv;
+    if (!csvPath.empty()) {
+        csv.open(csvPath);
+        csv << "case,method,damaged,stain,rmse,median,max,seconds,failed\n";
+    }
+    std::vector<Row> rows;
+    const auto all = bench::makeCases(cases, static_cast<int>(atlas->planes.size()), {w, h});
+    for (const auto& c : all) {
+        const cv::Mat& plane = atlas->planes[c.plane];
+        auto gen = sim::generateSection(plane, c.options);
+        if (!gen) {
+            std::cerr << c.describe() << ": generator failed: " << gen.error().message << "\n";
+            return 1;
+        }
+        std::vector<cv::Point2d> pts;
+        for (const auto& l : gen->truth.landmarks) pts.push_back(l.image);
+
+        Row ours{"ours", c.damaged()};
+        const auto t0 = std::chrono::steady_clock::now();
+        auto reg = pipeline::registerSection(gen->image, plane);
+        ours.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+        if (reg) {
+            std::vector<cv::Point2d> mapped;
+            for (const auto& p : pts) mapped.push_back(reg->atlasFromImage(p));
+            ours.err = bench::landmarkErrors(gen->truth.landmarks, mapped);
+        } else {
+            ours.failed = true;
+            std::cerr << c.describe() << ": ours failed: " << reg.error().message << "\n";
+        }
+        rows.push_back(ours);
+        std::fprintf(stderr, "%-45s ours    rmse %6.2f max %6.2f  %.3f s\n", c.describe().c_str(),
+                     ours.err.rmse, ours.err.max, ours.seconds);
+
+        if (useElastix && (elastixCases < 0 || c.index < elastixCases)) {
+            const int ap25 = atlas->apIndices[c.plane];
+            const int ap100 = std::clamp(static_cast<int>(std::lround((ap25 + 0.5) / 4 - 0.5)), 0,
+                                         templ.sizes[0] - 1);
+            static const bool mirror = templateMirrored(ann100, plane, ap100);
+            mirrored = mirror;
+            cv::Mat moving(templ.sizes[1], templ.sizes[2], CV_32F);
+            for (int r = 0; r < moving.rows; ++r)
+                for (int col = 0; col < moving.cols; ++col)
+                    moving.at<float>(r, col) = float(
+                        templ.at(ap100, r, mirror ? moving.cols - 1 - col : col));
+            bench::ElastixInput in;
+            in.fixed = *pipeline::toGreyFloat(gen->image);
+            // The calibration a user would enter: the true mean pixel size of this section.
+            const auto& A = gen->truth.affineAtlasFromImage;
+            in.fixedSpacingUm =
+                atlas->umPerPx * std::sqrt(std::abs(A(0, 0) * A(1, 1) - A(0, 1) * A(1, 0)));
+            in.moving = moving;
+            in.movingSpacingUm = 100;
+            in.movingOriginUm = 37.5; // centre of 100-um voxel 0 is 25-um pixel 1.5
+            in.points = pts;
+            const auto out = bench::runElastix(in, std::filesystem::path(workDir) /
+                                                       ("case" + std::to_string(c.index)));
+            Row el{"elastix", c.damaged()};
+            el.seconds = out.seconds;
+            if (out.ok) {
+                std::vector<cv::Point2d> mapped;
+                for (const auto& m : out.mappedUm) mapped.push_back(m * (1.0 / atlas->umPerPx));
+                el.err = bench::landmarkErrors(gen->truth.landmarks, mapped);
+            } else {
+                el.failed = true;
+                std::cerr << c.describe() << ": elastix failed: " << out.error << "\n";
+            }
+            rows.push_back(el);
+            std::fprintf(stderr, "%-45s elastix rmse %6.2f max %6.2f  %.3f s\n",
+                         c.describe().c_str(), el.err.rmse, el.err.max, el.seconds);
+        }
+        if (csv) {
+            for (auto it = rows.end() - (rows.back().method == "elastix" ? 2 : 1); it != rows.end(); ++it)
+                csv << c.index << ',' << it->method << ',' << it->damaged << ','
+                    << (c.options.stain == sim::Stain::Brightfield ? "brightfield" : "fluorescence")
+                    << ',' << it->err.rmse << ',' << it->err.median << ',' << it->err.max << ','
+                    << it->seconds << ',' << it->failed << '\n';
+        }
+    }
+    if (useElastix) std::printf("template left-right mirrored against QuickNII: %s\n", mirrored ? "yes" : "no");
+    printTable(rows);
+    return 0;
+}

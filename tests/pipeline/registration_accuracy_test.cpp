@@ -1,0 +1,143 @@
+// Ground-truth accuracy: real and built-in atlas planes warped by known transforms, rendered with
+// a stain unrelated to the atlas, optionally damaged; landmark errors in atlas pixels.
+#include "slicestation/core/image_file.hpp"
+#include "slicestation/core/nrrd.hpp"
+#include "slicestation/core/ontology.hpp"
+#include "slicestation/pipeline/atlas.hpp"
+#include "slicestation/pipeline/registration.hpp"
+#include "slicestation/sim/builtin_atlas.hpp"
+#include "slicestation/sim/section_generator.hpp"
+
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <cmath>
+#include <filesystem>
+
+using namespace slicestation;
+namespace fs = std::filesystem;
+
+namespace {
+
+const fs::path kAtlasDir = fs::path(SLST_SHARED_DIR) / "atlas" / "allen-ccf-2017";
+
+struct Score {
+    double rmse = 0, max = 0;
+};
+
+Score registerAndScore(const cv::Mat& atlas, const sim::GeneratorOptions& o,
+                       const pipeline::RegistrationOptions& ro = {}) {
+    auto gen = sim::generateSection(atlas, o);
+    EXPECT_TRUE(gen.ok());
+    if (!gen) return {1e9, 1e9};
+    auto reg = pipeline::registerSection(gen->image, atlas, ro);
+    EXPECT_TRUE(reg.ok()) << reg.error().message;
+    if (!reg) return {1e9, 1e9};
+    Score s;
+    double ss = 0;
+    for (const auto& l : gen->truth.landmarks) {
+        const double e = cv::norm(reg->atlasFromImage(l.image) - l.atlas);
+        ss += e * e;
+        s.max = std::max(s.max, e);
+    }
+    s.rmse = std::sqrt(ss / double(gen->truth.landmarks.size()));
+    return s;
+}
+
+/// The real Allen plane (QuickNII 25 um volume), collapsed to the paper's major regions.
+cv::Mat realPlane(int ap25) {
+    static auto vol = core::readNrrd(kAtlasDir / "annotation_25_quicknii.nrrd");
+    static auto onto = core::readOntologyCsv(kAtlasDir / "structure_tree_safe_2017.csv");
+    if (!vol || !onto) return {};
+    auto p = pipeline::coronalPlane(*vol, pipeline::VolumeAxes::QuickNii, ap25);
+    if (!p) return {};
+    return pipeline::collapseLabels(*p, *onto, pipeline::majorRegionIds(), 8);
+}
+
+} // namespace
+
+TEST(RegistrationAccuracy, BuiltInAtlasCleanSections) {
+    for (std::uint64_t seed : {11u, 12u, 13u}) {
+        sim::GeneratorOptions o;
+        o.seed = seed;
+        const Score s = registerAndScore(sim::builtinAtlasPlane(0.5), o);
+        EXPECT_LT(s.rmse, 2.0) << "seed " << seed;
+        EXPECT_LT(s.max, 8.0) << "seed " << seed;
+    }
+}
+
+TEST(RegistrationAccuracy, AffineOnlyDeformationIsRecoveredClosely) {
+    sim::GeneratorOptions o;
+    o.seed = 21;
+    o.warpAmplitudeFrac = 0.0;
+    pipeline::RegistrationOptions ro;
+    ro.nonLinear = false;
+    const Score s = registerAndScore(sim::builtinAtlasPlane(0.4), o, ro);
+    EXPECT_LT(s.rmse, 1.5);
+}
+
+TEST(RegistrationAccuracy, BrightfieldIsDetectedAndRegistered) {
+    sim::GeneratorOptions o;
+    o.seed = 31;
+    o.stain = sim::Stain::Brightfield;
+    auto gen = sim::generateSection(sim::builtinAtlasPlane(0.6), o);
+    ASSERT_TRUE(gen.ok());
+    auto reg = pipeline::registerSection(gen->image, sim::builtinAtlasPlane(0.6));
+    ASSERT_TRUE(reg.ok());
+    EXPECT_EQ(reg->contrast, pipeline::Contrast::Brightfield);
+    EXPECT_LT(registerAndScore(sim::builtinAtlasPlane(0.6), o).rmse, 2.0);
+}
+
+TEST(RegistrationAccuracy, RotatedUpsideDownSectionIsResolved) {
+    sim::GeneratorOptions o;
+    o.seed = 41;
+    o.maxRotationDeg = 180; // any orientation on the slide
+    for (std::uint64_t seed : {41u, 42u, 43u}) {
+        o.seed = seed;
+        EXPECT_LT(registerAndScore(sim::builtinAtlasPlane(0.5), o).rmse, 2.0) << "seed " << seed;
+    }
+}
+
+TEST(RegistrationAccuracy, RealAtlasPlanesCleanAndDamaged) {
+    if (!fs::exists(kAtlasDir / "annotation_25_quicknii.nrrd"))
+        GTEST_SKIP() << "../shared/atlas is absent: real-atlas accuracy not tested";
+    int k = 0;
+    for (int ap : {180, 260, 340}) {
+        const cv::Mat plane = realPlane(ap);
+        ASSERT_FALSE(plane.empty());
+        for (int damaged = 0; damaged < 2; ++damaged) {
+            sim::GeneratorOptions o;
+            o.seed = 100 + static_cast<std::uint64_t>(k++);
+            o.damage.tear = damaged == 1;
+            const Score s = registerAndScore(plane, o);
+            EXPECT_LT(s.rmse, 2.5) << "AP " << ap << " damaged " << damaged;
+            EXPECT_LT(s.max, 12.0) << "AP " << ap << " damaged " << damaged;
+        }
+    }
+}
+
+TEST(RegistrationAccuracy, RealSection12MatchesItsAtlasPlane) {
+    const fs::path section =
+        fs::path(SLST_SHARED_DIR) / "sections" / "abba-mouse-series" / "Section-12.tif";
+    if (!fs::exists(section) || !fs::exists(kAtlasDir / "annotation_50.nrrd"))
+        GTEST_SKIP() << "../shared is absent: real section not tested";
+    auto img = core::readImage(section);
+    ASSERT_TRUE(img.ok()) << img.error().message;
+    auto vol = core::readNrrd(kAtlasDir / "annotation_50.nrrd");
+    auto onto = core::readOntologyCsv(kAtlasDir / "structure_tree_safe_2017.csv");
+    ASSERT_TRUE(vol.ok() && onto.ok());
+    double best = 0;
+    for (int ap = 124; ap <= 136; ap += 3) {
+        auto plane = pipeline::coronalPlane(*vol, pipeline::VolumeAxes::Allen, ap);
+        ASSERT_TRUE(plane.ok());
+        const cv::Mat labels =
+            pipeline::collapseLabels(*plane, *onto, pipeline::majorRegionIds(), 8);
+        pipeline::RegistrationOptions ro;
+        ro.imageUmPerPx = 20;
+        ro.atlasUmPerPx = 50;
+        auto reg = pipeline::registerSection(*img, labels, ro);
+        ASSERT_TRUE(reg.ok()) << reg.error().message;
+        best = std::max(best, reg->quality.tissueOverlap);
+    }
+    EXPECT_GT(best, 0.9);
+}
