@@ -1,1 +1,728 @@
-// placeholder, filled in by the current work
+#include "slicestation/core/image_file.hpp"
+
+#include <opencv2/core.hpp>
+#include <opencv2/imgcodecs.hpp>
+
+#include <tiffio.h>
+
+#include <fcntl.h>
+#include <sys/stat.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <array>
+#include <atomic>
+#include <cerrno>
+#include <chrono>
+#include <cstdarg>
+#include <cstdint>
+#include <cstdio>
+#include <cstdlib>
+#include <cstring>
+#include <fstream>
+#include <functional>
+#include <limits>
+#include <memory>
+#include <mutex>
+#include <new>
+#include <string>
+#include <utility>
+#include <vector>
+
+namespace slicestation::core {
+namespace {
+
+namespace fs = std::filesystem;
+
+std::string quoted(const fs::path& path) {
+    return "'" + path.string() + "'";
+}
+
+// ---------------------------------------------------------------------------------------------
+// libtiff diagnostics: captured, never printed.
+
+/// Diagnostics of one TIFF handle. Its address is the handlers' user data, so it lives on the
+/// heap and does not move while the handle is open.
+struct TiffMessages {
+    std::string errors;
+    std::string warnings;
+};
+
+constexpr std::size_t kMaxMessageChars = 2000; // a corrupt file can emit thousands of warnings
+
+void appendMessage(std::string& out, const char* module, const char* fmt, va_list ap) {
+    if (out.size() > kMaxMessageChars) {
+        return;
+    }
+    std::array<char, 512> text{};
+    std::vsnprintf(text.data(), text.size(), fmt, ap);
+    if (!out.empty()) {
+        out += "; ";
+    }
+    if (module != nullptr && *module != '\0') {
+        out += module;
+        out += ": ";
+    }
+    out += text.data();
+}
+
+int onTiffError(TIFF* /*tif*/, void* userData, const char* module, const char* fmt, va_list ap) {
+    if (userData != nullptr) {
+        appendMessage(static_cast<TiffMessages*>(userData)->errors, module, fmt, ap);
+    }
+    return 1; // handled: libtiff must not fall through to the global (printing) handler
+}
+
+int onTiffWarning(TIFF* /*tif*/, void* userData, const char* module, const char* fmt, va_list ap) {
+    if (userData != nullptr) {
+        appendMessage(static_cast<TiffMessages*>(userData)->warnings, module, fmt, ap);
+    }
+    return 1;
+}
+
+// libtiff may still report through its process-wide handlers when it has no handle (or in
+// code paths not converted to the per-handle API). Those messages are kept per thread so that
+// concurrent reads do not mix them, and appended to the next error this thread returns.
+thread_local std::string tlsGlobalTiffMessages;
+
+void onGlobalTiffMessage(const char* module, const char* fmt, va_list ap) {
+    appendMessage(tlsGlobalTiffMessages, module, fmt, ap);
+}
+
+void installGlobalTiffHandlers() {
+    static std::once_flag once;
+    std::call_once(once, [] {
+        TIFFSetErrorHandler(onGlobalTiffMessage);
+        TIFFSetWarningHandler(onGlobalTiffMessage);
+    });
+}
+
+/// Move-only owner of a TIFF* and of the messages its handlers collect.
+class TiffFile {
+public:
+    TiffFile(TiffFile&& other) noexcept
+        : tif_(std::exchange(other.tif_, nullptr)), messages_(std::move(other.messages_)) {}
+    TiffFile& operator=(TiffFile&&) = delete;
+    TiffFile(const TiffFile&) = delete;
+    TiffFile& operator=(const TiffFile&) = delete;
+    ~TiffFile() { close(); }
+
+    static Result<TiffFile> open(const fs::path& path, const char* mode) {
+        installGlobalTiffHandlers();
+        tlsGlobalTiffMessages.clear();
+        auto messages = std::make_unique<TiffMessages>();
+        TIFFOpenOptions* options = TIFFOpenOptionsAlloc();
+        if (options == nullptr) {
+            return makeError(ErrorCode::Internal, "libtiff: cannot allocate open options");
+        }
+        TIFFOpenOptionsSetErrorHandlerExtR(options, onTiffError, messages.get());
+        TIFFOpenOptionsSetWarningHandlerExtR(options, onTiffWarning, messages.get());
+        errno = 0;
+        TIFF* tif = TIFFOpenExt(path.c_str(), mode, options);
+        const int openErrno = errno;
+        TIFFOpenOptionsFree(options);
+        if (tif == nullptr) {
+            return makeError(ErrorCode::IoError,
+                             "cannot open TIFF " + quoted(path) + detail(*messages), openErrno);
+        }
+        return TiffFile(tif, std::move(messages));
+    }
+
+    TIFF* get() const noexcept { return tif_; }
+
+    /// Closes the handle (flushing a file opened for writing). False if libtiff reported an
+    /// error at any time on this handle.
+    bool close() noexcept {
+        if (tif_ != nullptr) {
+            TIFFClose(tif_);
+            tif_ = nullptr;
+        }
+        return messages_ == nullptr || messages_->errors.empty();
+    }
+
+    /// " (libtiff: ...)" with what libtiff reported, or "" when it said nothing.
+    std::string detail() const { return messages_ ? detail(*messages_) : std::string(); }
+
+private:
+    TiffFile(TIFF* tif, std::unique_ptr<TiffMessages> messages)
+        : tif_(tif), messages_(std::move(messages)) {}
+
+    static std::string detail(const TiffMessages& messages) {
+        std::string text = messages.errors;
+        const std::array<const std::string*, 2> extras{&messages.warnings, &tlsGlobalTiffMessages};
+        for (const std::string* extra : extras) {
+            if (!extra->empty()) {
+                text += (text.empty() ? "" : "; ") + *extra;
+            }
+        }
+        return text.empty() ? std::string() : " (libtiff: " + text + ")";
+    }
+
+    TIFF* tif_ = nullptr;
+    std::unique_ptr<TiffMessages> messages_;
+};
+
+// ---------------------------------------------------------------------------------------------
+// Reading
+
+/// Where decoded blocks (strips or tiles) go in the output image.
+struct TiffLayout {
+    int channels = 1;         ///< channels of the output image (<= 4)
+    int sampleBytes = 1;      ///< bytes per sample
+    int blockSamples = 1;     ///< interleaved samples per pixel inside one decoded block
+    bool swapRedBlue = false; ///< RGB(A) file -> BGR(A) image
+};
+
+int outputChannel(const TiffLayout& layout, int sample) {
+    return layout.swapRedBlue && sample < 3 ? 2 - sample : sample;
+}
+
+/// Copies a decoded block of `rows` x `cols` pixels into `image` at (x0, y0). Block sample k is
+/// file sample `firstSample + k`; samples beyond the output's channels are dropped.
+void copyBlock(cv::Mat& image, const TiffLayout& layout, const std::uint8_t* block,
+               std::size_t blockRowBytes, std::uint32_t x0, std::uint32_t y0, std::uint32_t rows,
+               std::uint32_t cols, int firstSample) {
+    const auto es = static_cast<std::size_t>(layout.sampleBytes);
+    const auto out = static_cast<std::size_t>(layout.channels);
+    const auto in = static_cast<std::size_t>(layout.blockSamples);
+    const int samples = std::min(layout.blockSamples, layout.channels - firstSample);
+    const bool direct = in == out && firstSample == 0 && !layout.swapRedBlue;
+    for (std::uint32_t r = 0; r < rows; ++r) {
+        const std::uint8_t* src = block + r * blockRowBytes;
+        std::uint8_t* dst = image.ptr<std::uint8_t>(static_cast<int>(y0 + r)) + x0 * out * es;
+        if (direct) {
+            std::memcpy(dst, src, cols * out * es);
+            continue;
+        }
+        for (std::uint32_t c = 0; c < cols; ++c) {
+            for (int k = 0; k < samples; ++k) {
+                const auto channel =
+                    static_cast<std::size_t>(outputChannel(layout, firstSample + k));
+                std::memcpy(dst + (c * out + channel) * es,
+                            src + (c * in + static_cast<std::size_t>(k)) * es, es);
+            }
+        }
+    }
+}
+
+Result<void> readStrips(TIFF* tif, const TiffFile& file, const std::string& where, cv::Mat& image,
+                        const TiffLayout& layout, int planes) {
+    const auto width = static_cast<std::uint32_t>(image.cols);
+    const auto height = static_cast<std::uint32_t>(image.rows);
+    std::uint32_t rowsPerStrip = height;
+    TIFFGetFieldDefaulted(tif, TIFFTAG_ROWSPERSTRIP, &rowsPerStrip);
+    if (rowsPerStrip == 0 || rowsPerStrip > height) {
+        rowsPerStrip = height;
+    }
+    const std::size_t rowBytes = std::size_t{width} *
+                                 static_cast<std::size_t>(layout.blockSamples) *
+                                 static_cast<std::size_t>(layout.sampleBytes);
+    std::vector<std::uint8_t> buffer(rowBytes * rowsPerStrip);
+    for (int plane = 0; plane < planes; ++plane) {
+        for (std::uint32_t y = 0; y < height; y += rowsPerStrip) {
+            const std::uint32_t rows = std::min(rowsPerStrip, height - y);
+            const auto strip = TIFFComputeStrip(tif, y, static_cast<std::uint16_t>(plane));
+            const auto wanted = static_cast<tmsize_t>(rowBytes * rows);
+            const tmsize_t got = TIFFReadEncodedStrip(tif, strip, buffer.data(), wanted);
+            if (got < wanted) {
+                return makeError(ErrorCode::IoError, where + ": strip " + std::to_string(strip) +
+                                                         " is truncated or corrupt" +
+                                                         file.detail());
+            }
+            copyBlock(image, layout, buffer.data(), rowBytes, 0, y, rows, width,
+                      planes > 1 ? plane : 0);
+        }
+    }
+    return {};
+}
+
+Result<void> readTiles(TIFF* tif, const TiffFile& file, const std::string& where, cv::Mat& image,
+                       const TiffLayout& layout, int planes) {
+    const auto width = static_cast<std::uint32_t>(image.cols);
+    const auto height = static_cast<std::uint32_t>(image.rows);
+    std::uint32_t tileWidth = 0;
+    std::uint32_t tileHeight = 0;
+    if (TIFFGetField(tif, TIFFTAG_TILEWIDTH, &tileWidth) != 1 ||
+        TIFFGetField(tif, TIFFTAG_TILELENGTH, &tileHeight) != 1 || tileWidth == 0 ||
+        tileHeight == 0) {
+        return makeError(ErrorCode::IoError, where + ": tiled image without a valid tile size");
+    }
+    const std::size_t tileRowBytes = std::size_t{tileWidth} *
+                                     static_cast<std::size_t>(layout.blockSamples) *
+                                     static_cast<std::size_t>(layout.sampleBytes);
+    const auto wanted = static_cast<tmsize_t>(tileRowBytes * tileHeight);
+    std::vector<std::uint8_t> buffer(static_cast<std::size_t>(wanted));
+    for (int plane = 0; plane < planes; ++plane) {
+        for (std::uint32_t y = 0; y < height; y += tileHeight) {
+            for (std::uint32_t x = 0; x < width; x += tileWidth) {
+                const auto tile = TIFFComputeTile(tif, x, y, 0, static_cast<std::uint16_t>(plane));
+                const tmsize_t got = TIFFReadEncodedTile(tif, tile, buffer.data(), wanted);
+                if (got < wanted) {
+                    return makeError(ErrorCode::IoError, where + ": tile " + std::to_string(tile) +
+                                                             " is truncated or corrupt" +
+                                                             file.detail());
+                }
+                copyBlock(image, layout, buffer.data(), tileRowBytes, x, y,
+                          std::min(tileHeight, height - y), std::min(tileWidth, width - x),
+                          planes > 1 ? plane : 0);
+            }
+        }
+    }
+    return {};
+}
+
+/// Reads the current directory (page) of `tif`.
+Result<cv::Mat> readPage(TIFF* tif, const TiffFile& file, const std::string& where) {
+    std::uint32_t width = 0;
+    std::uint32_t height = 0;
+    if (TIFFGetField(tif, TIFFTAG_IMAGEWIDTH, &width) != 1 ||
+        TIFFGetField(tif, TIFFTAG_IMAGELENGTH, &height) != 1 || width == 0 || height == 0) {
+        return makeError(ErrorCode::IoError, where + ": missing or zero image width/length");
+    }
+    if (width > static_cast<std::uint32_t>(std::numeric_limits<int>::max()) ||
+        height > static_cast<std::uint32_t>(std::numeric_limits<int>::max())) {
+        return makeError(ErrorCode::Unsupported, where + ": image too large");
+    }
+    std::uint16_t samples = 1;
+    std::uint16_t bits = 1;
+    std::uint16_t format = SAMPLEFORMAT_UINT;
+    std::uint16_t planar = PLANARCONFIG_CONTIG;
+    std::uint16_t photometric = PHOTOMETRIC_MINISBLACK;
+    std::uint16_t compression = COMPRESSION_NONE;
+    TIFFGetFieldDefaulted(tif, TIFFTAG_SAMPLESPERPIXEL, &samples);
+    TIFFGetFieldDefaulted(tif, TIFFTAG_BITSPERSAMPLE, &bits);
+    TIFFGetFieldDefaulted(tif, TIFFTAG_SAMPLEFORMAT, &format);
+    TIFFGetFieldDefaulted(tif, TIFFTAG_PLANARCONFIG, &planar);
+    TIFFGetFieldDefaulted(tif, TIFFTAG_COMPRESSION, &compression);
+    if (TIFFGetField(tif, TIFFTAG_PHOTOMETRIC, &photometric) != 1) {
+        photometric = samples >= 3 ? PHOTOMETRIC_RGB : PHOTOMETRIC_MINISBLACK;
+    }
+    if (samples == 0) {
+        return makeError(ErrorCode::IoError, where + ": SamplesPerPixel is 0");
+    }
+    if (TIFFIsCODECConfigured(compression) != 1) {
+        return makeError(ErrorCode::Unsupported, where + ": compression scheme " +
+                                                     std::to_string(compression) +
+                                                     " is not available in libtiff");
+    }
+    if (photometric == PHOTOMETRIC_PALETTE) {
+        return makeError(ErrorCode::Unsupported, where + ": palette (colour-mapped) images");
+    }
+    if (photometric == PHOTOMETRIC_YCBCR) {
+        if (compression != COMPRESSION_JPEG) {
+            return makeError(ErrorCode::Unsupported, where + ": YCbCr images without JPEG");
+        }
+        // The JPEG codec converts to RGB itself when asked to.
+        TIFFSetField(tif, TIFFTAG_JPEGCOLORMODE, JPEGCOLORMODE_RGB);
+        photometric = PHOTOMETRIC_RGB;
+    }
+
+    int depth = -1;
+    const bool unsignedSamples = format == SAMPLEFORMAT_UINT || format == SAMPLEFORMAT_VOID;
+    if (unsignedSamples && bits == 8) {
+        depth = CV_8U;
+    } else if (unsignedSamples && bits == 16) {
+        depth = CV_16U;
+    } else if ((unsignedSamples || format == SAMPLEFORMAT_INT) && bits == 32) {
+        depth = CV_32S;
+    } else if (format == SAMPLEFORMAT_IEEEFP && bits == 32) {
+        depth = CV_32F;
+    } else {
+        return makeError(ErrorCode::Unsupported,
+                         where + ": " + std::to_string(bits) + "-bit samples of SampleFormat " +
+                             std::to_string(format) +
+                             " (supported: uint8, uint16, int32, uint32, float32)");
+    }
+
+    TiffLayout layout;
+    layout.channels = std::min<int>(samples, 4);
+    layout.sampleBytes = bits / 8;
+    const bool separate = planar == PLANARCONFIG_SEPARATE && samples > 1;
+    layout.blockSamples = separate ? 1 : samples;
+    layout.swapRedBlue = photometric == PHOTOMETRIC_RGB && layout.channels >= 3;
+    const int planes = separate ? layout.channels : 1; // planes beyond the 4th are not read
+
+    cv::Mat image(static_cast<int>(height), static_cast<int>(width),
+                  CV_MAKETYPE(depth, layout.channels));
+    const Result<void> read = TIFFIsTiled(tif) != 0
+                                  ? readTiles(tif, file, where, image, layout, planes)
+                                  : readStrips(tif, file, where, image, layout, planes);
+    if (!read) {
+        return read.error();
+    }
+
+    if (depth == CV_32S && unsignedSamples) {
+        // uint32 samples share CV_32S with int32: values above INT32_MAX would turn negative.
+        for (int y = 0; y < image.rows; ++y) {
+            const auto* row = image.ptr<std::int32_t>(y);
+            const auto count = static_cast<std::size_t>(image.cols) * layout.channels;
+            const auto* bad = std::find_if(row, row + count, [](std::int32_t v) { return v < 0; });
+            if (bad != row + count) {
+                return makeError(ErrorCode::Unsupported,
+                                 where + ": uint32 value above INT32_MAX in row " +
+                                     std::to_string(y));
+            }
+        }
+    }
+    return image;
+}
+
+/// Channel count an ImageJ hyperstack declares in its ImageDescription ("ImageJ=1.54g\n
+/// channels=2\n..."), or 1 when the file is not one. ImageJ stores each channel as a page.
+int imageJChannels(TIFF* tif) {
+    const char* description = nullptr;
+    if (TIFFGetField(tif, TIFFTAG_IMAGEDESCRIPTION, &description) != 1 || description == nullptr ||
+        std::strncmp(description, "ImageJ=", 7) != 0) {
+        return 1;
+    }
+    const char* channels = std::strstr(description, "\nchannels=");
+    if (channels == nullptr) {
+        return 1;
+    }
+    const long count = std::strtol(channels + std::strlen("\nchannels="), nullptr, 10);
+    return count > 1 ? static_cast<int>(std::min<long>(count, 1 << 16)) : 1;
+}
+
+Result<cv::Mat> readTiff(const fs::path& path) {
+    auto file = TiffFile::open(path, "r");
+    if (!file) {
+        return file.error();
+    }
+    TIFF* tif = file->get();
+    const std::string where = "TIFF " + quoted(path);
+    auto first = readPage(tif, *file, where);
+    if (!first) {
+        return first;
+    }
+    const int channels = imageJChannels(tif);
+    if (channels == 1 || first->channels() != 1) {
+        return first; // an ordinary (multi-page) TIFF: the first page
+    }
+    // ImageJ hyperstack: pages 0..C-1 are the channels of the first slice and frame.
+    std::vector<cv::Mat> planes{std::move(first.value())};
+    for (int c = 1; c < std::min(channels, 4); ++c) {
+        if (TIFFReadDirectory(tif) != 1) {
+            return makeError(ErrorCode::IoError, where + ": ImageJ description declares " +
+                                                     std::to_string(channels) +
+                                                     " channels, but page " + std::to_string(c) +
+                                                     " is missing" + file->detail());
+        }
+        auto page = readPage(tif, *file, where);
+        if (!page) {
+            return page;
+        }
+        if (page->size() != planes.front().size() || page->type() != planes.front().type()) {
+            return makeError(ErrorCode::IoError, where + ": ImageJ channel page " +
+                                                     std::to_string(c) +
+                                                     " differs in size or type from page 0");
+        }
+        planes.push_back(std::move(page.value()));
+    }
+    cv::Mat image;
+    cv::merge(planes, image);
+    return image;
+}
+
+Result<cv::Mat> readWithOpenCv(const fs::path& path) {
+    cv::Mat image = cv::imread(path.string(), cv::IMREAD_UNCHANGED);
+    if (image.empty()) {
+        return makeError(ErrorCode::IoError, "cannot decode image " + quoted(path) +
+                                                 " (corrupt, truncated or unknown format)");
+    }
+    const int depth = image.depth();
+    if (depth != CV_8U && depth != CV_16U && depth != CV_32S && depth != CV_32F) {
+        return makeError(ErrorCode::Unsupported,
+                         "image " + quoted(path) + ": depth " + cv::typeToString(image.type()));
+    }
+    if (image.channels() > 4) {
+        return makeError(ErrorCode::Unsupported,
+                         "image " + quoted(path) + ": more than 4 channels");
+    }
+    return image;
+}
+
+bool hasTiffMagic(const std::array<char, 4>& m) {
+    const bool little = m[0] == 'I' && m[1] == 'I' && (m[2] == 42 || m[2] == 43) && m[3] == 0;
+    const bool big = m[0] == 'M' && m[1] == 'M' && m[2] == 0 && (m[3] == 42 || m[3] == 43);
+    return little || big;
+}
+
+// ---------------------------------------------------------------------------------------------
+// Writing
+
+/// Closes a file descriptor on scope exit.
+class FdGuard {
+public:
+    explicit FdGuard(int fd) noexcept : fd_(fd) {}
+    FdGuard(const FdGuard&) = delete;
+    FdGuard& operator=(const FdGuard&) = delete;
+    ~FdGuard() { close(); }
+    int get() const noexcept { return fd_; }
+    int close() noexcept {
+        const int rc = fd_ >= 0 ? ::close(fd_) : 0;
+        fd_ = -1;
+        return rc;
+    }
+
+private:
+    int fd_ = -1;
+};
+
+Result<void> writeAll(int fd, const std::vector<std::uint8_t>& bytes, const fs::path& path) {
+    std::size_t done = 0;
+    while (done < bytes.size()) {
+        const ssize_t n = ::write(fd, bytes.data() + done, bytes.size() - done);
+        if (n < 0 && errno == EINTR) {
+            continue;
+        }
+        if (n <= 0) {
+            const int err = errno;
+            return makeError(ErrorCode::IoError,
+                             "cannot write " + quoted(path) + ": " + std::strerror(err), err);
+        }
+        done += static_cast<std::size_t>(n);
+    }
+    return {};
+}
+
+using FillFn = std::function<Result<void>(int fd, const fs::path& tmpPath)>;
+
+/// Creates a new file beside `path`, lets `fill` write it, fsyncs it, renames it over `path`
+/// and fsyncs the directory, so that readers never see a partial file. The temporary file is
+/// removed on any failure.
+Result<void> replaceAtomically(const fs::path& path, const FillFn& fill) {
+    static std::atomic<unsigned> counter{0};
+    const fs::path dir = path.parent_path().empty() ? fs::path(".") : path.parent_path();
+    fs::path tmp;
+    int fd = -1;
+    for (int attempt = 0; attempt < 100 && fd < 0; ++attempt) {
+        const auto stamp = std::chrono::steady_clock::now().time_since_epoch().count();
+        tmp = dir / ("." + path.filename().string() + ".tmp." + std::to_string(::getpid()) + "." +
+                     std::to_string(counter.fetch_add(1)) + "." + std::to_string(stamp % 100000));
+        // 0666 minus the umask, like any other new file.
+        fd = ::open(tmp.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC, 0666);
+        if (fd < 0 && errno != EEXIST) {
+            break;
+        }
+    }
+    if (fd < 0) {
+        const int err = errno;
+        const ErrorCode code =
+            err == ENOENT || err == ENOTDIR ? ErrorCode::NotFound : ErrorCode::IoError;
+        return makeError(code,
+                         "cannot create a file in directory " + quoted(dir) + " to write " +
+                             quoted(path) + ": " + std::strerror(err),
+                         err);
+    }
+    FdGuard guard(fd);
+    bool committed = false;
+    struct Remover {
+        const fs::path& file;
+        const bool& keep;
+        ~Remover() {
+            if (!keep) {
+                std::error_code ignored;
+                fs::remove(file, ignored);
+            }
+        }
+    } remover{tmp, committed};
+
+    if (auto filled = fill(fd, tmp); !filled) {
+        return filled.error();
+    }
+    // fsync flushes the file's data whichever descriptor wrote it (libtiff uses its own).
+    if (::fsync(fd) != 0 || guard.close() != 0) {
+        const int err = errno;
+        return makeError(ErrorCode::IoError,
+                         "cannot flush " + quoted(tmp) + " to disk: " + std::strerror(err), err);
+    }
+    if (::rename(tmp.c_str(), path.c_str()) != 0) {
+        const int err = errno;
+        return makeError(ErrorCode::IoError,
+                         "cannot rename " + quoted(tmp) + " to " + quoted(path) + ": " +
+                             std::strerror(err),
+                         err);
+    }
+    committed = true;
+    // Make the rename itself durable. Some file systems cannot fsync a directory (EINVAL).
+    FdGuard dirFd(::open(dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC));
+    if (dirFd.get() >= 0 && ::fsync(dirFd.get()) != 0 && errno != EINVAL) {
+        const int err = errno;
+        return makeError(ErrorCode::IoError,
+                         "cannot flush directory " + quoted(dir) + ": " + std::strerror(err), err);
+    }
+    return {};
+}
+
+/// BGR(A) -> RGB(A) for any depth (cv::cvtColor does not take CV_32S).
+cv::Mat toRgbOrder(const cv::Mat& image) {
+    if (image.channels() < 3) {
+        return image;
+    }
+    cv::Mat rgb(image.size(), image.type());
+    const std::array<int, 8> fromTo{0, 2, 1, 1, 2, 0, 3, 3};
+    cv::mixChannels(&image, 1, &rgb, 1, fromTo.data(), static_cast<std::size_t>(image.channels()));
+    return rgb;
+}
+
+Result<void> writeTiffData(const fs::path& tmp, const fs::path& target, const cv::Mat& image) {
+    auto file = TiffFile::open(tmp, "w");
+    if (!file) {
+        return file.error();
+    }
+    TIFF* tif = file->get();
+    const int channels = image.channels();
+    const int depth = image.depth();
+    const auto bits = static_cast<std::uint16_t>(8 * CV_ELEM_SIZE1(depth));
+    const std::uint16_t format = depth == CV_32F ? SAMPLEFORMAT_IEEEFP : SAMPLEFORMAT_UINT;
+    const std::uint16_t photometric = channels >= 3 ? PHOTOMETRIC_RGB : PHOTOMETRIC_MINISBLACK;
+
+    bool ok = TIFFSetField(tif, TIFFTAG_IMAGEWIDTH, static_cast<std::uint32_t>(image.cols)) == 1;
+    ok = ok && TIFFSetField(tif, TIFFTAG_IMAGELENGTH, static_cast<std::uint32_t>(image.rows)) == 1;
+    ok =
+        ok && TIFFSetField(tif, TIFFTAG_SAMPLESPERPIXEL, static_cast<std::uint16_t>(channels)) == 1;
+    ok = ok && TIFFSetField(tif, TIFFTAG_BITSPERSAMPLE, bits) == 1;
+    ok = ok && TIFFSetField(tif, TIFFTAG_SAMPLEFORMAT, format) == 1;
+    ok = ok && TIFFSetField(tif, TIFFTAG_PLANARCONFIG, PLANARCONFIG_CONTIG) == 1;
+    ok = ok && TIFFSetField(tif, TIFFTAG_PHOTOMETRIC, photometric) == 1;
+    ok = ok && TIFFSetField(tif, TIFFTAG_COMPRESSION, COMPRESSION_ADOBE_DEFLATE) == 1;
+    ok = ok && TIFFSetField(tif, TIFFTAG_PREDICTOR,
+                            depth == CV_32F ? PREDICTOR_FLOATINGPOINT : PREDICTOR_HORIZONTAL) == 1;
+    if (channels == 2 || channels == 4) {
+        const std::uint16_t extra =
+            channels == 4 ? EXTRASAMPLE_UNASSALPHA : EXTRASAMPLE_UNSPECIFIED;
+        ok = ok && TIFFSetField(tif, TIFFTAG_EXTRASAMPLES, 1, &extra) == 1;
+    }
+    ok = ok && TIFFSetField(tif, TIFFTAG_ROWSPERSTRIP, TIFFDefaultStripSize(tif, 0)) == 1;
+    if (!ok) {
+        return makeError(ErrorCode::Internal,
+                         "cannot set TIFF tags for " + quoted(target) + file->detail());
+    }
+
+    const cv::Mat rgb = toRgbOrder(image);
+    const std::size_t rowBytes = static_cast<std::size_t>(rgb.cols) * rgb.elemSize();
+    // The predictor differences the row in place, so libtiff gets a scratch copy.
+    std::vector<std::uint8_t> row(rowBytes);
+    for (int y = 0; y < rgb.rows; ++y) {
+        std::memcpy(row.data(), rgb.ptr(y), rowBytes);
+        if (TIFFWriteScanline(tif, row.data(), static_cast<std::uint32_t>(y), 0) != 1) {
+            return makeError(ErrorCode::IoError, "cannot write row " + std::to_string(y) + " of " +
+                                                     quoted(target) + file->detail());
+        }
+    }
+    if (!file->close()) {
+        return makeError(ErrorCode::IoError,
+                         "cannot finish TIFF " + quoted(target) + file->detail());
+    }
+    return {};
+}
+
+std::string lowerExtension(const fs::path& path) {
+    std::string ext = path.extension().string();
+    std::transform(ext.begin(), ext.end(), ext.begin(),
+                   [](unsigned char c) { return static_cast<char>(std::tolower(c)); });
+    return ext;
+}
+
+Result<void> writeImageImpl(const fs::path& path, const cv::Mat& image) {
+    const std::string ext = lowerExtension(path);
+    const int depth = image.depth();
+    const int channels = image.channels();
+    const std::string what = "cannot write " + quoted(path) + ": ";
+    if (ext == ".png") {
+        if ((depth != CV_8U && depth != CV_16U) || channels == 2 || channels > 4) {
+            return makeError(ErrorCode::Unsupported,
+                             what + "PNG takes 8/16-bit images with 1, 3 or 4 channels, not " +
+                                 cv::typeToString(image.type()));
+        }
+        std::vector<std::uint8_t> bytes;
+        if (!cv::imencode(".png", image, bytes)) {
+            return makeError(ErrorCode::Internal, what + "OpenCV could not encode the PNG");
+        }
+        return replaceAtomically(
+            path, [&](int fd, const fs::path& /*tmp*/) { return writeAll(fd, bytes, path); });
+    }
+    if (ext == ".tif" || ext == ".tiff") {
+        if ((depth != CV_8U && depth != CV_16U && depth != CV_32S && depth != CV_32F) ||
+            channels > 4) {
+            return makeError(ErrorCode::Unsupported,
+                             what + "TIFF takes 8U, 16U, 32S or 32F with 1..4 channels, not " +
+                                 cv::typeToString(image.type()));
+        }
+        if (depth == CV_32S) {
+            double minValue = 0;
+            cv::Point where;
+            cv::minMaxLoc(image.reshape(1), &minValue, nullptr, &where, nullptr);
+            if (minValue < 0) {
+                return makeError(ErrorCode::InvalidArgument,
+                                 what + "CV_32S is written as uint32 labels, but row " +
+                                     std::to_string(where.y) + " holds " +
+                                     std::to_string(static_cast<long long>(minValue)));
+            }
+        }
+        return replaceAtomically(
+            path, [&](int /*fd*/, const fs::path& tmp) { return writeTiffData(tmp, path, image); });
+    }
+    return makeError(ErrorCode::Unsupported, what + "unknown extension '" +
+                                                 path.extension().string() +
+                                                 "' (use .png, .tif or .tiff)");
+}
+
+} // namespace
+
+Result<cv::Mat> readImage(const std::filesystem::path& path) {
+    std::error_code ec;
+    const auto status = fs::status(path, ec);
+    if (!fs::exists(status)) {
+        return makeError(ErrorCode::NotFound, "image file " + quoted(path) + " does not exist");
+    }
+    if (fs::is_directory(status)) {
+        return makeError(ErrorCode::IoError, quoted(path) + " is a directory, not an image");
+    }
+    std::array<char, 4> magic{};
+    std::streamsize magicBytes = 0;
+    {
+        std::ifstream in(path, std::ios::binary);
+        if (!in.is_open()) {
+            const int err = errno;
+            return makeError(ErrorCode::IoError,
+                             "cannot open image " + quoted(path) + ": " + std::strerror(err), err);
+        }
+        in.read(magic.data(), static_cast<std::streamsize>(magic.size()));
+        magicBytes = in.gcount();
+    }
+    if (magicBytes == 0) {
+        return makeError(ErrorCode::IoError, "image file " + quoted(path) + " is empty");
+    }
+    try {
+        if (magicBytes == 4 && hasTiffMagic(magic)) {
+            return readTiff(path);
+        }
+        return readWithOpenCv(path);
+    } catch (const std::bad_alloc&) {
+        return makeError(ErrorCode::IoError, "image " + quoted(path) + " is too large to load");
+    } catch (const cv::Exception& e) {
+        return makeError(ErrorCode::IoError, "cannot read image " + quoted(path) + ": " + e.what());
+    } catch (const std::exception& e) {
+        return makeError(ErrorCode::Internal,
+                         "cannot read image " + quoted(path) + ": " + e.what());
+    }
+}
+
+Result<void> writeImage(const std::filesystem::path& path, const cv::Mat& image) {
+    if (image.empty()) {
+        return makeError(ErrorCode::InvalidArgument,
+                         "cannot write an empty image to " + quoted(path));
+    }
+    try {
+        return writeImageImpl(path, image);
+    } catch (const cv::Exception& e) {
+        return makeError(ErrorCode::Internal,
+                         "cannot write image " + quoted(path) + ": " + e.what());
+    } catch (const std::exception& e) {
+        return makeError(ErrorCode::Internal,
+                         "cannot write image " + quoted(path) + ": " + e.what());
+    }
+}
+
+} // namespace slicestation::core

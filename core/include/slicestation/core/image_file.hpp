@@ -1,0 +1,45 @@
+#pragma once
+/// Reading and writing section images (PNG, TIFF) as stored, without conversion.
+///
+/// Threading: both functions are re-entrant; they may run concurrently on different files.
+/// libtiff diagnostics never reach stderr: they are captured and returned in Error::message.
+/// Blocking: both block on file I/O; no timeout.
+
+#include "slicestation/core/result.hpp"
+
+#include <opencv2/core/mat.hpp>
+
+#include <filesystem>
+
+namespace slicestation::core {
+
+/// Reads PNG or TIFF (chosen by content, not extension) as stored.
+///
+/// Depths: CV_8U, CV_16U, CV_32S (from int32 and uint32 samples; a uint32 value above INT32_MAX
+/// is Unsupported), CV_32F. Channels 1..4. Colour images (TIFF photometric RGB/YCbCr, PNG) come
+/// in OpenCV's BGR(A) order; other multi-sample TIFFs keep their sample order.
+/// TIFF is read with libtiff: strips or tiles, contiguous or separate planes, either byte order,
+/// any codec libtiff was built with. A TIFF with more than 4 samples per pixel yields its first 4
+/// samples (documented choice: extra fluorescence channels are dropped, not an error).
+/// Multi-page TIFF: the first page only, except ImageJ hyperstacks (ImageDescription starting
+/// "ImageJ=" with "channels=C", one sample per page), whose first min(C, 4) pages are the channels
+/// of the first slice and become the image's channels in page order (the ABBA sections are such
+/// files). Other formats go through cv::imread(IMREAD_UNCHANGED).
+///
+/// \return the image (never empty); NotFound (no such file), IoError (unreadable, empty, corrupt
+///         or truncated file), Unsupported (bit depth, sample format, palette/bilevel TIFF, or a
+///         format OpenCV cannot decode to one of the depths above).
+[[nodiscard]] Result<cv::Mat> readImage(const std::filesystem::path& path);
+
+/// Writes `image` in the format chosen by the extension (case-insensitive):
+/// - .png: CV_8U or CV_16U, 1, 3 or 4 channels (BGR(A) order), via OpenCV;
+/// - .tif/.tiff: via libtiff, deflate-compressed, CV_8U, CV_16U, CV_32S (written as uint32 label
+///   image, so values must be >= 0), CV_32F; 1..4 channels (3 and 4 are BGR(A), stored as RGB(A)).
+/// The data goes to a temporary file in the same directory, is fsync'ed, then renamed over
+/// `path`: a reader sees either the old file or the complete new one, never a partial file.
+///
+/// \return InvalidArgument (empty image, negative CV_32S value), Unsupported (extension, depth or
+///         channel count), NotFound (directory missing), IoError (write, fsync or rename failed).
+[[nodiscard]] Result<void> writeImage(const std::filesystem::path& path, const cv::Mat& image);
+
+} // namespace slicestation::core
