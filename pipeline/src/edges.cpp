@@ -44,13 +44,11 @@ double dominantEdgeThreshold(const cv::Mat& gradientMagnitude, const DominantEdg
         ++count[b];
         sum[b] += x;
     }
-    // Line 4: the first k bins whose adjacent counts differ by at most s (s scales with the
-    // number of pixels so the rule is resolution-independent).
-    const double s = std::max(1.0, params.stablePerMpx * double(n) / 1e6);
-    const int k = std::max(2, params.stableBins);
-    // Start at the histogram's mode: below it counts rise steeply from zero and are trivially
-    // "stable" at the very first bins for a sparse image.
+    // Line 4: the first k bins whose adjacent counts differ by at most s. Scanning starts at the
+    // histogram's mode: below it counts rise from zero and can look "stable" in a sparse image.
     const int mode = static_cast<int>(std::max_element(count.begin(), count.end()) - count.begin());
+    const double s = std::max(1.0, params.stableFraction * count[mode]);
+    const int k = std::max(2, params.stableBins);
     for (int start = mode; start + k <= bins; ++start) {
         bool stable = true;
         for (int i = start; i + 1 < start + k && stable; ++i)
@@ -78,7 +76,7 @@ cv::Mat dominantEdges(const cv::Mat& grey, const DominantEdgeParams& params) {
     grey.convertTo(u8, CV_8U, 255.0);
     // Algorithm 1 line 1: median then Gaussian smoothing.
     int wm = static_cast<int>(std::lround(params.medianFrac * longSide)) | 1;
-    wm = std::max(3, wm);
+    wm = std::max(5, wm); // a 3x3 median leaves speckle chains in noisy captures
     cv::Mat med;
     cv::medianBlur(u8, med, wm);
     const double sigma = std::max(1.0, params.sigmaFrac * longSide);
@@ -95,6 +93,19 @@ cv::Mat dominantEdges(const cv::Mat& grey, const DominantEdgeParams& params) {
     const double high = std::max(1.0, dominantEdgeThreshold(mag, params));
     cv::Mat edges;
     cv::Canny(dx, dy, edges, params.lowRatio * high, high, true);
+    const int minChain = static_cast<int>(params.minChainFrac * longSide);
+    if (minChain > 1) {
+        cv::Mat labels, stats, centroids;
+        const int n = cv::connectedComponentsWithStats(edges, labels, stats, centroids, 8, CV_32S);
+        std::vector<uchar> drop(static_cast<size_t>(n), 0);
+        for (int i = 1; i < n; ++i) drop[i] = stats.at<int>(i, cv::CC_STAT_AREA) < minChain;
+        for (int y = 0; y < edges.rows; ++y) {
+            uchar* e = edges.ptr<uchar>(y);
+            const int* l = labels.ptr<int>(y);
+            for (int x = 0; x < edges.cols; ++x)
+                if (e[x] && drop[l[x]]) e[x] = 0;
+        }
+    }
     return edges;
 }
 

@@ -134,6 +134,14 @@ core::Result<PreparedSection> prepareSection(const cv::Mat& image, int workingMa
     if (share > 0.97)
         return makeError(ErrorCode::NoTissue,
                          "no glass around the tissue: cannot tell tissue from background");
+    // Pure noise also splits into "tissue" and "glass"; real tissue stands well clear of the
+    // glass noise.
+    cv::Scalar inMean, inSd, outMean, outSd;
+    cv::meanStdDev(grey, inMean, inSd, keep);
+    cv::meanStdDev(grey, outMean, outSd, ~keep);
+    if (inMean[0] - outMean[0] < 1.0 * std::max(outSd[0], 1e-3))
+        return makeError(ErrorCode::NoTissue,
+                         "no tissue found (nothing stands out from the background)");
     out.tissueMask = keep;
     return out;
 }

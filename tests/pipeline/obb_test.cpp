@@ -28,9 +28,9 @@ TEST(OrientedBox, InteriorPointsDoNotBiasTheAxes) {
     std::vector<cv::Point2f> pts{{0, 0}, {400, 0}, {400, 100}, {0, 100}};
     for (int i = 0; i < 5000; ++i) pts.emplace_back(50.f + i % 50, 10.f + float(i % 80));
     const OrientedBox b = orientedBox(pts);
-    EXPECT_NEAR(std::abs(b.major[0]), 1.0, 1e-6);
-    EXPECT_NEAR(b.halfMajor, 200, 1e-6);
-    EXPECT_NEAR(b.centre.x, 200, 1e-6);
+    EXPECT_NEAR(std::abs(b.major[0]), 1.0, 1e-4);
+    EXPECT_NEAR(b.halfMajor, 200, 0.01);
+    EXPECT_NEAR(b.centre.x, 200, 0.01);
 }
 
 TEST(OrientedBox, DegenerateInputGivesEmptyBox) {

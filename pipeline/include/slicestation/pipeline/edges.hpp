@@ -13,8 +13,12 @@ struct DominantEdgeParams {
     double medianFrac = 0.005;  ///< median window / long side (odd, at least 3 px)
     double sigmaFrac = 0.0015;  ///< Gaussian sigma / long side (at least 1 px)
     int stableBins = 5;         ///< k: consecutive histogram bins that must be stable
-    double stablePerMpx = 12.0; ///< s: allowed count change between adjacent bins, per megapixel
+    /// s: allowed count change between adjacent bins, as a fraction of the histogram's peak
+    /// count. The paper's absolute s = 12 belongs to its 40-megapixel images; relative to the
+    /// peak the rule means the same at every size.
+    double stableFraction = 0.01;
     double lowRatio = 0.5;      ///< hysteresis low threshold = lowRatio * K
+    double minChainFrac = 0.01; ///< edge chains shorter than this * long side are dropped (specks)
 };
 
 /// Threshold K of Algorithm 1 from gradient magnitudes (any float Mat; zeros included).
@@ -24,7 +28,8 @@ struct DominantEdgeParams {
 double dominantEdgeThreshold(const cv::Mat& gradientMagnitude, const DominantEdgeParams& params);
 
 /// MEI: smooths (median, Gaussian), computes the Sobel gradient, K by dominantEdgeThreshold, and
-/// thin edges by Canny hysteresis with K and lowRatio*K. Input CV_32F in [0,1]; output CV_8U 255.
+/// thin edges by Canny hysteresis with K and lowRatio*K, then drops chains shorter than
+/// minChainFrac of the long side (noise and cell texture). Input CV_32F in [0,1]; output CV_8U 255.
 cv::Mat dominantEdges(const cv::Mat& grey, const DominantEdgeParams& params = {});
 
 /// AEI: pixels whose label differs from the right or lower neighbour (outer and inner contours),
