@@ -40,8 +40,10 @@ EdgePoints mlsEdgePoints(const std::vector<cv::Point2f>& raw, float spacing, flo
     std::unordered_set<long long> taken;
     const float cell = std::max(spacing, 1e-3f);
     for (const cv::Point2f& p : raw) {
-        const long long key = (static_cast<long long>(std::floor(p.y / cell)) << 32) ^
-                              static_cast<long long>(std::floor(p.x / cell) + (1LL << 31));
+        // Integer cell indices first: adding an offset in float would round them away.
+        const long long cx = static_cast<long long>(std::floor(double(p.x) / cell));
+        const long long cy = static_cast<long long>(std::floor(double(p.y) / cell));
+        const long long key = (cy << 32) ^ (cx + (1LL << 31));
         if (taken.count(key)) continue;
         // Weighted line fit (moving least squares of degree 1) around p.
         double sw = 0, mx = 0, my = 0;

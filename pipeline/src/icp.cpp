@@ -12,7 +12,8 @@ namespace slicestation::pipeline {
 std::vector<Match> findMatches(const std::vector<cv::Point2f>& mappedPoints,
                                const std::vector<cv::Point2f>& mappedNormals,
                                const EdgePoints& target, const PointGrid& targetGrid,
-                               double distance, double angleDeg, bool consistencyCheck) {
+                               double distance, double angleDeg, bool consistencyCheck,
+                               TargetRule rule) {
     const double cosMax = std::cos(angleDeg * CV_PI / 180.0);
     std::vector<Match> matches;
     matches.reserve(mappedPoints.size());
@@ -20,9 +21,15 @@ std::vector<Match> findMatches(const std::vector<cv::Point2f>& mappedPoints,
         const cv::Point2f q = mappedPoints[i];
         const cv::Point2f n = mappedNormals[i];
         double sw = 0, sx = 0, sy = 0;
+        int nearest = -1;
+        float nearestD2 = 0;
         targetGrid.forEachWithin(q, float(distance), [&](int j, float d2) {
             const cv::Point2f m = target.normals[j];
             if (std::abs(m.x * n.x + m.y * n.y) < cosMax) return;
+            if (nearest < 0 || d2 < nearestD2) {
+                nearest = j;
+                nearestD2 = d2;
+            }
             // Eq. 1: weight 1/d, and 100 for an exact hit.
             const double d = std::sqrt(double(d2));
             const double w = d < 1e-9 ? 100.0 : 1.0 / d;
@@ -30,7 +37,15 @@ std::vector<Match> findMatches(const std::vector<cv::Point2f>& mappedPoints,
             sx += w * target.points[j].x;
             sy += w * target.points[j].y;
         });
-        if (sw > 0) matches.push_back({static_cast<int>(i), {sx / sw, sy / sw}});
+        if (nearest < 0) continue;
+        if (rule == TargetRule::WeightedAverage) {
+            matches.push_back({static_cast<int>(i), {sx / sw, sy / sw}});
+        } else {
+            const cv::Point2d a = target.points[nearest];
+            const cv::Point2d m = target.normals[nearest];
+            const double along = (a - cv::Point2d(q)).dot(m);
+            matches.push_back({static_cast<int>(i), cv::Point2d(q) + m * along});
+        }
     }
     if (!consistencyCheck || matches.size() < 8) return matches;
 

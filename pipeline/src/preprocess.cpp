@@ -1,8 +1,11 @@
 #include "slicestation/pipeline/preprocess.hpp"
 
+#include <Eigen/Dense>
 #include <opencv2/imgproc.hpp>
 
 #include <algorithm>
+#include <array>
+#include <cmath>
 #include <vector>
 
 namespace slicestation::pipeline {
@@ -11,33 +14,135 @@ namespace {
 using core::ErrorCode;
 using core::makeError;
 
-float percentile(const cv::Mat& f32, double q) {
+float percentile(const cv::Mat& f32, double q, const cv::Mat& valid) {
     std::vector<float> v;
     v.reserve(f32.total());
     // A strided sample is plenty for a percentile and keeps this cheap on large images.
     const int step = std::max(1, static_cast<int>(std::sqrt(f32.total() / 250000.0)));
     for (int y = 0; y < f32.rows; y += step) {
         const float* row = f32.ptr<float>(y);
-        for (int x = 0; x < f32.cols; x += step) v.push_back(row[x]);
+        const uchar* ok = valid.ptr<uchar>(y);
+        for (int x = 0; x < f32.cols; x += step)
+            if (ok[x]) v.push_back(row[x]);
     }
+    if (v.empty()) return 0.0f;
     auto k = static_cast<size_t>(std::clamp(q, 0.0, 1.0) * static_cast<double>(v.size() - 1));
     std::nth_element(v.begin(), v.begin() + static_cast<std::ptrdiff_t>(k), v.end());
     return v[k];
 }
 
 /// Median of the outer ring of the image: the glass, on any sensibly framed capture.
-float borderMedian(const cv::Mat& f32) {
-    const int b = std::max(2, std::min(f32.rows, f32.cols) / 25);
+/// Median of the valid pixels nearest the image border: the glass, on any sensibly framed
+/// capture. The ring is found on the valid area's bounding box so zero padding is skipped.
+float borderMedian(const cv::Mat& f32, const cv::Mat& valid) {
+    const cv::Rect box = cv::boundingRect(valid);
+    const int b = std::max(2, std::min(box.height, box.width) / 25);
     std::vector<float> v;
-    for (int y = 0; y < f32.rows; ++y) {
+    for (int y = box.y; y < box.y + box.height; ++y) {
         const float* row = f32.ptr<float>(y);
-        const bool edgeRow = y < b || y >= f32.rows - b;
-        for (int x = 0; x < f32.cols; ++x) {
-            if (edgeRow || x < b || x >= f32.cols - b) v.push_back(row[x]);
+        const uchar* ok = valid.ptr<uchar>(y);
+        const bool edgeRow = y < box.y + b || y >= box.y + box.height - b;
+        for (int x = box.x; x < box.x + box.width; ++x) {
+            if (ok[x] && (edgeRow || x < box.x + b || x >= box.x + box.width - b))
+                v.push_back(row[x]);
         }
     }
+    if (v.empty()) return 0.0f;
     std::nth_element(v.begin(), v.begin() + static_cast<std::ptrdiff_t>(v.size() / 2), v.end());
     return v[v.size() / 2];
+}
+
+/// Tissue in a normalised, tissue-bright working image, in two passes. A heavy blur averages
+/// cell texture so that even dim tissue stands above the glass noise: that finds where tissue
+/// is. Then the outline is placed half way between the glass and the dimmest tissue on a lightly
+/// blurred copy, so it sits on the real edge instead of a blur radius outside it.
+cv::Mat segmentTissue(const cv::Mat& grey, const cv::Mat& valid, float glass) {
+    const int longSide = std::max(grey.rows, grey.cols);
+    cv::Mat heavy, light;
+    cv::GaussianBlur(grey, heavy, cv::Size(), std::max(2.0, longSide / 150.0));
+    cv::GaussianBlur(grey, light, cv::Size(), std::max(1.0, longSide / 500.0));
+
+    // Glass noise of the heavy blur, from the valid border ring (median absolute deviation).
+    const cv::Rect box = cv::boundingRect(valid);
+    const int b = std::max(2, std::min(box.width, box.height) / 25);
+    std::vector<float> ring;
+    for (int y = box.y; y < box.y + box.height; ++y)
+        for (int x = box.x; x < box.x + box.width; ++x) {
+            const bool edge = y < box.y + b || y >= box.y + box.height - b || x < box.x + b ||
+                              x >= box.x + box.width - b;
+            if (edge && valid.at<uchar>(y, x)) ring.push_back(heavy.at<float>(y, x));
+        }
+    float mad = 0.01f;
+    if (!ring.empty()) {
+        for (float& v : ring) v = std::abs(v - glass);
+        std::nth_element(ring.begin(), ring.begin() + static_cast<std::ptrdiff_t>(ring.size() / 2),
+                         ring.end());
+        mad = std::max(mad, 1.4826f * ring[ring.size() / 2]);
+    }
+    // Uneven illumination also spreads the ring's values, so the noise margin is capped at a
+    // fraction of the tissue's contrast.
+    const float bright = percentile(heavy, 0.9, valid);
+    const float margin = std::max(0.03f, std::min(6.0f * mad, 0.3f * (bright - glass)));
+    cv::Mat coarse = (heavy > glass + margin) & valid;
+    if (cv::countNonZero(coarse) == 0) return coarse;
+
+    // The dimmest tissue: a low percentile of the heavy blur inside the coarse region, away
+    // from its blurred rim.
+    cv::Mat inner;
+    cv::erode(coarse, inner, cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(9, 9)),
+              cv::Point(-1, -1), std::max(1, longSide / 150));
+    if (cv::countNonZero(inner) < 64) inner = coarse;
+    const float dim = percentile(heavy, 0.05, inner);
+    const float t = glass + std::max(0.5f * (dim - glass), 0.5f * margin);
+
+    cv::Mat mask = (light > t) & valid;
+    // Close the gaps between cells in dim, textured tissue, and stay within the coarse region.
+    const int r = std::max(1, longSide / 250);
+    cv::morphologyEx(mask, mask, cv::MORPH_CLOSE,
+                     cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * r + 1, 2 * r + 1)));
+    cv::Mat reach;
+    cv::dilate(coarse, reach, cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * r + 1, 2 * r + 1)));
+    return mask & reach;
+}
+
+/// Fits a quadratic surface to the glass (valid pixels well away from `tissue`) and subtracts
+/// it, keeping the glass at `glassLevel`. Returns false (image untouched) when too little glass
+/// is seen for a fit.
+bool flattenBackground(cv::Mat& grey, const cv::Mat& valid, const cv::Mat& tissue,
+                       float glassLevel) {
+    const int longSide = std::max(grey.rows, grey.cols);
+    cv::Mat away;
+    cv::dilate(tissue, away, cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(5, 5)),
+               cv::Point(-1, -1), std::max(1, longSide / 100));
+    const cv::Mat glassMask = valid & ~away;
+    const int step = std::max(1, longSide / 256);
+    Eigen::Matrix<double, 6, 6> ata = Eigen::Matrix<double, 6, 6>::Zero();
+    Eigen::Matrix<double, 6, 1> atb = Eigen::Matrix<double, 6, 1>::Zero();
+    int n = 0;
+    const double sx = 2.0 / grey.cols, sy = 2.0 / grey.rows; // coordinates in [-1, 1]
+    for (int y = 0; y < grey.rows; y += step)
+        for (int x = 0; x < grey.cols; x += step) {
+            if (!glassMask.at<uchar>(y, x)) continue;
+            const double u = x * sx - 1, v = y * sy - 1;
+            Eigen::Matrix<double, 6, 1> r;
+            r << 1, u, v, u * u, u * v, v * v;
+            ata += r * r.transpose();
+            atb += r * grey.at<float>(y, x);
+            ++n;
+        }
+    if (n < 200) return false;
+    const Eigen::Matrix<double, 6, 1> c = ata.ldlt().solve(atb);
+    if (!c.allFinite()) return false;
+    for (int y = 0; y < grey.rows; ++y) {
+        float* row = grey.ptr<float>(y);
+        const double v = y * sy - 1;
+        for (int x = 0; x < grey.cols; ++x) {
+            const double u = x * sx - 1;
+            const double bg = c[0] + c[1] * u + c[2] * v + c[3] * u * u + c[4] * u * v + c[5] * v * v;
+            row[x] = std::clamp(float(row[x] - bg + glassLevel), 0.0f, 1.0f);
+        }
+    }
+    return true;
 }
 
 } // namespace
@@ -90,33 +195,36 @@ core::Result<PreparedSection> prepareSection(const cv::Mat& image, int workingMa
     if (!greyOr) return greyOr.error();
     cv::Mat grey = std::move(*greyOr);
 
-    const float lo = percentile(grey, 0.005);
-    const float hi = percentile(grey, 0.995);
+    // Scanners and stitchers pad the acquired area with exact zeros (or the minimum); such
+    // "no data" pixels are neither glass nor tissue and must not steer the statistics.
+    double rawMin = 0;
+    cv::minMaxLoc(grey, &rawMin, nullptr);
+    cv::Mat valid = grey != rawMin;
+    if (cv::countNonZero(valid) > 0.99 * double(grey.total()) || cv::countNonZero(valid) < 64)
+        valid.setTo(255);
+
+    const float lo = percentile(grey, 0.005, valid);
+    const float hi = percentile(grey, 0.995, valid);
     if (!(hi > lo)) return makeError(ErrorCode::NoTissue, "image is blank (no contrast)");
     grey = (grey - lo) / (hi - lo);
     cv::min(cv::max(grey, 0.0), 1.0, grey);
 
     // The glass is what surrounds the tissue: bright glass means brightfield, and we invert so
     // tissue is bright in both cases.
-    const float glass = borderMedian(grey);
+    const float glass = borderMedian(grey, valid);
     out.contrast = glass > 0.5f ? Contrast::Brightfield : Contrast::Fluorescence;
     if (out.contrast == Contrast::Brightfield) grey = 1.0f - grey;
+    grey.setTo(out.contrast == Contrast::Brightfield ? 1.0f - glass : glass, ~valid);
     out.grey = grey;
 
-    // Tissue: smooth away cell texture, then Otsu between glass and tissue. Otsu on the full
-    // histogram can split bright nuclei from dim tissue in fluorescence, so the threshold is
-    // capped at a modest rise above the glass level.
-    const double sigma = std::max(1.5, longSide * out.scale / 300.0);
-    cv::Mat blurred;
-    cv::GaussianBlur(grey, blurred, cv::Size(), sigma);
-    cv::Mat u8;
-    blurred.convertTo(u8, CV_8U, 255.0);
-    cv::Mat mask;
-    const double otsu = cv::threshold(u8, mask, 0, 255, cv::THRESH_BINARY | cv::THRESH_OTSU);
-    const double glassLevel = 255.0 * (out.contrast == Contrast::Brightfield ? 1.0 - glass : glass);
-    const double cap = glassLevel + 0.35 * (255.0 * percentile(blurred, 0.99) - glassLevel);
-    cv::threshold(u8, mask, std::min(otsu, std::max(cap, glassLevel + 8.0)), 255,
-                  cv::THRESH_BINARY);
+    const float glassLevel = out.contrast == Contrast::Brightfield ? 1.0f - glass : glass;
+    cv::Mat mask = segmentTissue(grey, valid, glassLevel);
+    // Uneven illumination (vignetting) makes glass corners look like tissue: flatten the glass
+    // with a smooth fit, then segment again.
+    if (flattenBackground(grey, valid, mask, glassLevel)) {
+        out.grey = grey;
+        mask = segmentTissue(grey, valid, glassLevel);
+    }
 
     // Remove debris: keep components of at least 2% of the largest one.
     cv::Mat labels, stats, centroids;
@@ -138,7 +246,7 @@ core::Result<PreparedSection> prepareSection(const cv::Mat& image, int workingMa
     // glass noise.
     cv::Scalar inMean, inSd, outMean, outSd;
     cv::meanStdDev(grey, inMean, inSd, keep);
-    cv::meanStdDev(grey, outMean, outSd, ~keep);
+    cv::meanStdDev(grey, outMean, outSd, ~keep & valid);
     if (inMean[0] - outMean[0] < 1.0 * std::max(outSd[0], 1e-3))
         return makeError(ErrorCode::NoTissue,
                          "no tissue found (nothing stands out from the background)");

@@ -246,17 +246,24 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     IcpOptions coarse;
     coarse.levels = {{30, atlasH / 5}, {20, atlasH / 8}, {15, atlasH / 12}, {10, atlasH / 20}};
     coarse.maxIterationsPerLevel = 6;
-    cv::Matx23d best;
+    cv::Matx23d best, bestInit;
     double bestScore = -1;
     for (const Candidate& c : cands) {
         const cv::Matx23d init = obbPlacement(imgBox, atlBox, c.sMaj, c.sMin, c.swap, knownScale);
         const IcpResult r = icpAffine(imgOuter, atlasOuter, atlasOuterGrid, init, coarse);
-        const double score = overlap(tissueFilled, atlasMask, r.targetFromSource);
-        if (score > bestScore) {
-            bestScore = score;
-            best = r.targetFromSource;
+        // The refinement can wander off on an odd outline; the placement it started from stays
+        // in the running.
+        for (const cv::Matx23d& t : {r.targetFromSource, init}) {
+            const double score = overlap(tissueFilled, atlasMask, t);
+            if (score > bestScore) {
+                bestScore = score;
+                best = t;
+                bestInit = init;
+            }
         }
     }
+    reg.stageAffines.emplace_back("obb", bestInit);
+    reg.stageAffines.emplace_back("outline", best);
     timer.lap("initialise");
 
     // Global alignment with every edge, thresholds tightened as in the paper's implementation
@@ -266,6 +273,7 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     const IcpResult affine = icpAffine(reg.sectionEdges, reg.atlasEdges, atlasGrid, best, fine);
     reg.atlasFromWorking = affine.targetFromSource;
     reg.quality.residualAffine = affine.rmsResidual;
+    reg.stageAffines.emplace_back("icp", reg.atlasFromWorking);
     timer.lap("icp");
 
     // Non-linear: tight correspondences become Dirichlet conditions of Laplace's equation; a few
@@ -284,11 +292,14 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     if (options.nonLinear) {
         LaplaceOptions lo;
         lo.cellPx = std::max(2.0, std::max(reg.workingGrey.cols, reg.workingGrey.rows) / 200.0);
+        // Point-to-line targets: an edge only says where the boundary is across it, so the
+        // warp is pulled across edges and Laplace's equation carries the rest.
         const std::vector<std::pair<double, double>> rounds{
-            {atlasH / 30, 8}, {atlasH / 45, 6}, {finalDist, 5}};
+            {atlasH / 30, 8}, {atlasH / 40, 6}, {atlasH / 50, 5}, {finalDist, 5}};
         for (const auto& [dist, ang] : rounds) {
             mapAll();
-            matches = findMatches(mp, mn, reg.atlasEdges, atlasGrid, dist, ang, true);
+            matches = findMatches(mp, mn, reg.atlasEdges, atlasGrid, dist, ang, true,
+                                  TargetRule::PointToLine);
             if (matches.size() < 12) break;
             std::vector<cv::Point2d> pts, disp;
             pts.reserve(matches.size());
@@ -302,7 +313,8 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         }
     }
     mapAll();
-    matches = findMatches(mp, mn, reg.atlasEdges, atlasGrid, finalDist, 5, true);
+    matches = findMatches(mp, mn, reg.atlasEdges, atlasGrid, finalDist, 5, true,
+                          TargetRule::PointToLine);
     timer.lap("warp");
 
     reg.quality.correspondences = static_cast<int>(matches.size());

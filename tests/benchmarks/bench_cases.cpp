@@ -61,7 +61,8 @@ std::vector<BenchCase> makeCases(int count, int planes, cv::Size size) {
         c.plane = (i / 2 * 7) % std::max(1, planes);
         c.options.seed = c.seed;
         c.options.imageSize = size;
-        c.options.stain = (i % 4 == 3) ? sim::Stain::Brightfield : sim::Stain::Fluorescence;
+        // Brightfield on one clean and one damaged case in every eight.
+        c.options.stain = (i % 8 == 2 || i % 8 == 3) ? sim::Stain::Brightfield : sim::Stain::Fluorescence;
         if (i % 2 == 1) {
             switch ((i / 2) % 4) {
             case 0: c.options.damage.tear = true; break;

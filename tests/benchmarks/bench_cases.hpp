@@ -36,8 +36,8 @@ struct BenchCase {
 /// builds built-in planes when `sharedDir` lacks them.
 core::Result<AtlasSource> loadAtlasPlanes(const std::filesystem::path& sharedDir, int count);
 
-/// `count` cases: alternating clean and damaged (tear, missing, fragment, tear+missing), every
-/// fourth brightfield, image size `size`.
+/// `count` cases: alternating clean and damaged (tear, missing, fragment, tear+missing), a
+/// quarter brightfield (clean and damaged alike), image size `size`.
 std::vector<BenchCase> makeCases(int count, int planes, cv::Size size);
 
 /// Landmark errors (atlas px) of mapped points against the truth.

@@ -145,7 +145,9 @@ int main(int argc, char** argv) {
         std::vector<cv::Point2d> pts;
         for (const auto& l : gen->truth.landmarks) pts.push_back(l.image);
 
-        Row ours{"ours", c.damaged()};
+        Row ours;
+        ours.method = "ours";
+        ours.damaged = c.damaged();
         const auto t0 = std::chrono::steady_clock::now();
         auto reg = pipeline::registerSection(gen->image, plane);
         ours.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
@@ -158,8 +160,13 @@ int main(int argc, char** argv) {
             std::cerr << c.describe() << ": ours failed: " << reg.error().message << "\n";
         }
         rows.push_back(ours);
-        std::fprintf(stderr, "%-45s ours    rmse %6.2f max %6.2f  %.3f s\n", c.describe().c_str(),
-                     ours.err.rmse, ours.err.max, ours.seconds);
+        std::string steps;
+        if (reg)
+            for (const auto& [name, ms] : reg->timingsMs)
+                steps += " " + name + " " + std::to_string(static_cast<int>(ms));
+        std::fprintf(stderr, "%-45s ours    rmse %6.2f max %6.2f  %.3f s (ms:%s)\n",
+                     c.describe().c_str(), ours.err.rmse, ours.err.max, ours.seconds,
+                     steps.c_str());
 
         if (useElastix && (elastixCases < 0 || c.index < elastixCases)) {
             const int ap25 = atlas->apIndices[c.plane];
@@ -184,7 +191,9 @@ int main(int argc, char** argv) {
             in.points = pts;
             const auto out = bench::runElastix(in, std::filesystem::path(workDir) /
                                                        ("case" + std::to_string(c.index)));
-            Row el{"elastix", c.damaged()};
+            Row el;
+            el.method = "elastix";
+            el.damaged = c.damaged();
             el.seconds = out.seconds;
             if (out.ok) {
                 std::vector<cv::Point2d> mapped;

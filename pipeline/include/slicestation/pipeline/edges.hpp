@@ -10,8 +10,8 @@ namespace slicestation::pipeline {
 /// behaves the same at every resolution; the paper's values (w_m = 20, w_g = 12, sigma_g = 2 at
 /// 8000 px, s = 12, k = 5) are the defaults' origin.
 struct DominantEdgeParams {
-    double medianFrac = 0.005;  ///< median window / long side (odd, at least 3 px)
-    double sigmaFrac = 0.0015;  ///< Gaussian sigma / long side (at least 1 px)
+    double medianFrac = 0.01;   ///< median window / long side (odd, at least 5 px)
+    double sigmaFrac = 0.003;   ///< Gaussian sigma / long side (at least 1 px)
     int stableBins = 5;         ///< k: consecutive histogram bins that must be stable
     /// s: allowed count change between adjacent bins, as a fraction of the histogram's peak
     /// count. The paper's absolute s = 12 belongs to its 40-megapixel images; relative to the

@@ -25,21 +25,29 @@ struct IcpOptions {
     int minMatches = 12;           ///< fewer matches leave the transform unchanged
 };
 
+/// How a match's target is formed from the target points in reach.
+enum class TargetRule {
+    WeightedAverage, ///< Eq. 1 of the paper: 1/d-weighted mean of all compatible points
+    PointToLine,     ///< projection onto the tangent line of the nearest compatible point: moves
+                     ///< only across the edge, where an edge says something (aperture problem)
+};
+
 /// A source point and where it should go in the target frame (Eq. 1).
 struct Match {
     int source = -1;
     cv::Point2d target;
 };
 
-/// Target for each (already mapped) source point: Eq. 1, the weighted average of all target
-/// points within `distance` whose normal deviates less than `angleDeg` (weight 1/d, 100 at
-/// d = 0), then the neighbourhood-consistency check: a match whose displacement differs from
-/// the median displacement of its neighbours by more than half the distance threshold is
-/// dropped (neighbours within 2 * distance of the mapped point).
+/// Target for each (already mapped) source point from the target points within `distance`
+/// whose normal deviates less than `angleDeg` (by `rule`; Eq. 1 weights 1/d, 100 at d = 0),
+/// then the neighbourhood-consistency check: a match whose displacement differs from the median
+/// displacement of its neighbours by more than half the distance threshold is dropped
+/// (neighbours within 2 * distance of the mapped point).
 std::vector<Match> findMatches(const std::vector<cv::Point2f>& mappedPoints,
                                const std::vector<cv::Point2f>& mappedNormals,
                                const EdgePoints& target, const PointGrid& targetGrid,
-                               double distance, double angleDeg, bool consistencyCheck);
+                               double distance, double angleDeg, bool consistencyCheck,
+                               TargetRule rule = TargetRule::WeightedAverage);
 
 /// Least-squares affine taking source[m.source] to m.target (the paper's Z T = b system).
 /// Returns false when the system is degenerate (then `out` is untouched).

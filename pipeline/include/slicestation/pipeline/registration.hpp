@@ -52,6 +52,9 @@ struct Registration {
     cv::Mat workingTissueMask;     ///< CV_8U, working resolution
     EdgePoints sectionEdges;       ///< working px, after exclusions
     EdgePoints atlasEdges;         ///< atlas px
+    /// The affine (working px -> atlas px) after each stage: "obb", "outline", "icp"; for
+    /// diagnosis and tests.
+    std::vector<std::pair<std::string, cv::Matx23d>> stageAffines;
 
     /// Working coordinates of a full-resolution pixel.
     cv::Point2d workingFromImage(cv::Point2d imagePx) const;
