@@ -32,6 +32,26 @@ std::vector<cv::Point2f> labelBoundarySamples(const cv::Mat& labels) {
     return out;
 }
 
+namespace {
+long long cellKey(cv::Point2f p, float cell) {
+    // Integer cell indices first: adding an offset in float would round them away.
+    const long long cx = static_cast<long long>(std::floor(double(p.x) / cell));
+    const long long cy = static_cast<long long>(std::floor(double(p.y) / cell));
+    return (cy << 32) ^ (cx + (1LL << 31));
+}
+} // namespace
+
+EdgePoints thinEdgePoints(const EdgePoints& points, float spacing) {
+    EdgePoints out;
+    std::unordered_set<long long> taken;
+    for (size_t i = 0; i < points.size(); ++i) {
+        if (!taken.insert(cellKey(points.points[i], spacing)).second) continue;
+        out.points.push_back(points.points[i]);
+        out.normals.push_back(points.normals[i]);
+    }
+    return out;
+}
+
 EdgePoints mlsEdgePoints(const std::vector<cv::Point2f>& raw, float spacing, float radius) {
     EdgePoints out;
     if (raw.empty()) return out;
@@ -40,10 +60,7 @@ EdgePoints mlsEdgePoints(const std::vector<cv::Point2f>& raw, float spacing, flo
     std::unordered_set<long long> taken;
     const float cell = std::max(spacing, 1e-3f);
     for (const cv::Point2f& p : raw) {
-        // Integer cell indices first: adding an offset in float would round them away.
-        const long long cx = static_cast<long long>(std::floor(double(p.x) / cell));
-        const long long cy = static_cast<long long>(std::floor(double(p.y) / cell));
-        const long long key = (cy << 32) ^ (cx + (1LL << 31));
+        const long long key = cellKey(p, cell);
         if (taken.count(key)) continue;
         // Weighted line fit (moving least squares of degree 1) around p.
         double sw = 0, mx = 0, my = 0;

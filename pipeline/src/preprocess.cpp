@@ -205,7 +205,7 @@ core::Result<PreparedSection> prepareSection(const cv::Mat& image, int workingMa
 
     const float lo = percentile(grey, 0.005, valid);
     const float hi = percentile(grey, 0.995, valid);
-    if (!(hi > lo)) return makeError(ErrorCode::NoTissue, "image is blank (no contrast)");
+    if (!(hi > lo)) return makeError(ErrorCode::NoTissue, "no tissue found: the image is blank (no contrast)");
     grey = (grey - lo) / (hi - lo);
     cv::min(cv::max(grey, 0.0), 1.0, grey);
 
@@ -241,7 +241,7 @@ core::Result<PreparedSection> prepareSection(const cv::Mat& image, int workingMa
                                                   std::to_string(share * 100) + "% of the image)");
     if (share > 0.97)
         return makeError(ErrorCode::NoTissue,
-                         "no glass around the tissue: cannot tell tissue from background");
+                         "no tissue found: no glass around the tissue to tell it from the background");
     // Pure noise also splits into "tissue" and "glass"; real tissue stands well clear of the
     // glass noise.
     cv::Scalar inMean, inSd, outMean, outSd;

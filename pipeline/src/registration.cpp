@@ -83,6 +83,25 @@ cv::Matx23d obbPlacement(const OrientedBox& img, const OrientedBox& atl, double 
     return {L(0, 0), L(0, 1), c[0], L(1, 0), L(1, 1), c[1]};
 }
 
+/// ICP level by level on point sets thinned to suit each level's reach: a point every
+/// distance/8 is plenty to steer a loose level, and it keeps the neighbour searches short.
+IcpResult multiLevelIcp(const EdgePoints& source, const EdgePoints& target, cv::Matx23d init,
+                        const std::vector<IcpLevel>& levels, int iterations, double atlasPerSource) {
+    IcpResult r;
+    r.targetFromSource = init;
+    for (const IcpLevel& level : levels) {
+        const float spacing = float(level.distance / 8);
+        const EdgePoints t = thinEdgePoints(target, spacing);
+        const EdgePoints src = thinEdgePoints(source, float(spacing / atlasPerSource));
+        const PointGrid grid(t.points, float(level.distance));
+        IcpOptions o;
+        o.levels = {level};
+        o.maxIterationsPerLevel = iterations;
+        r = icpAffine(src, t, grid, r.targetFromSource, o);
+    }
+    return r;
+}
+
 double shareMatched(const std::vector<cv::Point2f>& pts, const PointGrid& other, double tol) {
     if (pts.empty()) return 0;
     size_t hit = 0;
@@ -202,7 +221,7 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     const OrientedBox imgBox = orientedBox(tissueOutline);
     const OrientedBox atlBox = orientedBox(atlasOutline);
     if (imgBox.halfMajor <= 0 || atlBox.halfMajor <= 0)
-        return makeError(ErrorCode::NoTissue, "tissue outline is degenerate");
+        return makeError(ErrorCode::NoTissue, "no tissue found: the tissue outline is degenerate");
     const double knownScale = options.imageUmPerPx > 0 && options.atlasUmPerPx > 0
                                   ? options.imageUmPerPx / (options.atlasUmPerPx * reg.workingScale)
                                   : 0.0;
@@ -224,9 +243,8 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     const EdgePoints imgOuter = mlsEdgePoints(tissueOutline, float(spacingImg),
                                               float(std::max(2.0, 3 * spacingImg)));
     if (reg.sectionEdges.size() < 20 || imgOuter.size() < 20)
-        return makeError(ErrorCode::NoTissue, "too few tissue edges to register");
+        return makeError(ErrorCode::NoTissue, "no tissue found: too few tissue edges to register");
     const PointGrid atlasGrid(reg.atlasEdges.points, float(atlasH / 40));
-    const PointGrid atlasOuterGrid(atlasOuter.points, float(atlasH / 20));
     timer.lap("features");
 
     // Candidate placements: the OBB leaves the axis signs (and, for roundish shapes, which axis
@@ -243,14 +261,13 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         const size_t n = cands.size();
         for (size_t i = 0; i < n; ++i) cands.push_back({cands[i].sMaj, -cands[i].sMin, true});
     }
-    IcpOptions coarse;
-    coarse.levels = {{30, atlasH / 5}, {20, atlasH / 8}, {15, atlasH / 12}, {10, atlasH / 20}};
-    coarse.maxIterationsPerLevel = 6;
+    const std::vector<IcpLevel> coarse{
+        {30, atlasH / 5}, {20, atlasH / 8}, {15, atlasH / 12}, {10, atlasH / 20}};
     cv::Matx23d best, bestInit;
     double bestScore = -1;
     for (const Candidate& c : cands) {
         const cv::Matx23d init = obbPlacement(imgBox, atlBox, c.sMaj, c.sMin, c.swap, knownScale);
-        const IcpResult r = icpAffine(imgOuter, atlasOuter, atlasOuterGrid, init, coarse);
+        const IcpResult r = multiLevelIcp(imgOuter, atlasOuter, init, coarse, 6, scaleGuess);
         // The refinement can wander off on an odd outline; the placement it started from stays
         // in the running.
         for (const cv::Matx23d& t : {r.targetFromSource, init}) {
@@ -268,9 +285,10 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
 
     // Global alignment with every edge, thresholds tightened as in the paper's implementation
     // section: 10, 8, 6, 4 degrees and H/10 .. H/80.
-    IcpOptions fine;
-    fine.levels = {{10, atlasH / 10}, {8, atlasH / 20}, {6, atlasH / 40}, {4, atlasH / 80}};
-    const IcpResult affine = icpAffine(reg.sectionEdges, reg.atlasEdges, atlasGrid, best, fine);
+    const std::vector<IcpLevel> fine{
+        {10, atlasH / 10}, {8, atlasH / 20}, {6, atlasH / 40}, {4, atlasH / 80}};
+    const IcpResult affine =
+        multiLevelIcp(reg.sectionEdges, reg.atlasEdges, best, fine, 8, scaleGuess);
     reg.atlasFromWorking = affine.targetFromSource;
     reg.quality.residualAffine = affine.rmsResidual;
     reg.stageAffines.emplace_back("icp", reg.atlasFromWorking);

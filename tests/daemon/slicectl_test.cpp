@@ -4,6 +4,7 @@
 #include "slicestation/sim/section_generator.hpp"
 
 #include <gtest/gtest.h>
+#include <opencv2/core.hpp>
 #include <nlohmann/json.hpp>
 
 #include <algorithm>
@@ -21,13 +22,13 @@ namespace fs = std::filesystem;
 
 namespace {
 
-struct Run {
+struct CommandResult {
     int exitCode = -1;
     std::string output;
 };
 
-Run slicectl(const std::string& args) {
-    Run r;
+CommandResult slicectl(const std::string& args) {
+    CommandResult r;
     const std::string cmd = std::string(SLICECTL_PATH) + " " + args + " 2>&1";
     FILE* p = ::popen(cmd.c_str(), "r");
     std::array<char, 4096> buf{};
@@ -67,7 +68,7 @@ std::vector<sim::Landmark> SlicectlRegister::truth_;
 } // namespace
 
 TEST_F(SlicectlRegister, WritesTheResultContractAndMapsEveryPoint) {
-    const Run r = slicectl("register --atlas " + p("atlas.tif") + " --image " + p("section.tif") +
+    const CommandResult r = slicectl("register --atlas " + p("atlas.tif") + " --image " + p("section.tif") +
                            " --points " + p("points.csv") + " --output " + p("result.json") +
                            " --overlay " + p("overlay.png") + " --warped-labels " + p("warped.tif"));
     ASSERT_EQ(r.exitCode, 0) << r.output;
@@ -120,7 +121,7 @@ TEST_F(SlicectlRegister, InvalidInputFailsWithAMessageAndKeepsTheOldResult) {
         {p("atlas.tif"), p("section.tif"), "--image-um-per-px 2", "both"},
     };
     for (const Case& c : cases) {
-        const Run r = slicectl("register --atlas " + c.atlas + " --image " + c.image +
+        const CommandResult r = slicectl("register --atlas " + c.atlas + " --image " + c.image +
                                " --output " + p("old.json") + " " + c.extra);
         EXPECT_NE(r.exitCode, 0) << c.needle;
         EXPECT_NE(r.output.find(c.needle), std::string::npos) << r.output;
@@ -134,14 +135,14 @@ TEST_F(SlicectlRegister, InvalidInputFailsWithAMessageAndKeepsTheOldResult) {
 }
 
 TEST_F(SlicectlRegister, MissingRequiredOptionIsAUsageError) {
-    const Run r = slicectl("register --image " + p("section.tif"));
+    const CommandResult r = slicectl("register --image " + p("section.tif"));
     EXPECT_NE(r.exitCode, 0);
     EXPECT_NE(r.output.find("--atlas"), std::string::npos) << r.output;
 }
 
 TEST(SlicectlDemo, RunsOnBuiltInDefaultsAndIsAccurate) {
     const fs::path out = fs::temp_directory_path() / ("slst_demo_" + std::to_string(::getpid()));
-    const Run r = slicectl("demo --output-dir " + out.string());
+    const CommandResult r = slicectl("demo --output-dir " + out.string());
     ASSERT_EQ(r.exitCode, 0) << r.output;
     const auto j = nlohmann::json::parse(r.output);
     EXPECT_LT(j.at("rmse_atlas_px").get<double>(), 3.0);

@@ -21,6 +21,9 @@ struct EdgePoints {
 /// are dropped (isolated specks carry no direction).
 EdgePoints mlsEdgePoints(const std::vector<cv::Point2f>& raw, float spacing, float radius);
 
+/// At most one point per `spacing` x `spacing` cell (the first met), normals kept.
+EdgePoints thinEdgePoints(const EdgePoints& points, float spacing);
+
 /// Edge pixels (non-zero) of an edge image as raw samples at the pixel centres.
 std::vector<cv::Point2f> edgePixels(const cv::Mat& edgeImage);
 
