@@ -1,0 +1,69 @@
+// Writes one generated section with its atlas slice and ground truth to files, for running
+// `slicectl register` by hand or under /usr/bin/time (the large-image benchmark).
+#include "bench_cases.hpp"
+
+#include "slicestation/core/image_file.hpp"
+
+#include <CLI/CLI.hpp>
+
+#include <cstdio>
+#include <fstream>
+#include <iostream>
+
+using namespace slicestation;
+
+int main(int argc, char** argv) {
+    CLI::App app{"write a generated section, its atlas slice and landmarks"};
+    std::string shared = SLST_SHARED_DIR, sizeText = "1500x1100", out = ".";
+    int plane = 10;
+    std::uint64_t seed = 1;
+    bool tear = false, brightfield = false;
+    app.add_option("--shared", shared, "Path of ../shared (real atlas)");
+    app.add_option("--size", sizeText, "Image size WxH");
+    app.add_option("--plane", plane, "Atlas plane 0..23 (front to back)")->check(CLI::Range(0, 23));
+    app.add_option("--seed", seed, "Generator seed");
+    app.add_flag("--tear", tear, "Tear the section");
+    app.add_flag("--brightfield", brightfield, "Brightfield stain");
+    app.add_option("--output-dir", out, "Where to write section.tif, atlas.tif, points.csv, truth.csv");
+    CLI11_PARSE(app, argc, argv);
+    int w = 0, h = 0;
+    if (std::sscanf(sizeText.c_str(), "%dx%d", &w, &h) != 2) {
+        std::cerr << "--size must be WxH\n";
+        return 2;
+    }
+    auto atlas = bench::loadAtlasPlanes(shared, 24);
+    if (!atlas) {
+        std::cerr << atlas.error().message << "\n";
+        return 1;
+    }
+    sim::GeneratorOptions o;
+    o.seed = seed;
+    o.imageSize = {w, h};
+    o.damage.tear = tear;
+    o.stain = brightfield ? sim::Stain::Brightfield : sim::Stain::Fluorescence;
+    auto gen = sim::generateSection(atlas->planes[plane], o);
+    if (!gen) {
+        std::cerr << gen.error().message << "\n";
+        return 1;
+    }
+    const std::filesystem::path dir(out);
+    std::filesystem::create_directories(dir);
+    if (auto r = core::writeImage(dir / "section.tif", gen->image); !r) {
+        std::cerr << r.error().message << "\n";
+        return 1;
+    }
+    if (auto r = core::writeImage(dir / "atlas.tif", atlas->planes[plane]); !r) {
+        std::cerr << r.error().message << "\n";
+        return 1;
+    }
+    std::ofstream pts(dir / "points.csv"), truth(dir / "truth.csv");
+    pts << "x,y\n";
+    truth << "x,y,atlas_x,atlas_y\n";
+    for (const auto& l : gen->truth.landmarks) {
+        pts << l.image.x << ',' << l.image.y << '\n';
+        truth << l.image.x << ',' << l.image.y << ',' << l.atlas.x << ',' << l.atlas.y << '\n';
+    }
+    std::cout << "wrote " << (dir / "section.tif").string() << " (" << w << "x" << h << "), atlas "
+              << atlas->name << " plane " << plane << "\n";
+    return 0;
+}
