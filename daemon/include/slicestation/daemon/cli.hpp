@@ -1,0 +1,23 @@
+#pragma once
+/// slicectl's subcommands. Each add*Command registers its options on `app` and returns a
+/// runner that executes the command when the user chose it (returns the exit code).
+/// Exit codes: 0 success, 2 invalid input or usage, 1 other failures.
+
+#include "slicestation/core/result.hpp"
+
+#include <CLI/CLI.hpp>
+
+#include <functional>
+
+namespace slicestation::daemon {
+
+/// Runs the chosen command; returns -1 when this command was not the one chosen.
+using CommandRunner = std::function<int()>;
+
+CommandRunner addRegisterCommand(CLI::App& app);
+CommandRunner addDemoCommand(CLI::App& app);
+
+/// Prints "slicectl <command>: error: <message>" on stderr and returns the exit code.
+int reportError(const char* command, const core::Error& error);
+
+} // namespace slicestation::daemon
