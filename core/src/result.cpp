@@ -13,6 +13,7 @@ std::string_view toString(ErrorCode code) noexcept {
     case ErrorCode::Disconnected: return "disconnected";
     case ErrorCode::Alarm: return "alarm";
     case ErrorCode::OutOfRange: return "out_of_range";
+    case ErrorCode::Cancelled: return "cancelled";
     case ErrorCode::Internal: return "internal";
     }
     return "unknown";

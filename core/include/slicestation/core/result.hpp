@@ -22,6 +22,7 @@ enum class ErrorCode {
     Disconnected,    ///< the device went away
     Alarm,           ///< the device reports an alarm
     OutOfRange,      ///< a request outside limits; nothing was done
+    Cancelled,       ///< stop() preempted the call; the device was told to halt
     Internal,        ///< a third-party library failed unexpectedly
 };
 
