@@ -16,6 +16,8 @@ using CommandRunner = std::function<int()>;
 
 CommandRunner addRegisterCommand(CLI::App& app);
 CommandRunner addDemoCommand(CLI::App& app);
+/// `atlas slice` and `atlas match` (atlas_command.hpp).
+CommandRunner addAtlasCommands(CLI::App& app);
 
 /// Prints "slicectl <command>: error: <message>" on stderr and returns the exit code.
 int reportError(const char* command, const core::Error& error);

@@ -1,0 +1,132 @@
+// Atlas stacks on disk: `atlas slice` on the real volume and the built-in atlas, manifest
+// round trip, and the errors a user can provoke.
+#include "slicestation/core/image_file.hpp"
+#include "slicestation/daemon/atlas_command.hpp"
+#include "slicestation/daemon/atlas_stack.hpp"
+#include "slicestation/pipeline/atlas.hpp"
+
+#include <gtest/gtest.h>
+
+#include <filesystem>
+#include <fstream>
+#include <set>
+#include <unistd.h>
+
+using namespace slicestation;
+using namespace slicestation::daemon;
+namespace fs = std::filesystem;
+
+namespace {
+
+const fs::path kAtlasDir = fs::path(SLST_SHARED_DIR) / "atlas" / "allen-ccf-2017";
+
+class AtlasStackTest : public ::testing::Test {
+protected:
+    void SetUp() override {
+        dir_ = fs::temp_directory_path() / ("slst_stack_" + std::to_string(::getpid()) + "_" +
+                                            ::testing::UnitTest::GetInstance()->current_test_info()->name());
+        fs::remove_all(dir_);
+    }
+    void TearDown() override { fs::remove_all(dir_); }
+    fs::path dir_;
+};
+
+} // namespace
+
+TEST_F(AtlasStackTest, SlicesTheRealVolumeIntoAStackWithManifest) {
+    if (!fs::exists(kAtlasDir / "annotation_100.nrrd"))
+        GTEST_SKIP() << "no Allen annotation at " << kAtlasDir << " (SLST_SHARED_DIR)";
+    AtlasSliceRequest rq;
+    rq.volume = kAtlasDir / "annotation_100.nrrd";
+    rq.ontology = kAtlasDir / "structure_tree_safe_2017.csv";
+    rq.intervalUm = 500;
+    rq.firstUm = 300;
+    rq.umPerPx = 100;
+    rq.output = dir_;
+    auto r = runAtlasSlice(rq);
+    ASSERT_TRUE(r.ok()) << r.error().message;
+    auto stack = readStack(dir_);
+    ASSERT_TRUE(stack.ok()) << stack.error().message;
+    ASSERT_EQ(stack->slices.size(), 26u); // 300, 800, ... 12800 (the volume ends at 13100)
+    EXPECT_DOUBLE_EQ(stack->slices[2].positionUm, 1300);
+    EXPECT_DOUBLE_EQ(stack->slices[2].umPerPx, 100);
+    EXPECT_EQ(stack->regions.size(), pipeline::majorRegionIds().size() + 1);
+    EXPECT_EQ(stack->source.at("axes"), "allen");
+    // Slice 10 (AP 5.3 mm) is the collapsed volume plane, ids as stored.
+    auto labels = readStackSlice(*stack, 10);
+    ASSERT_TRUE(labels.ok()) << labels.error().message;
+    auto volume = core::readNrrd(rq.volume);
+    auto onto = core::readOntologyCsv(rq.ontology);
+    auto plane = pipeline::coronalPlane(*volume, pipeline::VolumeAxes::Allen, 53);
+    const cv::Mat expected = pipeline::collapseLabels(*plane, *onto, pipeline::majorRegionIds(), 8);
+    EXPECT_EQ(cv::countNonZero(*labels != expected), 0);
+    // --regions all keeps every structure id.
+    rq.regions = "all";
+    rq.output = dir_ / "all";
+    ASSERT_TRUE(runAtlasSlice(rq).ok());
+    auto all = readStack(rq.output);
+    auto raw = readStackSlice(*all, 10);
+    ASSERT_TRUE(raw.ok());
+    EXPECT_EQ(cv::countNonZero(*raw != *plane), 0);
+    EXPECT_GT(all->regions.size(), 200u);
+}
+
+TEST_F(AtlasStackTest, BuiltinAtlasIsAStackToo) {
+    AtlasSliceRequest rq;
+    rq.builtin = true;
+    rq.intervalUm = 400;
+    rq.output = dir_;
+    auto r = runAtlasSlice(rq);
+    ASSERT_TRUE(r.ok()) << r.error().message;
+    auto stack = readStack(dir_ / "manifest.json");
+    ASSERT_TRUE(stack.ok()) << stack.error().message;
+    EXPECT_EQ(stack->slices.size(), 21u); // 0 .. 8000 um
+    EXPECT_EQ(stack->source.at("kind"), "builtin");
+    auto s = readStackSlice(*stack, 20);
+    ASSERT_TRUE(s.ok());
+    EXPECT_GT(cv::countNonZero(*s), 1000);
+    EXPECT_FALSE(stack->regions.empty());
+    EXPECT_EQ(readStackSlice(*stack, 21).error().code, core::ErrorCode::OutOfRange);
+}
+
+TEST_F(AtlasStackTest, BadInputsAreClearErrors) {
+    AtlasSliceRequest rq;
+    rq.output = dir_;
+    rq.volume = dir_ / "missing.nrrd";
+    rq.ontology = dir_ / "missing.csv";
+    EXPECT_EQ(runAtlasSlice(rq).error().code, core::ErrorCode::NotFound);
+    rq.axes = "ras";
+    auto axes = runAtlasSlice(rq);
+    EXPECT_EQ(axes.error().code, core::ErrorCode::InvalidArgument);
+    EXPECT_NE(axes.error().message.find("--axes"), std::string::npos);
+    rq.axes = "allen";
+    rq.regions = "some";
+    EXPECT_NE(runAtlasSlice(rq).error().message.find("--regions"), std::string::npos);
+    rq.regions = "major";
+    rq.ontology.clear();
+    EXPECT_NE(runAtlasSlice(rq).error().message.find("--ontology"), std::string::npos);
+    // A file that is not a NRRD volume.
+    fs::create_directories(dir_);
+    std::ofstream(dir_ / "bad.nrrd") << "hello\n\n";
+    rq.volume = dir_ / "bad.nrrd";
+    rq.regions = "all";
+    EXPECT_EQ(runAtlasSlice(rq).error().code, core::ErrorCode::InvalidArgument);
+    if (fs::exists(kAtlasDir / "annotation_100.nrrd")) {
+        rq.volume = kAtlasDir / "annotation_100.nrrd";
+        rq.firstUm = 20000; // the volume is 13.1 mm long
+        auto out = runAtlasSlice(rq);
+        EXPECT_EQ(out.error().code, core::ErrorCode::OutOfRange);
+        EXPECT_NE(out.error().message.find("outside the volume"), std::string::npos);
+    }
+    rq.builtin = true;
+    rq.firstUm = 9000;
+    EXPECT_EQ(runAtlasSlice(rq).error().code, core::ErrorCode::OutOfRange);
+    // Manifests: missing, not JSON, missing field.
+    EXPECT_EQ(readStack(dir_ / "nothing").error().code, core::ErrorCode::NotFound);
+    std::ofstream(dir_ / "manifest.json") << "{not json";
+    EXPECT_EQ(readStack(dir_).error().code, core::ErrorCode::InvalidArgument);
+    std::ofstream(dir_ / "manifest.json") << R"({"slices": [{"index": 0, "file": "a.tif"}]})";
+    auto missing = readStack(dir_);
+    ASSERT_FALSE(missing.ok());
+    EXPECT_NE(missing.error().message.find("position_um"), std::string::npos);
+}
