@@ -1,0 +1,453 @@
+#include "slicestation/pipeline/atlas_matching.hpp"
+
+#include "slicestation/pipeline/affine.hpp"
+#include "slicestation/pipeline/edges.hpp"
+#include "slicestation/pipeline/icp.hpp"
+#include "slicestation/pipeline/point_grid.hpp"
+#include "slicestation/pipeline/preprocess.hpp"
+
+#include <opencv2/imgproc.hpp>
+
+#include <algorithm>
+#include <array>
+#include <chrono>
+#include <cmath>
+#include <numeric>
+
+namespace slicestation::pipeline {
+namespace {
+
+using core::ErrorCode;
+using core::makeError;
+
+constexpr double kPi = 3.14159265358979323846;
+
+cv::Mat fillHoles(const cv::Mat& mask) {
+    std::vector<std::vector<cv::Point>> contours;
+    cv::findContours(mask.clone(), contours, cv::RETR_EXTERNAL, cv::CHAIN_APPROX_SIMPLE);
+    cv::Mat filled = cv::Mat::zeros(mask.size(), CV_8U);
+    cv::drawContours(filled, contours, -1, cv::Scalar(255), cv::FILLED);
+    return filled;
+}
+
+std::vector<cv::Point2f> outerContour(const cv::Mat& mask) {
+    std::vector<std::vector<cv::Point>> contours;
+    cv::findContours(mask.clone(), contours, cv::RETR_EXTERNAL, cv::CHAIN_APPROX_NONE);
+    std::vector<cv::Point2f> out;
+    for (const auto& c : contours)
+        for (const auto& p : c) out.emplace_back(float(p.x), float(p.y));
+    return out;
+}
+
+/// Distance (px) to the nearest non-zero pixel of `edges`.
+cv::Mat distanceTo(const cv::Mat& edges) {
+    cv::Mat d;
+    cv::distanceTransform(edges == 0, d, cv::DIST_L2, cv::DIST_MASK_3);
+    return d;
+}
+
+float lookup(const cv::Mat& dist, cv::Point2f p, float outside) {
+    const int x = int(std::lround(p.x)), y = int(std::lround(p.y));
+    if (x < 0 || y < 0 || x >= dist.cols || y >= dist.rows) return outside;
+    return dist.at<float>(y, x);
+}
+
+/// OBB placement (paper section 3.2.1): centre on centre, axes on axes, per-axis or known scale.
+cv::Matx23d placement(const OrientedBox& img, const OrientedBox& atl, double sMaj, double sMin,
+                      bool swapAxes, double scale) {
+    const cv::Vec2d aMaj = swapAxes ? atl.minor : atl.major;
+    const cv::Vec2d aMin = swapAxes ? atl.major : atl.minor;
+    const cv::Matx22d A(aMaj[0], aMin[0], aMaj[1], aMin[1]);
+    const cv::Matx22d D(scale * sMaj, 0, 0, scale * sMin);
+    const cv::Matx22d It(img.major[0], img.major[1], img.minor[0], img.minor[1]);
+    const cv::Matx22d L = A * D * It;
+    const cv::Vec2d c =
+        cv::Vec2d(atl.centre.x, atl.centre.y) - L * cv::Vec2d(img.centre.x, img.centre.y);
+    return {L(0, 0), L(0, 1), c[0], L(1, 0), L(1, 1), c[1]};
+}
+
+IcpResult runIcp(const EdgePoints& source, const EdgePoints& target, const cv::Matx23d& init,
+                 const std::vector<IcpLevel>& levels, int iterations, double targetPerSource) {
+    IcpResult r;
+    r.targetFromSource = init;
+    for (const IcpLevel& level : levels) {
+        // Thinned to suit the level's reach, as in the registration: cheap and just as steady.
+        const float spacing = float(std::max(1.0, level.distance / 6));
+        const EdgePoints t = thinEdgePoints(target, spacing);
+        const EdgePoints s = thinEdgePoints(source, float(spacing / targetPerSource));
+        const PointGrid grid(t.points, float(level.distance));
+        IcpOptions o;
+        o.levels = {level};
+        o.maxIterationsPerLevel = iterations;
+        o.minMatches = 8;
+        const IcpResult next = icpAffine(s, t, grid, r.targetFromSource, o);
+        // A level that collapses the scale or flips the section is a wrong turn: keep the last.
+        const double d0 = det(r.targetFromSource), d1 = det(next.targetFromSource);
+        if (d1 <= 0 || d1 < 0.5 * d0 || d1 > 2 * d0) break;
+        r = next;
+    }
+    return r;
+}
+
+double overlap(const cv::Mat& tissue, const cv::Mat& sliceMask, const cv::Matx23d& sliceFromSection) {
+    cv::Mat mapped;
+    cv::warpAffine(sliceMask, mapped, cv::Mat(sliceFromSection), tissue.size(),
+                   cv::INTER_NEAREST | cv::WARP_INVERSE_MAP, cv::BORDER_CONSTANT, 0);
+    const double inter = cv::countNonZero(mapped & tissue);
+    const double uni = cv::countNonZero(mapped | tissue);
+    return uni > 0 ? inter / uni : 0.0;
+}
+
+/// Soft agreement of edges: the mean of exp(-d^2 / 2 sigma^2) over points, d the distance to the
+/// other side's nearest edge. Smooth in the slice position, so neighbouring slices rank by how
+/// close their boundaries come, not by a hard tolerance.
+struct Agreement {
+    double sectionToSlice = 0; ///< precision: section edges explained by the slice
+    double sliceToSection = 0; ///< recall: slice boundaries seen in the section
+    double f() const {
+        const double s = sectionToSlice + sliceToSection;
+        return s > 0 ? 2 * sectionToSlice * sliceToSection / s : 0.0;
+    }
+};
+
+/// Section edge points split by a side test (for the tilt); `side` returns -1, 0 (ignore) or 1.
+template <class Side>
+Agreement agreement(const SectionFeatures& sec, const SliceFeatures& sl, const cv::Matx23d& t,
+                    Side side, int wantSide) {
+    const double scale = std::sqrt(std::abs(det(t)));
+    const double sigma = std::max(1.0, sl.heightPx / 90);
+    const double k = -0.5 / (sigma * sigma);
+    const float far = float(4 * sigma);
+    Agreement a;
+    double sum = 0;
+    int n = 0;
+    for (const cv::Point2f& p : sec.edges.points) {
+        const cv::Point2f q = cv::Point2f(apply(t, p));
+        if (wantSide != 0 && side(q) != wantSide) continue;
+        const double d = lookup(sl.edgeDistance, q, far);
+        sum += std::exp(k * d * d);
+        ++n;
+    }
+    a.sectionToSlice = n > 0 ? sum / n : 0;
+    const cv::Matx23d inv = invert(t);
+    const double kSec = k * scale * scale; // distances measured in section px
+    sum = 0;
+    n = 0;
+    for (const cv::Point2f& s : sl.edges.points) {
+        if (wantSide != 0 && side(s) != wantSide) continue;
+        const cv::Point2f q = cv::Point2f(apply(inv, s));
+        const double d = lookup(sec.edgeDistance, q, float(far / scale));
+        sum += std::exp(kSec * d * d);
+        ++n;
+    }
+    a.sliceToSection = n > 0 ? sum / n : 0;
+    return a;
+}
+
+/// Vertex of the parabola through (-1, a), (0, b), (1, c), in [-0.5, 0.5]; 0 when flat.
+double parabolaPeak(double a, double b, double c) {
+    const double den = a - 2 * b + c;
+    if (den >= 0) return 0;
+    return std::clamp(0.5 * (a - c) / den, -0.5, 0.5);
+}
+
+} // namespace
+
+double matchWorkUmPerPx(const std::vector<cv::Mat>& labels, double umPerPx, int targetPx) {
+    int longest = 1;
+    for (const cv::Mat& l : labels) {
+        if (l.empty()) continue;
+        const cv::Rect box = cv::boundingRect(l != 0);
+        longest = std::max({longest, box.width, box.height});
+    }
+    return longest * umPerPx / std::max(16, targetPx);
+}
+
+SliceFeatures sliceFeatures(const cv::Mat& labels, double umPerPx, double positionUm,
+                            double workUmPerPx) {
+    CV_Assert(labels.type() == CV_32S && umPerPx > 0 && workUmPerPx > 0);
+    SliceFeatures f;
+    f.positionUm = positionUm;
+    f.workUmPerPx = workUmPerPx;
+    const double s = umPerPx / workUmPerPx;
+    cv::Mat work;
+    cv::resize(labels, work, cv::Size(std::max(1, int(std::lround(labels.cols * s))),
+                                      std::max(1, int(std::lround(labels.rows * s)))),
+               0, 0, cv::INTER_NEAREST);
+    f.mask = fillHoles(work != 0);
+    f.areaPx = cv::countNonZero(f.mask);
+    if (f.areaPx < 16) return f;
+    const auto contour = outerContour(f.mask);
+    f.box = orientedBox(contour);
+    f.heightPx = 2 * std::min(f.box.halfMajor, f.box.halfMinor);
+    const float spacing = float(std::max(1.0, f.heightPx / 120));
+    f.outline = mlsEdgePoints(contour, spacing, 3 * spacing);
+    f.edges = mlsEdgePoints(labelBoundarySamples(work), spacing, 3 * spacing);
+    f.edgeDistance = distanceTo(atlasEdges(work));
+    return f;
+}
+
+core::Result<SectionFeatures> sectionFeatures(const cv::Mat& image, double imageUmPerPx,
+                                              double workUmPerPx, int unknownScaleMaxSide) {
+    if (imageUmPerPx < 0 || workUmPerPx <= 0 || unknownScaleMaxSide < 64)
+        return makeError(ErrorCode::InvalidArgument,
+                         "pixel sizes must be positive and the working size at least 64 px");
+    if (image.empty()) return makeError(ErrorCode::InvalidArgument, "section image is empty");
+    const int longSide = std::max(image.cols, image.rows);
+    const int maxSide = imageUmPerPx > 0
+                            ? std::max(64, int(std::lround(longSide * imageUmPerPx / workUmPerPx)))
+                            : unknownScaleMaxSide;
+    auto prepared = prepareSection(image, maxSide);
+    if (!prepared) return prepared.error();
+    SectionFeatures f;
+    f.scale = prepared->scale;
+    f.workUmPerPx = imageUmPerPx > 0 ? imageUmPerPx / f.scale : 0.0;
+    f.grey = prepared->grey;
+    f.tissue = fillHoles(prepared->tissueMask);
+    f.areaPx = cv::countNonZero(f.tissue);
+    const auto contour = outerContour(f.tissue);
+    f.box = orientedBox(contour);
+    if (f.box.halfMajor <= 0)
+        return makeError(ErrorCode::NoTissue, "no tissue found: the tissue outline is degenerate");
+    // Algorithm 1's dominant edges, kept on and next to the tissue (as the registration does).
+    cv::Mat mei = dominantEdges(f.grey);
+    cv::Mat near;
+    cv::dilate(prepared->tissueMask, near,
+               cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(5, 5)));
+    mei &= near;
+    const double height = 2 * std::min(f.box.halfMajor, f.box.halfMinor);
+    const float spacing = float(std::max(1.0, height / 120));
+    f.outline = mlsEdgePoints(contour, spacing, 3 * spacing);
+    f.edges = mlsEdgePoints(edgePixels(mei), spacing, std::max(2.f, 3 * spacing));
+    // The outline counts as an edge, as the slice's outer contour does.
+    cv::Mat border;
+    cv::morphologyEx(f.tissue, border, cv::MORPH_GRADIENT,
+                     cv::getStructuringElement(cv::MORPH_RECT, cv::Size(3, 3)));
+    f.edgeDistance = distanceTo(mei | border);
+    if (f.edges.size() < 20 || f.outline.size() < 20)
+        return makeError(ErrorCode::NoTissue, "no tissue found: too few tissue edges to match");
+    return f;
+}
+
+core::Result<SectionMatch> matchSection(const SectionFeatures& sec,
+                                        const std::vector<SliceFeatures>& slices,
+                                        const MatchOptions& options) {
+    if (slices.empty()) return makeError(ErrorCode::InvalidArgument, "the atlas stack is empty");
+    const int last = options.last < 0 ? int(slices.size()) - 1 : options.last;
+    if (options.first < 0 || last >= int(slices.size()) || options.first > last)
+        return makeError(ErrorCode::InvalidArgument,
+                         "slice range " + std::to_string(options.first) + ".." +
+                             std::to_string(last) + " is not inside the stack (0.." +
+                             std::to_string(int(slices.size()) - 1) + ")");
+    std::vector<std::pair<std::string, double>> timings;
+
+    using Clock = std::chrono::steady_clock;
+    auto lap = [&m = timings, last = Clock::now()](const char* name) mutable {
+        const auto now = Clock::now();
+        m.emplace_back(name, std::chrono::duration<double, std::milli>(now - last).count());
+        last = now;
+    };
+    // Stage 1, every slice: a placement refined on the outlines (paper section 3.2.1, OBB then
+    // ICP), scored by tissue overlap. The OBB leaves the axis signs (and for roundish shapes
+    // which axis is which) open; every slice shares the section's orientation, so the
+    // alternatives are tried on every third slice only and the winner's rotation seeds the rest.
+    struct Placement {
+        double sMaj, sMin;
+        bool swap;
+    };
+    auto scaleFor = [&](const SliceFeatures& sl) {
+        return sec.workUmPerPx > 0 ? sec.workUmPerPx / sl.workUmPerPx
+                                   : std::sqrt(sl.areaPx / std::max(sec.areaPx, 1.0));
+    };
+    auto usable = [&](int i) {
+        const SliceFeatures& sl = slices[size_t(i)];
+        return sl.areaPx >= 16 && sl.outline.size() >= 12;
+    };
+    auto align = [&](int i, const std::vector<cv::Matx23d>& inits) {
+        const SliceFeatures& sl = slices[size_t(i)];
+        const double h = sl.heightPx;
+        const std::vector<IcpLevel> coarse{{30, h / 5}, {15, h / 12}};
+        MatchCandidate best;
+        best.index = i;
+        best.overlap = -1;
+        for (const cv::Matx23d& init : inits) {
+            const IcpResult r = runIcp(sec.outline, sl.outline, init, coarse, 3, scaleFor(sl));
+            const double o = overlap(sec.tissue, sl.mask, r.targetFromSource);
+            if (o > best.overlap) {
+                best.overlap = o;
+                best.sliceFromSection = r.targetFromSource;
+            }
+        }
+        return best;
+    };
+    std::vector<MatchCandidate> byIndex(slices.size());
+    std::vector<bool> done(slices.size(), false);
+    MatchCandidate seed;
+    seed.overlap = -1;
+    for (int i = options.first; i <= last; i += 3) {
+        if (!usable(i)) continue;
+        const SliceFeatures& sl = slices[size_t(i)];
+        std::vector<Placement> places{{1, 1, false}, {-1, -1, false}};
+        if (options.allowMirror) places.insert(places.end(), {{1, -1, false}, {-1, 1, false}});
+        const double aspectSec = sec.box.halfMajor / std::max(sec.box.halfMinor, 1e-9);
+        const double aspectSl = sl.box.halfMajor / std::max(sl.box.halfMinor, 1e-9);
+        if (aspectSec < 1.25 || aspectSl < 1.25) {
+            const size_t n = places.size();
+            for (size_t k = 0; k < n; ++k) places.push_back({places[k].sMaj, -places[k].sMin, true});
+        }
+        std::vector<cv::Matx23d> inits;
+        for (const Placement& p : places)
+            inits.push_back(placement(sec.box, sl.box, p.sMaj, p.sMin, p.swap, scaleFor(sl)));
+        byIndex[size_t(i)] = align(i, inits);
+        done[size_t(i)] = true;
+        if (byIndex[size_t(i)].overlap > seed.overlap) seed = byIndex[size_t(i)];
+    }
+    if (seed.overlap < 0) return makeError(ErrorCode::NoTissue, "no stack slice holds a brain to match");
+    // The seed's rotation (and reflection) as a similarity; centre on centre with each slice's
+    // own scale.
+    const cv::Matx23d& st = seed.sliceFromSection;
+    const bool mirrored = det(st) < 0;
+    const double rc = mirrored ? st(0, 0) - st(1, 1) : st(0, 0) + st(1, 1);
+    const double rs = mirrored ? st(1, 0) + st(0, 1) : st(1, 0) - st(0, 1);
+    const double norm = std::max(std::hypot(rc, rs), 1e-12);
+    const double cosT = rc / norm, sinT = rs / norm;
+    std::vector<MatchCandidate> all;
+    for (int i = options.first; i <= last; ++i) {
+        if (!usable(i)) continue;
+        if (!done[size_t(i)]) {
+            const SliceFeatures& sl = slices[size_t(i)];
+            const double k = scaleFor(sl);
+            // Rotation, or reflection across the line at angle theta/2 when mirrored.
+            const cv::Matx22d L = mirrored ? cv::Matx22d(k * cosT, k * sinT, k * sinT, -k * cosT)
+                                           : cv::Matx22d(k * cosT, -k * sinT, k * sinT, k * cosT);
+            const cv::Vec2d c = cv::Vec2d(sl.box.centre.x, sl.box.centre.y) -
+                                L * cv::Vec2d(sec.box.centre.x, sec.box.centre.y);
+            byIndex[size_t(i)] = align(i, {cv::Matx23d(L(0, 0), L(0, 1), c[0], L(1, 0), L(1, 1), c[1])});
+        }
+        all.push_back(byIndex[size_t(i)]);
+    }
+    if (all.empty()) return makeError(ErrorCode::NoTissue, "no stack slice holds a brain to match");
+
+    // Stage 2, a shortlist: the best overlaps and the neighbours of the top three, so the
+    // position can be refined between slices.
+    std::vector<size_t> order(all.size());
+    std::iota(order.begin(), order.end(), size_t(0));
+    std::sort(order.begin(), order.end(),
+              [&](size_t a, size_t b) { return all[a].overlap > all[b].overlap; });
+    std::vector<bool> chosen(all.size(), false);
+    for (size_t k = 0; k < order.size() && k < size_t(std::max(1, options.shortlist)); ++k) {
+        chosen[order[k]] = true;
+        if (k < 3) {
+            if (order[k] > 0) chosen[order[k] - 1] = true;
+            if (order[k] + 1 < all.size()) chosen[order[k] + 1] = true;
+        }
+    }
+    // Paper section 3.2.3: ICP with normals on every edge, tightening; here only to the level
+    // that decides between neighbouring slices.
+    auto refine = [&](MatchCandidate& c) {
+        const SliceFeatures& sl = slices[size_t(c.index)];
+        const double h = sl.heightPx;
+        const std::vector<IcpLevel> fine{{10, h / 10}, {8, h / 20}, {6, h / 40}};
+        const double scale = std::sqrt(std::abs(det(c.sliceFromSection)));
+        const IcpResult r = runIcp(sec.edges, sl.edges, c.sliceFromSection, fine, 4, scale);
+        const double o = overlap(sec.tissue, sl.mask, r.targetFromSource);
+        // The edge alignment may be pulled off by texture; keep whichever places the tissue
+        // better, the outline alignment's overlap being the reference.
+        if (o >= 0.97 * c.overlap) {
+            c.sliceFromSection = r.targetFromSource;
+            c.overlap = o;
+        }
+        const Agreement a = agreement(sec, sl, c.sliceFromSection, [](cv::Point2f) { return 0; }, 0);
+        c.score = a.f() * c.overlap;
+    };
+    lap("overlap");
+    std::vector<MatchCandidate> scored;
+    for (size_t k = 0; k < all.size(); ++k) {
+        if (!chosen[k]) continue;
+        refine(all[k]);
+        scored.push_back(all[k]);
+    }
+    std::sort(scored.begin(), scored.end(),
+              [](const MatchCandidate& a, const MatchCandidate& b) { return a.score > b.score; });
+
+    lap("edges");
+    SectionMatch m;
+    m.candidates = scored;
+    const MatchCandidate& best = scored.front();
+    m.index = best.index;
+    m.score = best.score;
+    m.positionUm = slices[size_t(best.index)].positionUm;
+    auto scoreOf = [&](int index) -> double {
+        for (const MatchCandidate& c : scored)
+            if (c.index == index) return c.score;
+        return -1;
+    };
+    const double below = scoreOf(best.index - 1), above = scoreOf(best.index + 1);
+    if (below >= 0 && above >= 0) {
+        const double t = parabolaPeak(below, best.score, above);
+        const double step = 0.5 * (slices[size_t(best.index + 1)].positionUm -
+                                   slices[size_t(best.index - 1)].positionUm);
+        m.positionUm += t * step;
+    }
+
+    // Tilt: each half of the section is matched on its own against the slices around the best;
+    // the difference of the halves' positions over their distance is the tilt. Only a dense
+    // stack resolves the few tens of micrometres this takes.
+    const int lo = std::max(options.first, best.index - 3), hi = std::min(last, best.index + 3);
+    const double interval = hi > lo ? (slices[size_t(hi)].positionUm - slices[size_t(lo)].positionUm) /
+                                          (hi - lo)
+                                    : 0;
+    if (options.tiltMaxIntervalUm > 0 && hi - lo >= 4 && interval > 0 &&
+        interval <= options.tiltMaxIntervalUm) {
+        struct Half {
+            std::vector<double> score;
+        };
+        // Halves split at the best slice's brain centre, along columns (LR) and rows (DV).
+        const SliceFeatures& ref = slices[size_t(best.index)];
+        std::array<Half, 4> halves; // left, right, top, bottom
+        for (int i = lo; i <= hi; ++i) {
+            MatchCandidate cand;
+            cand.index = i;
+            const auto it = std::find_if(scored.begin(), scored.end(),
+                                         [&](const MatchCandidate& s) { return s.index == i; });
+            if (it != scored.end()) {
+                cand = *it;
+            } else {
+                cand = best;
+                cand.index = i;
+                refine(cand);
+            }
+            const SliceFeatures& sl = slices[size_t(i)];
+            const double sx = sl.box.centre.x, sy = sl.box.centre.y;
+            auto col = [sx](cv::Point2f p) { return p.x < sx ? -1 : 1; };
+            auto row = [sy](cv::Point2f p) { return p.y < sy ? -1 : 1; };
+            halves[0].score.push_back(agreement(sec, sl, cand.sliceFromSection, col, -1).f());
+            halves[1].score.push_back(agreement(sec, sl, cand.sliceFromSection, col, 1).f());
+            halves[2].score.push_back(agreement(sec, sl, cand.sliceFromSection, row, -1).f());
+            halves[3].score.push_back(agreement(sec, sl, cand.sliceFromSection, row, 1).f());
+        }
+        auto peak = [&](const std::vector<double>& s) {
+            const size_t k = size_t(std::max_element(s.begin(), s.end()) - s.begin());
+            double t = 0;
+            if (k > 0 && k + 1 < s.size()) t = parabolaPeak(s[k - 1], s[k], s[k + 1]);
+            return (double(k) + t) * interval;
+        };
+        // The halves' centres lie about half the brain's extent apart. A plane leaning toward
+        // its columns meets the right half at a smaller position (atlas_slicing.cpp's frame).
+        const cv::Rect box = cv::boundingRect(ref.mask);
+        const double halfWidthUm = 0.5 * box.width * ref.workUmPerPx;
+        const double halfHeightUm = 0.5 * box.height * ref.workUmPerPx;
+        if (halfWidthUm > 0 && halfHeightUm > 0) {
+            m.tiltColumnsDeg = std::atan2(peak(halves[0].score) - peak(halves[1].score),
+                                          halfWidthUm) * 180 / kPi;
+            m.tiltRowsDeg = std::atan2(peak(halves[2].score) - peak(halves[3].score),
+                                       halfHeightUm) * 180 / kPi;
+            m.tiltEstimated = true;
+        }
+    }
+    lap("tilt");
+    m.timingsMs = std::move(timings);
+    return m;
+}
+
+} // namespace slicestation::pipeline
