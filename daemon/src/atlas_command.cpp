@@ -4,7 +4,14 @@
 #include "slicestation/core/ontology.hpp"
 #include "slicestation/daemon/atlas_stack.hpp"
 #include "slicestation/pipeline/atlas.hpp"
+#include "slicestation/pipeline/atlas_matching.hpp"
 #include "slicestation/pipeline/atlas_slicing.hpp"
+#include "slicestation/core/image_file.hpp"
+#include "slicestation/daemon/register_command.hpp"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
 
 #include <set>
 
@@ -117,9 +124,83 @@ core::Result<json> runAtlasSlice(const AtlasSliceRequest& rq) {
                 {"manifest", (rq.output / "manifest.json").string()}};
 }
 
+core::Result<std::vector<pipeline::SliceFeatures>> stackFeatures(const AtlasStack& stack) {
+    std::vector<cv::Mat> labels;
+    for (const StackSlice& s : stack.slices) {
+        auto l = readStackSlice(stack, s.index);
+        if (!l) return l.error();
+        labels.push_back(std::move(*l));
+    }
+    // One working pixel size for the whole stack, from its largest brain and finest slices.
+    double umPerPx = stack.slices.front().umPerPx;
+    for (const StackSlice& s : stack.slices) umPerPx = std::min(umPerPx, s.umPerPx);
+    const double workUm = pipeline::matchWorkUmPerPx(labels, umPerPx);
+    std::vector<pipeline::SliceFeatures> features;
+    for (size_t i = 0; i < labels.size(); ++i)
+        features.push_back(pipeline::sliceFeatures(labels[i], stack.slices[i].umPerPx,
+                                                    stack.slices[i].positionUm, workUm));
+    return features;
+}
+
 core::Result<json> runAtlasMatch(const AtlasMatchRequest& rq) {
-    (void)rq;
-    return makeError(ErrorCode::Unsupported, "atlas match is not available yet");
+    using Clock = std::chrono::steady_clock;
+    const auto t0 = Clock::now();
+    if (rq.window < 0) return makeError(ErrorCode::InvalidArgument, "--window must be >= 0");
+    if (rq.imageUmPerPx < 0)
+        return makeError(ErrorCode::InvalidArgument, "--image-um-per-px must be positive");
+    auto stack = readStack(rq.stack);
+    if (!stack) return stack.error();
+    const int count = int(stack->slices.size());
+    if (rq.expectedIndex && (*rq.expectedIndex < 0 || *rq.expectedIndex >= count))
+        return makeError(ErrorCode::OutOfRange, "--expected-index " +
+                                                    std::to_string(*rq.expectedIndex) +
+                                                    " is not in the stack (0.." +
+                                                    std::to_string(count - 1) + ")");
+    auto image = core::readImage(rq.image);
+    if (!image) return image.error();
+    auto features = stackFeatures(*stack);
+    if (!features) return features.error();
+    const auto tLoaded = Clock::now();
+
+    pipeline::MatchOptions opt;
+    if (rq.expectedIndex) {
+        opt.first = std::max(0, *rq.expectedIndex - rq.window);
+        opt.last = std::min(count - 1, *rq.expectedIndex + rq.window);
+    }
+    auto section = pipeline::sectionFeatures(*image, rq.imageUmPerPx, features->front().workUmPerPx);
+    if (!section)
+        return makeError(section.error().code, rq.image.string() + ": " + section.error().message);
+    auto m = pipeline::matchSection(*section, *features, opt);
+    if (!m) return makeError(m.error().code, rq.image.string() + ": " + m.error().message);
+    const auto tMatched = Clock::now();
+
+    json candidates = json::array();
+    for (const auto& c : m->candidates)
+        candidates.push_back({{"index", c.index},
+                              {"position_um", stack->slices[size_t(c.index)].positionUm},
+                              {"score", c.score},
+                              {"overlap", c.overlap}});
+    auto ms = [](auto a, auto b) { return std::chrono::duration<double, std::milli>(b - a).count(); };
+    json out = {{"index", m->index},
+                {"position_um", m->positionUm},
+                {"slice_position_um", stack->slices[size_t(m->index)].positionUm},
+                {"score", m->score},
+                {"tilt_lr_deg", m->tiltColumnsDeg},
+                {"tilt_dv_deg", m->tiltRowsDeg},
+                {"tilt_estimated", m->tiltEstimated},
+                {"candidates", std::move(candidates)},
+                {"stack", stack->dir.string()},
+                {"image", rq.image.string()},
+                {"timings_ms", {{"load", ms(t0, tLoaded)}, {"match", ms(tLoaded, tMatched)},
+                                {"total", ms(t0, Clock::now())}}}};
+    if (rq.expectedIndex) {
+        out["expected_index"] = *rq.expectedIndex;
+        // More than one slice off: the plan and the section disagree (sections mounted out of
+        // order, skipped or tilted); the caller decides whether that is a warning.
+        out["mismatch"] = std::abs(m->index - *rq.expectedIndex) > 1;
+    }
+    if (auto w = writeFileAtomically(rq.output, out.dump(2) + "\n"); !w) return w.error();
+    return out;
 }
 
 } // namespace slicestation::daemon

@@ -187,6 +187,9 @@ core::Result<cv::Mat> readStackSlice(const AtlasStack& stack, int index) {
     if (!path) return path.error();
     auto image = core::readImage(*path);
     if (!image) return image.error();
+    // A plane beyond the brain's ends is all outside: a valid slice with no labels.
+    if (image->channels() == 1 && image->depth() != CV_32F && cv::countNonZero(*image) == 0)
+        return cv::Mat(cv::Mat::zeros(image->size(), CV_32S));
     auto labels = pipeline::labelsFromImage(*image);
     if (!labels)
         return makeError(labels.error().code, path->string() + ": " + labels.error().message);

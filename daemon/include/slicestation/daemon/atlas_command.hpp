@@ -3,12 +3,15 @@
 /// and finding the stack slice a section came from.
 
 #include "slicestation/core/result.hpp"
+#include "slicestation/daemon/atlas_stack.hpp"
+#include "slicestation/pipeline/atlas_matching.hpp"
 
 #include <nlohmann/json.hpp>
 
 #include <filesystem>
 #include <optional>
 #include <string>
+#include <vector>
 
 namespace slicestation::daemon {
 
@@ -42,10 +45,16 @@ struct AtlasMatchRequest {
 };
 
 /// Matches the section against the stack (pipeline::matchSection) and writes MATCH.json:
-/// {"index", "position_um", "score", "tilt_lr_deg", "tilt_dv_deg", "tilt_estimated",
-///  "candidates": [{"index", "position_um", "score"}...] best first, "timings_ms"}.
+/// {"index", "position_um" (refined between slices), "slice_position_um", "score",
+///  "tilt_lr_deg", "tilt_dv_deg", "tilt_estimated",
+///  "candidates": [{"index", "position_um", "score", "overlap"}...] best first, "timings_ms",
+///  and with an expected index "expected_index" and "mismatch" (more than one slice off)}.
 /// \return NotFound / IoError / InvalidArgument for the files, OutOfRange for an expected index
 ///         outside the stack, NoTissue.
 [[nodiscard]] core::Result<nlohmann::json> runAtlasMatch(const AtlasMatchRequest& request);
+
+/// Matching features of every slice of `stack` (read from disk), one working pixel size.
+[[nodiscard]] core::Result<std::vector<pipeline::SliceFeatures>> stackFeatures(
+    const AtlasStack& stack);
 
 } // namespace slicestation::daemon
