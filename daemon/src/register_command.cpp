@@ -102,8 +102,20 @@ core::Result<json> runRegister(const RegisterRequest& rq) {
                     {"contrast", reg->contrast == pipeline::Contrast::Brightfield ? "brightfield"
                                                                                 : "fluorescence"}};
     out["atlas"] = {{"path", rq.atlas.string()}, {"width", labels->cols}, {"height", labels->rows}};
-    out["damaged"] = false; // damage detection lands with its own issue
-    out["damage_regions"] = json::array();
+    out["damaged"] = reg->damaged;
+    json regions = json::array();
+    for (const pipeline::DamageRegion& d : reg->damage) {
+        json poly = json::array();
+        for (const cv::Point2f& p : d.polygon) poly.push_back({p.x, p.y});
+        regions.push_back({{"kind", std::string(pipeline::toString(d.kind))},
+                           {"polygon", std::move(poly)},
+                           {"area_px", d.areaPx},
+                           {"share", d.share},
+                           {"length_px", d.lengthPx}});
+    }
+    out["damage_regions"] = std::move(regions);
+    out["damage_fraction"] = reg->damageFraction;
+    out["damage_summary"] = reg->damageSummary;
     out["affine_atlas_from_image"] = affineJson(reg->affineAtlasFromImage());
     json pts = json::array();
     for (const cv::Point2d& p : points) {
@@ -126,7 +138,14 @@ core::Result<json> runRegister(const RegisterRequest& rq) {
     }
     if (rq.overlay) {
         const cv::Mat labelsSmall = reg->warpedLabels(*labels, reg->workingGrey.size());
-        const cv::Mat picture = pipeline::renderOverlay(reg->workingGrey, labelsSmall);
+        // Damage polygons come in full-resolution pixels; the overlay is at working size.
+        std::vector<std::vector<cv::Point2f>> damage;
+        for (const pipeline::DamageRegion& d : reg->damage) {
+            std::vector<cv::Point2f> poly;
+            for (const cv::Point2f& p : d.polygon) poly.push_back(cv::Point2f(reg->workingFromImage(p)));
+            damage.push_back(std::move(poly));
+        }
+        const cv::Mat picture = pipeline::renderOverlay(reg->workingGrey, labelsSmall, damage);
         if (auto w = core::writeImage(*rq.overlay, picture); !w) return w.error();
     }
     const auto tWritten = Clock::now();

@@ -128,23 +128,29 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const cv::Mat&
     const double tissueArea = std::max(1, cv::countNonZero(tissueMask));
     const double minArea = params.minRegionShare * tissueArea;
 
-    // Gaps: the atlas expects tissue, the section shows glass. The opening removes the thin
-    // slivers that registration slack leaves along every boundary.
+    // Gaps: the atlas expects tissue, the section shows glass. Registration slack leaves thin
+    // slivers along the expected boundaries, so the expected tissue is first eroded by that
+    // slack; a thin crack inside the tissue is far from those boundaries and stays.
     const int r = std::max(1, static_cast<int>(std::lround(params.slackFrac * brainWidthPx)));
     const cv::Mat disc = cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * r + 1, 2 * r + 1));
-    cv::Mat deficit = expectedTissue & ~tissueMask;
-    cv::morphologyEx(deficit, deficit, cv::MORPH_OPEN, disc);
+    cv::Mat inner;
+    cv::erode(expectedTissue, inner, disc);
+    cv::Mat deficit = inner & ~tissueMask;
+    cv::morphologyEx(deficit, deficit, cv::MORPH_OPEN,
+                     cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(3, 3)));
     cv::Mat labels, stats, centroids;
     int n = cv::connectedComponentsWithStats(deficit, labels, stats, centroids, 8, CV_32S);
     for (int i = 1; i < n; ++i) {
         const double area = stats.at<int>(i, cv::CC_STAT_AREA);
-        if (area < minArea) continue;
+        if (area < minArea / 4) continue;
         const cv::Mat region = labels == i;
         std::vector<cv::Point> pts;
         cv::findNonZero(region, pts);
         const cv::RotatedRect box = cv::minAreaRect(pts);
         const double length = std::max(box.size.width, box.size.height);
         const double meanWidth = area / std::max(length, 1.0);
+        // A long thin crack has little area; its length makes it count.
+        if (area < minArea && length < 0.5 * params.deepTearFrac * brainWidthPx) continue;
         DamageRegion d;
         d.kind = length / std::max(meanWidth, 1e-9) >= params.tearElongation ? DamageKind::Tear
                                                                              : DamageKind::Missing;

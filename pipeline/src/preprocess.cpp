@@ -52,17 +52,9 @@ float borderMedian(const cv::Mat& f32, const cv::Mat& valid) {
     return v[v.size() / 2];
 }
 
-/// Tissue in a normalised, tissue-bright working image, in two passes. A heavy blur averages
-/// cell texture so that even dim tissue stands above the glass noise: that finds where tissue
-/// is. Then the outline is placed half way between the glass and the dimmest tissue on a lightly
-/// blurred copy, so it sits on the real edge instead of a blur radius outside it.
-cv::Mat segmentTissue(const cv::Mat& grey, const cv::Mat& valid, float glass) {
-    const int longSide = std::max(grey.rows, grey.cols);
-    cv::Mat heavy, light;
-    cv::GaussianBlur(grey, heavy, cv::Size(), std::max(2.0, longSide / 150.0));
-    cv::GaussianBlur(grey, light, cv::Size(), std::max(1.0, longSide / 500.0));
-
-    // Glass noise of the heavy blur, from the valid border ring (median absolute deviation).
+/// Robust spread (1.4826 x median absolute deviation from `glass`) of `image` over the valid
+/// border ring: the glass noise at that blur.
+float ringDeviation(const cv::Mat& image, const cv::Mat& valid, float glass) {
     const cv::Rect box = cv::boundingRect(valid);
     const int b = std::max(2, std::min(box.width, box.height) / 25);
     std::vector<float> ring;
@@ -70,19 +62,32 @@ cv::Mat segmentTissue(const cv::Mat& grey, const cv::Mat& valid, float glass) {
         for (int x = box.x; x < box.x + box.width; ++x) {
             const bool edge = y < box.y + b || y >= box.y + box.height - b || x < box.x + b ||
                               x >= box.x + box.width - b;
-            if (edge && valid.at<uchar>(y, x)) ring.push_back(heavy.at<float>(y, x));
+            if (edge && valid.at<uchar>(y, x)) ring.push_back(std::abs(image.at<float>(y, x) - glass));
         }
-    float mad = 0.01f;
-    if (!ring.empty()) {
-        for (float& v : ring) v = std::abs(v - glass);
-        std::nth_element(ring.begin(), ring.begin() + static_cast<std::ptrdiff_t>(ring.size() / 2),
-                         ring.end());
-        mad = std::max(mad, 1.4826f * ring[ring.size() / 2]);
-    }
+    if (ring.empty()) return 0.01f;
+    std::nth_element(ring.begin(), ring.begin() + static_cast<std::ptrdiff_t>(ring.size() / 2),
+                     ring.end());
+    return std::max(0.002f, 1.4826f * ring[ring.size() / 2]);
+}
+
+/// Tissue in a normalised, tissue-bright working image, in two passes. A heavy blur averages
+/// cell texture so that even dim tissue stands above the glass noise: that finds where tissue
+/// is. Then the outline is placed half way between the glass and the dimmest tissue on a lightly
+/// blurred copy, so it sits on the real edge instead of a blur radius outside it.
+/// `fine`, when given, receives the mask before the closing.
+cv::Mat segmentTissue(const cv::Mat& grey, const cv::Mat& valid, float glass,
+                      cv::Mat* fine = nullptr) {
+    const int longSide = std::max(grey.rows, grey.cols);
+    cv::Mat heavy, light;
+    cv::GaussianBlur(grey, heavy, cv::Size(), std::max(2.0, longSide / 150.0));
+    cv::GaussianBlur(grey, light, cv::Size(), std::max(1.0, longSide / 500.0));
+
+    const float mad = ringDeviation(heavy, valid, glass);
+    const float madLight = ringDeviation(light, valid, glass);
     // Uneven illumination also spreads the ring's values, so the noise margin is capped at a
     // fraction of the tissue's contrast.
     const float bright = percentile(heavy, 0.9, valid);
-    const float margin = std::max(0.03f, std::min(6.0f * mad, 0.3f * (bright - glass)));
+    const float margin = std::max(0.03f, std::min(6.0f * std::max(mad, 0.01f), 0.3f * (bright - glass)));
     cv::Mat coarse = (heavy > glass + margin) & valid;
     if (cv::countNonZero(coarse) == 0) return coarse;
 
@@ -93,15 +98,25 @@ cv::Mat segmentTissue(const cv::Mat& grey, const cv::Mat& valid, float glass) {
               cv::Point(-1, -1), std::max(1, longSide / 150));
     if (cv::countNonZero(inner) < 64) inner = coarse;
     const float dim = percentile(heavy, 0.05, inner);
-    const float t = glass + std::max(0.5f * (dim - glass), 0.5f * margin);
+    // Half way to the dimmest tissue, but never more than clearly above the glass noise: dark
+    // tissue (white matter has few nuclei) is still tissue, not glass.
+    const float clearlyAbove = std::max(0.1f * (bright - glass), 8.0f * madLight);
+    const float t = glass + std::max(0.5f * margin, std::min(0.5f * (dim - glass), clearlyAbove));
 
     cv::Mat mask = (light > t) & valid;
-    // Close the gaps between cells in dim, textured tissue, and stay within the coarse region.
     const int r = std::max(1, longSide / 250);
-    cv::morphologyEx(mask, mask, cv::MORPH_CLOSE,
-                     cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * r + 1, 2 * r + 1)));
+    const cv::Mat disc = cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * r + 1, 2 * r + 1));
     cv::Mat reach;
-    cv::dilate(coarse, reach, cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * r + 1, 2 * r + 1)));
+    cv::dilate(coarse, reach, disc);
+    mask &= reach;
+    if (fine) {
+        // Thin cracks survive only the lightest blur; the threshold is the same.
+        cv::Mat sharp;
+        cv::GaussianBlur(grey, sharp, cv::Size(), 1.0);
+        *fine = (sharp > t) & valid & reach;
+    }
+    // Close the gaps between cells in dim, textured tissue.
+    cv::morphologyEx(mask, mask, cv::MORPH_CLOSE, disc);
     return mask & reach;
 }
 
@@ -218,12 +233,13 @@ core::Result<PreparedSection> prepareSection(const cv::Mat& image, int workingMa
     out.grey = grey;
 
     const float glassLevel = out.contrast == Contrast::Brightfield ? 1.0f - glass : glass;
-    cv::Mat mask = segmentTissue(grey, valid, glassLevel);
+    cv::Mat fineMask;
+    cv::Mat mask = segmentTissue(grey, valid, glassLevel, &fineMask);
     // Uneven illumination (vignetting) makes glass corners look like tissue: flatten the glass
     // with a smooth fit, then segment again.
     if (flattenBackground(grey, valid, mask, glassLevel)) {
         out.grey = grey;
-        mask = segmentTissue(grey, valid, glassLevel);
+        mask = segmentTissue(grey, valid, glassLevel, &fineMask);
     }
 
     // Remove debris: keep components of at least 2% of the largest one.
@@ -251,6 +267,7 @@ core::Result<PreparedSection> prepareSection(const cv::Mat& image, int workingMa
         return makeError(ErrorCode::NoTissue,
                          "no tissue found (nothing stands out from the background)");
     out.tissueMask = keep;
+    out.tissueMaskFine = fineMask & keep;
     return out;
 }
 

@@ -83,6 +83,75 @@ cv::Matx23d obbPlacement(const OrientedBox& img, const OrientedBox& atl, double 
     return {L(0, 0), L(0, 1), c[0], L(1, 0), L(1, 1), c[1]};
 }
 
+/// Overlap of the section's filled tissue and the atlas brain, evaluated on a small copy of the
+/// tissue mask so that a search can afford hundreds of evaluations.
+class OverlapScorer {
+public:
+    OverlapScorer(const cv::Mat& tissueFilled, const cv::Mat& atlasMask) : atlasMask_(atlasMask) {
+        const int longSide = std::max(tissueFilled.cols, tissueFilled.rows);
+        factor_ = std::min(1.0, 256.0 / longSide);
+        cv::resize(tissueFilled, small_, cv::Size(), factor_, factor_, cv::INTER_AREA);
+        small_ = small_ > 127;
+        area_ = cv::countNonZero(small_);
+    }
+    /// IoU for an atlasFromWorking affine.
+    double operator()(const cv::Matx23d& atlasFromWorking) const {
+        const cv::Matx23d m = compose(atlasFromWorking, scaling(1.0 / factor_));
+        cv::warpAffine(atlasMask_, mapped_, cv::Mat(m), small_.size(),
+                       cv::INTER_NEAREST | cv::WARP_INVERSE_MAP, cv::BORDER_CONSTANT, 0);
+        const double inter = cv::countNonZero(mapped_ & small_);
+        const double uni = area_ + cv::countNonZero(mapped_) - inter;
+        return uni > 0 ? inter / uni : 0.0;
+    }
+
+private:
+    cv::Mat atlasMask_, small_;
+    mutable cv::Mat mapped_;
+    double factor_ = 1.0;
+    int area_ = 0;
+};
+
+/// Pattern search on the six affine parameters (about the tissue centre) for the best overlap:
+/// masks do not have the local minima that outline details give ICP (two olfactory bulbs
+/// touching in the section but apart in the atlas, say).
+cv::Matx23d refineByOverlap(const OverlapScorer& score, cv::Matx23d t, cv::Point2d centre,
+                            double size, double& best) {
+    best = score(t);
+    // Perturbations in the working frame: t' = t o (centre + (I + D)(p - centre) + d).
+    double step[6] = {0.02 * size, 0.02 * size, 0.02, 0.02, 0.02, 0.02};
+    for (int round = 0; round < 60; ++round) {
+        bool improved = false;
+        for (int k = 0; k < 6; ++k) {
+            for (const double sign : {1.0, -1.0}) {
+                double dx = 0, dy = 0, a = 1, b = 0, c = 0, d = 1;
+                switch (k) {
+                case 0: dx = sign * step[0]; break;
+                case 1: dy = sign * step[1]; break;
+                case 2: a += sign * step[2]; break;
+                case 3: d += sign * step[3]; break;
+                case 4: b += sign * step[4]; break;
+                default: c += sign * step[5]; break;
+                }
+                const cv::Matx23d local(a, b, centre.x + dx - a * centre.x - b * centre.y, c, d,
+                                        centre.y + dy - c * centre.x - d * centre.y);
+                const cv::Matx23d cand = compose(t, local);
+                const double v = score(cand);
+                if (v > best + 1e-6) {
+                    best = v;
+                    t = cand;
+                    improved = true;
+                    break;
+                }
+            }
+        }
+        if (!improved) {
+            for (double& st : step) st *= 0.5;
+            if (step[2] < 0.001) break;
+        }
+    }
+    return t;
+}
+
 /// ICP level by level on point sets thinned to suit each level's reach: a point every
 /// distance/8 is plenty to steer a loose level, and it keeps the neighbour searches short.
 IcpResult multiLevelIcp(const EdgePoints& source, const EdgePoints& target, cv::Matx23d init,
@@ -216,9 +285,9 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     timer.lap("edges");
 
     const cv::Mat tissueFilled = fillHoles(reg.workingTissueMask);
-    const auto tissueOutline = outerContourSamples(tissueFilled);
+    const auto tissueSamples = outerContourSamples(tissueFilled);
     const auto atlasOutline = outerContourSamples(atlasMask);
-    const OrientedBox imgBox = orientedBox(tissueOutline);
+    const OrientedBox imgBox = orientedBox(tissueSamples);
     const OrientedBox atlBox = orientedBox(atlasOutline);
     if (imgBox.halfMajor <= 0 || atlBox.halfMajor <= 0)
         return makeError(ErrorCode::NoTissue, "no tissue found: the tissue outline is degenerate");
@@ -236,14 +305,12 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     const double spacingImg = spacingAtlas / scaleGuess;
     reg.atlasEdges = mlsEdgePoints(labelBoundarySamples(atlasLabels), float(spacingAtlas),
                                    float(3 * spacingAtlas));
-    reg.sectionEdges = mlsEdgePoints(edgePixels(mei), float(spacingImg),
-                                     float(std::max(2.0, 3 * spacingImg)));
     const EdgePoints atlasOuter = mlsEdgePoints(atlasOutline, float(spacingAtlas),
                                                 float(3 * spacingAtlas));
-    const EdgePoints imgOuter = mlsEdgePoints(tissueOutline, float(spacingImg),
+    const EdgePoints imgOuter = mlsEdgePoints(tissueSamples, float(spacingImg),
                                               float(std::max(2.0, 3 * spacingImg)));
-    if (reg.sectionEdges.size() < 20 || imgOuter.size() < 20)
-        return makeError(ErrorCode::NoTissue, "no tissue found: too few tissue edges to register");
+    if (imgOuter.size() < 20)
+        return makeError(ErrorCode::NoTissue, "no tissue found: the tissue outline is too small");
     const PointGrid atlasGrid(reg.atlasEdges.points, float(atlasH / 40));
     timer.lap("features");
 
@@ -265,23 +332,45 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         {30, atlasH / 5}, {20, atlasH / 8}, {15, atlasH / 12}, {10, atlasH / 20}};
     cv::Matx23d best, bestInit;
     double bestScore = -1;
+    const OverlapScorer scorer(tissueFilled, atlasMask);
     for (const Candidate& c : cands) {
         const cv::Matx23d init = obbPlacement(imgBox, atlBox, c.sMaj, c.sMin, c.swap, knownScale);
         const IcpResult r = multiLevelIcp(imgOuter, atlasOuter, init, coarse, 6, scaleGuess);
         // The refinement can wander off on an odd outline; the placement it started from stays
-        // in the running.
-        for (const cv::Matx23d& t : {r.targetFromSource, init}) {
-            const double score = overlap(tissueFilled, atlasMask, t);
-            if (score > bestScore) {
-                bestScore = score;
-                best = t;
-                bestInit = init;
-            }
+        // in the running, and the overlap search polishes whichever is better.
+        const cv::Matx23d start = scorer(r.targetFromSource) >= scorer(init) ? r.targetFromSource
+                                                                            : init;
+        double score = 0;
+        const cv::Matx23d t =
+            refineByOverlap(scorer, start, imgBox.centre, 2 * imgBox.halfMajor, score);
+        if (score > bestScore) {
+            bestScore = score;
+            best = t;
+            bestInit = init;
         }
     }
     reg.stageAffines.emplace_back("obb", bestInit);
     reg.stageAffines.emplace_back("outline", best);
     timer.lap("initialise");
+
+    // Algorithm 2: deep, asymmetric concavities of the outline are damage; their edges stay out
+    // of the matching. The mirror is the atlas midline seen through the initial placement.
+    const double brainWidth = 2 * imgBox.halfMajor;
+    if (options.detectDamage) {
+        const Outline outline = tissueOutline(reg.workingTissueMask);
+        reg.concavities = deepConcavities(outline, options.damage.alphaFrac * brainWidth);
+        const cv::Moments am = cv::moments(atlasMask, true);
+        const double midline = am.m00 > 0 ? am.m10 / am.m00 : atlasLabels.cols / 2.0;
+        const cv::Matx23d flip(-1, 0, 2 * midline, 0, 1, 0);
+        const cv::Matx23d mirror = compose(invert(best), compose(flip, best));
+        markSymmetric(reg.concavities, outline, mirror, brainWidth, options.damage);
+        mei.setTo(0, concavityExclusion(reg.concavities, mei.size(), 0.02 * brainWidth));
+    }
+    reg.sectionEdges = mlsEdgePoints(edgePixels(mei), float(spacingImg),
+                                     float(std::max(2.0, 3 * spacingImg)));
+    if (reg.sectionEdges.size() < 20)
+        return makeError(ErrorCode::NoTissue, "no tissue found: too few tissue edges to register");
+    timer.lap("damage-outline");
 
     // Global alignment with every edge, thresholds tightened as in the paper's implementation
     // section: 10, 8, 6, 4 degrees and H/10 .. H/80.
@@ -345,6 +434,30 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     reg.quality.tissueOverlap = overlap(tissueFilled, atlasMask, reg.atlasFromWorking);
     reg.quality.scaleAtlasPxPerImagePx = std::sqrt(std::abs(det(reg.affineAtlasFromImage())));
     timer.lap("quality");
+
+    if (options.detectDamage) {
+        // Beyond the paper: tissue the atlas expects but the section lacks, and detached pieces.
+        const cv::Mat seen = reg.warpedLabels(atlasLabels, reg.workingGrey.size());
+        const cv::Mat expectedBrain = seen != 0;
+        cv::Mat ventricles = cv::Mat::zeros(seen.size(), CV_8U);
+        for (const std::int32_t id : options.ventricleIds) ventricles |= (seen == id);
+        const cv::Mat expectedTissue = expectedBrain & ~ventricles;
+        std::vector<DamageRegion> regions = tissueDamage(prepared->tissueMaskFine, expectedTissue,
+                                                         expectedBrain, brainWidth, options.damage);
+        reg.damaged = isDamaged(regions, brainWidth, options.damage);
+        reg.damageSummary = damageSummary(regions);
+        // Report in full-resolution pixels.
+        const double s = reg.workingScale;
+        for (DamageRegion& d : regions) {
+            for (cv::Point2f& p : d.polygon)
+                p = cv::Point2f(float((p.x + 0.5) / s - 0.5), float((p.y + 0.5) / s - 0.5));
+            d.areaPx /= s * s;
+            d.lengthPx /= s;
+            reg.damageFraction += d.share;
+        }
+        reg.damage = std::move(regions);
+        timer.lap("damage");
+    }
     timer.total();
     return reg;
 }

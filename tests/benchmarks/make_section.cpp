@@ -15,12 +15,14 @@ using namespace slicestation;
 int main(int argc, char** argv) {
     CLI::App app{"write a generated section, its atlas slice and landmarks"};
     std::string shared = SLST_SHARED_DIR, sizeText = "1500x1100", out = ".";
-    int plane = 10;
+    int plane = 10, planeCount = 48;
     std::uint64_t seed = 1;
     bool tear = false, brightfield = false;
     app.add_option("--shared", shared, "Path of ../shared (real atlas)");
     app.add_option("--size", sizeText, "Image size WxH");
-    app.add_option("--plane", plane, "Atlas plane 0..23 (front to back)")->check(CLI::Range(0, 23));
+    app.add_option("--plane", plane, "Atlas plane, 0 = front")->check(CLI::NonNegativeNumber);
+    app.add_option("--plane-count", planeCount, "Planes spread over the brain (48, as the benchmark)")
+        ->check(CLI::Range(1, 400));
     app.add_option("--seed", seed, "Generator seed");
     app.add_flag("--tear", tear, "Tear the section");
     app.add_flag("--brightfield", brightfield, "Brightfield stain");
@@ -31,7 +33,11 @@ int main(int argc, char** argv) {
         std::cerr << "--size must be WxH\n";
         return 2;
     }
-    auto atlas = bench::loadAtlasPlanes(shared, 24);
+    if (plane >= planeCount) {
+        std::cerr << "--plane must be below --plane-count\n";
+        return 2;
+    }
+    auto atlas = bench::loadAtlasPlanes(shared, planeCount);
     if (!atlas) {
         std::cerr << atlas.error().message << "\n";
         return 1;

@@ -5,10 +5,12 @@
 
 #include "slicestation/core/nrrd.hpp"
 #include "slicestation/pipeline/atlas.hpp"
+#include "slicestation/pipeline/damage.hpp"
 #include "slicestation/pipeline/preprocess.hpp"
 #include "slicestation/pipeline/registration.hpp"
 
 #include <CLI/CLI.hpp>
+#include <opencv2/imgproc.hpp>
 
 #include <algorithm>
 #include <chrono>
@@ -21,6 +23,14 @@
 using namespace slicestation;
 
 namespace {
+
+/// Damage detection outcome of one case (ours only).
+struct DamageRow {
+    bool truth = false, flagged = false;
+    int trueRegions = 0, overlapped = 0;
+    double ms = 0;
+    std::string kinds;
+};
 
 struct Row {
     std::string method;
@@ -59,6 +69,36 @@ void printTable(const std::vector<Row>& rows) {
                     gross, median(secs));
     }
     std::printf("(errors in atlas pixels; gross = max landmark error over 25 px or no result)\n");
+}
+
+void printDamage(const std::vector<DamageRow>& d, const std::vector<Row>& rows) {
+    int tp = 0, fp = 0, fn = 0, regions = 0, overlapped = 0;
+    std::vector<double> ms;
+    for (const auto& r : d) {
+        tp += r.truth && r.flagged;
+        fp += !r.truth && r.flagged;
+        fn += r.truth && !r.flagged;
+        regions += r.trueRegions;
+        overlapped += r.overlapped;
+        ms.push_back(r.ms);
+    }
+    double clean = 0, damaged = 0;
+    int nc = 0, nd = 0;
+    for (const auto& r : rows) {
+        if (r.method != "ours") continue;
+        (r.damaged ? damaged : clean) += r.err.rmse;
+        ++(r.damaged ? nd : nc);
+    }
+    const double precision = tp + fp ? double(tp) / (tp + fp) : 1.0;
+    const double recall = tp + fn ? double(tp) / (tp + fn) : 1.0;
+    std::printf("\ndamage flag: precision %.3f recall %.3f (tp %d, fp %d, fn %d)\n", precision,
+                recall, tp, fp, fn);
+    std::printf("true damage regions overlapped by a reported region: %d of %d (%.1f%%)\n",
+                overlapped, regions, regions ? 100.0 * overlapped / regions : 100.0);
+    if (nc && nd)
+        std::printf("RMSE damaged / clean: %.2f\n", (damaged / nd) / std::max(clean / nc, 1e-9));
+    std::printf("damage detection time: median %.1f ms, max %.1f ms per section\n", median(ms),
+                ms.empty() ? 0.0 : *std::max_element(ms.begin(), ms.end()));
 }
 
 /// Which way round the Allen template's left-right axis runs relative to the QuickNII volume:
@@ -134,6 +174,7 @@ int main(int argc, char** argv) {
         csv << "case,method,damaged,stain,rmse,median,max,seconds,failed\n";
     }
     std::vector<Row> rows;
+    std::vector<DamageRow> damageRows;
     const auto all = bench::makeCases(cases, static_cast<int>(atlas->planes.size()), {w, h});
     for (const auto& c : all) {
         const cv::Mat& plane = atlas->planes[c.plane];
@@ -164,6 +205,33 @@ int main(int argc, char** argv) {
         if (reg)
             for (const auto& [name, ms] : reg->timingsMs)
                 steps += " " + name + " " + std::to_string(static_cast<int>(ms));
+        if (reg) {
+            // A true region counts as found when reported polygons cover a tenth of it.
+            DamageRow d;
+            d.truth = c.damaged();
+            d.flagged = reg->damaged;
+            for (const auto& [name, ms] : reg->timingsMs)
+                if (name.rfind("damage", 0) == 0) d.ms += ms;
+            cv::Mat reported = cv::Mat::zeros(gen->image.size(), CV_8U);
+            for (const auto& r : reg->damage) {
+                std::vector<cv::Point> poly;
+                for (const auto& p : r.polygon) poly.emplace_back(cvRound(p.x), cvRound(p.y));
+                cv::fillPoly(reported, std::vector<std::vector<cv::Point>>{poly}, cv::Scalar(255));
+                d.kinds += std::string(d.kinds.empty() ? "" : ",") +
+                           std::string(pipeline::toString(r.kind));
+            }
+            for (const auto& t : gen->truth.damage) {
+                cv::Mat truthMask = cv::Mat::zeros(gen->image.size(), CV_8U);
+                std::vector<cv::Point> poly;
+                for (const auto& p : t.polygon) poly.emplace_back(cvRound(p.x), cvRound(p.y));
+                cv::fillPoly(truthMask, std::vector<std::vector<cv::Point>>{poly}, cv::Scalar(255));
+                const int area = std::max(1, cv::countNonZero(truthMask));
+                ++d.trueRegions;
+                if (cv::countNonZero(truthMask & reported) >= 0.1 * area) ++d.overlapped;
+            }
+            damageRows.push_back(d);
+            steps += " | damage " + std::string(d.flagged ? "FLAGGED " : "clean ") + d.kinds;
+        }
         std::fprintf(stderr, "%-45s ours    rmse %6.2f max %6.2f  %.3f s (ms:%s)\n",
                      c.describe().c_str(), ours.err.rmse, ours.err.max, ours.seconds,
                      steps.c_str());
@@ -217,5 +285,6 @@ int main(int argc, char** argv) {
     }
     if (useElastix) std::printf("template left-right mirrored against QuickNII: %s\n", mirrored ? "yes" : "no");
     printTable(rows);
+    printDamage(damageRows, rows);
     return 0;
 }

@@ -3,6 +3,7 @@
 /// dominant edges, OBB initialisation, ICP affine with normals, Laplace warp.
 
 #include "slicestation/core/result.hpp"
+#include "slicestation/pipeline/damage.hpp"
 #include "slicestation/pipeline/edge_points.hpp"
 #include "slicestation/pipeline/edges.hpp"
 #include "slicestation/pipeline/laplace_warp.hpp"
@@ -10,6 +11,7 @@
 
 #include <opencv2/core.hpp>
 
+#include <cstdint>
 #include <string>
 #include <utility>
 #include <vector>
@@ -26,6 +28,10 @@ struct RegistrationOptions {
     /// part in the matching, e.g. damaged tissue. Empty = none.
     cv::Mat excludeMask;
     DominantEdgeParams edges;
+    bool detectDamage = true;    ///< find damage and keep its edges out of the matching
+    DamageParams damage;
+    /// Atlas ids that are ventricles (empty like glass in a section): the major-region id 73.
+    std::vector<std::int32_t> ventricleIds{73};
 };
 
 struct RegistrationQuality {
@@ -55,6 +61,12 @@ struct Registration {
     /// The affine (working px -> atlas px) after each stage: "obb", "outline", "icp"; for
     /// diagnosis and tests.
     std::vector<std::pair<std::string, cv::Matx23d>> stageAffines;
+
+    bool damaged = false;              ///< the decision of isDamaged()
+    std::vector<DamageRegion> damage;  ///< full-resolution pixels, largest first
+    double damageFraction = 0;         ///< damaged area / tissue area
+    std::string damageSummary;
+    std::vector<Concavity> concavities; ///< deep outline concavities (working px), for diagnosis
 
     /// Working coordinates of a full-resolution pixel.
     cv::Point2d workingFromImage(cv::Point2d imagePx) const;
