@@ -124,6 +124,29 @@ core::Result<json> runAtlasSlice(const AtlasSliceRequest& rq) {
                 {"manifest", (rq.output / "manifest.json").string()}};
 }
 
+core::Result<void> useStackSlice(RegisterRequest& rq, int slice) {
+    namespace fs = std::filesystem;
+    const bool isStack = fs::is_directory(rq.atlas) || rq.atlas.filename() == "manifest.json";
+    if (!isStack) {
+        if (slice >= 0)
+            return makeError(ErrorCode::InvalidArgument,
+                             "--slice needs --atlas to be a stack directory, not " +
+                                 rq.atlas.string());
+        return {};
+    }
+    if (slice < 0)
+        return makeError(ErrorCode::InvalidArgument,
+                         "--atlas " + rq.atlas.string() + " is a stack: choose one with --slice N");
+    auto stack = readStack(rq.atlas);
+    if (!stack) return stack.error();
+    auto path = stackSlicePath(*stack, slice);
+    if (!path) return path.error();
+    rq.atlas = *path;
+    if (rq.imageUmPerPx > 0 && rq.atlasUmPerPx <= 0)
+        rq.atlasUmPerPx = stack->slices[size_t(slice)].umPerPx;
+    return {};
+}
+
 core::Result<std::vector<pipeline::SliceFeatures>> stackFeatures(const AtlasStack& stack) {
     std::vector<cv::Mat> labels;
     for (const StackSlice& s : stack.slices) {

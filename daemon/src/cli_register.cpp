@@ -1,3 +1,4 @@
+#include "slicestation/daemon/atlas_command.hpp"
 #include "slicestation/daemon/cli.hpp"
 #include "slicestation/daemon/demo_command.hpp"
 #include "slicestation/daemon/register_command.hpp"
@@ -16,11 +17,15 @@ CommandRunner addRegisterCommand(CLI::App& app) {
     struct Opts {
         RegisterRequest rq;
         std::string points, overlay, warped;
+        int slice = -1;
     };
     auto o = std::make_shared<Opts>();
     auto* reg = app.add_subcommand("register", "Register one section image to one atlas slice");
-    reg->add_option("--atlas", o->rq.atlas, "Atlas label image (ids or colour-coded RGB)")
+    reg->add_option("--atlas", o->rq.atlas,
+                    "Atlas label image (ids or colour-coded RGB), or a stack directory with --slice")
         ->required();
+    reg->add_option("--slice", o->slice, "Slice index when --atlas is a stack directory")
+        ->check(CLI::NonNegativeNumber);
     reg->add_option("--image", o->rq.image, "Section image (PNG or TIFF)")->required();
     reg->add_option("--points", o->points, "CSV with header x,y: section pixels to map");
     reg->add_option("--output", o->rq.output, "Result JSON")->required();
@@ -38,6 +43,7 @@ CommandRunner addRegisterCommand(CLI::App& app) {
         if (!o->points.empty()) rq.points = o->points;
         if (!o->overlay.empty()) rq.overlay = o->overlay;
         if (!o->warped.empty()) rq.warpedLabels = o->warped;
+        if (auto s = useStackSlice(rq, o->slice); !s) return reportError("register", s.error());
         auto r = runRegister(rq);
         if (!r) return reportError("register", r.error());
         std::cout << "registered " << rq.image.string() << " -> " << rq.output.string()

@@ -4,6 +4,7 @@
 
 #include "slicestation/core/result.hpp"
 #include "slicestation/daemon/atlas_stack.hpp"
+#include "slicestation/daemon/register_command.hpp"
 #include "slicestation/pipeline/atlas_matching.hpp"
 
 #include <nlohmann/json.hpp>
@@ -52,6 +53,13 @@ struct AtlasMatchRequest {
 /// \return NotFound / IoError / InvalidArgument for the files, OutOfRange for an expected index
 ///         outside the stack, NoTissue.
 [[nodiscard]] core::Result<nlohmann::json> runAtlasMatch(const AtlasMatchRequest& request);
+
+/// `slicectl register --atlas STACK_DIR --slice N`: when `request.atlas` is a stack directory
+/// (or its manifest.json), points it at slice `slice`'s label image and, when the section's pixel
+/// size is given, fills in the slice's. A plain image with slice < 0 is left alone.
+/// \return InvalidArgument (--slice without a stack, a stack without --slice), OutOfRange, the
+///         errors of readStack.
+[[nodiscard]] core::Result<void> useStackSlice(RegisterRequest& request, int slice);
 
 /// Matching features of every slice of `stack` (read from disk), one working pixel size.
 [[nodiscard]] core::Result<std::vector<pipeline::SliceFeatures>> stackFeatures(
