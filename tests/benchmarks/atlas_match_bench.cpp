@@ -39,6 +39,8 @@ int main(int argc, char** argv) {
     std::string size = "1200x880";
     std::string shared = SLST_SHARED_DIR;
     bool knownScale = true;
+    int workPx = 320;
+    app.add_option("--work-px", workPx, "Matching resolution: px across the largest brain");
     app.add_option("--cases", cases, "Generated sections")->check(CLI::PositiveNumber);
     app.add_option("--interval-um", intervalUm, "Stack interval");
     app.add_option("--max-tilt-deg", maxTiltDeg, "Tilt of half the cases, uniform in +/-");
@@ -92,7 +94,7 @@ int main(int argc, char** argv) {
         positions.push_back(p);
     }
     const double stackUm = real ? stackUmPerPx : 25;
-    const double workUm = pipeline::matchWorkUmPerPx(stackLabels, stackUm);
+    const double workUm = pipeline::matchWorkUmPerPx(stackLabels, stackUm, workPx);
     std::vector<pipeline::SliceFeatures> features;
     for (size_t i = 0; i < stackLabels.size(); ++i)
         features.push_back(pipeline::sliceFeatures(stackLabels[i], stackUm, positions[i], workUm));

@@ -39,7 +39,7 @@ SliceFeatures sliceFeatures(const cv::Mat& labels, double umPerPx, double positi
                             double workUmPerPx);
 
 /// A working pixel size that gives the largest brain of a stack about `targetPx` pixels across.
-double matchWorkUmPerPx(const std::vector<cv::Mat>& labels, double umPerPx, int targetPx = 240);
+double matchWorkUmPerPx(const std::vector<cv::Mat>& labels, double umPerPx, int targetPx = 320);
 
 struct SectionFeatures {
     double workUmPerPx = 0; ///< 0 when the section's pixel size is unknown

@@ -1,0 +1,88 @@
+// Matching sections generated from known planes against a stack (built-in atlas: no data
+// needed, fast and deterministic).
+#include "slicestation/pipeline/atlas_matching.hpp"
+#include "slicestation/sim/builtin_atlas.hpp"
+#include "slicestation/sim/section_generator.hpp"
+
+#include <gtest/gtest.h>
+#include <opencv2/core.hpp>
+
+#include <cmath>
+
+using namespace slicestation;
+using namespace slicestation::pipeline;
+
+namespace {
+
+constexpr double kLengthUm = 8000, kIntervalUm = 200, kUmPerPx = 25;
+
+std::vector<SliceFeatures> builtinStack(double& workUm) {
+    std::vector<cv::Mat> labels;
+    for (double p = 0; p <= kLengthUm; p += kIntervalUm)
+        labels.push_back(sim::builtinAtlasPlane(p / kLengthUm));
+    workUm = matchWorkUmPerPx(labels, kUmPerPx);
+    std::vector<SliceFeatures> f;
+    for (size_t i = 0; i < labels.size(); ++i)
+        f.push_back(sliceFeatures(labels[i], kUmPerPx, double(i) * kIntervalUm, workUm));
+    return f;
+}
+
+} // namespace
+
+TEST(AtlasMatching, FindsThePlaneOfGeneratedSections) {
+    double workUm = 0;
+    const auto stack = builtinStack(workUm);
+    ASSERT_EQ(stack.size(), 41u);
+    int seed = 3;
+    for (double pos : {1500.0, 3300.0, 5000.0, 6900.0}) {
+        sim::GeneratorOptions go;
+        go.seed = std::uint64_t(seed++);
+        go.imageSize = {900, 660};
+        auto gen = sim::generateSection(sim::builtinAtlasPlane(pos / kLengthUm), go);
+        ASSERT_TRUE(gen.ok()) << gen.error().message;
+        const auto& a = gen->truth.affineAtlasFromImage;
+        const double imageUm = std::sqrt(std::abs(a(0, 0) * a(1, 1) - a(0, 1) * a(1, 0))) * kUmPerPx;
+        auto sec = sectionFeatures(gen->image, imageUm, workUm);
+        ASSERT_TRUE(sec.ok()) << sec.error().message;
+        auto m = matchSection(*sec, stack);
+        ASSERT_TRUE(m.ok()) << m.error().message;
+        // Three slices (600 um of 8000): the built-in brain changes slowly at mid levels, so
+        // neighbouring slices are nearly alike; the accuracy on the real atlas is measured by
+        // slst_bench_atlas_match.
+        EXPECT_LE(std::abs(m->positionUm - pos), 3 * kIntervalUm) << "true position " << pos;
+        ASSERT_FALSE(m->candidates.empty());
+        EXPECT_EQ(m->candidates.front().index, m->index);
+        for (size_t k = 1; k < m->candidates.size(); ++k)
+            EXPECT_GE(m->candidates[k - 1].score, m->candidates[k].score);
+        // A window that excludes the truth still answers, inside the window.
+        MatchOptions w;
+        w.first = 35;
+        w.last = 40;
+        auto far = matchSection(*sec, stack, w);
+        ASSERT_TRUE(far.ok());
+        EXPECT_GE(far->index, 35);
+        EXPECT_LT(far->score, m->score);
+    }
+}
+
+TEST(AtlasMatching, BadInputsAreErrors) {
+    double workUm = 0;
+    const auto stack = builtinStack(workUm);
+    EXPECT_EQ(sectionFeatures(cv::Mat(), 10, workUm).error().code, core::ErrorCode::InvalidArgument);
+    EXPECT_EQ(sectionFeatures(cv::Mat::zeros(400, 400, CV_16U), 10, workUm).error().code,
+              core::ErrorCode::NoTissue);
+    sim::GeneratorOptions go;
+    go.imageSize = {600, 440};
+    auto gen = sim::generateSection(sim::builtinAtlasPlane(0.5), go);
+    ASSERT_TRUE(gen.ok());
+    auto sec = sectionFeatures(gen->image, 0, workUm); // unknown pixel size works too
+    ASSERT_TRUE(sec.ok()) << sec.error().message;
+    EXPECT_EQ(matchSection(*sec, {}).error().code, core::ErrorCode::InvalidArgument);
+    MatchOptions bad;
+    bad.first = 30;
+    bad.last = 50;
+    EXPECT_EQ(matchSection(*sec, stack, bad).error().code, core::ErrorCode::InvalidArgument);
+    // A stack with no brain at all.
+    std::vector<SliceFeatures> empty{sliceFeatures(cv::Mat::zeros(50, 50, CV_32S), 25, 0, workUm)};
+    EXPECT_EQ(matchSection(*sec, empty).error().code, core::ErrorCode::NoTissue);
+}
