@@ -121,7 +121,7 @@ cv::Mat concavityExclusion(const std::vector<Concavity>& concavities, cv::Size s
 
 std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const cv::Mat& expectedTissue,
                                        const cv::Mat& expectedBrain, double brainWidthPx,
-                                       const DamageParams& params) {
+                                       const DamageParams& params, const cv::Mat& knownFragments) {
     CV_Assert(tissueMask.type() == CV_8U && expectedTissue.size() == tissueMask.size() &&
               expectedBrain.size() == tissueMask.size());
     std::vector<DamageRegion> out;
@@ -175,7 +175,9 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const cv::Mat&
         if (i == main || area < minArea) continue;
         const cv::Mat piece = labels == i;
         const double inside = cv::countNonZero(piece & expectedBrain) / area;
-        if (inside > 0.7) continue;
+        const bool known =
+            !knownFragments.empty() && cv::countNonZero(piece & knownFragments) > 0.5 * area;
+        if (inside > 0.7 && !known) continue;
         DamageRegion d;
         d.kind = DamageKind::Fragment;
         d.polygon = polygonOf(piece);
@@ -187,6 +189,30 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const cv::Mat&
     std::sort(out.begin(), out.end(),
               [](const DamageRegion& a, const DamageRegion& b) { return a.areaPx > b.areaPx; });
     return out;
+}
+
+namespace {
+/// Component masks of `mask` with at least `minShare` of the largest one's area, largest first.
+std::vector<cv::Mat> pieces(const cv::Mat& mask, double minShare) {
+    cv::Mat labels, stats, centroids;
+    const int n = cv::connectedComponentsWithStats(mask, labels, stats, centroids, 8, CV_32S);
+    std::vector<std::pair<int, int>> byArea;
+    for (int i = 1; i < n; ++i) byArea.emplace_back(stats.at<int>(i, cv::CC_STAT_AREA), i);
+    std::sort(byArea.rbegin(), byArea.rend());
+    std::vector<cv::Mat> out;
+    for (const auto& [area, i] : byArea)
+        if (area >= minShare * byArea.front().first) out.push_back(labels == i);
+    return out;
+}
+} // namespace
+
+cv::Mat extraPieces(const cv::Mat& tissueMask, const cv::Mat& atlasMask, double minShare) {
+    const auto section = pieces(tissueMask, minShare);
+    const size_t expected = std::max<size_t>(1, pieces(atlasMask, minShare).size());
+    if (section.size() <= expected) return {};
+    cv::Mat extra = cv::Mat::zeros(tissueMask.size(), CV_8U);
+    for (size_t i = expected; i < section.size(); ++i) extra |= section[i];
+    return extra;
 }
 
 bool isDamaged(const std::vector<DamageRegion>& regions, double brainWidthPx,

@@ -284,7 +284,18 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     }
     timer.lap("edges");
 
-    const cv::Mat tissueFilled = fillHoles(reg.workingTissueMask);
+    // Detached fragments (more tissue pieces than the atlas brain has) would pull the outline,
+    // the overlap and the edges: the placement uses the main pieces only.
+    const cv::Mat fragments =
+        options.detectDamage ? extraPieces(fillHoles(reg.workingTissueMask), atlasMask) : cv::Mat();
+    cv::Mat mainTissue = reg.workingTissueMask;
+    if (!fragments.empty()) {
+        mainTissue = reg.workingTissueMask & ~fragments;
+        cv::Mat grown;
+        cv::dilate(fragments, grown, cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * grow + 1, 2 * grow + 1)));
+        mei.setTo(0, grown);
+    }
+    const cv::Mat tissueFilled = fillHoles(mainTissue);
     const auto tissueSamples = outerContourSamples(tissueFilled);
     const auto atlasOutline = outerContourSamples(atlasMask);
     const OrientedBox imgBox = orientedBox(tissueSamples);
@@ -330,8 +341,11 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     }
     const std::vector<IcpLevel> coarse{
         {30, atlasH / 5}, {20, atlasH / 8}, {15, atlasH / 12}, {10, atlasH / 20}};
-    cv::Matx23d best, bestInit;
-    double bestScore = -1;
+    struct Placed {
+        cv::Matx23d init, t;
+        double overlap;
+    };
+    std::vector<Placed> placed;
     const OverlapScorer scorer(tissueFilled, atlasMask);
     for (const Candidate& c : cands) {
         const cv::Matx23d init = obbPlacement(imgBox, atlBox, c.sMaj, c.sMin, c.swap, knownScale);
@@ -343,12 +357,12 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         double score = 0;
         const cv::Matx23d t =
             refineByOverlap(scorer, start, imgBox.centre, 2 * imgBox.halfMajor, score);
-        if (score > bestScore) {
-            bestScore = score;
-            best = t;
-            bestInit = init;
-        }
+        placed.push_back({init, t, score});
     }
+    std::sort(placed.begin(), placed.end(),
+              [](const Placed& a, const Placed& b) { return a.overlap > b.overlap; });
+    const cv::Matx23d bestInit = placed.front().init;
+    cv::Matx23d best = placed.front().t;
     reg.stageAffines.emplace_back("obb", bestInit);
     reg.stageAffines.emplace_back("outline", best);
     timer.lap("initialise");
@@ -357,7 +371,7 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     // of the matching. The mirror is the atlas midline seen through the initial placement.
     const double brainWidth = 2 * imgBox.halfMajor;
     if (options.detectDamage) {
-        const Outline outline = tissueOutline(reg.workingTissueMask);
+        const Outline outline = tissueOutline(mainTissue);
         reg.concavities = deepConcavities(outline, options.damage.alphaFrac * brainWidth);
         const cv::Moments am = cv::moments(atlasMask, true);
         const double midline = am.m00 > 0 ? am.m10 / am.m00 : atlasLabels.cols / 2.0;
@@ -376,8 +390,27 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     // section: 10, 8, 6, 4 degrees and H/10 .. H/80.
     const std::vector<IcpLevel> fine{
         {10, atlasH / 10}, {8, atlasH / 20}, {6, atlasH / 40}, {4, atlasH / 80}};
-    const IcpResult affine =
-        multiLevelIcp(reg.sectionEdges, reg.atlasEdges, best, fine, 8, scaleGuess);
+    IcpResult affine = multiLevelIcp(reg.sectionEdges, reg.atlasEdges, best, fine, 8, scaleGuess);
+    // An outline alone can fit nearly as well upside down (a roundish section, a piece missing):
+    // close calls are settled by how well the internal edges agree after the full ICP.
+    auto edgeAgreement = [&](const cv::Matx23d& t) {
+        std::vector<cv::Point2f> mapped;
+        mapped.reserve(reg.sectionEdges.size());
+        for (const auto& p : reg.sectionEdges.points) mapped.emplace_back(apply(t, p));
+        return shareMatched(mapped, atlasGrid, atlasH / 80);
+    };
+    double agreement = edgeAgreement(affine.targetFromSource);
+    for (size_t k = 1; k < placed.size(); ++k) {
+        if (placed[k].overlap < placed.front().overlap - 0.05) break;
+        IcpResult other =
+            multiLevelIcp(reg.sectionEdges, reg.atlasEdges, placed[k].t, fine, 8, scaleGuess);
+        const double a = edgeAgreement(other.targetFromSource);
+        if (a > agreement) {
+            agreement = a;
+            affine = std::move(other);
+            best = placed[k].t;
+        }
+    }
     reg.atlasFromWorking = affine.targetFromSource;
     reg.quality.residualAffine = affine.rmsResidual;
     reg.stageAffines.emplace_back("icp", reg.atlasFromWorking);
@@ -442,8 +475,9 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         cv::Mat ventricles = cv::Mat::zeros(seen.size(), CV_8U);
         for (const std::int32_t id : options.ventricleIds) ventricles |= (seen == id);
         const cv::Mat expectedTissue = expectedBrain & ~ventricles;
-        std::vector<DamageRegion> regions = tissueDamage(prepared->tissueMaskFine, expectedTissue,
-                                                         expectedBrain, brainWidth, options.damage);
+        std::vector<DamageRegion> regions =
+            tissueDamage(prepared->tissueMaskFine, expectedTissue, expectedBrain, brainWidth,
+                         options.damage, fragments);
         reg.damaged = isDamaged(regions, brainWidth, options.damage);
         reg.damageSummary = damageSummary(regions);
         // Report in full-resolution pixels.

@@ -17,7 +17,7 @@ int main(int argc, char** argv) {
     std::string shared = SLST_SHARED_DIR, sizeText = "1500x1100", out = ".";
     int plane = 10, planeCount = 48;
     std::uint64_t seed = 1;
-    bool tear = false, brightfield = false;
+    bool tear = false, missing = false, fragment = false, brightfield = false;
     app.add_option("--shared", shared, "Path of ../shared (real atlas)");
     app.add_option("--size", sizeText, "Image size WxH");
     app.add_option("--plane", plane, "Atlas plane, 0 = front")->check(CLI::NonNegativeNumber);
@@ -25,6 +25,8 @@ int main(int argc, char** argv) {
         ->check(CLI::Range(1, 400));
     app.add_option("--seed", seed, "Generator seed");
     app.add_flag("--tear", tear, "Tear the section");
+    app.add_flag("--missing", missing, "Remove a chunk at the boundary");
+    app.add_flag("--fragment", fragment, "Cut off and move a piece");
     app.add_flag("--brightfield", brightfield, "Brightfield stain");
     app.add_option("--output-dir", out, "Where to write section.tif, atlas.tif, points.csv, truth.csv");
     CLI11_PARSE(app, argc, argv);
@@ -46,6 +48,8 @@ int main(int argc, char** argv) {
     o.seed = seed;
     o.imageSize = {w, h};
     o.damage.tear = tear;
+    o.damage.missing = missing;
+    o.damage.fragment = fragment;
     o.stain = brightfield ? sim::Stain::Brightfield : sim::Stain::Fluorescence;
     auto gen = sim::generateSection(atlas->planes[plane], o);
     if (!gen) {

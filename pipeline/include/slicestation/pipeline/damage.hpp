@@ -71,9 +71,17 @@ cv::Mat concavityExclusion(const std::vector<Concavity>& concavities, cv::Size s
 /// expects tissue but the section shows glass, anywhere in the section and symmetric or not
 /// (`expectedTissue`: atlas brain minus ventricles; CV_8U), and tissue pieces lying mostly
 /// outside the mapped atlas brain (`expectedBrain`) away from the main tissue (fragments).
+/// `knownFragments` (CV_8U or empty): pieces already found detached (see extraPieces); a piece
+/// mostly on them is a fragment wherever it lies.
 std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const cv::Mat& expectedTissue,
                                        const cv::Mat& expectedBrain, double brainWidthPx,
-                                       const DamageParams& params);
+                                       const DamageParams& params,
+                                       const cv::Mat& knownFragments = cv::Mat());
+
+/// Tissue pieces beyond those the atlas has: when the section (CV_8U mask) has more pieces of at
+/// least `minShare` of its largest than the atlas brain mask has, the smallest extra ones are
+/// detached fragments. Returns their mask (empty image when there are none).
+cv::Mat extraPieces(const cv::Mat& tissueMask, const cv::Mat& atlasMask, double minShare = 0.02);
 
 /// The documented decision: damaged when the regions together cover at least damagedShare of the
 /// tissue, or one tear is at least deepTearFrac of the brain width long.
