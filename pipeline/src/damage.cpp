@@ -138,6 +138,10 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const cv::Mat&
     cv::Mat deficit = inner & ~tissueMask;
     cv::morphologyEx(deficit, deficit, cv::MORPH_OPEN,
                      cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(3, 3)));
+    std::vector<std::vector<cv::Point>> outer;
+    cv::findContours(tissueMask.clone(), outer, cv::RETR_EXTERNAL, cv::CHAIN_APPROX_SIMPLE);
+    cv::Mat outside(tissueMask.size(), CV_8U, cv::Scalar(255));
+    cv::drawContours(outside, outer, -1, cv::Scalar(0), cv::FILLED);
     cv::Mat labels, stats, centroids;
     int n = cv::connectedComponentsWithStats(deficit, labels, stats, centroids, 8, CV_32S);
     for (int i = 1; i < n; ++i) {
@@ -151,6 +155,21 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const cv::Mat&
         const double meanWidth = area / std::max(length, 1.0);
         // A long thin crack has little area; its length makes it count.
         if (area < minArea && length < 0.5 * params.deepTearFrac * brainWidthPx) continue;
+        // A gap lying along the outline (much of its rim on the glass outside) and shallow is
+        // registration slack where the boundary is faint, not lost tissue; a bite out of the
+        // edge is deep, and a crack opens to the outside only at its mouth.
+        cv::Mat rim;
+        // The rim reaches across the slack band the erosion left between gap and outline.
+        cv::dilate(region, rim,
+                   cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * r + 5, 2 * r + 5)));
+        rim &= ~region;
+        const double openShare =
+            cv::countNonZero(rim & outside) / std::max(1.0, double(cv::countNonZero(rim)));
+        cv::Mat dist;
+        cv::distanceTransform(region, dist, cv::DIST_L2, 3);
+        double thickness = 0;
+        cv::minMaxLoc(dist, nullptr, &thickness);
+        if (openShare > 0.3 && 2 * thickness < params.shallowFrac * brainWidthPx) continue;
         DamageRegion d;
         d.kind = length / std::max(meanWidth, 1e-9) >= params.tearElongation ? DamageKind::Tear
                                                                              : DamageKind::Missing;

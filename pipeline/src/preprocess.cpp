@@ -70,6 +70,15 @@ float ringDeviation(const cv::Mat& image, const cv::Mat& valid, float glass) {
     return std::max(0.002f, 1.4826f * ring[ring.size() / 2]);
 }
 
+/// The mask with every hole filled (outer contours drawn solid).
+cv::Mat filledOutline(const cv::Mat& mask) {
+    std::vector<std::vector<cv::Point>> contours;
+    cv::findContours(mask.clone(), contours, cv::RETR_EXTERNAL, cv::CHAIN_APPROX_SIMPLE);
+    cv::Mat filled = cv::Mat::zeros(mask.size(), CV_8U);
+    cv::drawContours(filled, contours, -1, cv::Scalar(255), cv::FILLED);
+    return filled;
+}
+
 /// Tissue in a normalised, tissue-bright working image, in two passes. A heavy blur averages
 /// cell texture so that even dim tissue stands above the glass noise: that finds where tissue
 /// is. Then the outline is placed half way between the glass and the dimmest tissue on a lightly
@@ -98,22 +107,26 @@ cv::Mat segmentTissue(const cv::Mat& grey, const cv::Mat& valid, float glass,
               cv::Point(-1, -1), std::max(1, longSide / 150));
     if (cv::countNonZero(inner) < 64) inner = coarse;
     const float dim = percentile(heavy, 0.05, inner);
-    // Half way to the dimmest tissue, but never more than clearly above the glass noise: dark
-    // tissue (white matter has few nuclei) is still tissue, not glass.
+    // The outline sits half way between the glass and the dimmest tissue, where a blurred edge
+    // really is. Inside that outline, anything clearly above the glass noise is tissue too: dark
+    // tissue (white matter has few nuclei) is not glass.
+    const float outlineT = glass + std::max(0.5f * (dim - glass), 0.5f * margin);
     const float clearlyAbove = std::max(0.1f * (bright - glass), 8.0f * madLight);
-    const float t = glass + std::max(0.5f * margin, std::min(0.5f * (dim - glass), clearlyAbove));
-
-    cv::Mat mask = (light > t) & valid;
+    const float insideT = glass + std::max(0.5f * margin, std::min(0.5f * (dim - glass), clearlyAbove));
     const int r = std::max(1, longSide / 250);
     const cv::Mat disc = cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * r + 1, 2 * r + 1));
     cv::Mat reach;
     cv::dilate(coarse, reach, disc);
-    mask &= reach;
+    const cv::Mat outline = (light > outlineT) & valid & reach;
+    const cv::Mat inside = filledOutline(outline);
+    cv::Mat mask = outline | ((light > insideT) & inside);
     if (fine) {
-        // Thin cracks survive only the lightest blur; the threshold is the same.
+        // For damage: everything clearly above the glass is tissue, also dark tissue at the
+        // outline (the outline's exact place does not matter there), and thin cracks survive
+        // only the lightest blur.
         cv::Mat sharp;
         cv::GaussianBlur(grey, sharp, cv::Size(), 1.0);
-        *fine = (sharp > t) & valid & reach;
+        *fine = (sharp > insideT) & valid & reach;
     }
     // Close the gaps between cells in dim, textured tissue.
     cv::morphologyEx(mask, mask, cv::MORPH_CLOSE, disc);

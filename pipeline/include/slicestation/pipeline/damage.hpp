@@ -33,6 +33,7 @@ struct DamageParams {
     double damagedShare = 0.008;      ///< decision: damage of at least this share of the tissue
     double deepTearFrac = 0.08;       ///< decision: or a tear at least this long
     double tearElongation = 3.0;      ///< length / mean width from which a gap is a tear
+    double shallowFrac = 0.03;        ///< gaps along the outline thinner than this are slack
 };
 
 /// The outermost outline of the tissue as a polygon with unit normals (unoriented).

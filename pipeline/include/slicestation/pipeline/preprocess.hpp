@@ -13,7 +13,9 @@ enum class Contrast { Fluorescence, Brightfield };
 struct PreparedSection {
     cv::Mat grey;       ///< CV_32F in [0,1], tissue bright whatever the stain, working resolution
     cv::Mat tissueMask; ///< CV_8U, 255 on tissue (holes such as ventricles and tears stay 0)
-    cv::Mat tissueMaskFine; ///< the same before closing: thin cracks stay open (for damage)
+    /// For damage: all that is clearly above the glass (dark tissue too, the outline slightly
+    /// wider), unclosed and barely blurred so thin cracks stay open.
+    cv::Mat tissueMaskFine;
     double scale = 1.0; ///< working pixels per full-resolution pixel (<= 1)
     Contrast contrast = Contrast::Fluorescence;
 };
