@@ -9,11 +9,13 @@
 #include "slicestation/pipeline/atlas_matching.hpp"
 #include "slicestation/pipeline/atlas_slicing.hpp"
 #include "slicestation/pipeline/overlay.hpp"
+#include "slicestation/pipeline/damage.hpp"
 #include "slicestation/pipeline/registration.hpp"
 
 #include <CLI/CLI.hpp>
 #include <opencv2/imgproc.hpp>
 
+#include <algorithm>
 #include <chrono>
 #include <cstdio>
 #include <filesystem>
@@ -63,8 +65,9 @@ int main(int argc, char** argv) {
     std::vector<double> positions;
     std::FILE* csv = std::fopen((fs::path(output) / "positions.csv").c_str(), "w");
     if (csv) std::fprintf(csv, "section,index,position_um,score,tilt_lr_deg,tilt_dv_deg\n");
-    std::printf("%8s %6s %9s %6s %13s %8s %8s\n", "section", "slice", "pos_um", "score",
-                "tilt_lr/dv", "match_ms", "overlap");
+    std::printf("%8s %6s %9s %6s %13s %8s %8s  %s\n", "section", "slice", "pos_um", "score",
+                "tilt_lr/dv", "match_ms", "overlap", "damage (flag, share, kinds)");
+    std::vector<int> flagged;
     for (int n = 1; n <= 20; ++n) {
         char name[32];
         std::snprintf(name, sizeof name, "Section-%02d.tif", n);
@@ -91,10 +94,25 @@ int main(int argc, char** argv) {
         auto reg = pipeline::registerSection(*image, atlas, ro);
         cv::Mat tile;
         double iou = 0;
+        std::string damage = "-";
         if (reg) {
             iou = reg->quality.tissueOverlap;
+            std::vector<std::vector<cv::Point2f>> polygons;
+            std::string kinds;
+            for (const auto& d : reg->damage) {
+                std::vector<cv::Point2f> poly;
+                for (const auto& q : d.polygon) poly.emplace_back(reg->workingFromImage(q));
+                polygons.push_back(std::move(poly));
+                kinds += std::string(kinds.empty() ? "" : "+") + std::string(pipeline::toString(d.kind));
+            }
+            char buf[160];
+            std::snprintf(buf, sizeof buf, "%s %.1f%% %s", reg->damaged ? "DAMAGED" : "clean",
+                          100.0 * reg->damageFraction, kinds.empty() ? "" : kinds.c_str());
+            damage = buf;
+            if (reg->damaged) flagged.push_back(n);
             tile = pipeline::renderOverlay(reg->workingGrey,
-                                           reg->warpedLabels(atlas, reg->workingGrey.size()));
+                                           reg->warpedLabels(atlas, reg->workingGrey.size()),
+                                           polygons);
         } else {
             tile = cv::Mat(300, 420, CV_8UC3, cv::Scalar(0, 0, 80));
         }
@@ -104,8 +122,9 @@ int main(int argc, char** argv) {
         cv::putText(tile, caption, {8, 22}, cv::FONT_HERSHEY_SIMPLEX, 0.6, cv::Scalar(0, 255, 255),
                     2);
         tiles.push_back(tile);
-        std::printf("%8s %6d %9.0f %6.3f %6.1f/%5.1f %8.0f %8.2f\n", name + 0, m->index,
-                    m->positionUm, m->score, m->tiltColumnsDeg, m->tiltRowsDeg, ms, iou);
+        std::printf("%8s %6d %9.0f %6.3f %6.1f/%5.1f %8.0f %8.2f  %s\n", name + 0, m->index,
+                    m->positionUm, m->score, m->tiltColumnsDeg, m->tiltRowsDeg, ms, iou,
+                    damage.c_str());
         if (csv)
             std::fprintf(csv, "%d,%d,%.1f,%.4f,%.2f,%.2f\n", n, m->index, m->positionUm, m->score,
                          m->tiltColumnsDeg, m->tiltRowsDeg);
@@ -126,6 +145,17 @@ int main(int argc, char** argv) {
         std::fprintf(stderr, "%s\n", w.error().message.c_str());
         return 1;
     }
+    // The series README judges 09, 11, 14 and 15 torn, 10 and 13 unclear, the rest clean.
+    std::string list;
+    int missed = 0, wrong = 0;
+    for (int t : {9, 11, 14, 15})
+        missed += std::find(flagged.begin(), flagged.end(), t) == flagged.end();
+    for (int f : flagged) {
+        list += (list.empty() ? "" : " ") + std::to_string(f);
+        wrong += f != 9 && f != 11 && f != 14 && f != 15 && f != 10 && f != 13;
+    }
+    std::printf("\ndamaged: %s (torn sections missed: %d of 4; clean sections flagged: %d of 14)\n",
+                list.empty() ? "none" : list.c_str(), missed, wrong);
     const double spacing = (positions.back() - positions.front()) / double(positions.size() - 1);
     std::printf("\norder: %s (%d inversions); mean spacing %.0f um; contact sheet %s\n",
                 inversions == 0 ? "monotonic" : "NOT monotonic", inversions, spacing,
