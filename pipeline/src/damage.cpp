@@ -38,7 +38,17 @@ std::string_view toString(DamageKind kind) noexcept {
     return "unknown";
 }
 
-Outline tissueOutline(const cv::Mat& tissueMask) {
+std::vector<cv::Point2f> subdivide(const std::vector<cv::Point2f>& polygon, double maxSegmentPx) {
+    std::vector<cv::Point2f> out;
+    for (size_t i = 0; i < polygon.size(); ++i) {
+        const cv::Point2f a = polygon[i], b = polygon[(i + 1) % polygon.size()];
+        const int pieces = std::max(1, static_cast<int>(std::ceil(cv::norm(b - a) / maxSegmentPx)));
+        for (int k = 0; k < pieces; ++k) out.push_back(a + (b - a) * (float(k) / float(pieces)));
+    }
+    return out;
+}
+
+Outline tissueOutline(const cv::Mat& tissueMask, double maxSegmentPx) {
     Outline out;
     std::vector<std::vector<cv::Point>> contours;
     cv::findContours(tissueMask.clone(), contours, cv::RETR_EXTERNAL, cv::CHAIN_APPROX_NONE);
@@ -53,6 +63,7 @@ Outline tissueOutline(const cv::Mat& tissueMask) {
         if (out.points.empty() || q != out.points.back()) out.points.push_back(q);
     }
     while (out.points.size() > 1 && out.points.front() == out.points.back()) out.points.pop_back();
+    out.points = subdivide(out.points, maxSegmentPx);
     const size_t n = out.points.size();
     for (size_t i = 0; i < n; ++i) {
         const cv::Point2f d = out.points[(i + 1) % n] - out.points[(i + n - 1) % n];

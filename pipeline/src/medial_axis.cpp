@@ -115,12 +115,32 @@ ExteriorTriangulation exteriorMedialAxis(const std::vector<cv::Point2f>& outline
         ++out.exteriorFaces;
         const K::Triangle_2 tri = cdt.triangle(f);
         const K::Point_2 c = CGAL::circumcenter(tri);
-        if (tri.bounded_side(c) == CGAL::ON_UNBOUNDED_SIDE) continue;
+        cv::Point2d node(CGAL::to_double(c.x()), CGAL::to_double(c.y()));
+        if (tri.bounded_side(c) == CGAL::ON_UNBOUNDED_SIDE) {
+            // A skinny triangle's circumcentre lies outside it (Algorithm 2, line 2 drops it).
+            // Dropping it outright also cuts the axis of a straight-sided wedge into pieces,
+            // where such triangles alternate with good ones, so it stays as a joint placed at
+            // the middle of its longest edge, where its circumcentre projects.
+            int longest = 0;
+            double best = -1;
+            for (int i = 0; i < 3; ++i) {
+                const double len = CGAL::to_double(
+                    CGAL::squared_distance(tri.vertex((i + 1) % 3), tri.vertex((i + 2) % 3)));
+                if (len > best) {
+                    best = len;
+                    longest = i;
+                }
+            }
+            const K::Point_2 m = CGAL::midpoint(tri.vertex((longest + 1) % 3),
+                                                tri.vertex((longest + 2) % 3));
+            node = {CGAL::to_double(m.x()), CGAL::to_double(m.y())};
+        } else {
+            ++out.keptFaces;
+        }
         f->info().node = static_cast<int>(kept.size());
         kept.push_back(f);
-        centre.emplace_back(CGAL::to_double(c.x()), CGAL::to_double(c.y()));
+        centre.push_back(node);
     }
-    out.keptFaces = static_cast<int>(kept.size());
 
     // Voronoi edges between kept neighbours across edges that are not outline edges (line 3).
     std::vector<std::vector<std::pair<int, double>>> adj(kept.size());

@@ -9,6 +9,7 @@
 #include "slicestation/sim/section_generator.hpp"
 
 #include <gtest/gtest.h>
+#include <opencv2/imgproc.hpp>
 
 #include <algorithm>
 #include <cmath>
@@ -63,6 +64,64 @@ TEST(RegistrationAccuracy, BuiltInAtlasCleanSections) {
         const Score s = registerAndScore(sim::builtinAtlasPlane(0.5), o);
         EXPECT_LT(s.rmse, 2.0) << "seed " << seed;
         EXPECT_LT(s.max, 8.0) << "seed " << seed;
+    }
+}
+
+TEST(DamageGroundTruth, CleanSectionsAreNotFlagged) {
+    for (std::uint64_t seed : {51u, 52u, 53u}) {
+        sim::GeneratorOptions o;
+        o.seed = seed;
+        auto gen = sim::generateSection(sim::builtinAtlasPlane(0.45), o);
+        ASSERT_TRUE(gen.ok());
+        auto reg = pipeline::registerSection(gen->image, sim::builtinAtlasPlane(0.45));
+        ASSERT_TRUE(reg.ok());
+        EXPECT_FALSE(reg->damaged) << "seed " << seed << ": " << reg->damageSummary;
+    }
+}
+
+TEST(DamageGroundTruth, EachKindIsFlaggedLocatedAndKeptOutOfTheFit) {
+    struct Case {
+        const char* name;
+        sim::DamageOptions damage;
+        pipeline::DamageKind kind;
+    };
+    const Case cases[] = {{"tear", {true, false, false}, pipeline::DamageKind::Tear},
+                          {"missing", {false, true, false}, pipeline::DamageKind::Missing},
+                          {"fragment", {false, false, true}, pipeline::DamageKind::Fragment}};
+    std::uint64_t seed = 61;
+    for (const Case& c : cases) {
+        sim::GeneratorOptions o;
+        o.seed = seed++;
+        o.damage = c.damage;
+        const cv::Mat atlas = sim::builtinAtlasPlane(0.55);
+        auto gen = sim::generateSection(atlas, o);
+        ASSERT_TRUE(gen.ok());
+        auto reg = pipeline::registerSection(gen->image, atlas);
+        ASSERT_TRUE(reg.ok()) << reg.error().message;
+        EXPECT_TRUE(reg->damaged) << c.name;
+        // Every true region is covered by reported polygons for at least a tenth of its area,
+        // and the expected kind is among those reported.
+        cv::Mat reported = cv::Mat::zeros(gen->image.size(), CV_8U);
+        bool kindSeen = false;
+        for (const auto& r : reg->damage) {
+            std::vector<cv::Point> poly;
+            for (const auto& p : r.polygon) poly.emplace_back(cvRound(p.x), cvRound(p.y));
+            cv::fillPoly(reported, std::vector<std::vector<cv::Point>>{poly}, cv::Scalar(255));
+            kindSeen |= r.kind == c.kind;
+        }
+        EXPECT_TRUE(kindSeen) << c.name << ": " << reg->damageSummary;
+        for (const auto& t : gen->truth.damage) {
+            cv::Mat truth = cv::Mat::zeros(gen->image.size(), CV_8U);
+            std::vector<cv::Point> poly;
+            for (const auto& p : t.polygon) poly.emplace_back(cvRound(p.x), cvRound(p.y));
+            cv::fillPoly(truth, std::vector<std::vector<cv::Point>>{poly}, cv::Scalar(255));
+            EXPECT_GE(cv::countNonZero(truth & reported), 0.1 * cv::countNonZero(truth)) << c.name;
+        }
+        // Damage must not pull the registration of the intact tissue.
+        double ss = 0;
+        for (const auto& l : gen->truth.landmarks)
+            ss += std::pow(cv::norm(reg->atlasFromImage(l.image) - l.atlas), 2);
+        EXPECT_LT(std::sqrt(ss / double(gen->truth.landmarks.size())), 2.0) << c.name;
     }
 }
 

@@ -42,8 +42,13 @@ struct Outline {
     std::vector<cv::Point2f> normals;
 };
 
-/// The largest outer contour of `tissueMask` (CV_8U), simplified to within 1 px.
-Outline tissueOutline(const cv::Mat& tissueMask);
+/// The largest outer contour of `tissueMask` (CV_8U), simplified to within 1 px, then resampled
+/// so that no edge is longer than `maxSegmentPx`: the medial axis of a straight-sided wedge only
+/// exists if its sides carry vertices.
+Outline tissueOutline(const cv::Mat& tissueMask, double maxSegmentPx = 3.0);
+
+/// The same resampling for any closed polygon.
+std::vector<cv::Point2f> subdivide(const std::vector<cv::Point2f>& polygon, double maxSegmentPx);
 
 /// A deep concavity of the outline found by the exterior medial axis.
 struct Concavity {

@@ -1,0 +1,141 @@
+#include "slicestation/pipeline/damage.hpp"
+#include "slicestation/pipeline/medial_axis.hpp"
+
+#include <gtest/gtest.h>
+#include <opencv2/imgproc.hpp>
+
+#include <cmath>
+
+using namespace slicestation::pipeline;
+
+namespace {
+/// A square with a narrow wedge cut into its left side, `depth` px deep, sides every 2 px.
+std::vector<cv::Point2f> notchedSquare(float depth, double step = 2.0) {
+    return subdivide({{0, 0}, {200, 0}, {200, 200}, {0, 200}, {0, 108}, {depth, 100}, {0, 92}},
+                     step);
+}
+
+cv::Mat ellipseMask(cv::Size size, cv::Point c, cv::Size axes) {
+    cv::Mat m = cv::Mat::zeros(size, CV_8U);
+    cv::ellipse(m, c, axes, 0, 0, 360, cv::Scalar(255), cv::FILLED);
+    return m;
+}
+} // namespace
+
+TEST(MedialAxis, MarksInsideAndOutsideFaces) {
+    const ExteriorTriangulation convex =
+        exteriorMedialAxis({{0, 0}, {100, 0}, {100, 80}, {0, 80}});
+    EXPECT_EQ(convex.insideFaces, 2);
+    EXPECT_EQ(convex.exteriorFaces, 0); // a convex outline has nothing outside within its hull
+    const ExteriorTriangulation notched = exteriorMedialAxis(notchedSquare(80));
+    EXPECT_GT(notched.exteriorFaces, 0);
+    EXPECT_GT(notched.insideFaces, 0);
+}
+
+TEST(MedialAxis, BranchLengthFollowsTheNotchDepth) {
+    double shallow = 0, deep = 0;
+    for (const auto& b : exteriorMedialAxis(notchedSquare(20)).branches) shallow = std::max(shallow, b.length);
+    for (const auto& b : exteriorMedialAxis(notchedSquare(120)).branches) deep = std::max(deep, b.length);
+    EXPECT_GT(deep, 60.0);      // the axis runs most of the way down a 120 px wedge
+    EXPECT_GT(deep, 3 * shallow);
+}
+
+TEST(MedialAxis, AlphaIsALengthNotAHopCount) {
+    // The same notch sampled five times more densely has many more Voronoi vertices but about
+    // the same depth.
+    double sparse = 0, fine = 0;
+    size_t sparseNodes = 0, fineNodes = 0;
+    for (const auto& b : exteriorMedialAxis(notchedSquare(120, 2.5)).branches)
+        if (b.length > sparse) {
+            sparse = b.length;
+            sparseNodes = b.axis.size();
+        }
+    for (const auto& b : exteriorMedialAxis(notchedSquare(120, 0.5)).branches)
+        if (b.length > fine) {
+            fine = b.length;
+            fineNodes = b.axis.size();
+        }
+    EXPECT_GT(fineNodes, 2 * sparseNodes);
+    EXPECT_NEAR(fine, sparse, 0.2 * sparse);
+}
+
+TEST(Damage, SymmetricNotchesAreAnatomyAndALoneOneIsNot) {
+    // An ellipse with notches at both sides (anatomy) and one more on the lower left only.
+    cv::Mat mask = ellipseMask({600, 400}, {300, 200}, {250, 160});
+    const auto cut = [&](std::vector<cv::Point> tri) {
+        cv::fillPoly(mask, std::vector<std::vector<cv::Point>>{tri}, cv::Scalar(0));
+    };
+    cut({{40, 150}, {150, 160}, {40, 170}});  // left
+    cut({{560, 150}, {450, 160}, {560, 170}}); // its mirror
+    cut({{80, 285}, {200, 240}, {100, 325}}); // lone tear, open to the outside
+    const Outline outline = tissueOutline(mask);
+    auto concavities = deepConcavities(outline, 40.0);
+    ASSERT_GE(concavities.size(), 3u);
+    const cv::Matx23d mirror(-1, 0, 600 - 1, 0, 1, 0); // about x = 299.5
+    markSymmetric(concavities, outline, mirror, 500, DamageParams{});
+    int symmetric = 0, lone = 0;
+    for (const auto& c : concavities) {
+        cv::Point2f centre(0, 0);
+        for (const auto& p : c.points) centre += p;
+        centre *= 1.0f / float(c.points.size());
+        if (centre.y > 230 && centre.x < 250) {
+            EXPECT_FALSE(c.symmetric);
+            ++lone;
+        } else if (std::abs(centre.y - 160) < 40) {
+            EXPECT_TRUE(c.symmetric) << "at " << centre;
+            ++symmetric;
+        }
+    }
+    EXPECT_EQ(lone, 1);
+    EXPECT_EQ(symmetric, 2);
+    const cv::Mat excluded = concavityExclusion(concavities, mask.size(), 5);
+    EXPECT_GT(excluded.at<uchar>(265, 150), 0);  // around the lone tear
+    EXPECT_EQ(excluded.at<uchar>(160, 100), 0);  // not around the symmetric ones
+}
+
+TEST(Damage, GapsTearsAndFragmentsAgainstTheExpectedTissue) {
+    const cv::Mat expected = ellipseMask({600, 400}, {300, 200}, {250, 160});
+    cv::Mat tissue = expected.clone();
+    cv::circle(tissue, {300, 120}, 30, cv::Scalar(0), cv::FILLED);              // missing chunk
+    cv::line(tissue, {420, 200}, {520, 260}, cv::Scalar(0), 4);                 // thin crack
+    cv::ellipse(tissue, {60, 60}, {25, 15}, 0, 0, 360, cv::Scalar(255), cv::FILLED); // fragment
+    const auto regions = tissueDamage(tissue, expected, expected, 500, DamageParams{});
+    int missing = 0, tears = 0, fragments = 0;
+    for (const auto& r : regions) {
+        missing += r.kind == DamageKind::Missing;
+        tears += r.kind == DamageKind::Tear;
+        fragments += r.kind == DamageKind::Fragment;
+        EXPECT_GT(r.share, 0.0);
+        EXPECT_GE(r.polygon.size(), 3u);
+    }
+    EXPECT_EQ(missing, 1);
+    EXPECT_EQ(tears, 1);
+    EXPECT_EQ(fragments, 1);
+    EXPECT_TRUE(isDamaged(regions, 500, DamageParams{}));
+    EXPECT_NE(damageSummary(regions).find("tear"), std::string::npos);
+}
+
+TEST(Damage, IntactTissueAndRegistrationSlackAreNotDamage) {
+    const cv::Mat expected = ellipseMask({600, 400}, {300, 200}, {250, 160});
+    // The section a few pixels smaller all round: slack along the outline, nothing lost.
+    const cv::Mat tissue = ellipseMask({600, 400}, {301, 201}, {247, 157});
+    const auto regions = tissueDamage(tissue, expected, expected, 500, DamageParams{});
+    EXPECT_TRUE(regions.empty());
+    EXPECT_FALSE(isDamaged(regions, 500, DamageParams{}));
+    EXPECT_EQ(damageSummary(regions), "no damage found");
+}
+
+TEST(Damage, ExtraPiecesAreThoseTheAtlasDoesNotHave) {
+    cv::Mat tissue = ellipseMask({400, 300}, {200, 150}, {120, 80});
+    cv::circle(tissue, {370, 40}, 15, cv::Scalar(255), cv::FILLED);
+    const cv::Mat atlasOne = ellipseMask({400, 300}, {200, 150}, {120, 80});
+    const cv::Mat extra = extraPieces(tissue, atlasOne);
+    ASSERT_FALSE(extra.empty());
+    EXPECT_GT(extra.at<uchar>(40, 370), 0);
+    EXPECT_EQ(extra.at<uchar>(150, 200), 0);
+    // Two bulbs in the atlas and in the section: no fragment.
+    cv::Mat two = cv::Mat::zeros(300, 400, CV_8U);
+    cv::circle(two, {120, 150}, 60, cv::Scalar(255), cv::FILLED);
+    cv::circle(two, {280, 150}, 60, cv::Scalar(255), cv::FILLED);
+    EXPECT_TRUE(extraPieces(two, two).empty());
+}
