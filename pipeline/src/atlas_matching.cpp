@@ -3,6 +3,7 @@
 #include "slicestation/pipeline/affine.hpp"
 #include "slicestation/pipeline/edges.hpp"
 #include "slicestation/pipeline/icp.hpp"
+#include "slicestation/pipeline/mask_ops.hpp"
 #include "slicestation/pipeline/point_grid.hpp"
 #include "slicestation/pipeline/preprocess.hpp"
 
@@ -21,23 +22,6 @@ using core::ErrorCode;
 using core::makeError;
 
 constexpr double kPi = 3.14159265358979323846;
-
-cv::Mat fillHoles(const cv::Mat& mask) {
-    std::vector<std::vector<cv::Point>> contours;
-    cv::findContours(mask.clone(), contours, cv::RETR_EXTERNAL, cv::CHAIN_APPROX_SIMPLE);
-    cv::Mat filled = cv::Mat::zeros(mask.size(), CV_8U);
-    cv::drawContours(filled, contours, -1, cv::Scalar(255), cv::FILLED);
-    return filled;
-}
-
-std::vector<cv::Point2f> outerContour(const cv::Mat& mask) {
-    std::vector<std::vector<cv::Point>> contours;
-    cv::findContours(mask.clone(), contours, cv::RETR_EXTERNAL, cv::CHAIN_APPROX_NONE);
-    std::vector<cv::Point2f> out;
-    for (const auto& c : contours)
-        for (const auto& p : c) out.emplace_back(float(p.x), float(p.y));
-    return out;
-}
 
 /// Distance (px) to the nearest non-zero pixel of `edges`.
 cv::Mat distanceTo(const cv::Mat& edges) {
@@ -177,7 +161,7 @@ SliceFeatures sliceFeatures(const cv::Mat& labels, double umPerPx, double positi
     f.mask = fillHoles(work != 0);
     f.areaPx = cv::countNonZero(f.mask);
     if (f.areaPx < 16) return f;
-    const auto contour = outerContour(f.mask);
+    const auto contour = outerContourPoints(f.mask);
     f.box = orientedBox(contour);
     f.heightPx = 2 * std::min(f.box.halfMajor, f.box.halfMinor);
     const float spacing = float(std::max(1.0, f.heightPx / 120));
@@ -205,7 +189,7 @@ core::Result<SectionFeatures> sectionFeatures(const cv::Mat& image, double image
     f.grey = prepared->grey;
     f.tissue = fillHoles(prepared->tissueMask);
     f.areaPx = cv::countNonZero(f.tissue);
-    const auto contour = outerContour(f.tissue);
+    const auto contour = outerContourPoints(f.tissue);
     f.box = orientedBox(contour);
     if (f.box.halfMajor <= 0)
         return makeError(ErrorCode::NoTissue, "no tissue found: the tissue outline is degenerate");

@@ -1,5 +1,7 @@
 #include "slicestation/pipeline/preprocess.hpp"
 
+#include "slicestation/pipeline/mask_ops.hpp"
+
 #include <Eigen/Dense>
 #include <opencv2/imgproc.hpp>
 
@@ -70,15 +72,6 @@ float ringDeviation(const cv::Mat& image, const cv::Mat& valid, float glass) {
     return std::max(0.002f, 1.4826f * ring[ring.size() / 2]);
 }
 
-/// The mask with every hole filled (outer contours drawn solid).
-cv::Mat filledOutline(const cv::Mat& mask) {
-    std::vector<std::vector<cv::Point>> contours;
-    cv::findContours(mask.clone(), contours, cv::RETR_EXTERNAL, cv::CHAIN_APPROX_SIMPLE);
-    cv::Mat filled = cv::Mat::zeros(mask.size(), CV_8U);
-    cv::drawContours(filled, contours, -1, cv::Scalar(255), cv::FILLED);
-    return filled;
-}
-
 /// Tissue in a normalised, tissue-bright working image, in two passes. A heavy blur averages
 /// cell texture so that even dim tissue stands above the glass noise: that finds where tissue
 /// is. Then the outline is placed half way between the glass and the dimmest tissue on a lightly
@@ -118,7 +111,7 @@ cv::Mat segmentTissue(const cv::Mat& grey, const cv::Mat& valid, float glass,
     cv::Mat reach;
     cv::dilate(coarse, reach, disc);
     const cv::Mat outline = (light > outlineT) & valid & reach;
-    const cv::Mat inside = filledOutline(outline);
+    const cv::Mat inside = fillHoles(outline);
     cv::Mat mask = outline | ((light > insideT) & inside);
     if (fine) {
         // For damage: everything clearly above the glass is tissue, also dark tissue at the

@@ -2,6 +2,7 @@
 
 #include "slicestation/pipeline/affine.hpp"
 #include "slicestation/pipeline/icp.hpp"
+#include "slicestation/pipeline/mask_ops.hpp"
 #include "slicestation/pipeline/obb.hpp"
 #include "slicestation/pipeline/point_grid.hpp"
 
@@ -35,23 +36,6 @@ private:
     std::vector<std::pair<std::string, double>>& out_;
     Clock::time_point start_ = Clock::now(), last_ = start_;
 };
-
-std::vector<cv::Point2f> outerContourSamples(const cv::Mat& mask) {
-    std::vector<std::vector<cv::Point>> contours;
-    cv::findContours(mask.clone(), contours, cv::RETR_EXTERNAL, cv::CHAIN_APPROX_NONE);
-    std::vector<cv::Point2f> out;
-    for (const auto& c : contours)
-        for (const auto& p : c) out.emplace_back(float(p.x), float(p.y));
-    return out;
-}
-
-cv::Mat fillHoles(const cv::Mat& mask) {
-    std::vector<std::vector<cv::Point>> contours;
-    cv::findContours(mask.clone(), contours, cv::RETR_EXTERNAL, cv::CHAIN_APPROX_SIMPLE);
-    cv::Mat filled = cv::Mat::zeros(mask.size(), CV_8U);
-    cv::drawContours(filled, contours, -1, cv::Scalar(255), cv::FILLED);
-    return filled;
-}
 
 /// IoU of the section's (filled) tissue and the atlas brain mapped into the working frame.
 double overlap(const cv::Mat& tissueFilled, const cv::Mat& atlasMask, const cv::Matx23d& t) {
@@ -296,8 +280,8 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         mei.setTo(0, grown);
     }
     const cv::Mat tissueFilled = fillHoles(mainTissue);
-    const auto tissueSamples = outerContourSamples(tissueFilled);
-    const auto atlasOutline = outerContourSamples(atlasMask);
+    const auto tissueSamples = outerContourPoints(tissueFilled);
+    const auto atlasOutline = outerContourPoints(atlasMask);
     const OrientedBox imgBox = orientedBox(tissueSamples);
     const OrientedBox atlBox = orientedBox(atlasOutline);
     if (imgBox.halfMajor <= 0 || atlBox.halfMajor <= 0)
