@@ -66,6 +66,8 @@ core::Result<json> runDemo(const DemoRequest& rq) {
     summary["rmse_atlas_px"] = err.empty() ? 0.0 : std::sqrt(ss / double(err.size()));
     summary["median_error_atlas_px"] = sorted.empty() ? 0.0 : sorted[sorted.size() / 2];
     summary["max_error_atlas_px"] = sorted.empty() ? 0.0 : sorted.back();
+    summary["damaged"] = (*result)["damaged"];
+    summary["damage_summary"] = (*result)["damage_summary"];
     summary["quality"] = (*result)["quality"];
     summary["timings_ms"] = (*result)["timings_ms"];
     summary["files"] = {"section.tif", "atlas-labels.tif", "landmarks.csv", "truth.csv",
