@@ -125,6 +125,15 @@ TEST(DamageGroundTruth, EachKindIsFlaggedLocatedAndKeptOutOfTheFit) {
     }
 }
 
+TEST(RegistrationAccuracy, SmallSectionsRegisterToo) {
+    // A 400 x 300 capture has fewer pixels than the atlas slice: errors stay near a pixel.
+    sim::GeneratorOptions o;
+    o.seed = 71;
+    o.imageSize = {400, 300};
+    const Score s = registerAndScore(sim::builtinAtlasPlane(0.5), o);
+    EXPECT_LT(s.rmse, 3.0);
+}
+
 TEST(RegistrationAccuracy, AffineOnlyDeformationIsRecoveredClosely) {
     sim::GeneratorOptions o;
     o.seed = 21;
