@@ -12,6 +12,7 @@ int main(int argc, char** argv) {
     commands.push_back(addDemoCommand(app));
     commands.push_back(addStageCommand(app));
     commands.push_back(addAtlasCommands(app));
+    commands.push_back(addDaemonCommands(app));
 
     try {
         app.parse(argc, argv);

@@ -19,6 +19,9 @@ CommandRunner addDemoCommand(CLI::App& app);
 CommandRunner addStageCommand(CLI::App& app);  ///< cli_stage.cpp
 /// `atlas slice` and `atlas match` (atlas_command.hpp).
 CommandRunner addAtlasCommands(CLI::App& app);
+/// scan submit, status, runs, sections, section, pause, resume, cancel, rescan, alerts,
+/// export: clients of a running slicestationd (cli_daemon.cpp).
+CommandRunner addDaemonCommands(CLI::App& app);
 
 /// Prints "slicectl <command>: error: <message>" on stderr and returns the exit code.
 int reportError(const char* command, const core::Error& error);

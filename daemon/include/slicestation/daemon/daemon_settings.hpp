@@ -1,0 +1,83 @@
+#pragma once
+/// The daemon's part of the station file: `[daemon]` (state, atlas, HTTP) and `[scan]` (what a
+/// run uses: objective and its calibrated pixel size, camera-to-stage mapping, exposure, focus,
+/// tiling, retries, disk threshold). `[scan]` is snapshotted into every run when it is submitted
+/// and a run (also a resumed one) always uses its own snapshot.
+///
+/// ```toml
+/// [daemon]
+/// state_dir = "/var/lib/slicestation"   # --state-dir and $STATE_DIRECTORY take precedence
+/// atlas = "builtin"                     # or a stack directory (slicectl atlas slice)
+/// http_bind = "127.0.0.1"
+/// http_port = 8470
+/// token = "..."                         # or token_file = "/etc/slicestation/token"
+/// watchdog_stall_s = 120
+/// [scan]
+/// objective = "4x"
+/// exposure_us = 20000
+/// gain = 1.0
+/// [scan.objectives.4x]
+/// um_per_px = 8.0
+/// camera_to_stage = [1.0, 0.0, 0.0, 1.0]  # stage µm per camera px direction, row-major 2x2
+/// ```
+/// Errors: InvalidArgument naming the key.
+#include "slicestation/core/camera.hpp"
+#include "slicestation/core/result.hpp"
+
+#include <nlohmann/json.hpp>
+
+#include <array>
+#include <chrono>
+#include <cstdint>
+#include <filesystem>
+#include <string>
+
+namespace slicestation::daemon {
+
+struct ObjectiveSettings {
+    std::string name = "default";
+    double umPerPx = 0; ///< calibrated pixel size at the sample
+    /// Unit directions of the camera's x and y axes in the stage frame (row-major 2x2):
+    /// stage offset = umPerPx * M * pixel offset. Identity for an aligned camera.
+    std::array<double, 4> cameraToStage{1, 0, 0, 1};
+};
+
+struct ScanSettings {
+    ObjectiveSettings objective;
+    hw::CameraSettings camera;
+    bool autofocus = true;
+    double focusRangeUm = 150;
+    double focusCoarseStepUm = 25;
+    double focusFineStepUm = 5;
+    double minTissueFraction = 0.03;
+    double startZUm = 2'500; ///< focus start before the slide's focus surface has points
+    double tileOverlap = 0.1;
+    int moveRetries = 2;
+    int captureRetries = 2;
+    std::chrono::milliseconds moveTimeout{10'000};
+    std::chrono::milliseconds captureTimeout{5'000};
+    std::uint64_t minFreeBytes = 500ull << 20;
+    bool registerSections = true;
+    bool checkAtlasMatch = true;
+    int mismatchToleranceSlices = 2;
+};
+
+struct DaemonSettings {
+    std::filesystem::path stateDir;
+    std::string atlas = "builtin"; ///< "builtin" or a stack directory
+    double builtinIntervalUm = 100;
+    std::string httpBind = "127.0.0.1";
+    int httpPort = 8470; ///< 0: choose a free port (tests); the port is written to state_dir/http.port
+    std::string token;   ///< bearer token for control requests; empty: control refused
+    std::chrono::seconds watchdogStall{120};
+    ScanSettings scan;
+};
+
+/// Reads `[daemon]` and `[scan]` from the station document (readDocument of the station file).
+[[nodiscard]] core::Result<DaemonSettings> parseDaemonSettings(const nlohmann::json& station,
+                                                               const std::string& origin);
+nlohmann::json toJson(const ScanSettings& s);
+/// Restores a run's snapshot. InvalidArgument naming the key when the snapshot is damaged.
+[[nodiscard]] core::Result<ScanSettings> scanSettingsFromJson(const nlohmann::json& j, const std::string& origin);
+
+} // namespace slicestation::daemon

@@ -1,0 +1,199 @@
+#pragma once
+/// The station's journal: one SQLite file (WAL, foreign keys, synchronous=FULL) holding every
+/// run, slide, section, capture, registration and alert. Every state change is one transaction,
+/// so a crash at any instant leaves either the old or the new state, never a mix.
+///
+/// Files are referenced only after they are complete on disk: callers write the image (atomic
+/// rename + fsync) first and journal it second.
+///
+/// Schema versions live in `PRAGMA user_version`; open() applies the migrations a file lacks, in
+/// one transaction each, and refuses a file written by a newer version (Unsupported).
+///
+/// Threading: every method is thread-safe (one connection behind a mutex); calls are short.
+/// Errors: IoError (SQLite failure, message carries SQLite's text and the file), NotFound (no such
+/// run/section/alert), InvalidArgument (a request that makes no sense in the record's state,
+/// message says why), Unsupported (schema from the future).
+#include "slicestation/core/result.hpp"
+#include "slicestation/core/stage.hpp"
+
+#include <nlohmann/json.hpp>
+
+#include <cstdint>
+#include <filesystem>
+#include <memory>
+#include <mutex>
+#include <optional>
+#include <string>
+#include <vector>
+
+struct sqlite3;
+
+namespace slicestation::daemon {
+
+enum class RunState { Queued, Running, Paused, Finished, Failed, Cancelled };
+/// pending: not captured yet; captured: image stored, registration pending; registered: done;
+/// damaged: registered and flagged, waiting for re-mount; rescan: re-mounted, to capture again;
+/// failed: could not be captured or registered (reason says why).
+enum class SectionState { Pending, Captured, Registered, Damaged, Rescan, Failed };
+
+const char* toString(RunState s) noexcept;
+const char* toString(SectionState s) noexcept;
+std::optional<RunState> runStateFromString(std::string_view s) noexcept;
+std::optional<SectionState> sectionStateFromString(std::string_view s) noexcept;
+bool isTerminal(RunState s) noexcept; ///< finished, failed, cancelled
+
+/// One section of a plan, as it is journalled when the run is submitted.
+struct PlannedSection {
+    int slideIndex = 0;
+    std::string slideName;
+    int index = 0; ///< within the slide
+    std::string name;
+    double xUm = 0, yUm = 0;            ///< centre, stage frame
+    double widthUm = 0, heightUm = 0;   ///< 0 = one field of view
+    std::optional<int> expectedSlice;   ///< atlas stack index
+};
+
+struct RunRecord {
+    std::int64_t id = 0;
+    std::string name;
+    RunState state = RunState::Queued;
+    std::string reason; ///< why it is paused/failed/cancelled
+    nlohmann::json plan;
+    nlohmann::json settings; ///< station settings snapshotted at submission
+    std::string createdUtc, startedUtc, endedUtc;
+    int sectionCount = 0;
+    int doneCount = 0; ///< registered, damaged or failed
+};
+
+struct SectionRecord {
+    std::int64_t id = 0;
+    std::int64_t runId = 0;
+    int slideIndex = 0;
+    std::string slideName;
+    int index = 0;
+    std::string name;
+    double xUm = 0, yUm = 0, widthUm = 0, heightUm = 0;
+    std::optional<int> expectedSlice;
+    SectionState state = SectionState::Pending;
+    std::string reason;
+    int attempts = 0; ///< captures stored so far
+};
+
+struct CaptureRecord {
+    std::int64_t id = 0;
+    std::int64_t sectionId = 0;
+    int attempt = 0; ///< 1 for the first capture, 2 after a rescan, ...
+    std::string imagePath; ///< relative to the state directory
+    double umPerPx = 0;
+    hw::StagePosition stage;
+    std::optional<double> focusScore;
+    bool focusFound = false;
+    int tiles = 1;
+    std::int64_t exposureUs = 0;
+    double gain = 1;
+    std::string capturedUtc;
+};
+
+struct RegistrationRecord {
+    std::int64_t id = 0;
+    std::int64_t captureId = 0;
+    int atlasSlice = 0;
+    std::optional<int> matchedSlice;
+    bool damaged = false;
+    double damageFraction = 0;
+    std::string summary; ///< damage summary
+    std::string warning; ///< e.g. the section matches another atlas slice
+    double quality = 0;  ///< mask overlap of the registered atlas with the tissue, 0..1
+    std::string resultPath, overlayPath, labelsPath; ///< relative to the state directory
+    nlohmann::json result;
+    std::string registeredUtc;
+};
+
+struct AlertRecord {
+    std::int64_t id = 0;
+    std::optional<std::int64_t> runId;
+    std::optional<std::int64_t> sectionId;
+    std::string kind;     ///< damaged, run_finished, run_paused, run_failed, run_cancelled,
+                          ///< stage_fault, camera_fault, low_disk, restarted
+    std::string severity; ///< info, warning, critical
+    std::string message;
+    std::string raisedUtc;
+    std::optional<std::string> acknowledgedUtc;
+    std::string ackAction; ///< "rescan", "accept" or free text
+};
+
+class Journal {
+public:
+    /// Opens (creating when absent) the journal at `file` and migrates it.
+    [[nodiscard]] static core::Result<std::unique_ptr<Journal>> open(const std::filesystem::path& file);
+    ~Journal();
+    Journal(const Journal&) = delete;
+    Journal& operator=(const Journal&) = delete;
+
+    static constexpr int kSchemaVersion = 1;
+
+    // Runs ----------------------------------------------------------------------------------
+    /// Journals a new queued run with its sections in one transaction.
+    [[nodiscard]] core::Result<std::int64_t> createRun(const std::string& name,
+                                                       const nlohmann::json& plan,
+                                                       const nlohmann::json& settings,
+                                                       const std::vector<PlannedSection>& sections);
+    [[nodiscard]] core::Result<RunRecord> run(std::int64_t runId);
+    [[nodiscard]] core::Result<std::vector<RunRecord>> runs();
+    /// Sets the state (and reason); stamps started/ended times. Refuses to leave a terminal
+    /// state (InvalidArgument) unless `reopen` (a rescan of a finished run).
+    [[nodiscard]] core::Result<void> setRunState(std::int64_t runId, RunState state,
+                                                 const std::string& reason = {}, bool reopen = false);
+    /// The run to work on: a running one (resume after a crash) first, else the oldest queued.
+    /// Paused runs wait for resume. Empty when there is nothing to do.
+    [[nodiscard]] core::Result<std::optional<RunRecord>> nextRun();
+
+    // Sections ------------------------------------------------------------------------------
+    [[nodiscard]] core::Result<std::vector<SectionRecord>> sections(std::int64_t runId);
+    [[nodiscard]] core::Result<SectionRecord> section(std::int64_t sectionId);
+    /// The next section of `runId` to capture (pending or rescan), in plan order.
+    [[nodiscard]] core::Result<std::optional<SectionRecord>> nextSectionToCapture(std::int64_t runId);
+    /// Stores a complete capture and moves the section to `captured`, in one transaction.
+    /// The attempt number is assigned here. \return the capture id.
+    [[nodiscard]] core::Result<std::int64_t> recordCapture(CaptureRecord capture);
+    [[nodiscard]] core::Result<std::vector<CaptureRecord>> captures(std::int64_t sectionId);
+    [[nodiscard]] core::Result<CaptureRecord> capture(std::int64_t captureId);
+    /// Captures whose section is `captured` and that have no registration (after a crash).
+    [[nodiscard]] core::Result<std::vector<std::int64_t>> capturesAwaitingRegistration();
+    /// Stores the registration and moves the section to registered or damaged.
+    [[nodiscard]] core::Result<std::int64_t> recordRegistration(RegistrationRecord registration);
+    [[nodiscard]] core::Result<std::vector<RegistrationRecord>> registrations(std::int64_t sectionId);
+    /// Marks a section failed with a reason (capture or registration gave up).
+    [[nodiscard]] core::Result<void> failSection(std::int64_t sectionId, const std::string& reason);
+    /// After re-mounting: the section is captured again (its old records stay). A finished run
+    /// is reopened (queued). InvalidArgument when the section is still pending or captured.
+    [[nodiscard]] core::Result<void> requestRescan(std::int64_t sectionId);
+
+    // Alerts --------------------------------------------------------------------------------
+    [[nodiscard]] core::Result<std::int64_t> raiseAlert(AlertRecord alert);
+    [[nodiscard]] core::Result<std::vector<AlertRecord>> alerts(bool openOnly);
+    [[nodiscard]] core::Result<AlertRecord> alert(std::int64_t alertId);
+    /// InvalidArgument when already acknowledged.
+    [[nodiscard]] core::Result<AlertRecord> acknowledgeAlert(std::int64_t alertId, const std::string& action);
+
+    /// `PRAGMA integrity_check` and `foreign_key_check`; IoError naming the first problem.
+    [[nodiscard]] core::Result<void> checkIntegrity();
+
+    /// Current UTC time, ISO 8601 with milliseconds (what every *Utc field holds).
+    static std::string nowUtc();
+
+private:
+    Journal(sqlite3* db, std::filesystem::path file) : db_(db), file_(std::move(file)) {}
+    core::Result<void> migrate();
+    sqlite3* db_;
+    std::filesystem::path file_;
+    std::mutex mutex_;
+};
+
+nlohmann::json toJson(const RunRecord& r);
+nlohmann::json toJson(const SectionRecord& s);
+nlohmann::json toJson(const CaptureRecord& c);
+nlohmann::json toJson(const RegistrationRecord& r); ///< without the full result
+nlohmann::json toJson(const AlertRecord& a);
+
+} // namespace slicestation::daemon
