@@ -1,5 +1,6 @@
 // slicectl: the station's command-line tool. Each subcommand lives in its own cli_*.cpp.
 #include "slicestation/daemon/cli.hpp"
+#include "slicestation/daemon/cli_camera.hpp"
 
 #include <vector>
 
@@ -11,6 +12,7 @@ int main(int argc, char** argv) {
     commands.push_back(addRegisterCommand(app));
     commands.push_back(addDemoCommand(app));
     commands.push_back(addStageCommand(app));
+    commands.push_back(addCameraCommand(app));
     commands.push_back(addAtlasCommands(app));
     commands.push_back(addDaemonCommands(app));
 

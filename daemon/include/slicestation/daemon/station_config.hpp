@@ -4,15 +4,20 @@
 /// falls back to a simulator. Errors are InvalidArgument naming the key (e.g. stage.axes.x.slave),
 /// NotFound for a missing file.
 
+#include "slicestation/core/camera.hpp"
 #include "slicestation/core/result.hpp"
 #include "slicestation/core/stage.hpp"
 #include "slicestation/drivers/modbus_stage.hpp"
+#include "slicestation/sim/sim_camera.hpp"
 #include "slicestation/sim/sim_stage.hpp"
+#include "slicestation/sim/virtual_slide.hpp"
 
 #include <chrono>
 #include <filesystem>
+#include <functional>
 #include <memory>
 #include <string>
+#include <vector>
 
 namespace slicestation::daemon {
 
@@ -24,8 +29,32 @@ struct StageConfig {
     std::chrono::milliseconds homeTimeout{60'000};
 };
 
+/// [camera.sim]: the simulated camera, the virtual slide it looks at and injected faults.
+struct SimCameraSection {
+    sim::VirtualSlideSpec slide;                ///< generated sections (when `images` is empty)
+    std::vector<std::filesystem::path> images;  ///< real section images (relative to the file)
+    double imagesUmPerPx = 20;                  ///< pixel size of `images`
+    double sensorUmPerPx = 2.0;
+    double focusZUm = 2'500, focusTiltX = 0.0, focusTiltY = 0.0;
+    double blurSigmaPxPerUm = 0.15;
+    int timeoutFirstCaptures = 0;     ///< FaultyCamera: the first N captures time out
+    int disconnectAfterFrames = -1;   ///< FaultyCamera: disconnect after N frames (-1: never)
+};
+
+/// [camera]; optional in a station file (driver empty when absent).
+struct CameraConfig {
+    std::string driver;   ///< "v4l2", "libcamera" or "sim"; empty: no [camera] section
+    std::string device = "/dev/video0"; ///< v4l2
+    std::string cameraId; ///< libcamera (empty: the first camera)
+    hw::CameraSettings settings;        ///< format, width, height, exposure_us, gain, red/blue_gain
+    std::chrono::milliseconds captureTimeout{5'000};
+    int settleFrames = 3; ///< v4l2, libcamera: frames dropped after (re)configuring
+    SimCameraSection sim; ///< driver = "sim"
+};
+
 struct StationConfig {
     StageConfig stage;
+    CameraConfig camera;
     std::filesystem::path file;
 };
 
@@ -34,5 +63,16 @@ core::Result<StationConfig> parseStationConfig(std::string_view toml, const std:
 
 /// Opens the configured stage. `simulated` is set when it is a simulator (callers announce it).
 core::Result<std::unique_ptr<hw::Stage>> openStage(const StageConfig& config, bool& simulated);
+
+/// Opens the configured camera (not yet configured: call configure(config.settings, ...)).
+/// `stagePosition` tells a simulated camera where the stage is (the daemon passes the position it
+/// last moved the real or simulated stage to); required for driver = "sim", unused otherwise.
+/// `simulated` is set when it is a simulator (callers announce it). Building a generated virtual
+/// slide takes about 0.3 s per section.
+/// \return InvalidArgument (no [camera] section: names `camera`; sim without stagePosition),
+///         or the driver's error (NotFound: no such device / no camera found, ...).
+core::Result<std::unique_ptr<hw::Camera>> openCamera(const CameraConfig& config,
+                                                     std::function<hw::StagePosition()> stagePosition,
+                                                     bool& simulated);
 
 } // namespace slicestation::daemon
