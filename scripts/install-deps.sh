@@ -9,6 +9,7 @@ packages=(
     nlohmann-json3-dev libcli11-dev libtomlplusplus-dev libcpp-httplib-dev
     libmodbus-dev libcamera-dev libsqlite3-dev libsystemd-dev
     libgtest-dev libgmock-dev
+    systemd  # systemd-analyze, for the unit file checks (tests/systemd)
 )
 missing=()
 for p in "${packages[@]}"; do
