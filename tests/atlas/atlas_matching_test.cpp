@@ -86,3 +86,38 @@ TEST(AtlasMatching, BadInputsAreErrors) {
     std::vector<SliceFeatures> empty{sliceFeatures(cv::Mat::zeros(50, 50, CV_32S), 25, 0, workUm)};
     EXPECT_EQ(matchSection(*sec, empty).error().code, core::ErrorCode::NoTissue);
 }
+
+TEST(AtlasMatching, SeriesModeKeepsTheCuttingOrder) {
+    double workUm = 0;
+    const auto stack = builtinStack(workUm);
+    std::vector<SectionFeatures> sections;
+    const std::vector<double> truth{1200, 2400, 3600, 4800, 6000};
+    for (size_t k = 0; k < truth.size(); ++k) {
+        sim::GeneratorOptions go;
+        go.seed = 100 + k;
+        go.imageSize = {600, 440};
+        auto gen = sim::generateSection(sim::builtinAtlasPlane(truth[k] / kLengthUm), go);
+        ASSERT_TRUE(gen.ok()) << gen.error().message;
+        const auto& a = gen->truth.affineAtlasFromImage;
+        const double imageUm = std::sqrt(std::abs(a(0, 0) * a(1, 1) - a(0, 1) * a(1, 0))) * kUmPerPx;
+        auto sec = sectionFeatures(gen->image, imageUm, workUm);
+        ASSERT_TRUE(sec.ok()) << sec.error().message;
+        sections.push_back(std::move(*sec));
+    }
+    SeriesOptions o;
+    o.minStep = 2;
+    auto series = matchSeries(sections, stack, o);
+    ASSERT_TRUE(series.ok()) << series.error().message;
+    ASSERT_EQ(series->size(), truth.size());
+    for (size_t k = 0; k < truth.size(); ++k) {
+        EXPECT_LE(std::abs((*series)[k].positionUm - truth[k]), 3 * kIntervalUm) << k;
+        if (k > 0) {
+            EXPECT_GE((*series)[k].index - (*series)[k - 1].index, o.minStep) << k;
+            EXPECT_GT((*series)[k].positionUm, (*series)[k - 1].positionUm) << k;
+        }
+    }
+    // More sections than the stack can hold that far apart.
+    o.minStep = 11;
+    EXPECT_EQ(matchSeries(sections, stack, o).error().code, core::ErrorCode::InvalidArgument);
+    EXPECT_TRUE(matchSeries({}, stack).ok());
+}

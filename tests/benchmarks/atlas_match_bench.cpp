@@ -2,6 +2,7 @@
 // (random positions between the stack's slices, half of them tilted), matched against a 100 um
 // stack without hints. Prints the position error in micrometres and the time per section.
 // Without ../shared it uses the built-in atlas.
+#include "slicestation/core/image_file.hpp"
 #include "slicestation/core/nrrd.hpp"
 #include "slicestation/core/ontology.hpp"
 #include "slicestation/pipeline/atlas.hpp"
@@ -38,8 +39,13 @@ int main(int argc, char** argv) {
     std::uint64_t seed = 11;
     std::string size = "1200x880";
     std::string shared = SLST_SHARED_DIR;
-    bool knownScale = true;
+    bool knownScale = true, verbose = false;
+    app.add_flag("--verbose", verbose, "Print the candidates of every case, not only the misses");
     int workPx = 320;
+    std::string dump;
+    int onlyCase = -1;
+    app.add_option("--dump", dump, "Write each case's section image (caseNN.png) to this folder");
+    app.add_option("--only-case", onlyCase, "Run only this case (the sequence stays the same)");
     app.add_option("--work-px", workPx, "Matching resolution: px across the largest brain");
     app.add_option("--cases", cases, "Generated sections")->check(CLI::PositiveNumber);
     app.add_option("--interval-um", intervalUm, "Stack interval");
@@ -117,6 +123,7 @@ int main(int argc, char** argv) {
         sim::GeneratorOptions go;
         go.seed = seed * 1000 + std::uint64_t(c);
         go.imageSize = {w, h};
+        if (onlyCase >= 0 && c != onlyCase) continue;
         auto gen = sim::generateSection(plane, go);
         if (!gen) {
             std::printf("%5d generator: %s\n", c, gen.error().message.c_str());
@@ -129,6 +136,14 @@ int main(int argc, char** argv) {
                              gen->truth.affineAtlasFromImage(1, 0), gen->truth.affineAtlasFromImage(1, 1))))) *
                              atlasUm
                        : 0.0;
+        if (!dump.empty()) {
+            cv::Mat view;
+            cv::normalize(gen->image, view, 0, 255, cv::NORM_MINMAX, CV_8U);
+            char name[32];
+            std::snprintf(name, sizeof name, "case%02d.png", c);
+            if (auto wr = core::writeImage(fs::path(dump) / name, view); !wr)
+                std::fprintf(stderr, "%s\n", wr.error().message.c_str());
+        }
         const auto t = Clock::now();
         auto sec = pipeline::sectionFeatures(gen->image, imageUm, workUm);
         const double prepMs = msSince(t);
@@ -151,6 +166,18 @@ int main(int argc, char** argv) {
                     ta, tb, m->positionUm, err, ms, m->tiltColumnsDeg, m->tiltRowsDeg, prepMs);
         for (const auto& [step, v] : m->timingsMs) std::printf(" %s %.0f", step.c_str(), v);
         std::printf("\n");
+        if (err > intervalUm || verbose) {
+            // What the matcher weighed: the best candidates and the slices around the truth.
+            std::printf("      candidates (index score overlap edges regions):");
+            for (size_t k = 0; k < m->candidates.size(); ++k) {
+                const auto& cd = m->candidates[k];
+                const bool nearTruth = std::abs(positions[size_t(cd.index)] - pos) <= intervalUm;
+                if (k < 4 || nearTruth)
+                    std::printf(" %s%d %.3f %.2f %.3f %.3f", nearTruth ? "*" : "", cd.index,
+                                cd.score, cd.overlap, cd.edgeAgreement, cd.regionAgreement);
+            }
+            std::printf("\n");
+        }
     }
     auto median = [](std::vector<double> v) {
         if (v.empty()) return 0.0;

@@ -27,6 +27,8 @@ struct SliceFeatures {
     cv::Mat edgeDistance;   ///< CV_32F, px to the nearest label boundary (outer and inner)
     EdgePoints outline;     ///< outer contour, px
     EdgePoints edges;       ///< every label boundary, px
+    cv::Mat regions;        ///< CV_16U, the slice's labels renumbered 1..regionCount (0 outside)
+    int regionCount = 0;
     OrientedBox box;
     double areaPx = 0;
     double heightPx = 0;    ///< brain extent along its minor axis (sets the ICP reach)
@@ -74,8 +76,10 @@ struct MatchOptions {
 
 struct MatchCandidate {
     int index = 0;
-    double score = 0;          ///< 0..1, contour and edge agreement times tissue overlap
+    double score = 0;          ///< 0..1, the product of the three agreements below
     double overlap = 0;        ///< tissue IoU after the alignment
+    double edgeAgreement = 0;  ///< 0..1, two-way soft agreement of edges and slice boundaries
+    double regionAgreement = 0; ///< 0..1, how well the slice's regions explain the grey levels
     cv::Matx23d sliceFromSection; ///< working px -> slice working px
 };
 
@@ -95,5 +99,26 @@ struct SectionMatch {
 [[nodiscard]] core::Result<SectionMatch> matchSection(const SectionFeatures& section,
                                                       const std::vector<SliceFeatures>& slices,
                                                       const MatchOptions& options = {});
+
+/// Series mode: sections of one brain given in cutting order (front to back along the stack).
+/// Each is matched on its own (matchSection over [first, last]), then one slice per section is
+/// chosen so that the indices increase by at least `minStep` and the sum of the sections'
+/// relative scores (score / that section's best score) is largest: a dynamic programme over
+/// the per-section candidate scores. Each section is then matched again between the slices its
+/// neighbours were given, so every slice it could still take is scored, and the programme runs
+/// once more. The returned matches keep each section's own candidates and timings; `index`,
+/// `score` and `positionUm` (refined by the neighbouring slices' scores, within half a slice so
+/// the order holds) are the series' choice, and tilt is kept only where that choice is the
+/// section's own best.
+/// Not for single sections: it uses the order, which a lone section cannot know.
+/// \return the errors of matchSection; InvalidArgument when the stack has fewer slices than the
+///         series needs (sections x minStep).
+struct SeriesOptions {
+    MatchOptions match;
+    int minStep = 1; ///< slices between consecutive sections, at least
+};
+[[nodiscard]] core::Result<std::vector<SectionMatch>> matchSeries(
+    const std::vector<SectionFeatures>& sections, const std::vector<SliceFeatures>& slices,
+    const SeriesOptions& options = {});
 
 } // namespace slicestation::pipeline

@@ -1,0 +1,183 @@
+// slicectl atlas match and slicectl register --atlas STACK --slice N, end to end through the
+// real binary: a stack of the built-in atlas is cut by `slicectl atlas slice`, sections are
+// generated from known planes of the same atlas, and the JSON the commands write is checked
+// against the truth.
+#include "slicestation/core/image_file.hpp"
+#include "slicestation/sim/builtin_atlas.hpp"
+#include "slicestation/sim/section_generator.hpp"
+
+#include <gtest/gtest.h>
+#include <nlohmann/json.hpp>
+#include <opencv2/core.hpp>
+
+#include <array>
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <sys/wait.h>
+#include <unistd.h>
+
+using namespace slicestation;
+namespace fs = std::filesystem;
+
+namespace {
+
+constexpr double kLengthUm = 8000, kIntervalUm = 200, kAtlasUmPerPx = 25;
+
+struct CommandResult {
+    int exitCode = -1;
+    std::string output;
+};
+
+CommandResult slicectl(const std::string& args) {
+    CommandResult r;
+    const std::string cmd = std::string(SLICECTL_PATH) + " " + args + " 2>&1";
+    FILE* p = ::popen(cmd.c_str(), "r");
+    std::array<char, 4096> buf{};
+    while (p && std::fgets(buf.data(), buf.size(), p)) r.output += buf.data();
+    const int status = p ? ::pclose(p) : -1;
+    r.exitCode = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+    return r;
+}
+
+nlohmann::json readJson(const fs::path& path) {
+    std::ifstream in(path);
+    return nlohmann::json::parse(in);
+}
+
+class SlicectlAtlas : public ::testing::Test {
+protected:
+    static void SetUpTestSuite() {
+        dir_ = fs::temp_directory_path() / ("slst_slicectl_atlas_" + std::to_string(::getpid()));
+        fs::create_directories(dir_);
+        const CommandResult r = slicectl("atlas slice --builtin --interval-um " +
+                                         std::to_string(int(kIntervalUm)) + " --output " +
+                                         p("stack"));
+        ASSERT_EQ(r.exitCode, 0) << r.output;
+        // A section cut at 4900 um, between slices 24 (4800 um) and 25 (5000 um).
+        sim::GeneratorOptions o;
+        o.seed = 7;
+        o.imageSize = {900, 660};
+        auto gen = sim::generateSection(sim::builtinAtlasPlane(kTruthUm / kLengthUm), o);
+        ASSERT_TRUE(gen.ok()) << gen.error().message;
+        const auto& a = gen->truth.affineAtlasFromImage;
+        imageUmPerPx_ = std::sqrt(std::abs(a(0, 0) * a(1, 1) - a(0, 1) * a(1, 0))) * kAtlasUmPerPx;
+        ASSERT_TRUE(core::writeImage(dir_ / "section.tif", gen->image).ok());
+    }
+    static void TearDownTestSuite() { fs::remove_all(dir_); }
+    static std::string p(const std::string& name) { return (dir_ / name).string(); }
+    static std::string um() { return std::to_string(imageUmPerPx_); }
+
+    static constexpr double kTruthUm = 4900;
+    static fs::path dir_;
+    static double imageUmPerPx_;
+};
+fs::path SlicectlAtlas::dir_;
+double SlicectlAtlas::imageUmPerPx_ = 0;
+
+} // namespace
+
+TEST_F(SlicectlAtlas, MatchFindsThePlaneAndWritesTheContract) {
+    const CommandResult r = slicectl("atlas match --stack " + p("stack") + " --image " +
+                                     p("section.tif") + " --image-um-per-px " + um() +
+                                     " --output " + p("match.json"));
+    ASSERT_EQ(r.exitCode, 0) << r.output;
+    const auto j = readJson(p("match.json"));
+    const int index = j.at("index").get<int>();
+    // The built-in brain changes slowly: within two slices of the truth (400 um).
+    EXPECT_LE(std::abs(j.at("position_um").get<double>() - kTruthUm), 2 * kIntervalUm)
+        << r.output;
+    EXPECT_DOUBLE_EQ(j.at("slice_position_um").get<double>(), index * kIntervalUm);
+    const auto& c = j.at("candidates");
+    ASSERT_GE(c.size(), 3u);
+    EXPECT_EQ(c[0].at("index").get<int>(), index);
+    for (size_t k = 1; k < c.size(); ++k)
+        EXPECT_GE(c[k - 1].at("score").get<double>(), c[k].at("score").get<double>());
+    EXPECT_FALSE(j.contains("mismatch"));
+    EXPECT_NE(r.output.find("slice " + std::to_string(index)), std::string::npos) << r.output;
+}
+
+TEST_F(SlicectlAtlas, ExpectedIndexWindowAndMismatch) {
+    // The plan agrees: the window holds the truth, no mismatch.
+    CommandResult r = slicectl("atlas match --stack " + p("stack") + " --image " +
+                               p("section.tif") + " --image-um-per-px " + um() +
+                               " --expected-index 24 --window 3 --output " + p("near.json"));
+    ASSERT_EQ(r.exitCode, 0) << r.output;
+    auto j = readJson(p("near.json"));
+    EXPECT_EQ(j.at("expected_index").get<int>(), 24);
+    EXPECT_GE(j.at("index").get<int>(), 21);
+    EXPECT_LE(j.at("index").get<int>(), 27);
+    EXPECT_FALSE(j.at("mismatch").get<bool>());
+    // A narrow window far from the truth (slice 5, 1000 um): only slices 4..6 are searched, so
+    // the answer stays inside them.
+    r = slicectl("atlas match --stack " + p("stack") + " --image " + p("section.tif") +
+                 " --image-um-per-px " + um() + " --expected-index 5 --window 1 --output " +
+                 p("far.json"));
+    ASSERT_EQ(r.exitCode, 0) << r.output;
+    j = readJson(p("far.json"));
+    EXPECT_GE(j.at("index").get<int>(), 4);
+    EXPECT_LE(j.at("index").get<int>(), 6);
+    // A wide window around a wrong plan finds the truth and reports the mismatch.
+    r = slicectl("atlas match --stack " + p("stack") + " --image " + p("section.tif") +
+                 " --image-um-per-px " + um() + " --expected-index 15 --window 12 --output " +
+                 p("wide.json"));
+    ASSERT_EQ(r.exitCode, 0) << r.output;
+    j = readJson(p("wide.json"));
+    EXPECT_GT(j.at("index").get<int>(), 16);
+    EXPECT_TRUE(j.at("mismatch").get<bool>());
+}
+
+TEST_F(SlicectlAtlas, MatchErrorsNameTheProblem) {
+    struct Case {
+        std::string args, needle;
+    };
+    const std::vector<Case> cases{
+        {"--stack " + p("nostack") + " --image " + p("section.tif"), "nostack"},
+        {"--stack " + p("stack") + " --image " + p("missing.tif"), "missing.tif"},
+        {"--stack " + p("stack") + " --image " + p("section.tif") + " --expected-index 999",
+         "999"},
+    };
+    for (const Case& c : cases) {
+        const CommandResult r = slicectl("atlas match " + c.args + " --output " + p("err.json"));
+        EXPECT_NE(r.exitCode, 0) << c.needle;
+        EXPECT_NE(r.output.find(c.needle), std::string::npos) << r.output;
+        EXPECT_FALSE(fs::exists(p("err.json"))) << c.needle;
+    }
+}
+
+TEST_F(SlicectlAtlas, RegisterToASliceOfTheStack) {
+    const CommandResult r = slicectl("register --atlas " + p("stack") + " --slice 24 --image " +
+                                     p("section.tif") + " --image-um-per-px " + um() +
+                                     " --output " + p("result.json") + " --overlay " +
+                                     p("overlay.png"));
+    ASSERT_EQ(r.exitCode, 0) << r.output;
+    const auto j = readJson(p("result.json"));
+    ASSERT_EQ(j.at("affine_atlas_from_image").size(), 2u);
+    // The section's pixel size and the stack's give the scale: the affine's determinant is
+    // (image um per px / atlas um per px)^2.
+    const auto& a = j.at("affine_atlas_from_image");
+    const double det = a[0][0].get<double>() * a[1][1].get<double>() -
+                       a[0][1].get<double>() * a[1][0].get<double>();
+    EXPECT_NEAR(std::sqrt(std::abs(det)), imageUmPerPx_ / kAtlasUmPerPx,
+                0.1 * imageUmPerPx_ / kAtlasUmPerPx);
+    EXPECT_GT(j.at("quality").at("tissue_overlap").get<double>(), 0.85);
+    EXPECT_TRUE(core::readImage(p("overlay.png")).ok());
+}
+
+TEST_F(SlicectlAtlas, RegisterStackErrors) {
+    struct Case {
+        std::string args, needle;
+    };
+    const std::vector<Case> cases{
+        {"--atlas " + p("stack") + " --slice 999", "999"},
+        {"--atlas " + p("stack"), "--slice"},
+    };
+    for (const Case& c : cases) {
+        const CommandResult r = slicectl("register " + c.args + " --image " + p("section.tif") +
+                                         " --output " + p("bad.json"));
+        EXPECT_NE(r.exitCode, 0) << c.needle;
+        EXPECT_NE(r.output.find(c.needle), std::string::npos) << r.output;
+        EXPECT_FALSE(fs::exists(p("bad.json"))) << c.needle;
+    }
+}
