@@ -129,6 +129,13 @@ int main(int argc, char** argv) {
             std::snprintf(buf, sizeof buf, "%s %.1f%% %s", reg->damaged ? "DAMAGED" : "clean",
                           100.0 * reg->damageFraction, kinds.empty() ? "" : kinds.c_str());
             damage = buf;
+            // Each region: kind, share of the tissue, length in section px.
+            for (const auto& d : reg->damage) {
+                std::snprintf(buf, sizeof buf, " [%s %.2f%% %.0fpx]",
+                              std::string(pipeline::toString(d.kind)).c_str(), 100 * d.share,
+                              d.lengthPx);
+                damage += buf;
+            }
             if (reg->damaged) flagged.push_back(n);
             tile = pipeline::renderOverlay(reg->workingGrey,
                                            reg->warpedLabels(atlas, reg->workingGrey.size()),
