@@ -3,6 +3,7 @@
 #include "slicestation/daemon/atlas_command.hpp"
 #include "slicestation/daemon/daemon_settings.hpp"
 #include "slicestation/daemon/register_command.hpp"
+#include "slicestation/core/image_file.hpp"
 
 #include <cstdlib>
 #include <exception>
@@ -81,6 +82,29 @@ void RegistrationWorker::loop() {
     }
 }
 
+core::Result<int> RegistrationWorker::matchToStack(const std::filesystem::path& image, double umPerPx,
+                                                  std::optional<int> expected, int window) {
+    // The stack's matching features are computed once and kept: they do not change.
+    if (features_.empty()) {
+        auto f = stackFeatures(stack_);
+        if (!f) return f.error();
+        features_ = std::move(*f);
+        if (features_.empty()) return core::makeError(core::ErrorCode::InvalidArgument, "empty atlas stack");
+    }
+    auto img = core::readImage(image);
+    if (!img) return img.error();
+    pipeline::MatchOptions opt;
+    if (expected) {
+        opt.first = std::max(0, *expected - window);
+        opt.last = std::min(static_cast<int>(features_.size()) - 1, *expected + window);
+    }
+    auto section = pipeline::sectionFeatures(*img, umPerPx, features_.front().workUmPerPx);
+    if (!section) return section.error();
+    auto m = pipeline::matchSection(*section, features_, opt);
+    if (!m) return m.error();
+    return m->index;
+}
+
 void RegistrationWorker::process(std::int64_t captureId) {
     PhaseTimer timer(stats_, "register");
     auto capture = journal_.capture(captureId);
@@ -112,16 +136,10 @@ void RegistrationWorker::process(std::int64_t captureId) {
     std::string warning;
     if (settings->checkAtlasMatch || !slice) {
         PhaseTimer matchTimer(stats_, "atlas_match");
-        AtlasMatchRequest mq;
-        mq.stack = stack_.dir;
-        mq.image = image;
-        mq.expectedIndex = slice;
-        mq.window = settings->mismatchToleranceSlices + 3;
-        mq.imageUmPerPx = capture->umPerPx;
-        mq.output = base.string() + ".match.json";
-        auto m = runAtlasMatch(mq);
-        if (m && m->contains("index")) {
-            rec.matchedSlice = (*m)["index"].get<int>();
+        // The whole stack is searched: a section mounted far out of order must show where it belongs.
+        auto m = matchToStack(image, capture->umPerPx, std::nullopt, 0);
+        if (m) {
+            rec.matchedSlice = *m;
             if (!slice) {
                 slice = rec.matchedSlice;
             } else if (std::abs(*rec.matchedSlice - *slice) > settings->mismatchToleranceSlices) {
@@ -129,7 +147,7 @@ void RegistrationWorker::process(std::int64_t captureId) {
                           ", not the planned " + std::to_string(*slice) +
                           " (mounted out of order?); registered to the planned slice";
             }
-        } else if (!m && !slice) {
+        } else if (!slice) {
             return fail("no atlas slice planned and matching failed: " + m.error().message);
         }
     }

@@ -8,6 +8,35 @@
 
 namespace slicestation::daemon {
 
+namespace {
+
+/// Reports every position the stage settled at (moves made by autofocus too), so a simulated
+/// camera renders what lies under the objective. Forwards everything else unchanged.
+class ReportingStage final : public hw::Stage {
+public:
+    ReportingStage(std::unique_ptr<hw::Stage> inner, std::function<void(const hw::StagePosition&)> report)
+        : inner_(std::move(inner)), report_(std::move(report)) {}
+    hw::StageLimits limits() const override { return inner_->limits(); }
+    core::Result<hw::StagePosition> position(std::chrono::milliseconds t) override { return inner_->position(t); }
+    core::Result<hw::StagePosition> moveTo(const hw::StagePosition& p, std::chrono::milliseconds t) override {
+        return reported(inner_->moveTo(p, t));
+    }
+    core::Result<hw::StagePosition> home(std::chrono::milliseconds t) override { return reported(inner_->home(t)); }
+    void stop() noexcept override { inner_->stop(); }
+    core::Result<hw::StageAlarm> alarm(std::chrono::milliseconds t) override { return inner_->alarm(t); }
+    core::Result<void> resetAlarm(std::chrono::milliseconds t) override { return inner_->resetAlarm(t); }
+
+private:
+    core::Result<hw::StagePosition> reported(core::Result<hw::StagePosition> r) {
+        if (r) report_(*r);
+        return r;
+    }
+    std::unique_ptr<hw::Stage> inner_;
+    std::function<void(const hw::StagePosition&)> report_;
+};
+
+} // namespace
+
 using core::ErrorCode;
 using core::makeError;
 using core::Result;
@@ -42,6 +71,10 @@ Result<std::unique_ptr<Station>> Station::create(StationParts parts) {
     if (ec)
         return makeError(ErrorCode::IoError, "state directory " + parts.stateDir.string() + ": " + ec.message(),
                          ec.value());
+    if (parts.stageMoved) {
+        parts.stage = std::make_unique<ReportingStage>(std::move(parts.stage), parts.stageMoved);
+        parts.stageMoved = nullptr;
+    }
     if (!parts.freeSpace) parts.freeSpace = [](const std::filesystem::path& p) { return availableBytes(p); };
     std::unique_ptr<Station> st(new Station(std::move(parts)));
     auto journal = Journal::open(st->parts_.stateDir / "journal.sqlite");

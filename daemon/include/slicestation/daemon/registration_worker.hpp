@@ -14,6 +14,7 @@
 #include "slicestation/daemon/journal.hpp"
 #include "slicestation/daemon/notifier.hpp"
 #include "slicestation/daemon/phase_stats.hpp"
+#include "slicestation/pipeline/atlas_matching.hpp"
 
 #include <chrono>
 #include <condition_variable>
@@ -21,7 +22,9 @@
 #include <deque>
 #include <filesystem>
 #include <mutex>
+#include <optional>
 #include <thread>
+#include <vector>
 
 namespace slicestation::daemon {
 
@@ -45,6 +48,9 @@ public:
 private:
     void loop();
     void process(std::int64_t captureId);
+    /// The stack slice the image matches best (within `window` of `expected` when given).
+    core::Result<int> matchToStack(const std::filesystem::path& image, double umPerPx,
+                                   std::optional<int> expected, int window);
 
     Journal& journal_;
     Notifier& notifier_;
@@ -57,6 +63,7 @@ private:
     bool busy_ = false;
     bool stopping_ = false;
     std::thread thread_;
+    std::vector<pipeline::SliceFeatures> features_; ///< worker thread only
 };
 
 } // namespace slicestation::daemon

@@ -39,6 +39,8 @@ struct StationParts {
     std::function<core::Result<std::uint64_t>(const std::filesystem::path&)> freeSpace;
     ProgressWatchdog* watchdog = nullptr;
     std::function<void(const std::string&)> status;
+    /// Told every position the stage settles at, autofocus steps included (a simulated camera
+    /// renders what lies there). The stage is wrapped to report it.
     std::function<void(const hw::StagePosition&)> stageMoved;
 };
 
