@@ -96,6 +96,7 @@ CommandRunner addDaemonCommands(CLI::App& app) {
         std::string action = "accept";
         std::string format = "json";
         std::string output;
+        bool resetAlarm = false;
     };
     auto o = std::make_shared<Opts>();
     auto* scan = app.add_subcommand("scan", "Submit scan plans to the daemon");
@@ -114,6 +115,8 @@ CommandRunner addDaemonCommands(CLI::App& app) {
     pause->add_option("RUN", o->id, "Run id")->required();
     auto* resume = app.add_subcommand("resume", "Resume a paused run");
     resume->add_option("RUN", o->id, "Run id")->required();
+    resume->add_flag("--reset-stage-alarm", o->resetAlarm,
+                     "The cause of a stage alarm is cleared: reset the drives' alarm before going on");
     auto* cancel = app.add_subcommand("cancel", "Cancel a run (preempts the move or capture in progress)");
     cancel->add_option("RUN", o->id, "Run id")->required();
     auto* rescan = app.add_subcommand("rescan", "Capture a re-mounted section again (keeps the old records)");
@@ -147,7 +150,8 @@ CommandRunner addDaemonCommands(CLI::App& app) {
         if (*sections) return finish("sections", request(o->c, "GET", "/api/runs/" + id + "/sections"));
         if (*section) return finish("section", request(o->c, "GET", "/api/sections/" + id));
         if (*pause) return finish("pause", request(o->c, "POST", "/api/runs/" + id + "/pause"));
-        if (*resume) return finish("resume", request(o->c, "POST", "/api/runs/" + id + "/resume"));
+        if (*resume) return finish("resume", request(o->c, "POST", "/api/runs/" + id + "/resume",
+                                                             nlohmann::json{{"reset_stage_alarm", o->resetAlarm}}.dump()));
         if (*cancel) return finish("cancel", request(o->c, "POST", "/api/runs/" + id + "/cancel"));
         if (*rescan) return finish("rescan", request(o->c, "POST", "/api/sections/" + id + "/rescan"));
         if (*alerts && *ack)

@@ -162,7 +162,24 @@ core::Result<std::unique_ptr<HttpApi>> HttpApi::start(Station& station, const st
         });
     };
     control(R"(/api/runs/([^/]+)/pause)", [](Station& s, std::int64_t id) { return s.scanner().pause(id); });
-    control(R"(/api/runs/([^/]+)/resume)", [](Station& s, std::int64_t id) { return s.scanner().resume(id); });
+    srv.Post(R"(/api/runs/([^/]+)/resume)", [st, authorised](const httplib::Request& req, httplib::Response& res) {
+        if (!authorised(req, res)) return;
+        auto id = idParam(req, res);
+        if (!id) return;
+        bool resetAlarm = false;
+        if (!req.body.empty()) {
+            auto j = nlohmann::json::parse(req.body, nullptr, false);
+            if (j.is_discarded() || !j.is_object() || (j.contains("reset_stage_alarm") && !j["reset_stage_alarm"].is_boolean()))
+                return sendError(res, 400, "body: expected {\"reset_stage_alarm\": true | false}");
+            resetAlarm = j.value("reset_stage_alarm", false);
+        }
+        auto r = st->scanner().resume(*id, resetAlarm);
+        if (!r)
+            return sendError(res, r.error().code == ErrorCode::NotFound ? 404
+                                  : r.error().code == ErrorCode::InvalidArgument ? 409 : 500,
+                             r.error().message);
+        sendJson(res, {{"ok", true}});
+    });
     control(R"(/api/runs/([^/]+)/cancel)", [](Station& s, std::int64_t id) { return s.scanner().cancel(id); });
     control(R"(/api/sections/([^/]+)/rescan)", [](Station& s, std::int64_t id) { return s.requestRescan(id); });
     srv.Post(R"(/api/alerts/([^/]+)/ack)", [st, authorised](const httplib::Request& req, httplib::Response& res) {

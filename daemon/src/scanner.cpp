@@ -123,7 +123,7 @@ core::Result<void> Scanner::pause(std::int64_t runId) {
     return d_.notifier.runStateChanged(runId, RunState::Paused, "paused by request");
 }
 
-core::Result<void> Scanner::resume(std::int64_t runId) {
+core::Result<void> Scanner::resume(std::int64_t runId, bool resetStageAlarm) {
     auto run = d_.journal.run(runId);
     if (!run) return run.error();
     if (run->state != RunState::Paused)
@@ -132,8 +132,10 @@ core::Result<void> Scanner::resume(std::int64_t runId) {
     {
         std::lock_guard lock(mutex_);
         pauseRequested_.erase(runId);
+        if (resetStageAlarm) alarmResetRequested_.insert(runId);
     }
-    auto r = d_.journal.setRunState(runId, RunState::Queued, "resumed");
+    auto r = d_.journal.setRunState(runId, RunState::Queued,
+                                    resetStageAlarm ? "resumed, stage alarm reset asked" : "resumed");
     if (!r) return r;
     d_.notifier.publish({"run_state", {{"run_id", runId}, {"state", "queued"}, {"reason", "resumed"}}});
     wake();
@@ -244,6 +246,19 @@ Scanner::Outcome Scanner::executeRun(const RunRecord& run) {
         (void)d_.notifier.runStateChanged(run.id, RunState::Paused, f.kind + ": " + f.error.message);
         return Outcome::Paused;
     };
+
+    bool resetAlarm = false;
+    {
+        std::lock_guard lock(mutex_);
+        resetAlarm = alarmResetRequested_.erase(run.id) > 0;
+    }
+    if (resetAlarm) {
+        setActivity(runLabel + ": resetting the stage alarm");
+        if (auto r = d_.stage.resetAlarm(s.moveTimeout); !r) {
+            if (shutdown_) return Outcome::Shutdown;
+            return pauseFor({"stage_fault", r.error()});
+        }
+    }
 
     // The run's own camera settings (snapshot), read back from the device.
     hw::CameraSettings used;
@@ -399,7 +414,8 @@ Scanner::Outcome Scanner::executeRun(const RunRecord& run) {
             auto af = autofocus(d_.stage, d_.camera, {sec.xUm, sec.yUm, z}, afs);
             if (!af && af.error().code != ErrorCode::Cancelled && af.error().code != ErrorCode::Alarm)
                 af = autofocus(d_.stage, d_.camera, {sec.xUm, sec.yUm, z}, afs);
-            if (!af) return handle(af.error(), "focus_fault");
+            // A drive alarm during the focus sweep is a stage fault like any other.
+            if (!af) return handle(af.error(), af.error().code == ErrorCode::Alarm ? "stage_fault" : "focus_fault");
             if (af->tissueFound) {
                 z = af->zUm;
                 focusFound = true;

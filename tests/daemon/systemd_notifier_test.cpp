@@ -2,6 +2,7 @@
 // made here), with a manual clock: no sleeps, every wait is on an event with a deadline.
 #include "slicestation/daemon/systemd_notifier.hpp"
 
+#include "fake_notify_socket.hpp"
 #include "slicestation/core/unique_fd.hpp"
 
 #include <gtest/gtest.h>
@@ -28,47 +29,6 @@ namespace {
 namespace fs = std::filesystem;
 using namespace std::chrono_literals;
 
-constexpr auto kEventDeadline = 10s; // generous: only a broken build waits this long
-
-/// What systemd does: a unix datagram socket whose path goes into NOTIFY_SOCKET.
-class FakeNotifySocket {
-public:
-    FakeNotifySocket() {
-        std::string tmpl = (fs::temp_directory_path() / "slst-notify-XXXXXX").string();
-        dir_ = ::mkdtemp(tmpl.data());
-        path_ = dir_ / "notify";
-        fd_.reset(::socket(AF_UNIX, SOCK_DGRAM | SOCK_CLOEXEC, 0));
-        sockaddr_un addr{};
-        addr.sun_family = AF_UNIX;
-        std::strncpy(addr.sun_path, path_.c_str(), sizeof(addr.sun_path) - 1);
-        bound_ = ::bind(fd_.get(), reinterpret_cast<sockaddr*>(&addr), sizeof(addr)) == 0;
-    }
-    ~FakeNotifySocket() {
-        fd_.reset();
-        std::error_code ec;
-        fs::remove_all(dir_, ec);
-    }
-    bool bound() const { return bound_; }
-    const fs::path& path() const { return path_; }
-
-    /// The next datagram, waiting at most `timeout` (poll); nullopt when none came.
-    std::optional<std::string> receive(std::chrono::milliseconds timeout = kEventDeadline) {
-        pollfd p{fd_.get(), POLLIN, 0};
-        if (::poll(&p, 1, static_cast<int>(timeout.count())) != 1) return std::nullopt;
-        char buf[4096];
-        const ssize_t n = ::recv(fd_.get(), buf, sizeof(buf), 0);
-        if (n < 0) return std::nullopt;
-        return std::string(buf, static_cast<std::size_t>(n));
-    }
-    /// A datagram already queued, without waiting.
-    std::optional<std::string> pending() { return receive(0ms); }
-
-private:
-    fs::path dir_;
-    fs::path path_;
-    core::UniqueFd fd_;
-    bool bound_ = false;
-};
 
 /// Sets environment variables for one test and restores them after.
 class ScopedEnv {

@@ -122,7 +122,14 @@ struct ModbusStage::Impl {
             case Failure::Corrupt:
             case Failure::Busy:
                 last = makeError(ErrorCode::IoError, "bad reply: " + why, e);
-                modbus_flush(ctx.get());
+                if (f == Failure::Corrupt && cfg.transport == ModbusStageConfig::Transport::Tcp) {
+                    // A TCP stream cannot be resynchronised after a bad frame (the rest of it, or
+                    // a late reply, would be read as the next header): start a new connection.
+                    modbus_close(ctx.get());
+                    connected = false;
+                } else {
+                    modbus_flush(ctx.get());
+                }
                 break;
             case Failure::Exception:
                 return makeError(ErrorCode::IoError,

@@ -68,7 +68,10 @@ public:
     /// Pause/cancel a run: at once for a run not in progress, between sections (cancel also
     /// preempts) for the one in progress. Errors: NotFound, InvalidArgument (wrong state).
     core::Result<void> pause(std::int64_t runId);
-    core::Result<void> resume(std::int64_t runId);
+    /// `resetStageAlarm`: the technician has cleared the cause of a stage alarm; the scan loop
+    /// (the stage's owning thread) resets the drives' alarm before the run goes on. Alarms are
+    /// never reset unless asked.
+    core::Result<void> resume(std::int64_t runId, bool resetStageAlarm = false);
     core::Result<void> cancel(std::int64_t runId);
 
     /// The run in progress, if any.
@@ -92,6 +95,7 @@ private:
     std::optional<std::int64_t> active_;
     std::set<std::int64_t> pauseRequested_;
     std::set<std::int64_t> cancelRequested_;
+    std::set<std::int64_t> alarmResetRequested_;
     std::string activity_ = "starting";
     bool idle_ = false;
     std::thread thread_;
