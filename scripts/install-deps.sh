@@ -10,6 +10,7 @@ packages=(
     libmodbus-dev libcamera-dev libsqlite3-dev libsystemd-dev
     libgtest-dev libgmock-dev
     systemd  # systemd-analyze, for the unit file checks (tests/systemd)
+    chromium chromium-driver  # headless browser tests of the web page (tests/web)
 )
 missing=()
 for p in "${packages[@]}"; do

@@ -65,6 +65,9 @@ public:
 
     core::Result<void> moveZ(double zUm) {
         auto moved = stage_.moveTo({at_.xUm, at_.yUm, zUm}, s_.moveTimeout);
+        for (int attempt = 0; !moved && moved.error().code == core::ErrorCode::Timeout && attempt < s_.moveRetries;
+             ++attempt)
+            moved = stage_.moveTo({at_.xUm, at_.yUm, zUm}, s_.moveTimeout);
         if (!moved) return moved.error();
         currentZ_ = zUm;
         return {};
@@ -73,6 +76,10 @@ public:
     core::Result<cv::Mat> frameAt(double zUm) {
         if (auto moved = moveZ(zUm); !moved) return moved.error();
         auto frame = camera_.capture(s_.captureTimeout);
+        for (int attempt = 0; !frame && frame.error().code != core::ErrorCode::Cancelled &&
+                              attempt < s_.captureRetries;
+             ++attempt)
+            frame = camera_.capture(s_.captureTimeout);
         if (!frame) return frame.error();
         ++captures_;
         return frameToMat(*frame);

@@ -1,10 +1,20 @@
 #include "slicestation/daemon/http_api.hpp"
 
+#include "slicestation/core/image_file.hpp"
+#include "slicestation/daemon/autofocus.hpp"
 #include "slicestation/daemon/config_document.hpp"
+#include "slicestation/daemon/web_page.hpp"
 
 #include <httplib.h>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
 
+#include <algorithm>
 #include <charconv>
+#include <cmath>
+#include <condition_variable>
+#include <deque>
+#include <mutex>
 
 namespace slicestation::daemon {
 
@@ -48,7 +58,126 @@ std::optional<std::int64_t> idParam(const httplib::Request& req, httplib::Respon
     return v;
 }
 
+/// An integer query parameter within [lo, hi]; `fallback` when absent; nullopt (400 sent) when bad.
+std::optional<int> intQuery(const httplib::Request& req, httplib::Response& res, const char* name, int lo, int hi,
+                            std::optional<int> fallback) {
+    if (!req.has_param(name)) {
+        if (!fallback) sendError(res, 400, std::string("missing query parameter ") + name);
+        return fallback;
+    }
+    const std::string s = req.get_param_value(name);
+    int v = 0;
+    const auto [p, ec] = std::from_chars(s.data(), s.data() + s.size(), v);
+    if (ec != std::errc() || p != s.data() + s.size() || v < lo || v > hi) {
+        sendError(res, 400, std::string(name) + ": expected an integer " + std::to_string(lo) + ".." +
+                                std::to_string(hi) + ", got \"" + s + "\"");
+        return std::nullopt;
+    }
+    return v;
+}
+
+/// A file the journal refers to, resolved inside the state directory; nullopt when it would
+/// leave it (a damaged journal must not make the API serve arbitrary files).
+std::optional<std::filesystem::path> storedFile(const std::filesystem::path& stateDir, const std::string& rel) {
+    std::error_code ec;
+    const auto root = std::filesystem::weakly_canonical(stateDir, ec);
+    if (ec || rel.empty()) return std::nullopt;
+    const auto full = std::filesystem::weakly_canonical(stateDir / rel, ec);
+    if (ec) return std::nullopt;
+    const auto r = full.lexically_relative(root);
+    if (r.empty() || *r.begin() == "..") return std::nullopt;
+    return full;
+}
+
+/// 8-bit for display: 16-bit images stretched between their 0.5 and 99.5 percentiles.
+cv::Mat displayable(const cv::Mat& m) {
+    if (m.depth() == CV_8U) return m;
+    cv::Mat grey = m.channels() == 1 ? m : cv::Mat();
+    if (grey.empty()) cv::cvtColor(m, grey, m.channels() == 4 ? cv::COLOR_BGRA2GRAY : cv::COLOR_BGR2GRAY);
+    cv::Mat f;
+    grey.convertTo(f, CV_32F);
+    std::vector<float> sample;
+    sample.reserve(f.total() / 7 + 1);
+    for (std::size_t i = 0; i < f.total(); i += 7) sample.push_back(f.at<float>(static_cast<int>(i)));
+    if (sample.empty()) return cv::Mat();
+    auto at = [&](double q) {
+        auto it = sample.begin() + static_cast<std::ptrdiff_t>(q * static_cast<double>(sample.size() - 1));
+        std::nth_element(sample.begin(), it, sample.end());
+        return static_cast<double>(*it);
+    };
+    const double lo = at(0.005), hi = std::max(at(0.995), lo + 1);
+    cv::Mat out;
+    f.convertTo(out, CV_8U, 255.0 / (hi - lo), -lo * 255.0 / (hi - lo));
+    return out;
+}
+
+/// Scales to `width` (never up) and encodes; `ext` ".jpg" or ".png".
+void sendImage(httplib::Response& res, const cv::Mat& image, int width, const std::string& ext) {
+    cv::Mat m = displayable(image);
+    if (m.empty()) return sendError(res, 500, "image cannot be shown");
+    if (width < m.cols) {
+        cv::Mat small;
+        cv::resize(m, small, cv::Size(width, std::max(1, static_cast<int>(std::lround(m.rows * double(width) / m.cols)))),
+                   0, 0, cv::INTER_AREA);
+        m = small;
+    }
+    std::vector<uchar> buf;
+    const std::vector<int> params = ext == ".jpg" ? std::vector<int>{cv::IMWRITE_JPEG_QUALITY, 85} : std::vector<int>{};
+    if (!cv::imencode(ext, m, buf, params)) return sendError(res, 500, "cannot encode the image");
+    res.set_header("Cache-Control", "no-store");
+    res.set_content(std::string(buf.begin(), buf.end()), ext == ".jpg" ? "image/jpeg" : "image/png");
+}
+
 } // namespace
+
+/// Station events fanned out to every event-stream client. A client that does not keep up
+/// loses its oldest events (counted), never slows the station: publishing only takes a mutex.
+struct HttpApi::EventHub {
+    struct Client {
+        std::mutex mutex;
+        std::condition_variable cv;
+        std::deque<std::string> queue;
+        bool closed = false;
+        bool greeted = false;
+        std::uint64_t dropped = 0;
+    };
+    static constexpr std::size_t kMaxQueued = 256;
+    std::mutex mutex;
+    std::vector<std::weak_ptr<Client>> clients;
+    bool closed = false;
+
+    void publish(const std::string& message) {
+        std::lock_guard lock(mutex);
+        std::erase_if(clients, [](const auto& w) { return w.expired(); });
+        for (auto& w : clients)
+            if (auto c = w.lock()) {
+                std::lock_guard cl(c->mutex);
+                if (c->queue.size() >= kMaxQueued) {
+                    c->queue.pop_front();
+                    ++c->dropped;
+                }
+                c->queue.push_back(message);
+                c->cv.notify_one();
+            }
+    }
+    std::shared_ptr<Client> subscribe() {
+        auto c = std::make_shared<Client>();
+        std::lock_guard lock(mutex);
+        c->closed = closed;
+        clients.push_back(c);
+        return c;
+    }
+    void close() {
+        std::lock_guard lock(mutex);
+        closed = true;
+        for (auto& w : clients)
+            if (auto c = w.lock()) {
+                std::lock_guard cl(c->mutex);
+                c->closed = true;
+                c->cv.notify_all();
+            }
+    }
+};
 
 core::Result<std::unique_ptr<HttpApi>> HttpApi::start(Station& station, const std::string& bind, int port,
                                                       std::string token) {
@@ -56,6 +185,8 @@ core::Result<std::unique_ptr<HttpApi>> HttpApi::start(Station& station, const st
     api->server_ = std::make_unique<httplib::Server>();
     auto& srv = *api->server_;
     srv.set_payload_max_length(kMaxBody);
+    // Event streams hold a thread each: room for a few browsers besides slicectl.
+    srv.new_task_queue = [] { return new httplib::ThreadPool(16); };
     srv.set_read_timeout(10, 0);
     srv.set_write_timeout(10, 0);
 
@@ -81,6 +212,16 @@ core::Result<std::unique_ptr<HttpApi>> HttpApi::start(Station& station, const st
     };
     Station* st = &station;
 
+    // The page: self-contained, and the browser is told to load nothing from elsewhere.
+    srv.Get("/", [](const httplib::Request&, httplib::Response& res) {
+        res.set_header("Content-Security-Policy",
+                       "default-src 'self'; img-src 'self' blob:; style-src 'unsafe-inline'; "
+                       "script-src 'unsafe-inline'; connect-src 'self'");
+        res.set_header("X-Content-Type-Options", "nosniff");
+        res.set_header("Cache-Control", "no-cache");
+        const auto page = webPage();
+        res.set_content(page.data(), page.size(), "text/html; charset=utf-8");
+    });
     srv.Get("/api/status", [st](const httplib::Request&, httplib::Response& res) { sendJson(res, st->status()); });
     srv.Get("/api/runs", [st](const httplib::Request&, httplib::Response& res) {
         auto runs = st->journal().runs();
@@ -129,6 +270,154 @@ core::Result<std::unique_ptr<HttpApi>> HttpApi::start(Station& station, const st
         if (!a) return sendError(res, a.error());
         nlohmann::json j = nlohmann::json::array();
         for (const auto& x : *a) j.push_back(toJson(x));
+        sendJson(res, j);
+    });
+
+    // Server-Sent Events: every station event as "event: TYPE" + "data: JSON".
+    api->events_ = std::make_shared<EventHub>();
+    {
+        std::weak_ptr<EventHub> hub = api->events_;
+        station.notifier().addListener([hub](const StationEvent& e) {
+            if (auto h = hub.lock()) h->publish("event: " + e.type + "\ndata: " + e.data.dump() + "\n\n");
+        });
+    }
+    srv.Get("/api/events", [hub = api->events_](const httplib::Request&, httplib::Response& res) {
+        auto client = hub->subscribe();
+        res.set_header("Cache-Control", "no-cache");
+        res.set_header("X-Accel-Buffering", "no");
+        res.set_chunked_content_provider(
+            "text/event-stream",
+            [client](std::size_t, httplib::DataSink& sink) {
+                std::string out;
+                {
+                    std::unique_lock lock(client->mutex);
+                    if (!client->greeted) {
+                        client->greeted = true;
+                        out = "retry: 3000\n: connected\n\n";
+                    } else {
+                        client->cv.wait_for(lock, std::chrono::seconds(15),
+                                            [&] { return !client->queue.empty() || client->closed; });
+                        if (client->closed) return false;
+                        if (client->dropped > 0) {
+                            out += "event: events_dropped\ndata: {\"count\": " + std::to_string(client->dropped) +
+                                   "}\n\n";
+                            client->dropped = 0;
+                        }
+                        while (!client->queue.empty()) {
+                            out += client->queue.front();
+                            client->queue.pop_front();
+                        }
+                        if (out.empty()) out = ": keepalive\n\n";
+                    }
+                }
+                return sink.write(out.data(), out.size());
+            },
+            [client](bool) {
+                std::lock_guard lock(client->mutex);
+                client->closed = true;
+            });
+    });
+
+    // Images: the live view, a section's image and its overlay, scaled to ?width= (16..4096).
+    srv.Get("/api/live.jpg", [st](const httplib::Request& req, httplib::Response& res) {
+        auto width = intQuery(req, res, "width", 16, 4096, 1024);
+        if (!width) return;
+        auto frame = st->liveFrame();
+        if (!frame) return sendError(res, 404, "no frame yet");
+        sendImage(res, frameToMat(*frame), *width, ".jpg");
+    });
+    auto latest = [st](std::int64_t sectionId, httplib::Response& res)
+        -> std::optional<std::pair<CaptureRecord, std::optional<RegistrationRecord>>> {
+        auto sec = st->journal().section(sectionId);
+        if (!sec) {
+            sendError(res, sec.error());
+            return std::nullopt;
+        }
+        auto caps = st->journal().captures(sectionId);
+        if (!caps || caps->empty()) {
+            sendError(res, 404, "section " + std::to_string(sectionId) + " has no capture yet");
+            return std::nullopt;
+        }
+        std::optional<RegistrationRecord> reg;
+        if (auto regs = st->journal().registrations(sectionId))
+            for (const auto& r : *regs)
+                if (r.captureId == caps->back().id) reg = r;
+        return std::make_pair(caps->back(), reg);
+    };
+    srv.Get(R"(/api/sections/([^/]+)/image\.jpg)", [st, latest](const httplib::Request& req, httplib::Response& res) {
+        auto id = idParam(req, res);
+        if (!id) return;
+        auto width = intQuery(req, res, "width", 16, 4096, 1024);
+        if (!width) return;
+        auto l = latest(*id, res);
+        if (!l) return;
+        auto file = storedFile(st->stateDir(), l->first.imagePath);
+        if (!file) return sendError(res, 500, "stored image path is outside the state directory");
+        auto img = core::readImage(*file);
+        if (!img) return sendError(res, 500, img.error().message);
+        sendImage(res, *img, *width, ".jpg");
+    });
+    srv.Get(R"(/api/sections/([^/]+)/overlay\.png)", [st, latest](const httplib::Request& req, httplib::Response& res) {
+        auto id = idParam(req, res);
+        if (!id) return;
+        auto width = intQuery(req, res, "width", 16, 4096, 1024);
+        if (!width) return;
+        auto l = latest(*id, res);
+        if (!l) return;
+        if (!l->second) return sendError(res, 404, "section " + std::to_string(*id) + " is not registered yet");
+        auto file = storedFile(st->stateDir(), l->second->overlayPath);
+        if (!file) return sendError(res, 500, "stored overlay path is outside the state directory");
+        auto img = core::readImage(*file);
+        if (!img) return sendError(res, 500, img.error().message);
+        sendImage(res, *img, *width, ".png");
+    });
+    // The atlas region at a pixel of the section's latest capture (full resolution).
+    struct LabelCache {
+        std::mutex mutex;
+        std::string path;
+        cv::Mat labels;
+    };
+    auto cache = std::make_shared<LabelCache>();
+    srv.Get(R"(/api/sections/([^/]+)/region)", [st, latest, cache](const httplib::Request& req, httplib::Response& res) {
+        auto id = idParam(req, res);
+        if (!id) return;
+        auto x = intQuery(req, res, "x", 0, 1 << 20, std::nullopt);
+        if (!x) return;
+        auto y = intQuery(req, res, "y", 0, 1 << 20, std::nullopt);
+        if (!y) return;
+        // ?of_width=W: x, y are pixels of the image shown scaled to width W (the page's overlay).
+        auto ofWidth = intQuery(req, res, "of_width", 1, 1 << 20, 0);
+        if (!ofWidth) return;
+        auto l = latest(*id, res);
+        if (!l) return;
+        if (!l->second) return sendError(res, 404, "section " + std::to_string(*id) + " is not registered yet");
+        auto file = storedFile(st->stateDir(), l->second->labelsPath);
+        if (!file) return sendError(res, 500, "stored labels path is outside the state directory");
+        std::int32_t region = 0;
+        {
+            std::lock_guard lock(cache->mutex);
+            if (cache->path != file->string()) {
+                auto img = core::readImage(*file);
+                if (!img || img->type() != CV_32SC1) return sendError(res, 500, "labels unreadable");
+                cache->labels = *img;
+                cache->path = file->string();
+            }
+            if (*ofWidth > 0) {
+                const double f = static_cast<double>(cache->labels.cols) / *ofWidth;
+                *x = static_cast<int>(std::floor((*x + 0.5) * f));
+                *y = static_cast<int>(std::floor((*y + 0.5) * f));
+            }
+            if (*x >= cache->labels.cols || *y >= cache->labels.rows)
+                return sendError(res, 400, "x, y: outside the " + std::to_string(cache->labels.cols) + "x" +
+                                               std::to_string(cache->labels.rows) + " image");
+            region = cache->labels.at<std::int32_t>(*y, *x);
+        }
+        nlohmann::json j{{"id", region}, {"x", *x}, {"y", *y}};
+        for (const auto& r : st->atlas().regions)
+            if (region > 0 && r.id == static_cast<std::uint32_t>(region)) {
+                j["name"] = r.name;
+                j["acronym"] = r.acronym;
+            }
         sendJson(res, j);
     });
 
@@ -226,6 +515,7 @@ core::Result<std::unique_ptr<HttpApi>> HttpApi::start(Station& station, const st
 HttpApi::~HttpApi() { stop(); }
 
 void HttpApi::stop() noexcept {
+    if (events_) events_->close(); // event streams end at once, so the server can stop
     if (server_) server_->stop();
     if (thread_.joinable()) thread_.join();
 }

@@ -5,7 +5,10 @@
 #include "slicestation/daemon/register_command.hpp"
 #include "slicestation/core/image_file.hpp"
 
+#include <algorithm>
+#include <cstdio>
 #include <cstdlib>
+#include <map>
 #include <exception>
 
 namespace slicestation::daemon {
@@ -173,6 +176,36 @@ void RegistrationWorker::process(std::int64_t captureId) {
     rec.overlayPath = rel(*rq.overlay);
     rec.labelsPath = rel(*rq.warpedLabels);
     rec.result = *result;
+    // The atlas regions the section shows, named from the stack's ontology, largest first.
+    if (auto labels = core::readImage(*rq.warpedLabels); labels && labels->type() == CV_32SC1) {
+        std::map<std::int32_t, std::int64_t> counts;
+        std::int64_t inside = 0;
+        for (int y = 0; y < labels->rows; ++y) {
+            const auto* row = labels->ptr<std::int32_t>(y);
+            for (int x = 0; x < labels->cols; ++x)
+                if (row[x] > 0) {
+                    ++counts[row[x]];
+                    ++inside;
+                }
+        }
+        std::vector<std::pair<std::int64_t, std::int32_t>> order;
+        for (const auto& [regionId, n] : counts) order.push_back({n, regionId});
+        std::sort(order.rbegin(), order.rend());
+        nlohmann::json regions = nlohmann::json::array();
+        for (const auto& [n, regionId] : order) {
+            nlohmann::json r{{"id", regionId}, {"share", inside > 0 ? static_cast<double>(n) / inside : 0.0}};
+            for (const auto& sr : stack_.regions)
+                if (sr.id == static_cast<std::uint32_t>(regionId)) {
+                    char colour[8];
+                    std::snprintf(colour, sizeof colour, "#%06x", sr.colorRgb & 0xFFFFFFu);
+                    r["name"] = sr.name;
+                    r["acronym"] = sr.acronym;
+                    r["color"] = colour;
+                }
+            regions.push_back(std::move(r));
+        }
+        rec.result["regions"] = std::move(regions);
+    }
     auto id = journal_.recordRegistration(rec);
     if (!id) {
         (void)notifier_.raise("journal_error", "critical", label + ": cannot store registration: " +

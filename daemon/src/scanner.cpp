@@ -411,6 +411,8 @@ Scanner::Outcome Scanner::executeRun(const RunRecord& run) {
             afs.minTissueFraction = s.minTissueFraction;
             afs.moveTimeout = s.moveTimeout;
             afs.captureTimeout = s.captureTimeout;
+            afs.moveRetries = s.moveRetries;
+            afs.captureRetries = s.captureRetries;
             auto af = autofocus(d_.stage, d_.camera, {sec.xUm, sec.yUm, z}, afs);
             if (!af && af.error().code != ErrorCode::Cancelled && af.error().code != ErrorCode::Alarm)
                 af = autofocus(d_.stage, d_.camera, {sec.xUm, sec.yUm, z}, afs);

@@ -35,6 +35,26 @@ private:
     std::function<void(const hw::StagePosition&)> report_;
 };
 
+/// Hands every frame the camera delivers (autofocus frames too) to the live view.
+class LiveCamera final : public hw::Camera {
+public:
+    LiveCamera(std::unique_ptr<hw::Camera> inner, std::function<void(const hw::Frame&)> seen)
+        : inner_(std::move(inner)), seen_(std::move(seen)) {}
+    core::Result<hw::CameraSettings> configure(const hw::CameraSettings& s, std::chrono::milliseconds t) override {
+        return inner_->configure(s, t);
+    }
+    core::Result<hw::Frame> capture(std::chrono::milliseconds t) override {
+        auto f = inner_->capture(t);
+        if (f) seen_(*f);
+        return f;
+    }
+    void stop() noexcept override { inner_->stop(); }
+
+private:
+    std::unique_ptr<hw::Camera> inner_;
+    std::function<void(const hw::Frame&)> seen_;
+};
+
 } // namespace
 
 using core::ErrorCode;
@@ -77,6 +97,14 @@ Result<std::unique_ptr<Station>> Station::create(StationParts parts) {
     }
     if (!parts.freeSpace) parts.freeSpace = [](const std::filesystem::path& p) { return availableBytes(p); };
     std::unique_ptr<Station> st(new Station(std::move(parts)));
+    {
+        Station* self = st.get();
+        st->parts_.camera = std::make_unique<LiveCamera>(std::move(st->parts_.camera), [self](const hw::Frame& f) {
+            auto copy = std::make_shared<const hw::Frame>(f); // ~2.6 MB for 1280x1024x16 bit
+            std::lock_guard lock(self->liveMutex_);
+            self->live_ = std::move(copy);
+        });
+    }
     auto journal = Journal::open(st->parts_.stateDir / "journal.sqlite");
     if (!journal) return journal.error();
     st->journal_ = std::move(*journal);
@@ -187,6 +215,7 @@ Result<nlohmann::json> Station::sectionDetail(std::int64_t sectionId) {
     for (const auto& r : *regs) {
         nlohmann::json rj = toJson(r);
         if (r.result.contains("damage_regions")) rj["damage_regions"] = r.result["damage_regions"];
+        if (r.result.contains("regions")) rj["regions"] = r.result["regions"];
         if (r.result.contains("quality")) rj["quality_detail"] = r.result["quality"];
         j["registrations"].push_back(rj);
     }
@@ -258,6 +287,11 @@ Result<std::string> Station::exportRun(std::int64_t runId, const std::string& fo
         os << "\n";
     }
     return os.str();
+}
+
+std::shared_ptr<const hw::Frame> Station::liveFrame() const {
+    std::lock_guard lock(liveMutex_);
+    return live_;
 }
 
 } // namespace slicestation::daemon

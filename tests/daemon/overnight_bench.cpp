@@ -20,6 +20,7 @@
 #include <cmath>
 #include <cstdio>
 #include <iostream>
+#include <map>
 #include <mutex>
 #include <thread>
 
@@ -104,12 +105,14 @@ int main(int argc, char** argv) {
 
     std::filesystem::remove_all(stateDir);
     const auto t0 = std::chrono::steady_clock::now();
-    // One slide of `perSlide` sections in 8 columns; every slide of the run shows the same glass
+    // One slide of `perSlide` sections in 6 columns; every slide of the run shows the same glass
     // (a slide loader swaps them), so the slide image is generated once.
     sim::VirtualSlideSpec spec;
-    spec.columns = 8;
-    spec.sectionPitchUm = 9'000;
-    spec.sectionWidthUm = 8'000;
+    // Tissue at the atlas's physical size (the generator fills ~75% of the patch; the built-in
+    // brain is ~9.7 mm wide), so the configured pixel size means what it says.
+    spec.columns = 6;
+    spec.sectionPitchUm = 14'000;
+    spec.sectionWidthUm = 13'000;
     spec.umPerPx = 10;
     for (int i = 0; i < perSlide; ++i)
         spec.sections.push_back({0.1 + 0.8 * i / std::max(1, perSlide - 1), i % 7 == 3 ? "tear" : "",
@@ -148,7 +151,9 @@ int main(int argc, char** argv) {
     ScheduledCamera* cameraPtr = camera.get();
 
     auto doc = parseDocument("[daemon]\ntoken = \"bench-token-0123456789\"\n[scan]\num_per_px = 10\n"
-                             "width = 1024\nheight = 1024\n",
+                             "width = 1280\nheight = 1024\n"
+                             // the built-in atlas only supports matching to ~10 slices
+                             "atlas_mismatch_tolerance = 12\n",
                              DocumentFormat::Toml, "bench");
     auto settings = parseDaemonSettings(*doc, "bench");
     if (!settings) {
@@ -224,6 +229,9 @@ int main(int argc, char** argv) {
         if (s.state == SectionState::Damaged) ++damaged;
     }
     const bool integrity = static_cast<bool>(station.journal().checkIntegrity());
+    std::map<std::string, int> alertKinds;
+    if (auto alerts = station.journal().alerts(false))
+        for (const auto& a : *alerts) ++alertKinds[a.kind];
     rusage ru{};
     getrusage(RUSAGE_SELF, &ru);
     const auto phases = station.stats().summary();
@@ -240,6 +248,9 @@ int main(int argc, char** argv) {
                 stagePtr->timeouts.load(), cameraPtr->timeouts.load(), stagePtr->alarms.load());
     std::printf("| pauses answered (alarm) | %d |\n", resumes);
     std::printf("| journal integrity | %s |\n", integrity ? "ok" : "FAILED");
+    std::string kinds;
+    for (const auto& [k, n] : alertKinds) kinds += (kinds.empty() ? "" : ", ") + k + " " + std::to_string(n);
+    std::printf("| alerts raised | %s |\n", kinds.c_str());
     std::printf("| peak memory (max RSS) | %.0f MB |\n", ru.ru_maxrss / 1024.0);
     std::printf("\n| phase | count | mean ms | median ms | max ms | total s |\n|---|---|---|---|---|---|\n");
     for (const auto& [name, p] : phases.items())

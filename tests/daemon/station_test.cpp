@@ -1,19 +1,20 @@
 // The station end to end in one process: simulated stage and camera over a virtual slide of
 // generated sections (one torn), the built-in atlas, a real SQLite journal and real files.
 // Whole runs, rescans, every fault policy, and the HTTP API over real HTTP.
-#include "slicestation/daemon/config_document.hpp"
-#include "slicestation/daemon/http_api.hpp"
+#include "station_fixture.hpp"
+
+#include "slicestation/core/unique_fd.hpp"
 #include "slicestation/daemon/ome_tiff.hpp"
-#include "slicestation/daemon/station.hpp"
-#include "slicestation/sim/faulty_camera.hpp"
-#include "slicestation/sim/faulty_stage.hpp"
-#include "slicestation/sim/sim_camera.hpp"
-#include "slicestation/sim/sim_stage.hpp"
-#include "slicestation/sim/virtual_slide.hpp"
 
 #include <gtest/gtest.h>
 #include <httplib.h>
+#include <opencv2/imgcodecs.hpp>
 
+#include <arpa/inet.h>
+#include <netinet/in.h>
+#include <sys/socket.h>
+
+#include <atomic>
 #include <chrono>
 #include <cmath>
 #include <filesystem>
@@ -24,148 +25,7 @@ using namespace slicestation;
 using namespace slicestation::daemon;
 using namespace std::chrono_literals;
 
-namespace {
-
-constexpr double kUmPerPx = 10.0;
-constexpr const char* kToken = "test-token-0123456789";
-
-/// Four sections in a row, the third torn; generated once for all tests.
-const sim::VirtualSlide& slide() {
-    static const sim::VirtualSlide s = [] {
-        sim::VirtualSlideSpec spec;
-        spec.columns = 4;
-        spec.umPerPx = kUmPerPx;
-        // Tissue at the atlas's physical size (the generator fills ~75% of the patch; the
-        // built-in brain is ~9.7 mm wide), so the known pixel size means what it says.
-        spec.sectionWidthUm = 13'000;
-        spec.sectionPitchUm = 14'000;
-        const double ap[] = {0.35, 0.45, 0.55, 0.65};
-        for (int i = 0; i < 4; ++i)
-            spec.sections.push_back({ap[i], i == 2 ? "tear" : "", static_cast<std::uint64_t>(100 + i)});
-        auto r = sim::makeVirtualSlide(spec);
-        if (!r) throw std::runtime_error(r.error().message);
-        return *r;
-    }();
-    return s;
-}
-
-/// The plan for the slide: slice index = apFraction * 8000 um / 100 um.
-nlohmann::json planFor(const std::vector<int>& which, const std::string& name = "test-run") {
-    nlohmann::json secs = nlohmann::json::array();
-    for (int i : which) {
-        const auto& s = slide().sections[static_cast<std::size_t>(i)];
-        secs.push_back({{"name", "s" + std::to_string(i + 1)},
-                        {"x_um", s.centre.xUm},
-                        {"y_um", s.centre.yUm},
-                        {"atlas_slice", static_cast<int>(std::lround(s.apFraction * 80))}});
-    }
-    return {{"name", name}, {"slides", {{{"name", "slide-01"}, {"sections", secs}}}}};
-}
-
-struct Rig {
-    std::filesystem::path dir;
-    sim::FaultyStage* stage = nullptr;
-    sim::FaultyCamera* camera = nullptr;
-    std::unique_ptr<Station> station;
-    std::unique_ptr<HttpApi> api;
-    std::shared_ptr<std::mutex> posMutex = std::make_shared<std::mutex>();
-    std::shared_ptr<hw::StagePosition> pos = std::make_shared<hw::StagePosition>();
-    std::uint64_t freeBytes = 100ull << 30;
-};
-
-class StationTest : public ::testing::Test {
-protected:
-    void SetUp() override {
-        rig_.dir = std::filesystem::temp_directory_path() /
-                   ("slst-station-" + std::to_string(::getpid()) + "-" +
-                    ::testing::UnitTest::GetInstance()->current_test_info()->name());
-        std::filesystem::remove_all(rig_.dir);
-    }
-    void TearDown() override {
-        if (rig_.api) rig_.api->stop();
-        if (rig_.station) rig_.station->stop();
-        rig_.station.reset();
-        std::filesystem::remove_all(rig_.dir);
-    }
-
-    /// Builds the station (not started). `scanToml` overrides [scan] keys.
-    void build(const std::string& scanExtra = "") {
-        sim::SimStageConfig sc;
-        sc.clock = std::make_shared<core::VirtualClock>(); // moves complete at once
-        sc.start = {0, 0, 2'500};
-        auto simStage = sim::SimStage::create(sc);
-        ASSERT_TRUE(simStage);
-        auto stage = sim::FaultyStage::create(std::move(*simStage), nullptr);
-        ASSERT_TRUE(stage);
-        rig_.stage = stage->get();
-        sim::SimCameraConfig cc;
-        cc.sensorUmPerPx = kUmPerPx;
-        auto pos = rig_.pos;
-        auto mu = rig_.posMutex;
-        cc.stagePosition = [pos, mu] {
-            std::lock_guard lock(*mu);
-            return *pos;
-        };
-        auto simCamera = sim::SimCamera::create(slide(), cc);
-        ASSERT_TRUE(simCamera) << simCamera.error().message;
-        auto camera = sim::FaultyCamera::create(std::move(*simCamera), std::make_shared<core::VirtualClock>());
-        ASSERT_TRUE(camera);
-        rig_.camera = camera->get();
-
-        auto doc = parseDocument(std::string("[daemon]\ntoken = \"") + kToken + "\"\n[scan]\num_per_px = " +
-                                     std::to_string(kUmPerPx) + "\nwidth = 1280\nheight = 1024\n" + scanExtra,
-                                 DocumentFormat::Toml, "station.toml");
-        ASSERT_TRUE(doc) << doc.error().message;
-        auto settings = parseDaemonSettings(*doc, "station.toml");
-        ASSERT_TRUE(settings) << settings.error().message;
-        StationParts parts;
-        parts.stage = std::move(*stage);
-        parts.camera = std::move(*camera);
-        parts.simulatedStage = parts.simulatedCamera = true;
-        parts.settings = *settings;
-        parts.stateDir = rig_.dir;
-        std::uint64_t* freeBytes = &rig_.freeBytes;
-        parts.freeSpace = [freeBytes](const std::filesystem::path&) -> core::Result<std::uint64_t> { return *freeBytes; };
-        parts.stageMoved = [pos, mu](const hw::StagePosition& p) {
-            std::lock_guard lock(*mu);
-            *pos = p;
-        };
-        auto st = Station::create(std::move(parts));
-        ASSERT_TRUE(st) << st.error().message;
-        rig_.station = std::move(*st);
-    }
-
-    /// Waits (bounded) until the run reaches `state`.
-    RunRecord waitRun(std::int64_t id, RunState state, std::chrono::seconds limit = 300s) {
-        const auto deadline = std::chrono::steady_clock::now() + limit;
-        for (;;) {
-            auto r = rig_.station->journal().run(id);
-            EXPECT_TRUE(r);
-            if (!r) return {};
-            if (r->state == state && (state != RunState::Finished || rig_.station->idle())) return *r;
-            if (std::chrono::steady_clock::now() > deadline) {
-                ADD_FAILURE() << "run " << id << " is " << toString(r->state) << " (" << r->reason
-                              << "), expected " << toString(state);
-                return *r;
-            }
-            std::this_thread::sleep_for(50ms); // polling the journal, not waiting for time to pass
-        }
-    }
-
-    std::vector<AlertRecord> alertsOf(const std::string& kind) {
-        std::vector<AlertRecord> out;
-        auto all = rig_.station->journal().alerts(false);
-        EXPECT_TRUE(all);
-        if (!all) return out;
-        for (const auto& a : *all)
-            if (a.kind == kind) out.push_back(a);
-        return out;
-    }
-
-    Rig rig_;
-};
-
-} // namespace
+using namespace slicestation::testing_station;
 
 TEST_F(StationTest, AWholeRunStoresEverySectionRegistersItAndFlagsTheTornOne) {
     build();
@@ -392,4 +252,131 @@ TEST_F(StationTest, HttpApiServesReadsAndGuardsControl) {
     EXPECT_EQ(cli.Post(ackPath, auth, "{\"action\": 5}", "application/json")->status, 400);
     EXPECT_EQ(cli.Post(ackPath, auth, "{\"action\":\"accept\"}", "application/json")->status, 200);
     EXPECT_EQ(cli.Post(ackPath, auth, "{\"action\":\"accept\"}", "application/json")->status, 409);
+}
+
+TEST_F(StationTest, HttpApiStreamsEventsAndServesImagesAndRegions) {
+    build();
+    auto api = HttpApi::start(*rig_.station, "127.0.0.1", 0, kToken);
+    ASSERT_TRUE(api) << api.error().message;
+    rig_.api = std::move(*api);
+    const int port = rig_.api->port();
+    httplib::Client cli("127.0.0.1", port);
+    const httplib::Headers auth{{"Authorization", std::string("Bearer ") + kToken}};
+    EXPECT_EQ(cli.Get("/api/live.jpg")->status, 404) << "no frame before the first capture";
+
+    // A browser that connects and then never reads: acquisition must not wait for it.
+    core::UniqueFd stalled(::socket(AF_INET, SOCK_STREAM | SOCK_CLOEXEC, 0));
+    sockaddr_in addr{};
+    addr.sin_family = AF_INET;
+    addr.sin_port = htons(static_cast<std::uint16_t>(port));
+    addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+    ASSERT_EQ(::connect(stalled.get(), reinterpret_cast<sockaddr*>(&addr), sizeof addr), 0);
+    const std::string get = "GET /api/events HTTP/1.1\r\nHost: x\r\n\r\n";
+    ASSERT_EQ(::send(stalled.get(), get.data(), get.size(), 0), static_cast<ssize_t>(get.size()));
+
+    // A reading client collects the stream until the run has finished.
+    std::mutex mu;
+    std::string stream;
+    std::atomic<bool> done{false};
+    std::thread reader([&] {
+        httplib::Client sse("127.0.0.1", port);
+        sse.set_read_timeout(60, 0);
+        sse.Get("/api/events", [&](const char* data, std::size_t n) {
+            std::lock_guard lock(mu);
+            stream.append(data, n);
+            return !done.load() && stream.find("finished") == std::string::npos;
+        });
+    });
+    // The stream is open (its greeting arrived) before anything happens.
+    for (int i = 0; i < 200; ++i) {
+        {
+            std::lock_guard lock(mu);
+            if (stream.find(": connected") != std::string::npos) break;
+        }
+        std::this_thread::sleep_for(10ms); // waiting for the greeting
+    }
+    auto ok = cli.Post("/api/runs", auth, planFor({1, 2}).dump(), "application/json");
+    ASSERT_EQ(ok->status, 201) << ok->body;
+    const auto runId = nlohmann::json::parse(ok->body)["run_id"].get<std::int64_t>();
+    rig_.station->start();
+    waitRun(runId, RunState::Finished);
+    for (int i = 0; i < 500; ++i) {
+        {
+            std::lock_guard lock(mu);
+            if (stream.find("finished") != std::string::npos) break;
+        }
+        std::this_thread::sleep_for(10ms); // waiting for the last event to arrive
+    }
+    done = true;
+    // An acknowledgement is an event too; it also ends the reader if it still waits.
+    auto alerts = nlohmann::json::parse(cli.Get("/api/alerts?open=1")->body);
+    ASSERT_FALSE(alerts.empty());
+    EXPECT_EQ(cli.Post("/api/alerts/" + std::to_string(alerts[0]["id"].get<std::int64_t>()) + "/ack", auth,
+                       "{\"action\":\"accept\"}", "application/json")
+                  ->status,
+              200);
+    reader.join();
+    {
+        std::lock_guard lock(mu);
+        for (const char* ev : {"event: section_captured", "event: section_registered", "event: section_damaged",
+                               "event: alert_raised", "event: run_state"})
+            EXPECT_NE(stream.find(ev), std::string::npos) << ev << " missing from:\n" << stream;
+        EXPECT_NE(stream.find("data: {"), std::string::npos);
+    }
+
+    // Images, scaled as asked and never up.
+    auto decode = [](const httplib::Result& r) {
+        return cv::imdecode(std::vector<uchar>(r->body.begin(), r->body.end()), cv::IMREAD_UNCHANGED);
+    };
+    auto live = cli.Get("/api/live.jpg?width=320");
+    ASSERT_EQ(live->status, 200);
+    EXPECT_EQ(live->get_header_value("Content-Type"), "image/jpeg");
+    EXPECT_EQ(decode(live).cols, 320);
+    auto secs = nlohmann::json::parse(cli.Get("/api/runs/" + std::to_string(runId) + "/sections")->body);
+    ASSERT_EQ(secs.size(), 2u);
+    const std::string torn = std::to_string(secs[1]["id"].get<std::int64_t>());
+    auto image = cli.Get("/api/sections/" + torn + "/image.jpg?width=200");
+    ASSERT_EQ(image->status, 200);
+    EXPECT_EQ(decode(image).cols, 200);
+    auto overlay = cli.Get("/api/sections/" + torn + "/overlay.png?width=300");
+    ASSERT_EQ(overlay->status, 200);
+    const cv::Mat ov = decode(overlay);
+    EXPECT_EQ(ov.cols, 300);
+    EXPECT_EQ(ov.channels(), 3);
+    EXPECT_EQ(decode(cli.Get("/api/sections/" + torn + "/image.jpg?width=4000")).cols, 1280) << "never scaled up";
+    for (const char* bad : {"?width=5", "?width=abc", "?width=", "?width=99999"})
+        EXPECT_EQ(cli.Get("/api/sections/" + torn + "/image.jpg" + bad)->status, 400) << bad;
+    EXPECT_EQ(cli.Get("/api/sections/99999/overlay.png")->status, 404);
+
+    // Regions: the section detail lists them with names; a pixel names its region.
+    auto detail = nlohmann::json::parse(cli.Get("/api/sections/" + torn)->body);
+    const auto& regions = detail["registrations"][0]["regions"];
+    ASSERT_GT(regions.size(), 3u);
+    EXPECT_FALSE(regions[0]["name"].get<std::string>().empty());
+    EXPECT_GE(regions[0]["share"].get<double>(), regions[1]["share"].get<double>());
+    auto centre = cli.Get("/api/sections/" + torn + "/region?x=640&y=512");
+    ASSERT_EQ(centre->status, 200);
+    const auto cj = nlohmann::json::parse(centre->body);
+    EXPECT_GT(cj["id"].get<int>(), 0) << "the centre of a section lies in the brain";
+    EXPECT_FALSE(cj["name"].get<std::string>().empty());
+    EXPECT_EQ(nlohmann::json::parse(cli.Get("/api/sections/" + torn + "/region?x=2&y=2")->body)["id"], 0)
+        << "the corner is glass";
+    EXPECT_EQ(cli.Get("/api/sections/" + torn + "/region?x=5000&y=2")->status, 400);
+    EXPECT_EQ(cli.Get("/api/sections/" + torn + "/region?y=2")->status, 400);
+    EXPECT_EQ(cli.Get("/api/sections/" + torn + "/region?x=-1&y=2")->status, 400);
+    // The page asks in the pixels of the overlay it shows (here half size).
+    auto half = cli.Get("/api/sections/" + torn + "/region?x=320&y=256&of_width=640");
+    ASSERT_EQ(half->status, 200);
+    EXPECT_EQ(nlohmann::json::parse(half->body)["id"], cj["id"]);
+    EXPECT_EQ(nlohmann::json::parse(half->body)["x"], 641);
+    EXPECT_EQ(cli.Get("/api/sections/" + torn + "/region?x=3&y=3&of_width=0")->status, 400);
+
+    // The page itself: HTML that loads nothing from elsewhere.
+    auto page = cli.Get("/");
+    ASSERT_EQ(page->status, 200);
+    EXPECT_EQ(page->get_header_value("Content-Type"), "text/html; charset=utf-8");
+    EXPECT_NE(page->get_header_value("Content-Security-Policy").find("default-src 'self'"), std::string::npos);
+    EXPECT_NE(page->body.find("<title>slicestation</title>"), std::string::npos);
+    EXPECT_EQ(page->body.find("http://"), std::string::npos) << "no external resources";
+    EXPECT_EQ(page->body.find("https://"), std::string::npos) << "no external resources";
 }

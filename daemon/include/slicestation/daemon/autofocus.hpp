@@ -45,6 +45,8 @@ struct AutofocusSettings {
     double minTissueFraction = 0.03; ///< below this at the start z: blank glass, no search
     std::chrono::milliseconds moveTimeout{10'000};   ///< per move
     std::chrono::milliseconds captureTimeout{5'000}; ///< per capture
+    int moveRetries = 0;    ///< extra attempts after a move timed out (an alarm is never retried)
+    int captureRetries = 0; ///< extra attempts after a failed capture (not after a cancel)
 };
 
 struct FocusResult {

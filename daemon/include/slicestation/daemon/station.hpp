@@ -23,6 +23,7 @@
 #include <filesystem>
 #include <functional>
 #include <memory>
+#include <mutex>
 
 namespace slicestation::daemon {
 
@@ -76,6 +77,9 @@ public:
     const AtlasStack& atlas() const { return stack_; }
     const std::filesystem::path& stateDir() const { return parts_.stateDir; }
     const DaemonSettings& settings() const { return parts_.settings; }
+    /// The latest frame the camera delivered (autofocus frames included), for the live view;
+    /// null before the first. Any thread.
+    std::shared_ptr<const hw::Frame> liveFrame() const;
     /// No run left to work on and nothing being registered.
     bool idle() const { return scanner_->idle(); }
 
@@ -89,6 +93,8 @@ private:
     PhaseStats stats_;
     std::unique_ptr<RegistrationWorker> worker_;
     std::unique_ptr<Scanner> scanner_;
+    mutable std::mutex liveMutex_;
+    std::shared_ptr<const hw::Frame> live_;
 };
 
 /// The stack named by settings.atlas: "builtin" (written under stateDir on first use) or a

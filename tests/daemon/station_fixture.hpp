@@ -1,0 +1,169 @@
+#pragma once
+// The station in one process for tests: simulated stage and camera over a virtual slide of four
+// generated sections (the third torn), the built-in atlas, a real SQLite journal and real files
+// in a temporary state directory. Shared by the station tests and the browser tests of the page.
+#include "slicestation/daemon/config_document.hpp"
+#include "slicestation/daemon/http_api.hpp"
+#include "slicestation/daemon/station.hpp"
+#include "slicestation/sim/faulty_camera.hpp"
+#include "slicestation/sim/faulty_stage.hpp"
+#include "slicestation/sim/sim_camera.hpp"
+#include "slicestation/sim/sim_stage.hpp"
+#include "slicestation/sim/virtual_slide.hpp"
+
+#include <gtest/gtest.h>
+
+#include <unistd.h>
+
+#include <chrono>
+#include <cmath>
+#include <filesystem>
+#include <mutex>
+#include <thread>
+
+namespace slicestation::testing_station {
+
+using namespace slicestation::daemon;
+using namespace std::chrono_literals;
+
+inline constexpr double kUmPerPx = 10.0;
+inline constexpr const char* kToken = "test-token-0123456789";
+
+/// Four sections in a row, the third torn; generated once for all tests.
+inline const sim::VirtualSlide& slide() {
+    static const sim::VirtualSlide s = [] {
+        sim::VirtualSlideSpec spec;
+        spec.columns = 4;
+        spec.umPerPx = kUmPerPx;
+        // Tissue at the atlas's physical size (the generator fills ~75% of the patch; the
+        // built-in brain is ~9.7 mm wide), so the known pixel size means what it says.
+        spec.sectionWidthUm = 13'000;
+        spec.sectionPitchUm = 14'000;
+        const double ap[] = {0.35, 0.45, 0.55, 0.65};
+        for (int i = 0; i < 4; ++i)
+            spec.sections.push_back({ap[i], i == 2 ? "tear" : "", static_cast<std::uint64_t>(100 + i)});
+        auto r = sim::makeVirtualSlide(spec);
+        if (!r) throw std::runtime_error(r.error().message);
+        return *r;
+    }();
+    return s;
+}
+
+/// The plan for the slide: slice index = apFraction * 8000 um / 100 um.
+inline nlohmann::json planFor(const std::vector<int>& which, const std::string& name = "test-run") {
+    nlohmann::json secs = nlohmann::json::array();
+    for (int i : which) {
+        const auto& s = slide().sections[static_cast<std::size_t>(i)];
+        secs.push_back({{"name", "s" + std::to_string(i + 1)},
+                        {"x_um", s.centre.xUm},
+                        {"y_um", s.centre.yUm},
+                        {"atlas_slice", static_cast<int>(std::lround(s.apFraction * 80))}});
+    }
+    return {{"name", name}, {"slides", {{{"name", "slide-01"}, {"sections", secs}}}}};
+}
+
+struct Rig {
+    std::filesystem::path dir;
+    sim::FaultyStage* stage = nullptr;
+    sim::FaultyCamera* camera = nullptr;
+    std::unique_ptr<Station> station;
+    std::unique_ptr<HttpApi> api;
+    std::shared_ptr<std::mutex> posMutex = std::make_shared<std::mutex>();
+    std::shared_ptr<hw::StagePosition> pos = std::make_shared<hw::StagePosition>();
+    std::uint64_t freeBytes = 100ull << 30;
+};
+
+class StationTest : public ::testing::Test {
+protected:
+    void SetUp() override {
+        rig_.dir = std::filesystem::temp_directory_path() /
+                   ("slst-station-" + std::to_string(::getpid()) + "-" +
+                    ::testing::UnitTest::GetInstance()->current_test_info()->name());
+        std::filesystem::remove_all(rig_.dir);
+    }
+    void TearDown() override {
+        if (rig_.api) rig_.api->stop();
+        if (rig_.station) rig_.station->stop();
+        rig_.station.reset();
+        std::filesystem::remove_all(rig_.dir);
+    }
+
+    /// Builds the station (not started). `scanToml` overrides [scan] keys.
+    void build(const std::string& scanExtra = "") {
+        sim::SimStageConfig sc;
+        sc.clock = std::make_shared<core::VirtualClock>(); // moves complete at once
+        sc.start = {0, 0, 2'500};
+        auto simStage = sim::SimStage::create(sc);
+        ASSERT_TRUE(simStage);
+        auto stage = sim::FaultyStage::create(std::move(*simStage), nullptr);
+        ASSERT_TRUE(stage);
+        rig_.stage = stage->get();
+        sim::SimCameraConfig cc;
+        cc.sensorUmPerPx = kUmPerPx;
+        auto pos = rig_.pos;
+        auto mu = rig_.posMutex;
+        cc.stagePosition = [pos, mu] {
+            std::lock_guard lock(*mu);
+            return *pos;
+        };
+        auto simCamera = sim::SimCamera::create(slide(), cc);
+        ASSERT_TRUE(simCamera) << simCamera.error().message;
+        auto camera = sim::FaultyCamera::create(std::move(*simCamera), std::make_shared<core::VirtualClock>());
+        ASSERT_TRUE(camera);
+        rig_.camera = camera->get();
+
+        auto doc = parseDocument(std::string("[daemon]\ntoken = \"") + kToken + "\"\n[scan]\num_per_px = " +
+                                     std::to_string(kUmPerPx) + "\nwidth = 1280\nheight = 1024\n" + scanExtra,
+                                 DocumentFormat::Toml, "station.toml");
+        ASSERT_TRUE(doc) << doc.error().message;
+        auto settings = parseDaemonSettings(*doc, "station.toml");
+        ASSERT_TRUE(settings) << settings.error().message;
+        StationParts parts;
+        parts.stage = std::move(*stage);
+        parts.camera = std::move(*camera);
+        parts.simulatedStage = parts.simulatedCamera = true;
+        parts.settings = *settings;
+        parts.stateDir = rig_.dir;
+        std::uint64_t* freeBytes = &rig_.freeBytes;
+        parts.freeSpace = [freeBytes](const std::filesystem::path&) -> core::Result<std::uint64_t> { return *freeBytes; };
+        parts.stageMoved = [pos, mu](const hw::StagePosition& p) {
+            std::lock_guard lock(*mu);
+            *pos = p;
+        };
+        auto st = Station::create(std::move(parts));
+        ASSERT_TRUE(st) << st.error().message;
+        rig_.station = std::move(*st);
+    }
+
+    /// Waits (bounded) until the run reaches `state`.
+    RunRecord waitRun(std::int64_t id, RunState state, std::chrono::seconds limit = 300s) {
+        const auto deadline = std::chrono::steady_clock::now() + limit;
+        for (;;) {
+            auto r = rig_.station->journal().run(id);
+            EXPECT_TRUE(r);
+            if (!r) return {};
+            if (r->state == state && (state != RunState::Finished || rig_.station->idle())) return *r;
+            if (std::chrono::steady_clock::now() > deadline) {
+                ADD_FAILURE() << "run " << id << " is " << toString(r->state) << " (" << r->reason
+                              << "), expected " << toString(state);
+                return *r;
+            }
+            std::this_thread::sleep_for(50ms); // polling the journal, not waiting for time to pass
+        }
+    }
+
+    std::vector<AlertRecord> alertsOf(const std::string& kind) {
+        std::vector<AlertRecord> out;
+        auto all = rig_.station->journal().alerts(false);
+        EXPECT_TRUE(all);
+        if (!all) return out;
+        for (const auto& a : *all)
+            if (a.kind == kind) out.push_back(a);
+        return out;
+    }
+
+    Rig rig_;
+};
+
+
+} // namespace slicestation::testing_station
