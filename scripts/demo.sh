@@ -45,6 +45,7 @@ for _ in $(seq 300); do
 done
 url="http://127.0.0.1:$(cat "$out/state/http.port")"
 echo "demo: slicestationd is up, HTTP API on $url (log: $out/slicestationd.log)"
+echo "demo: open $url/ in a browser on this machine to watch the run"
 
 # Follow the run until it ends (bounded).
 state=""
@@ -63,6 +64,10 @@ echo "== run 1, per section (also in $out/run-1.csv) =="
 "$slicectl" export 1 --format csv --url "$url" --output "$out/run-1.csv"
 cut -d, -f2,3,5,8,9,10,13,15,17,19 "$out/run-1.csv" | column -s, -t 2>/dev/null || cat "$out/run-1.csv"
 echo
+if [ "${SLST_DEMO_KEEP:-0}" = 1 ]; then
+    echo "demo: SLST_DEMO_KEEP=1: the daemon stays up ($url/); Ctrl-C stops it"
+    wait "$daemon" || true
+fi
 kill -TERM "$daemon"
 wait "$daemon" || true
 grep -E "SIMULATED|ALERT|stopp" "$out/slicestationd.log" | sed 's/^<[0-9]>/  /'

@@ -1,6 +1,7 @@
 // slicestationd: the station daemon. Opens the devices named in the station file, the journal
 // and the atlas, serves the HTTP API, and scans the queued runs until SIGTERM.
 // Only this program logs; lines carry sd-daemon priority prefixes for the systemd journal.
+#include "slicestation/daemon/alert_channels.hpp"
 #include "slicestation/daemon/config_document.hpp"
 #include "slicestation/daemon/daemon_settings.hpp"
 #include "slicestation/daemon/http_api.hpp"
@@ -11,6 +12,7 @@
 
 #include <CLI/CLI.hpp>
 
+#include <atomic>
 #include <mutex>
 #include <csignal>
 #include <cstdlib>
@@ -61,6 +63,10 @@ int main(int argc, char** argv) {
     auto settings = parseDaemonSettings(*doc, configFile);
     if (!settings) return fail("station file", settings.error());
     if (httpPort) settings->httpPort = *httpPort;
+    auto alertSettings = parseAlertSettings(*doc, configFile);
+    if (!alertSettings) return fail("station file", alertSettings.error());
+    auto alertSinks = makeAlertSinks(*alertSettings);
+    if (!alertSinks) return fail("station file", alertSinks.error());
 
     std::filesystem::path stateDir = stateDirOpt;
     if (stateDir.empty())
@@ -102,8 +108,33 @@ int main(int argc, char** argv) {
     parts.watchdog = watchdog.get();
     parts.status = [&notifier](const std::string& s) { notifier.status(s); };
 
+    // Outward alert delivery ([alerts]), set up before the station so that it also carries the
+    // "restarted" alert raised while the station opens its journal, and declared before it so
+    // that it outlives the station's threads. A channel that gives up is logged here; the alert
+    // itself stays open in the journal. Without journald (a container) the journal channel
+    // fails for every alert: that is said once.
+    auto journalFailureLogged = std::make_shared<std::atomic<bool>>(false);
+    auto alerts = std::make_unique<AlertDispatcher>(
+        *alertSettings, std::move(*alertSinks),
+        [journalFailureLogged](const std::string& channel, const AlertRecord& a, const core::Error& e) {
+            if (channel == "journal" && journalFailureLogged->exchange(true)) return;
+            // The message names the channel.
+            std::cerr << "<4>slicestationd: alert " << a.id << " (" << a.kind << ") not delivered: " << e.message
+                      << (channel == "journal" ? " (not repeated)" : "") << std::endl;
+        });
+    {
+        std::string names;
+        for (const auto& n : alerts->channelNames()) names += (names.empty() ? "" : ", ") + n;
+        std::cerr << "<6>slicestationd: alert channels: " << (names.empty() ? "none (journal disabled)" : names)
+                  << " (min severity " << alertSettings->minSeverity << ", " << alertSettings->retries
+                  << " retries, " << alertSettings->maxPerWindow << "/min per channel)" << std::endl;
+    }
+    parts.alertChannels.push_back([d = alerts.get()](const AlertRecord& a) { d->post(a); });
     auto st = Station::create(std::move(parts));
-    if (!st) return fail("station", st.error());
+    if (!st) {
+        alerts->stop(std::chrono::seconds(5));
+        return fail("station", st.error());
+    }
     Station& s = **st;
     auto api = HttpApi::start(s, settings->httpBind, settings->httpPort, settings->token);
     if (!api) return fail("HTTP API", api.error());
@@ -141,6 +172,8 @@ int main(int argc, char** argv) {
     if (watchdog) watchdog->stop();
     (*api)->stop();
     s.stop();
+    // After the station: its last alerts (a paused run) still get out, within 5 s.
+    alerts->stop(std::chrono::seconds(5));
     std::cerr << "<6>slicestationd: stopped" << std::endl;
     return rc;
 }

@@ -109,6 +109,7 @@ Result<std::unique_ptr<Station>> Station::create(StationParts parts) {
     if (!journal) return journal.error();
     st->journal_ = std::move(*journal);
     st->notifier_ = std::make_unique<Notifier>(*st->journal_);
+    for (auto& channel : st->parts_.alertChannels) st->notifier_->addChannel(std::move(channel));
     auto stack = openAtlasStack(st->parts_.settings, st->parts_.stateDir);
     if (!stack) return stack.error();
     st->stack_ = std::move(*stack);

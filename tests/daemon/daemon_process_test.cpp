@@ -462,6 +462,26 @@ TEST_F(DaemonProcessTest, NotifiesSystemdAndStopsWatchdogPingsWhileAMoveHangs) {
 
 TEST_F(DaemonProcessTest, AStageAlarmPausesTheRunUntilTheTechnicianAsksForTheReset) {
     writeStation();
+    // The technician is told through a webhook and a command (the alert channels, end to end).
+    httplib::Server hook;
+    std::mutex hookMutex;
+    std::vector<nlohmann::json> hooked;
+    hook.Post("/hook", [&](const httplib::Request& req, httplib::Response& res) {
+        std::lock_guard lock(hookMutex);
+        hooked.push_back(nlohmann::json::parse(req.body, nullptr, false));
+        res.status = 204;
+    });
+    const int hookPort = hook.bind_to_any_port("127.0.0.1");
+    ASSERT_GT(hookPort, 0);
+    std::thread hookThread([&] { hook.listen_after_bind(); });
+    const fs::path commandOut = dir_ / "command-alerts.txt";
+    {
+        std::ofstream t(dir_ / "station.toml", std::ios::app);
+        t << "[alerts]\njournal = false\n[[alerts.webhook]]\nurl = \"http://127.0.0.1:" << hookPort
+          << "/hook\"\n[[alerts.command]]\nargv = [\"/bin/sh\", \"-c\", "
+             "\"echo \\\"$SLST_ALERT_ID $SLST_ALERT_KIND\\\" >> "
+          << commandOut.string() << "\"]\n";
+    }
     startDaemon(true);
     const int port = httpPort();
     ASSERT_GT(port, 0);
@@ -493,9 +513,22 @@ TEST_F(DaemonProcessTest, AStageAlarmPausesTheRunUntilTheTechnicianAsksForTheRes
     run = waitRun(port, {"finished"});
     EXPECT_EQ(run.value("done", 0), kSections);
     EXPECT_EQ(server_->axisState(1).alarmCode, 0u);
+    const auto journalled = get(port, "/api/alerts");
     daemon_->signal(SIGTERM);
     ASSERT_EQ(daemon_->waitExit(60s), 0);
     checkStored(true);
+
+    // Every journalled alert went out through both channels (the daemon drains them on stop).
+    hook.stop();
+    hookThread.join();
+    std::multiset<std::string> expected, byHook, byCommand;
+    for (const auto& a : journalled) expected.insert(std::to_string(a["id"].get<std::int64_t>()) + " " + a["kind"].get<std::string>());
+    for (const auto& a : hooked) byHook.insert(std::to_string(a["id"].get<std::int64_t>()) + " " + a["kind"].get<std::string>());
+    std::ifstream in(commandOut);
+    for (std::string line; std::getline(in, line);) byCommand.insert(line);
+    EXPECT_GE(journalled.size(), 4u) << "stage_fault, two pauses, finished";
+    EXPECT_EQ(byHook, expected);
+    EXPECT_EQ(byCommand, expected);
 }
 
 TEST_F(DaemonProcessTest, DroppedCorruptBusyAndSlowModbusRepliesAreRetriedWithoutPausing) {

@@ -217,7 +217,7 @@ int main(int argc, char** argv) {
     station.stop();
 
     // Completeness: every planned section captured exactly once, registered, files on disk.
-    int lost = 0, duplicated = 0, damaged = 0, missingFiles = 0, total = 0;
+    int lost = 0, duplicated = 0, damaged = 0, damagedAndTorn = 0, missingFiles = 0, total = 0;
     auto secs = station.journal().sections(*runId);
     for (const auto& s : *secs) {
         ++total;
@@ -226,7 +226,10 @@ int main(int argc, char** argv) {
         if (caps->size() > 1) ++duplicated;
         for (const auto& c : *caps)
             if (!std::filesystem::exists(std::filesystem::path(stateDir) / c.imagePath)) ++missingFiles;
-        if (s.state == SectionState::Damaged) ++damaged;
+        if (s.state == SectionState::Damaged) {
+            ++damaged;
+            if (s.index % 7 == 3) ++damagedAndTorn; // the painted ones (see the slide above)
+        }
     }
     const bool integrity = static_cast<bool>(station.journal().checkIntegrity());
     std::map<std::string, int> alertKinds;
@@ -243,7 +246,8 @@ int main(int argc, char** argv) {
     std::printf("| sections per hour | %.0f |\n", total / runS * 3600.0);
     std::printf("| lost sections | %d |\n| duplicated captures | %d |\n| images missing on disk | %d |\n",
                 lost, duplicated, missingFiles);
-    std::printf("| flagged damaged | %d (%d painted torn) |\n", damaged, slides * ((perSlide + 3) / 7));
+    std::printf("| flagged damaged | %d, of which painted torn %d (painted torn: %d) |\n", damaged, damagedAndTorn,
+                slides * ((perSlide + 3) / 7));
     std::printf("| injected: move timeouts / camera timeouts / alarms | %d / %d / %d |\n",
                 stagePtr->timeouts.load(), cameraPtr->timeouts.load(), stagePtr->alarms.load());
     std::printf("| pauses answered (alarm) | %d |\n", resumes);

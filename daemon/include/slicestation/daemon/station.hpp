@@ -43,6 +43,9 @@ struct StationParts {
     /// Told every position the stage settles at, autofocus steps included (a simulated camera
     /// renders what lies there). The stage is wrapped to report it.
     std::function<void(const hw::StagePosition&)> stageMoved;
+    /// Outward alert channels, registered before anything can be raised (a "restarted" alert
+    /// is raised while the station is created).
+    std::vector<Notifier::AlertChannel> alertChannels;
 };
 
 class Station {
