@@ -128,6 +128,16 @@ void sendImage(httplib::Response& res, const cv::Mat& image, int width, const st
     res.set_content(std::string(buf.begin(), buf.end()), ext == ".jpg" ? "image/jpeg" : "image/png");
 }
 
+/// A stored image (a journal path, checked to lie inside the state directory), scaled and encoded.
+void sendStoredImage(httplib::Response& res, const std::filesystem::path& stateDir, const std::string& rel,
+                     int width, const std::string& ext) {
+    auto file = storedFile(stateDir, rel);
+    if (!file) return sendError(res, 500, "stored path \"" + rel + "\" is outside the state directory");
+    auto img = core::readImage(*file);
+    if (!img) return sendError(res, 500, img.error().message);
+    sendImage(res, *img, width, ext);
+}
+
 } // namespace
 
 /// Station events fanned out to every event-stream client. A client that does not keep up
@@ -351,11 +361,7 @@ core::Result<std::unique_ptr<HttpApi>> HttpApi::start(Station& station, const st
         if (!width) return;
         auto l = latest(*id, res);
         if (!l) return;
-        auto file = storedFile(st->stateDir(), l->first.imagePath);
-        if (!file) return sendError(res, 500, "stored image path is outside the state directory");
-        auto img = core::readImage(*file);
-        if (!img) return sendError(res, 500, img.error().message);
-        sendImage(res, *img, *width, ".jpg");
+        sendStoredImage(res, st->stateDir(), l->first.imagePath, *width, ".jpg");
     });
     srv.Get(R"(/api/sections/([^/]+)/overlay\.png)", [st, latest](const httplib::Request& req, httplib::Response& res) {
         auto id = idParam(req, res);
@@ -365,11 +371,7 @@ core::Result<std::unique_ptr<HttpApi>> HttpApi::start(Station& station, const st
         auto l = latest(*id, res);
         if (!l) return;
         if (!l->second) return sendError(res, 404, "section " + std::to_string(*id) + " is not registered yet");
-        auto file = storedFile(st->stateDir(), l->second->overlayPath);
-        if (!file) return sendError(res, 500, "stored overlay path is outside the state directory");
-        auto img = core::readImage(*file);
-        if (!img) return sendError(res, 500, img.error().message);
-        sendImage(res, *img, *width, ".png");
+        sendStoredImage(res, st->stateDir(), l->second->overlayPath, *width, ".png");
     });
     // The atlas region at a pixel of the section's latest capture (full resolution).
     struct LabelCache {
