@@ -188,6 +188,8 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const cv::Mat&
         d.areaPx = area;
         d.share = area / tissueArea;
         d.lengthPx = length;
+        d.openShare = openShare;
+        d.thicknessPx = 2 * thickness;
         out.push_back(std::move(d));
     }
 

@@ -131,9 +131,9 @@ int main(int argc, char** argv) {
             damage = buf;
             // Each region: kind, share of the tissue, length in section px.
             for (const auto& d : reg->damage) {
-                std::snprintf(buf, sizeof buf, " [%s %.2f%% %.0fpx]",
+                std::snprintf(buf, sizeof buf, " [%s %.2f%% %.0fpx open %.2f thick %.0fpx]",
                               std::string(pipeline::toString(d.kind)).c_str(), 100 * d.share,
-                              d.lengthPx);
+                              d.lengthPx, d.openShare, d.thicknessPx);
                 damage += buf;
             }
             if (reg->damaged) flagged.push_back(n);

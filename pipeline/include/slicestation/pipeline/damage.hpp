@@ -19,6 +19,8 @@ struct DamageRegion {
     double areaPx = 0;                ///< in that frame
     double share = 0;                 ///< area / area of the section's tissue
     double lengthPx = 0;              ///< longest extent (a tear's depth)
+    double openShare = 0;             ///< gaps: share of the rim on the glass outside the section
+    double thicknessPx = 0;           ///< gaps: twice the largest inscribed radius
 };
 
 /// Lengths are fractions of the brain width (the OBB's major extent of the section), so the rule
@@ -31,9 +33,9 @@ struct DamageParams {
     double slackFrac = 0.006;         ///< registration slack removed from the tissue deficit
     double minRegionShare = 0.002;    ///< smaller regions are not reported
     double damagedShare = 0.008;      ///< decision: damage of at least this share of the tissue
-    double deepTearFrac = 0.08;       ///< decision: or a tear at least this long
+    double deepTearFrac = 0.10;       ///< decision: or a tear at least this long
     double tearElongation = 3.0;      ///< length / mean width from which a gap is a tear
-    double shallowFrac = 0.03;        ///< gaps along the outline thinner than this are slack
+    double shallowFrac = 0.05;        ///< gaps along the outline thinner than this are slack
 };
 
 /// The outermost outline of the tissue as a polygon with unit normals (unoriented).
