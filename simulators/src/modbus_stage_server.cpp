@@ -237,7 +237,12 @@ struct ModbusStageServer::Impl {
             ::poll(&p, 1, static_cast<int>(delay.count()));
             if (stopping) return;
         }
-        (void)!::write(out, reply.data(), static_cast<std::size_t>(replyLen));
+        // A TCP client may have hung up meanwhile (a driver reconnects after a corrupt reply):
+        // that is an EPIPE for this reply, never a SIGPIPE that ends the process serving.
+        if (cfg.tcp)
+            (void)!::send(out, reply.data(), static_cast<std::size_t>(replyLen), MSG_NOSIGNAL);
+        else
+            (void)!::write(out, reply.data(), static_cast<std::size_t>(replyLen));
     }
 
     void rtuRead() {

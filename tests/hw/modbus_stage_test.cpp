@@ -2,8 +2,14 @@
 // every injected fault. Each error code the driver returns is provoked here or in conformance.
 #include "modbus_fixture.hpp"
 
+#include <arpa/inet.h>
+#include <netinet/in.h>
+#include <sys/socket.h>
+#include <unistd.h>
+
 #include <filesystem>
 #include <fstream>
+#include <thread>
 #include <tuple>
 
 namespace slicestation::test {
@@ -180,6 +186,36 @@ TEST(ModbusStage, TcpReconnectsAfterTheConnectionDrops) {
     auto second = sim::ModbusStageServer::create(sc);
     ASSERT_TRUE(second) << second.error().message;
     auto p = stage->position(2s);
+    EXPECT_TRUE(p) << p.error().message;
+}
+
+TEST(ModbusStage, AClientHangingUpBeforeItsRepliesLeavesTheServerServing) {
+    // A driver that gives up on slow replies and reconnects leaves the server writing to a
+    // closed connection: the first reply draws a reset, the next is an EPIPE for that reply,
+    // never a SIGPIPE ending the process that serves (this test, or stage-sim).
+    sim::StageServerConfig sc;
+    auto server = sim::ModbusStageServer::create(sc).value();
+    server->injectReplyFault(ReplyFault::Slow, 2, 150ms);
+    const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
+    ASSERT_GE(fd, 0);
+    sockaddr_in a{};
+    a.sin_family = AF_INET;
+    a.sin_port = htons(static_cast<std::uint16_t>(server->tcpPort()));
+    a.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+    ASSERT_EQ(::connect(fd, reinterpret_cast<sockaddr*>(&a), sizeof a), 0);
+    // Two reads of holding registers 0..1 of unit 1 (MBAP: transaction 1 and 2, length 6).
+    const unsigned char requests[] = {0, 1, 0, 0, 0, 6, 1, 3, 0, 0, 0, 2,
+                                      0, 2, 0, 0, 0, 6, 1, 3, 0, 0, 0, 2};
+    ASSERT_EQ(::send(fd, requests, sizeof requests, MSG_NOSIGNAL), static_cast<ssize_t>(sizeof requests));
+    ::close(fd);
+    const auto deadline = std::chrono::steady_clock::now() + 3s;
+    while (server->requestCount() < 2 && std::chrono::steady_clock::now() < deadline)
+        std::this_thread::sleep_for(10ms);
+    EXPECT_EQ(server->requestCount(), 2u) << "the server took both requests";
+    std::this_thread::sleep_for(300ms); // the second slow reply is written (and fails) meanwhile
+    auto stage = drivers::ModbusStage::create(rigConfig("oriental-az", *server, true, false));
+    ASSERT_TRUE(stage) << stage.error().message;
+    auto p = (*stage)->position(1s);
     EXPECT_TRUE(p) << p.error().message;
 }
 
