@@ -5,6 +5,7 @@
 #include "slicestation/pipeline/atlas.hpp"
 #include "slicestation/sim/builtin_atlas.hpp"
 
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <fstream>
@@ -19,12 +20,6 @@ using nlohmann::json;
 namespace fs = std::filesystem;
 
 json vec(const cv::Vec3d& v) { return json::array({v[0], v[1], v[2]}); }
-
-std::string colorHex(std::uint32_t rgb) {
-    char buf[8];
-    std::snprintf(buf, sizeof buf, "#%06X", rgb & 0xFFFFFFu);
-    return buf;
-}
 
 /// Reads field `key` of `j` as T, or an error naming the manifest and the field.
 template <class T>
@@ -53,6 +48,19 @@ core::Result<cv::Vec3d> vecField(const json& j, const char* key, const fs::path&
 }
 
 } // namespace
+
+std::string colorHex(std::uint32_t rgb) {
+    char buf[8];
+    std::snprintf(buf, sizeof buf, "#%06X", rgb & 0xFFFFFFu);
+    return buf;
+}
+
+const StackRegion* findRegion(const AtlasStack& stack, std::uint32_t id) noexcept {
+    if (id == 0) return nullptr;
+    const auto it = std::find_if(stack.regions.begin(), stack.regions.end(),
+                                 [id](const StackRegion& r) { return r.id == id; });
+    return it == stack.regions.end() ? nullptr : &*it;
+}
 
 core::Result<AtlasStack> writeStack(const fs::path& dir,
                                     const std::vector<pipeline::AtlasSlice>& slices,

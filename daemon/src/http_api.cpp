@@ -415,10 +415,10 @@ core::Result<std::unique_ptr<HttpApi>> HttpApi::start(Station& station, const st
             region = cache->labels.at<std::int32_t>(*y, *x);
         }
         nlohmann::json j{{"id", region}, {"x", *x}, {"y", *y}};
-        for (const auto& r : st->atlas().regions)
-            if (region > 0 && r.id == static_cast<std::uint32_t>(region)) {
-                j["name"] = r.name;
-                j["acronym"] = r.acronym;
+        if (region > 0)
+            if (const StackRegion* r = findRegion(st->atlas(), static_cast<std::uint32_t>(region))) {
+                j["name"] = r->name;
+                j["acronym"] = r->acronym;
             }
         sendJson(res, j);
     });

@@ -6,7 +6,6 @@
 #include "slicestation/core/image_file.hpp"
 
 #include <algorithm>
-#include <cstdio>
 #include <cstdlib>
 #include <map>
 #include <exception>
@@ -194,14 +193,11 @@ void RegistrationWorker::process(std::int64_t captureId) {
         nlohmann::json regions = nlohmann::json::array();
         for (const auto& [n, regionId] : order) {
             nlohmann::json r{{"id", regionId}, {"share", inside > 0 ? static_cast<double>(n) / inside : 0.0}};
-            for (const auto& sr : stack_.regions)
-                if (sr.id == static_cast<std::uint32_t>(regionId)) {
-                    char colour[8];
-                    std::snprintf(colour, sizeof colour, "#%06x", sr.colorRgb & 0xFFFFFFu);
-                    r["name"] = sr.name;
-                    r["acronym"] = sr.acronym;
-                    r["color"] = colour;
-                }
+            if (const StackRegion* sr = findRegion(stack_, static_cast<std::uint32_t>(regionId))) {
+                r["name"] = sr->name;
+                r["acronym"] = sr->acronym;
+                r["color"] = colorHex(sr->colorRgb);
+            }
             regions.push_back(std::move(r));
         }
         rec.result["regions"] = std::move(regions);

@@ -46,6 +46,12 @@ struct AtlasStack {
     nlohmann::json source;
 };
 
+/// The stack's region with this id, or null (0 and ids the ontology lacks).
+const StackRegion* findRegion(const AtlasStack& stack, std::uint32_t id) noexcept;
+
+/// "#RRGGBB", as the manifest writes a region's colour.
+std::string colorHex(std::uint32_t rgb);
+
 /// Writes every slice as `slice-NNN.tif` and then `manifest.json` (atomically, last, so a
 /// reader never sees a manifest naming a missing file). Creates `dir` when needed.
 /// \return IoError / NotFound from the file layer, InvalidArgument for an empty stack.
