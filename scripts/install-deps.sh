@@ -6,7 +6,7 @@ packages=(
     build-essential cmake ninja-build pkg-config
     libopencv-dev libeigen3-dev libcgal-dev libgmp-dev libmpfr-dev
     libtiff-dev zlib1g-dev
-    nlohmann-json3-dev libcli11-dev libtomlplusplus-dev libcpp-httplib-dev
+    nlohmann-json3-dev libcli11-dev libtomlplusplus-dev libcpp-httplib-dev libssl-dev
     libmodbus-dev libcamera-dev libsqlite3-dev libsystemd-dev
     libgtest-dev libgmock-dev
     systemd  # systemd-analyze, for the unit file checks (tests/systemd)

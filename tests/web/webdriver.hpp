@@ -5,6 +5,7 @@
 // pointer move, window size, screenshot.
 #include <httplib.h>
 #include <nlohmann/json.hpp>
+#include <openssl/evp.h>
 
 #include <netinet/in.h>
 #include <signal.h>
@@ -13,6 +14,7 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <chrono>
 #include <filesystem>
 #include <fstream>
@@ -48,28 +50,16 @@ inline int freePort() {
     return port;
 }
 
+/// Decodes base64 (the screenshot WebDriver sends) with OpenSSL's EVP_DecodeBlock.
 inline std::vector<unsigned char> base64Decode(const std::string& in) {
-    auto value = [](char c) -> int {
-        if (c >= 'A' && c <= 'Z') return c - 'A';
-        if (c >= 'a' && c <= 'z') return c - 'a' + 26;
-        if (c >= '0' && c <= '9') return c - '0' + 52;
-        if (c == '+') return 62;
-        if (c == '/') return 63;
-        return -1;
-    };
-    std::vector<unsigned char> out;
-    unsigned bits = 0;
-    int count = 0;
-    for (char c : in) {
-        const int v = value(c);
-        if (v < 0) continue; // padding and line breaks
-        bits = (bits << 6) | static_cast<unsigned>(v);
-        count += 6;
-        if (count >= 8) {
-            count -= 8;
-            out.push_back(static_cast<unsigned char>((bits >> count) & 0xff));
-        }
-    }
+    std::vector<unsigned char> out(3 * (in.size() / 4) + 3);
+    const int n = EVP_DecodeBlock(out.data(), reinterpret_cast<const unsigned char*>(in.data()),
+                                  static_cast<int>(in.size()));
+    if (n < 0) throw std::runtime_error("WebDriver: the screenshot is not base64");
+    // EVP_DecodeBlock counts the bytes the '=' padding stands for; they are not data.
+    std::size_t size = static_cast<std::size_t>(n);
+    for (auto it = in.rbegin(); it != in.rend() && *it == '=' && size > 0; ++it) --size;
+    out.resize(size);
     return out;
 }
 
@@ -165,6 +155,9 @@ public:
     /// Saves a PNG of the viewport.
     void screenshot(const std::filesystem::path& file) {
         const auto png = base64Decode(call("GET", path("/screenshot")).get<std::string>());
+        static constexpr unsigned char kSignature[8] = {0x89, 'P', 'N', 'G', '\r', '\n', 0x1a, '\n'};
+        if (png.size() < 8 || !std::equal(kSignature, kSignature + 8, png.begin()))
+            throw std::runtime_error("WebDriver: the screenshot is not a PNG");
         std::filesystem::create_directories(file.parent_path());
         std::ofstream(file, std::ios::binary).write(reinterpret_cast<const char*>(png.data()),
                                                     static_cast<std::streamsize>(png.size()));
