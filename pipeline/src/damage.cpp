@@ -7,8 +7,10 @@
 #include <opencv2/imgproc.hpp>
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <cstdio>
+#include <unordered_map>
 
 namespace slicestation::pipeline {
 namespace {
@@ -130,11 +132,14 @@ cv::Mat concavityExclusion(const std::vector<Concavity>& concavities, cv::Size s
     return mask;
 }
 
-std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const cv::Mat& expectedTissue,
-                                       const cv::Mat& expectedBrain, double brainWidthPx,
-                                       const DamageParams& params, const cv::Mat& knownFragments) {
+std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const AtlasExpectation& expected,
+                                       double brainWidthPx, const DamageParams& params,
+                                       const cv::Mat& knownFragments) {
+    const cv::Mat& expectedTissue = expected.tissue;
+    const cv::Mat& expectedBrain = expected.brain;
     CV_Assert(tissueMask.type() == CV_8U && expectedTissue.size() == tissueMask.size() &&
-              expectedBrain.size() == tissueMask.size());
+              expectedBrain.size() == tissueMask.size() &&
+              (expected.parts.empty() || expected.parts.size() == tissueMask.size()));
     std::vector<DamageRegion> out;
     const double tissueArea = std::max(1, cv::countNonZero(tissueMask));
     const double minArea = params.minRegionShare * tissueArea;
@@ -181,6 +186,20 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const cv::Mat&
         double thickness = 0;
         cv::minMaxLoc(dist, nullptr, &thickness);
         if (openShare > 0.3 && 2 * thickness < params.shallowFrac * brainWidthPx) continue;
+        // A long band along the outline, tissue along one side and glass along the other, is
+        // an atlas outline lying parallel outside the section's own, a fit that did not bend
+        // that far, not lost tissue: a piece lost from the edge leaves a bite about as deep as
+        // it is wide, and a lobe lost whole leaves a gap with glass all round.
+        if (openShare > 0.3 && openShare < 0.75 &&
+            length >= params.bandElongation * 2 * thickness)
+            continue;
+        // A gap with one part of the brain on one side and another on the other is a natural
+        // fissure opened; a tear runs through a part, or across the interface.
+        if (!expected.parts.empty() &&
+            betweenParts(region, expected.parts,
+                         std::max(1, static_cast<int>(std::lround(params.fissureRingFrac * brainWidthPx))),
+                         params.fissurePurity))
+            continue;
         DamageRegion d;
         d.kind = length / std::max(meanWidth, 1e-9) >= params.tearElongation ? DamageKind::Tear
                                                                              : DamageKind::Missing;
@@ -237,6 +256,62 @@ std::vector<cv::Mat> pieces(const cv::Mat& mask, double minShare) {
     return out;
 }
 } // namespace
+
+cv::Mat partMap(const cv::Mat& labels, const std::vector<std::vector<std::int32_t>>& parts) {
+    CV_Assert(labels.type() == CV_32S && parts.size() < 256);
+    std::unordered_map<std::int32_t, std::uint8_t> partOf;
+    for (size_t i = 0; i < parts.size(); ++i)
+        for (const std::int32_t id : parts[i]) partOf[id] = static_cast<std::uint8_t>(i + 1);
+    cv::Mat out = cv::Mat::zeros(labels.size(), CV_8U);
+    for (int y = 0; y < labels.rows; ++y) {
+        const std::int32_t* in = labels.ptr<std::int32_t>(y);
+        std::uint8_t* o = out.ptr<std::uint8_t>(y);
+        for (int x = 0; x < labels.cols; ++x)
+            if (in[x] != 0)
+                if (const auto it = partOf.find(in[x]); it != partOf.end()) o[x] = it->second;
+    }
+    return out;
+}
+
+bool betweenParts(const cv::Mat& region, const cv::Mat& parts, int ringPx, double purity) {
+    CV_Assert(region.type() == CV_8U && parts.type() == CV_8U && region.size() == parts.size());
+    const cv::Moments m = cv::moments(region, true);
+    if (m.m00 <= 0) return false;
+    // The gap's principal axis through its centroid; the ring's pixels on either side of it.
+    const double cx = m.m10 / m.m00, cy = m.m01 / m.m00;
+    const double angle = 0.5 * std::atan2(2 * m.mu11, m.mu20 - m.mu02);
+    const double nx = -std::sin(angle), ny = std::cos(angle);
+    const cv::Rect box = cv::boundingRect(region) + cv::Size(2 * ringPx, 2 * ringPx) -
+                         cv::Point(ringPx, ringPx);
+    const cv::Rect roi = box & cv::Rect(0, 0, region.cols, region.rows);
+    cv::Mat ring;
+    cv::dilate(region(roi), ring,
+               cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * ringPx + 1, 2 * ringPx + 1)));
+    ring &= ~region(roi);
+    std::array<std::array<int, 256>, 2> count{};
+    for (int y = 0; y < roi.height; ++y) {
+        const std::uint8_t* rp = ring.ptr<std::uint8_t>(y);
+        const std::uint8_t* pp = parts.ptr<std::uint8_t>(y + roi.y) + roi.x;
+        for (int x = 0; x < roi.width; ++x) {
+            if (!rp[x] || !pp[x]) continue;
+            const double side = (x + roi.x - cx) * nx + (y + roi.y - cy) * ny;
+            ++count[side > 0][pp[x]];
+        }
+    }
+    int major[2] = {0, 0};
+    for (int s = 0; s < 2; ++s) {
+        int total = 0, best = 0;
+        for (int k = 1; k < 256; ++k) {
+            total += count[s][k];
+            if (count[s][k] > best) {
+                best = count[s][k];
+                major[s] = k;
+            }
+        }
+        if (total == 0 || best < purity * total) return false;
+    }
+    return major[0] != major[1];
+}
 
 cv::Mat extraPieces(const cv::Mat& tissueMask, const cv::Mat& atlasMask, double minShare) {
     const auto section = pieces(tissueMask, minShare);

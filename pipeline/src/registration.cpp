@@ -458,10 +458,10 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         const cv::Mat expectedBrain = seen != 0;
         cv::Mat ventricles = cv::Mat::zeros(seen.size(), CV_8U);
         for (const std::int32_t id : options.ventricleIds) ventricles |= (seen == id);
-        const cv::Mat expectedTissue = expectedBrain & ~ventricles;
-        std::vector<DamageRegion> regions =
-            tissueDamage(prepared->tissueMaskFine, expectedTissue, expectedBrain, brainWidth,
-                         options.damage, fragments);
+        AtlasExpectation expected{expectedBrain & ~ventricles, expectedBrain, cv::Mat()};
+        if (options.separateParts.size() > 1) expected.parts = partMap(seen, options.separateParts);
+        std::vector<DamageRegion> regions = tissueDamage(prepared->tissueMaskFine, expected,
+                                                         brainWidth, options.damage, fragments);
         reg.damaged = isDamaged(regions, brainWidth, options.damage);
         reg.damageSummary = damageSummary(regions);
         // Report in full-resolution pixels.

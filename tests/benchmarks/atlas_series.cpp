@@ -1,7 +1,7 @@
 // The real series (../shared/sections/abba-mouse-series, 20 coronal sections front to back):
 // each section matched against a 100 um stack of the 50 um annotation without hints, the
-// positions printed and checked for order, each section registered to its matched slice, and a
-// contact sheet of the overlays written (to --output, the build directory by default).
+// positions printed and checked for order, each section registered to its matched slice, and
+// each overlay and a contact sheet of them written (to --output, the build directory by default).
 #include "slicestation/core/image_file.hpp"
 #include "slicestation/core/nrrd.hpp"
 #include "slicestation/core/ontology.hpp"
@@ -143,6 +143,10 @@ int main(int argc, char** argv) {
         } else {
             tile = cv::Mat(300, 420, CV_8UC3, cv::Scalar(0, 0, 80));
         }
+        char tileName[32];
+        std::snprintf(tileName, sizeof tileName, "overlay-%02d.png", n);
+        if (auto w = core::writeImage(fs::path(output) / tileName, tile); !w)
+            std::fprintf(stderr, "%s\n", w.error().message.c_str());
         cv::resize(tile, tile, cv::Size(420, int(std::lround(420.0 * tile.rows / tile.cols))));
         char caption[96];
         std::snprintf(caption, sizeof caption, "%02d: slice %d, %.0f um", n, m->index, m->positionUm);

@@ -99,7 +99,7 @@ TEST(Damage, GapsTearsAndFragmentsAgainstTheExpectedTissue) {
     cv::circle(tissue, {300, 120}, 30, cv::Scalar(0), cv::FILLED);              // missing chunk
     cv::line(tissue, {420, 200}, {520, 260}, cv::Scalar(0), 4);                 // thin crack
     cv::ellipse(tissue, {60, 60}, {25, 15}, 0, 0, 360, cv::Scalar(255), cv::FILLED); // fragment
-    const auto regions = tissueDamage(tissue, expected, expected, 500, DamageParams{});
+    const auto regions = tissueDamage(tissue, {expected, expected, {}}, 500, DamageParams{});
     int missing = 0, tears = 0, fragments = 0;
     for (const auto& r : regions) {
         missing += r.kind == DamageKind::Missing;
@@ -119,10 +119,75 @@ TEST(Damage, IntactTissueAndRegistrationSlackAreNotDamage) {
     const cv::Mat expected = ellipseMask({600, 400}, {300, 200}, {250, 160});
     // The section a few pixels smaller all round: slack along the outline, nothing lost.
     const cv::Mat tissue = ellipseMask({600, 400}, {301, 201}, {247, 157});
-    const auto regions = tissueDamage(tissue, expected, expected, 500, DamageParams{});
+    const auto regions = tissueDamage(tissue, {expected, expected, {}}, 500, DamageParams{});
     EXPECT_TRUE(regions.empty());
     EXPECT_FALSE(isDamaged(regions, 500, DamageParams{}));
     EXPECT_EQ(damageSummary(regions), "no damage found");
+}
+
+TEST(Damage, ALongBandAlongTheOutlineIsAMisfitAndABiteIsNot) {
+    const cv::Mat expected = ellipseMask({600, 400}, {300, 200}, {250, 160});
+    // The section's top lies 30 px below the atlas outline over most of its width: a crescent
+    // about 400 px long, too thick to be slack (shallowFrac 0.05 x 500 = 25 px).
+    cv::Mat tissue = ellipseMask({600, 400}, {300, 215}, {250, 145});
+    DamageParams p;
+    EXPECT_TRUE(tissueDamage(tissue, {expected, expected, {}}, 500, p).empty());
+    // A bite out of the bottom, about as deep as wide, is lost tissue.
+    cv::circle(tissue, {300, 360}, 45, cv::Scalar(0), cv::FILLED);
+    const auto regions = tissueDamage(tissue, {expected, expected, {}}, 500, p);
+    ASSERT_EQ(regions.size(), 1u);
+    EXPECT_EQ(regions[0].kind, DamageKind::Missing);
+    EXPECT_GT(regions[0].polygon.front().y, 300.0f);
+    // Without the rule the crescent is reported too: the test above is the rule's doing.
+    p.bandElongation = 1e9;
+    EXPECT_EQ(tissueDamage(tissue, {expected, expected, {}}, 500, p).size(), 2u);
+}
+
+TEST(Damage, PartMapNumbersTheGroupsOfIds) {
+    cv::Mat labels(4, 4, CV_32S, cv::Scalar(10));
+    labels.at<int>(0, 1) = 11;
+    labels.at<int>(1, 0) = 20;
+    labels.at<int>(2, 2) = 30;
+    labels.at<int>(3, 3) = 0;
+    const cv::Mat parts = partMap(labels, {{10, 11}, {20}});
+    EXPECT_EQ(parts.at<uchar>(0, 0), 1);
+    EXPECT_EQ(parts.at<uchar>(0, 1), 1);
+    EXPECT_EQ(parts.at<uchar>(1, 0), 2);
+    EXPECT_EQ(parts.at<uchar>(2, 2), 0); // in no group
+    EXPECT_EQ(parts.at<uchar>(3, 3), 0); // outside the brain
+}
+
+TEST(Damage, AGapAlongAFissureIsNotDamageAndATearThroughAPartIs) {
+    const cv::Mat expected = ellipseMask({600, 400}, {300, 200}, {250, 160});
+    // Part 1 left of x = 300, part 2 right of it (the atlas as mapped into the section).
+    cv::Mat parts = cv::Mat::zeros(expected.size(), CV_8U);
+    parts(cv::Rect(0, 0, 300, 400)).setTo(1);
+    parts(cv::Rect(300, 0, 300, 400)).setTo(2);
+    parts.setTo(0, ~expected);
+    DamageParams p;
+    cv::Mat along = expected.clone();
+    cv::line(along, {304, 90}, {296, 300}, cv::Scalar(0), 12); // the fissure opened
+    cv::Mat gap = expected & ~along;
+    EXPECT_TRUE(betweenParts(gap, parts, 15, p.fissurePurity));
+    EXPECT_TRUE(tissueDamage(along, {expected, expected, parts}, 500, p).empty());
+    EXPECT_FALSE(tissueDamage(along, {expected, expected, {}}, 500, p).empty());
+
+    cv::Mat across = expected.clone();
+    cv::line(across, {180, 220}, {420, 180}, cv::Scalar(0), 12); // a tear across the interface
+    gap = expected & ~across;
+    EXPECT_FALSE(betweenParts(gap, parts, 15, p.fissurePurity));
+    auto regions = tissueDamage(across, {expected, expected, parts}, 500, p);
+    ASSERT_EQ(regions.size(), 1u);
+    EXPECT_EQ(regions[0].kind, DamageKind::Tear);
+    EXPECT_TRUE(isDamaged(regions, 500, p));
+
+    cv::Mat inside = expected.clone();
+    cv::line(inside, {150, 120}, {160, 300}, cv::Scalar(0), 12); // a tear within part 1
+    gap = expected & ~inside;
+    EXPECT_FALSE(betweenParts(gap, parts, 15, p.fissurePurity));
+    regions = tissueDamage(inside, {expected, expected, parts}, 500, p);
+    ASSERT_EQ(regions.size(), 1u);
+    EXPECT_TRUE(isDamaged(regions, 500, p));
 }
 
 TEST(Damage, ExtraPiecesAreThoseTheAtlasDoesNotHave) {

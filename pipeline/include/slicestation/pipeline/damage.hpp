@@ -4,6 +4,7 @@
 
 #include <opencv2/core.hpp>
 
+#include <cstdint>
 #include <string>
 #include <string_view>
 #include <vector>
@@ -36,6 +37,10 @@ struct DamageParams {
     double deepTearFrac = 0.10;       ///< decision: or a tear at least this long
     double tearElongation = 3.0;      ///< length / mean width from which a gap is a tear
     double shallowFrac = 0.05;        ///< gaps along the outline thinner than this are slack
+    double bandElongation = 5.0;      ///< gaps along the outline this much longer than thick
+                                      ///< are an outline that did not fit, not a bite
+    double fissureRingFrac = 0.03;    ///< how far around a gap the parts beside it are looked for
+    double fissurePurity = 0.6;       ///< share of one part on a side for that side to be it
 };
 
 /// The outermost outline of the tissue as a polygon with unit normals (unoriented).
@@ -75,16 +80,36 @@ void markSymmetric(std::vector<Concavity>& concavities, const Outline& outline,
 cv::Mat concavityExclusion(const std::vector<Concavity>& concavities, cv::Size size,
                            double marginPx);
 
-/// Beyond the paper, after registration: gaps where the atlas (mapped into the image frame)
-/// expects tissue but the section shows glass, anywhere in the section and symmetric or not
-/// (`expectedTissue`: atlas brain minus ventricles; CV_8U), and tissue pieces lying mostly
-/// outside the mapped atlas brain (`expectedBrain`) away from the main tissue (fragments).
+/// What the registered atlas expects in the section frame: CV_8U masks of the tissue mask's size.
+struct AtlasExpectation {
+    cv::Mat tissue;   ///< the atlas brain minus ventricles
+    cv::Mat brain;    ///< the atlas brain
+    /// The parts of the brain that lie apart across natural fissures (such as the cerebrum and
+    /// the brain stem), numbered 1.. (0 = none; see partMap), or empty. Sectioning often opens
+    /// those fissures.
+    cv::Mat parts;
+};
+
+/// Beyond the paper, after registration: gaps where the atlas expects tissue but the section
+/// shows glass, anywhere in the section and symmetric or not, and tissue pieces lying mostly
+/// outside the mapped atlas brain away from the main tissue (fragments). A gap with one of
+/// `expected.parts` on one side and another on the other is a fissure opened, and a long band
+/// along the outline is an outline that did not fit: neither is damage.
 /// `knownFragments` (CV_8U or empty): pieces already found detached (see extraPieces); a piece
 /// mostly on them is a fragment wherever it lies.
-std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const cv::Mat& expectedTissue,
-                                       const cv::Mat& expectedBrain, double brainWidthPx,
-                                       const DamageParams& params,
+std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const AtlasExpectation& expected,
+                                       double brainWidthPx, const DamageParams& params,
                                        const cv::Mat& knownFragments = cv::Mat());
+
+/// The part of each pixel of `labels` (CV_32S atlas ids): 1 + the index of the group in `parts`
+/// holding its id, 0 for ids in none. CV_8U.
+cv::Mat partMap(const cv::Mat& labels, const std::vector<std::vector<std::int32_t>>& parts);
+
+/// Whether a gap (`region`, CV_8U) lies between two parts: split the pixels within `ringPx`
+/// around it by its principal axis; each side must be at least `purity` one part (of `parts`,
+/// CV_8U as from partMap) and the two sides' parts must differ. A tear through one part, or
+/// across an interface, has the same part, or a mix, on both sides.
+bool betweenParts(const cv::Mat& region, const cv::Mat& parts, int ringPx, double purity);
 
 /// Tissue pieces beyond those the atlas has: when the section (CV_8U mask) has more pieces of at
 /// least `minShare` of its largest than the atlas brain mask has, the smallest extra ones are

@@ -32,6 +32,15 @@ struct RegistrationOptions {
     DamageParams damage;
     /// Atlas ids that are ventricles (empty like glass in a section): the major-region id 73.
     std::vector<std::int32_t> ventricleIds{73};
+    /// Parts of the brain that lie apart across natural fissures which sectioning often opens,
+    /// as groups of atlas (major-region) ids: the cerebral cortex (isocortex, olfactory areas,
+    /// hippocampal formation, cortical subplate), the brain stem without the hypothalamus
+    /// (thalamus, epithalamus, midbrain, pons, medulla; apart from the cortex across the
+    /// transverse fissure) and the cerebellum (the tentorium, the fourth ventricle's recesses).
+    /// The cerebral nuclei and the hypothalamus belong to none: they are joined to both sides.
+    /// A gap with one part on one side and another on the other is not damage.
+    std::vector<std::vector<std::int32_t>> separateParts{
+        {315, 698, 1080, 822, 703}, {549, 958, 313, 771, 354}, {519, 528}};
 };
 
 struct RegistrationQuality {
