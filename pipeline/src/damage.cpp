@@ -158,6 +158,12 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const AtlasExp
     cv::findContours(tissueMask.clone(), outer, cv::RETR_EXTERNAL, cv::CHAIN_APPROX_SIMPLE);
     cv::Mat outside(tissueMask.size(), CV_8U, cv::Scalar(255));
     cv::drawContours(outside, outer, -1, cv::Scalar(0), cv::FILLED);
+    // The parts where the section has tissue: a fissure opened has tissue on both sides.
+    cv::Mat tissueParts;
+    if (!expected.parts.empty()) {
+        tissueParts = cv::Mat::zeros(tissueMask.size(), CV_8U);
+        expected.parts.copyTo(tissueParts, tissueMask);
+    }
     cv::Mat labels, stats, centroids;
     int n = cv::connectedComponentsWithStats(deficit, labels, stats, centroids, 8, CV_32S);
     for (int i = 1; i < n; ++i) {
@@ -195,8 +201,8 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const AtlasExp
             continue;
         // A gap with one part of the brain on one side and another on the other is a natural
         // fissure opened; a tear runs through a part, or across the interface.
-        if (!expected.parts.empty() &&
-            betweenParts(region, expected.parts,
+        if (!tissueParts.empty() &&
+            betweenParts(region, tissueParts,
                          std::max(1, static_cast<int>(std::lround(params.fissureRingFrac * brainWidthPx))),
                          params.fissurePurity))
             continue;
@@ -289,13 +295,15 @@ bool betweenParts(const cv::Mat& region, const cv::Mat& parts, int ringPx, doubl
                cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * ringPx + 1, 2 * ringPx + 1)));
     ring &= ~region(roi);
     std::array<std::array<int, 256>, 2> count{};
+    int ringSide[2] = {0, 0};
     for (int y = 0; y < roi.height; ++y) {
         const std::uint8_t* rp = ring.ptr<std::uint8_t>(y);
         const std::uint8_t* pp = parts.ptr<std::uint8_t>(y + roi.y) + roi.x;
         for (int x = 0; x < roi.width; ++x) {
-            if (!rp[x] || !pp[x]) continue;
-            const double side = (x + roi.x - cx) * nx + (y + roi.y - cy) * ny;
-            ++count[side > 0][pp[x]];
+            if (!rp[x]) continue;
+            const int side = (x + roi.x - cx) * nx + (y + roi.y - cy) * ny > 0;
+            ++ringSide[side];
+            if (pp[x]) ++count[side][pp[x]];
         }
     }
     int major[2] = {0, 0};
@@ -308,7 +316,8 @@ bool betweenParts(const cv::Mat& region, const cv::Mat& parts, int ringPx, doubl
                 major[s] = k;
             }
         }
-        if (total == 0 || best < purity * total) return false;
+        // A side mostly glass (a bite out of the edge) has no part beside the gap.
+        if (total < 0.25 * ringSide[s] || best < purity * total) return false;
     }
     return major[0] != major[1];
 }

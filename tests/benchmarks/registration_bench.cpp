@@ -134,6 +134,8 @@ int main(int argc, char** argv) {
     app.add_option("--elastix-cases", elastixCases, "Run elastix on the first N cases (-1 = all)");
     app.add_option("--work", workDir, "Scratch directory for elastix");
     app.add_option("--csv", csvPath, "Write per-case rows here");
+    std::vector<int> only;
+    app.add_option("--only", only, "Run only these case indices of the --cases set (to look into them)");
     CLI11_PARSE(app, argc, argv);
     int w = 0, h = 0;
     if (std::sscanf(sizeText.c_str(), "%dx%d", &w, &h) != 2 || w < 300 || h < 300) {
@@ -177,6 +179,7 @@ int main(int argc, char** argv) {
     std::vector<DamageRow> damageRows;
     const auto all = bench::makeCases(cases, static_cast<int>(atlas->planes.size()), {w, h});
     for (const auto& c : all) {
+        if (!only.empty() && std::find(only.begin(), only.end(), c.index) == only.end()) continue;
         const cv::Mat& plane = atlas->planes[c.plane];
         auto gen = sim::generateSection(plane, c.options);
         if (!gen) {

@@ -181,6 +181,17 @@ TEST(Damage, AGapAlongAFissureIsNotDamageAndATearThroughAPartIs) {
     EXPECT_EQ(regions[0].kind, DamageKind::Tear);
     EXPECT_TRUE(isDamaged(regions, 500, p));
 
+    // A bite out of the edge where the two parts meet: glass on one side, lost tissue.
+    cv::Mat bite = expected.clone();
+    cv::circle(bite, {300, 40}, 45, cv::Scalar(0), cv::FILLED);
+    gap = expected & ~bite;
+    cv::Mat tissueParts = cv::Mat::zeros(parts.size(), CV_8U);
+    parts.copyTo(tissueParts, bite);
+    EXPECT_FALSE(betweenParts(gap, tissueParts, 15, p.fissurePurity));
+    regions = tissueDamage(bite, {expected, expected, parts}, 500, p);
+    ASSERT_EQ(regions.size(), 1u);
+    EXPECT_EQ(regions[0].kind, DamageKind::Missing);
+
     cv::Mat inside = expected.clone();
     cv::line(inside, {150, 120}, {160, 300}, cv::Scalar(0), 12); // a tear within part 1
     gap = expected & ~inside;

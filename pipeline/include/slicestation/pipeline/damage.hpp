@@ -106,9 +106,11 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const AtlasExp
 cv::Mat partMap(const cv::Mat& labels, const std::vector<std::vector<std::int32_t>>& parts);
 
 /// Whether a gap (`region`, CV_8U) lies between two parts: split the pixels within `ringPx`
-/// around it by its principal axis; each side must be at least `purity` one part (of `parts`,
-/// CV_8U as from partMap) and the two sides' parts must differ. A tear through one part, or
-/// across an interface, has the same part, or a mix, on both sides.
+/// around it by its principal axis; on each side at least a quarter of them must carry a part
+/// (`parts`, CV_8U as from partMap, 0 where there is no tissue), at least `purity` of those
+/// one part, and the two sides' parts must differ. A tear through one part, or across an
+/// interface, has the same part, or a mix, on both sides; a bite out of the edge has glass on
+/// one.
 bool betweenParts(const cv::Mat& region, const cv::Mat& parts, int ringPx, double purity);
 
 /// Tissue pieces beyond those the atlas has: when the section (CV_8U mask) has more pieces of at
