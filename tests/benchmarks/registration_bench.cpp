@@ -3,9 +3,11 @@
 #include "bench_cases.hpp"
 #include "elastix_runner.hpp"
 
+#include "slicestation/core/image_file.hpp"
 #include "slicestation/core/nrrd.hpp"
 #include "slicestation/pipeline/atlas.hpp"
 #include "slicestation/pipeline/damage.hpp"
+#include "slicestation/pipeline/overlay.hpp"
 #include "slicestation/pipeline/preprocess.hpp"
 #include "slicestation/pipeline/registration.hpp"
 
@@ -16,6 +18,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <filesystem>
 #include <fstream>
 #include <iostream>
 #include <map>
@@ -136,6 +139,8 @@ int main(int argc, char** argv) {
     app.add_option("--csv", csvPath, "Write per-case rows here");
     std::vector<int> only;
     app.add_option("--only", only, "Run only these case indices of the --cases set (to look into them)");
+    std::string overlayDir;
+    app.add_option("--overlays", overlayDir, "Write each case's overlay (ours, damage in red) here");
     CLI11_PARSE(app, argc, argv);
     int w = 0, h = 0;
     if (std::sscanf(sizeText.c_str(), "%dx%d", &w, &h) != 2 || w < 300 || h < 300) {
@@ -233,6 +238,21 @@ int main(int argc, char** argv) {
                 if (cv::countNonZero(truthMask & reported) >= 0.1 * area) ++d.overlapped;
             }
             damageRows.push_back(d);
+            if (!overlayDir.empty()) {
+                std::vector<std::vector<cv::Point2f>> polygons;
+                for (const auto& r : reg->damage) {
+                    std::vector<cv::Point2f> poly;
+                    for (const auto& q : r.polygon) poly.emplace_back(reg->workingFromImage(q));
+                    polygons.push_back(std::move(poly));
+                }
+                const cv::Mat tile = pipeline::renderOverlay(
+                    reg->workingGrey, reg->warpedLabels(plane, reg->workingGrey.size()), polygons);
+                std::filesystem::create_directories(overlayDir);
+                const auto path = std::filesystem::path(overlayDir) /
+                                  ("case-" + std::to_string(c.index) + ".png");
+                if (auto written = core::writeImage(path, tile); !written)
+                    std::cerr << path << ": " << written.error().message << "\n";
+            }
             steps += " | damage " + std::string(d.flagged ? "FLAGGED " : "clean ") + d.kinds;
         }
         std::fprintf(stderr, "%-45s ours    rmse %6.2f max %6.2f  %.3f s (ms:%s)\n",
