@@ -191,12 +191,13 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const AtlasExp
         cv::distanceTransform(region, dist, cv::DIST_L2, 3);
         double thickness = 0;
         cv::minMaxLoc(dist, nullptr, &thickness);
-        if (openShare > 0.3 && 2 * thickness < params.shallowFrac * brainWidthPx) continue;
+        const bool alongOutline = openShare > params.alongOutlineShare;
+        if (alongOutline && 2 * thickness < params.shallowFrac * brainWidthPx) continue;
         // A long band along the outline, tissue along one side and glass along the other, is
         // an atlas outline lying parallel outside the section's own, a fit that did not bend
         // that far, not lost tissue: a piece lost from the edge leaves a bite about as deep as
         // it is wide, and a lobe lost whole leaves a gap with glass all round.
-        if (openShare > 0.3 && openShare < 0.75 &&
+        if (alongOutline && openShare < 0.75 &&
             length >= params.bandElongation * 2 * thickness)
             continue;
         // A gap with one part of the brain on one side and another on the other is a natural

@@ -67,6 +67,18 @@ cv::Matx23d obbPlacement(const OrientedBox& img, const OrientedBox& atl, double 
     return {L(0, 0), L(0, 1), c[0], L(1, 0), L(1, 1), c[1]};
 }
 
+/// The section's centre on the atlas's, turned by `degrees` and scaled by `scale` (atlas px per
+/// working px).
+cv::Matx23d rotatedPlacement(const OrientedBox& img, const OrientedBox& atl, int degrees,
+                             double scale) {
+    const double a = degrees * CV_PI / 180.0;
+    const cv::Matx22d L(scale * std::cos(a), -scale * std::sin(a), scale * std::sin(a),
+                        scale * std::cos(a));
+    const cv::Vec2d c =
+        cv::Vec2d(atl.centre.x, atl.centre.y) - L * cv::Vec2d(img.centre.x, img.centre.y);
+    return {L(0, 0), L(0, 1), c[0], L(1, 0), L(1, 1), c[1]};
+}
+
 /// Overlap of the section's filled tissue and the atlas brain, evaluated on a small copy of the
 /// tissue mask so that a search can afford hundreds of evaluations.
 class OverlapScorer {
@@ -330,9 +342,30 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         double overlap;
     };
     std::vector<Placed> placed;
+    std::vector<cv::Matx23d> inits;
+    for (const Candidate& c : cands)
+        inits.push_back(obbPlacement(imgBox, atlBox, c.sMaj, c.sMin, c.swap, knownScale));
     const OverlapScorer scorer(tissueFilled, atlasMask);
-    for (const Candidate& c : cands) {
-        const cv::Matx23d init = obbPlacement(imgBox, atlBox, c.sMaj, c.sMin, c.swap, knownScale);
+    if (aspectImg < 1.25 || aspectAtl < 1.25) {
+        // A roundish outline leaves the OBB's axes to chance: rotations every 15 degrees, scored
+        // by overlap, add the two best (at least 45 degrees apart) as starting points.
+        std::vector<std::pair<double, int>> sweep;
+        for (int deg = 0; deg < 360; deg += 15)
+            sweep.emplace_back(scorer(rotatedPlacement(imgBox, atlBox, deg, scaleGuess)), deg);
+        std::sort(sweep.rbegin(), sweep.rend());
+        std::vector<int> picked;
+        for (const auto& [score, deg] : sweep) {
+            const bool apart = std::all_of(picked.begin(), picked.end(), [&](int other) {
+                const int d = std::abs(deg - other) % 360;
+                return std::min(d, 360 - d) >= 45;
+            });
+            if (!apart) continue;
+            picked.push_back(deg);
+            inits.push_back(rotatedPlacement(imgBox, atlBox, deg, scaleGuess));
+            if (picked.size() == 2) break;
+        }
+    }
+    for (const cv::Matx23d& init : inits) {
         const IcpResult r = multiLevelIcp(imgOuter, atlasOuter, init, coarse, 6, scaleGuess);
         // The refinement can wander off on an odd outline; the placement it started from stays
         // in the running, and the overlap search polishes whichever is better.

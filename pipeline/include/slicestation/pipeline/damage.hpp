@@ -36,6 +36,8 @@ struct DamageParams {
     double damagedShare = 0.008;      ///< decision: damage of at least this share of the tissue
     double deepTearFrac = 0.10;       ///< decision: or a tear at least this long
     double tearElongation = 3.0;      ///< length / mean width from which a gap is a tear
+    double alongOutlineShare = 0.3;   ///< a gap with more of its rim on the outside glass lies
+                                      ///< along the outline
     double shallowFrac = 0.05;        ///< gaps along the outline thinner than this are slack
     double bandElongation = 5.0;      ///< gaps along the outline this much longer than thick
                                       ///< are an outline that did not fit, not a bite
