@@ -336,7 +336,9 @@ core::Result<std::unique_ptr<HttpApi>> HttpApi::start(Station& station, const st
         if (!frame) return sendError(res, 404, "no frame yet");
         sendImage(res, frameToMat(*frame), *width, ".jpg");
     });
-    auto latest = [st](std::int64_t sectionId, httplib::Response& res)
+    // A section's latest capture and its registration; with `registered`, a section not
+    // registered yet is a 404.
+    auto latest = [st](std::int64_t sectionId, httplib::Response& res, bool registered)
         -> std::optional<std::pair<CaptureRecord, std::optional<RegistrationRecord>>> {
         auto sec = st->journal().section(sectionId);
         if (!sec) {
@@ -352,27 +354,29 @@ core::Result<std::unique_ptr<HttpApi>> HttpApi::start(Station& station, const st
         if (auto regs = st->journal().registrations(sectionId))
             for (const auto& r : *regs)
                 if (r.captureId == caps->back().id) reg = r;
+        if (registered && !reg) {
+            sendError(res, 404, "section " + std::to_string(sectionId) + " is not registered yet");
+            return std::nullopt;
+        }
         return std::make_pair(caps->back(), reg);
     };
-    srv.Get(R"(/api/sections/([^/]+)/image\.jpg)", [st, latest](const httplib::Request& req, httplib::Response& res) {
-        auto id = idParam(req, res);
-        if (!id) return;
-        auto width = intQuery(req, res, "width", 16, 4096, 1024);
-        if (!width) return;
-        auto l = latest(*id, res);
-        if (!l) return;
-        sendStoredImage(res, st->stateDir(), l->first.imagePath, *width, ".jpg");
-    });
-    srv.Get(R"(/api/sections/([^/]+)/overlay\.png)", [st, latest](const httplib::Request& req, httplib::Response& res) {
-        auto id = idParam(req, res);
-        if (!id) return;
-        auto width = intQuery(req, res, "width", 16, 4096, 1024);
-        if (!width) return;
-        auto l = latest(*id, res);
-        if (!l) return;
-        if (!l->second) return sendError(res, 404, "section " + std::to_string(*id) + " is not registered yet");
-        sendStoredImage(res, st->stateDir(), l->second->overlayPath, *width, ".png");
-    });
+    // A section's latest image, or its overlay once registered, scaled to ?width=.
+    auto storedImageRoute = [&srv, st, latest](const char* pattern, bool overlay) {
+        srv.Get(pattern, [st, latest, overlay](const httplib::Request& req, httplib::Response& res) {
+            auto id = idParam(req, res);
+            if (!id) return;
+            auto width = intQuery(req, res, "width", 16, 4096, 1024);
+            if (!width) return;
+            auto l = latest(*id, res, overlay);
+            if (!l) return;
+            if (overlay)
+                sendStoredImage(res, st->stateDir(), l->second->overlayPath, *width, ".png");
+            else
+                sendStoredImage(res, st->stateDir(), l->first.imagePath, *width, ".jpg");
+        });
+    };
+    storedImageRoute(R"(/api/sections/([^/]+)/image\.jpg)", false);
+    storedImageRoute(R"(/api/sections/([^/]+)/overlay\.png)", true);
     // The atlas region at a pixel of the section's latest capture (full resolution).
     struct LabelCache {
         std::mutex mutex;
@@ -390,9 +394,8 @@ core::Result<std::unique_ptr<HttpApi>> HttpApi::start(Station& station, const st
         // ?of_width=W: x, y are pixels of the image shown scaled to width W (the page's overlay).
         auto ofWidth = intQuery(req, res, "of_width", 1, 1 << 20, 0);
         if (!ofWidth) return;
-        auto l = latest(*id, res);
+        auto l = latest(*id, res, true);
         if (!l) return;
-        if (!l->second) return sendError(res, 404, "section " + std::to_string(*id) + " is not registered yet");
         auto file = storedFile(st->stateDir(), l->second->labelsPath);
         if (!file) return sendError(res, 500, "stored labels path is outside the state directory");
         std::int32_t region = 0;
