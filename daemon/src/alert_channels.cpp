@@ -180,6 +180,30 @@ Result<void> checkKeys(const nlohmann::json& t, const std::string& path,
     return {};
 }
 
+/// Walks the [[alerts.<name>]] tables (absent: none): each must be a table with only `known`
+/// keys, and `each(table, path)` reads it.
+template <class Each>
+Result<void> forEachTable(const nlohmann::json& alerts, const std::string& name,
+                          const std::set<std::string>& known, const FieldReader& rd, Each each) {
+    if (!alerts.contains(name))
+        return {};
+    const auto& list = alerts[name];
+    const std::string path = "alerts." + name;
+    if (!list.is_array())
+        return rd.bad(path, "expected [[" + path + "]] tables");
+    for (std::size_t i = 0; i < list.size(); ++i) {
+        const std::string p = path + "[" + std::to_string(i) + "]";
+        const auto& e = list[i];
+        if (!e.is_object())
+            return rd.bad(p, "expected a table");
+        if (auto keys = checkKeys(e, p, known, rd); !keys)
+            return keys.error();
+        if (auto read = each(e, p); !read)
+            return read.error();
+    }
+    return {};
+}
+
 } // namespace
 
 // Settings -------------------------------------------------------------------------------------
@@ -245,17 +269,9 @@ Result<AlertSettings> parseAlertSettings(const nlohmann::json& station, const st
             return v.error();
         return std::chrono::milliseconds(std::llround(*v * 1000));
     };
-    if (t.contains("webhook")) {
-        const auto& list = t["webhook"];
-        if (!list.is_array())
-            return rd.bad("alerts.webhook", "expected [[alerts.webhook]] tables");
-        for (std::size_t i = 0; i < list.size(); ++i) {
-            const std::string p = "alerts.webhook[" + std::to_string(i) + "]";
-            const auto& e = list[i];
-            if (!e.is_object())
-                return rd.bad(p, "expected a table");
-            if (auto keys = checkKeys(e, p, {"url", "format", "timeout_s"}, rd); !keys)
-                return keys.error();
+    auto webhooks = forEachTable(
+        t, "webhook", {"url", "format", "timeout_s"}, rd,
+        [&](const nlohmann::json& e, const std::string& p) -> Result<void> {
             WebhookSettings w;
             auto url = rd.string(e, p, "url", std::nullopt);
             if (!url)
@@ -285,19 +301,13 @@ Result<AlertSettings> parseAlertSettings(const nlohmann::json& station, const st
                 return to.error();
             w.timeout = *to;
             s.webhooks.push_back(std::move(w));
-        }
-    }
-    if (t.contains("command")) {
-        const auto& list = t["command"];
-        if (!list.is_array())
-            return rd.bad("alerts.command", "expected [[alerts.command]] tables");
-        for (std::size_t i = 0; i < list.size(); ++i) {
-            const std::string p = "alerts.command[" + std::to_string(i) + "]";
-            const auto& e = list[i];
-            if (!e.is_object())
-                return rd.bad(p, "expected a table");
-            if (auto keys = checkKeys(e, p, {"argv", "timeout_s"}, rd); !keys)
-                return keys.error();
+            return {};
+        });
+    if (!webhooks)
+        return webhooks.error();
+    auto commands = forEachTable(
+        t, "command", {"argv", "timeout_s"}, rd,
+        [&](const nlohmann::json& e, const std::string& p) -> Result<void> {
             CommandSettings c;
             if (!e.contains("argv"))
                 return rd.bad(p + ".argv", "missing");
@@ -316,8 +326,10 @@ Result<AlertSettings> parseAlertSettings(const nlohmann::json& station, const st
                 return to.error();
             c.timeout = *to;
             s.commands.push_back(std::move(c));
-        }
-    }
+            return {};
+        });
+    if (!commands)
+        return commands.error();
     return s;
 }
 
