@@ -47,6 +47,13 @@ double overlap(const cv::Mat& tissueFilled, const cv::Mat& atlasMask, const cv::
     return uni > 0 ? inter / uni : 0.0;
 }
 
+/// atlas = cA + L (p - cI): the linear part L with the section's OBB centre on the atlas's.
+cv::Matx23d centreOnCentre(const cv::Matx22d& L, const OrientedBox& img, const OrientedBox& atl) {
+    const cv::Vec2d c = cv::Vec2d(atl.centre.x, atl.centre.y) -
+                        L * cv::Vec2d(img.centre.x, img.centre.y);
+    return {L(0, 0), L(0, 1), c[0], L(1, 0), L(1, 1), c[1]};
+}
+
 /// Initial placement from the two OBBs: centre on centre, axes on axes, per-axis scale (or the
 /// known scale), with the sign choices that the 180-degree ambiguity (and mirroring) leaves.
 cv::Matx23d obbPlacement(const OrientedBox& img, const OrientedBox& atl, double sMaj, double sMin,
@@ -61,10 +68,7 @@ cv::Matx23d obbPlacement(const OrientedBox& img, const OrientedBox& atl, double 
     const cv::Matx22d A(aMaj[0], aMin[0], aMaj[1], aMin[1]);
     const cv::Matx22d D(kMaj * sMaj, 0, 0, kMin * sMin);
     const cv::Matx22d It(img.major[0], img.major[1], img.minor[0], img.minor[1]);
-    const cv::Matx22d L = A * D * It;
-    const cv::Vec2d c = cv::Vec2d(atl.centre.x, atl.centre.y) -
-                        L * cv::Vec2d(img.centre.x, img.centre.y);
-    return {L(0, 0), L(0, 1), c[0], L(1, 0), L(1, 1), c[1]};
+    return centreOnCentre(A * D * It, img, atl);
 }
 
 /// The section's centre on the atlas's, turned by `degrees` and scaled by `scale` (atlas px per
@@ -72,11 +76,9 @@ cv::Matx23d obbPlacement(const OrientedBox& img, const OrientedBox& atl, double 
 cv::Matx23d rotatedPlacement(const OrientedBox& img, const OrientedBox& atl, int degrees,
                              double scale) {
     const double a = degrees * CV_PI / 180.0;
-    const cv::Matx22d L(scale * std::cos(a), -scale * std::sin(a), scale * std::sin(a),
-                        scale * std::cos(a));
-    const cv::Vec2d c =
-        cv::Vec2d(atl.centre.x, atl.centre.y) - L * cv::Vec2d(img.centre.x, img.centre.y);
-    return {L(0, 0), L(0, 1), c[0], L(1, 0), L(1, 1), c[1]};
+    return centreOnCentre(cv::Matx22d(scale * std::cos(a), -scale * std::sin(a),
+                                      scale * std::sin(a), scale * std::cos(a)),
+                          img, atl);
 }
 
 /// Overlap of the section's filled tissue and the atlas brain, evaluated on a small copy of the
@@ -489,8 +491,7 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         // Beyond the paper: tissue the atlas expects but the section lacks, and detached pieces.
         const cv::Mat seen = reg.warpedLabels(atlasLabels, reg.workingGrey.size());
         const cv::Mat expectedBrain = seen != 0;
-        cv::Mat ventricles = cv::Mat::zeros(seen.size(), CV_8U);
-        for (const std::int32_t id : options.ventricleIds) ventricles |= (seen == id);
+        const cv::Mat ventricles = partMap(seen, {options.ventricleIds}) != 0;
         AtlasExpectation expected{expectedBrain & ~ventricles, expectedBrain, cv::Mat()};
         if (options.separateParts.size() > 1) expected.parts = partMap(seen, options.separateParts);
         std::vector<DamageRegion> regions = tissueDamage(prepared->tissueMaskFine, expected,
