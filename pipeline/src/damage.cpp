@@ -332,6 +332,32 @@ cv::Mat extraPieces(const cv::Mat& tissueMask, const cv::Mat& atlasMask, double 
     return extra;
 }
 
+cv::Mat piecesInside(const cv::Mat& pieces, const cv::Mat& region, double share) {
+    CV_Assert(pieces.type() == CV_8U && region.type() == CV_8U && pieces.size() == region.size());
+    cv::Mat labels;
+    const int n = cv::connectedComponents(pieces, labels, 8, CV_32S);
+    std::vector<int> area(static_cast<size_t>(n), 0), in(static_cast<size_t>(n), 0);
+    for (int y = 0; y < labels.rows; ++y) {
+        const std::int32_t* l = labels.ptr<std::int32_t>(y);
+        const std::uint8_t* r = region.ptr<std::uint8_t>(y);
+        for (int x = 0; x < labels.cols; ++x) {
+            if (l[x] == 0) continue;
+            ++area[static_cast<size_t>(l[x])];
+            if (r[x]) ++in[static_cast<size_t>(l[x])];
+        }
+    }
+    cv::Mat out = cv::Mat::zeros(pieces.size(), CV_8U);
+    for (int y = 0; y < labels.rows; ++y) {
+        const std::int32_t* l = labels.ptr<std::int32_t>(y);
+        std::uint8_t* o = out.ptr<std::uint8_t>(y);
+        for (int x = 0; x < labels.cols; ++x) {
+            const auto k = static_cast<size_t>(l[x]);
+            if (k != 0 && in[k] >= share * area[k]) o[x] = 255;
+        }
+    }
+    return out;
+}
+
 bool isDamaged(const std::vector<DamageRegion>& regions, double brainWidthPx,
                const DamageParams& params) {
     double share = 0;

@@ -274,6 +274,7 @@ core::Result<PreparedSection> prepareSection(const cv::Mat& image, int workingMa
                          "no tissue found (nothing stands out from the background)");
     out.tissueMask = keep;
     out.tissueMaskFine = fineMask & keep;
+    out.smallPiecesFine = fineMask & ~keep;
     return out;
 }
 

@@ -494,8 +494,12 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         const cv::Mat ventricles = partMap(seen, {options.ventricleIds}) != 0;
         AtlasExpectation expected{expectedBrain & ~ventricles, expectedBrain, cv::Mat()};
         if (options.separateParts.size() > 1) expected.parts = partMap(seen, options.separateParts);
-        std::vector<DamageRegion> regions = tissueDamage(prepared->tissueMaskFine, expected,
-                                                         brainWidth, options.damage, fragments);
+        // Small pieces set aside as debris where the atlas expects brain are tissue there (a
+        // lobe cut apart), not glass.
+        const cv::Mat sectionTissue =
+            prepared->tissueMaskFine | piecesInside(prepared->smallPiecesFine, expectedBrain, 0.7);
+        std::vector<DamageRegion> regions = tissueDamage(sectionTissue, expected, brainWidth,
+                                                         options.damage, fragments);
         reg.damaged = isDamaged(regions, brainWidth, options.damage);
         reg.damageSummary = damageSummary(regions);
         // Report in full-resolution pixels.

@@ -201,6 +201,24 @@ TEST(Damage, AGapAlongAFissureIsNotDamageAndATearThroughAPartIs) {
     EXPECT_TRUE(isDamaged(regions, 500, p));
 }
 
+TEST(Damage, PiecesInsideKeepsWholePiecesMostlyInTheRegion) {
+    cv::Mat pieces = cv::Mat::zeros(200, 300, CV_8U);
+    cv::circle(pieces, {60, 100}, 20, cv::Scalar(255), cv::FILLED);  // all inside
+    cv::circle(pieces, {150, 100}, 20, cv::Scalar(255), cv::FILLED); // half inside
+    cv::circle(pieces, {250, 100}, 20, cv::Scalar(255), cv::FILLED); // outside
+    cv::Mat region = cv::Mat::zeros(pieces.size(), CV_8U);
+    region(cv::Rect(0, 0, 150, 200)).setTo(255);
+    const cv::Mat most = piecesInside(pieces, region, 0.7);
+    EXPECT_GT(most.at<uchar>(100, 60), 0);
+    EXPECT_EQ(most.at<uchar>(100, 140), 0); // the half-inside piece is left out whole
+    EXPECT_EQ(most.at<uchar>(100, 160), 0);
+    EXPECT_EQ(most.at<uchar>(100, 250), 0);
+    const cv::Mat half = piecesInside(pieces, region, 0.4);
+    EXPECT_GT(half.at<uchar>(100, 160), 0); // kept whole, also outside the region
+    EXPECT_EQ(half.at<uchar>(100, 250), 0);
+    EXPECT_EQ(cv::countNonZero(piecesInside(cv::Mat::zeros(pieces.size(), CV_8U), region, 0.5)), 0);
+}
+
 TEST(Damage, ExtraPiecesAreThoseTheAtlasDoesNotHave) {
     cv::Mat tissue = ellipseMask({400, 300}, {200, 150}, {120, 80});
     cv::circle(tissue, {370, 40}, 15, cv::Scalar(255), cv::FILLED);

@@ -120,6 +120,10 @@ bool betweenParts(const cv::Mat& region, const cv::Mat& parts, int ringPx, doubl
 /// detached fragments. Returns their mask (empty image when there are none).
 cv::Mat extraPieces(const cv::Mat& tissueMask, const cv::Mat& atlasMask, double minShare = 0.02);
 
+/// The pieces (8-connected) of `pieces` (CV_8U) with at least `share` of their area inside
+/// `region` (CV_8U, same size).
+cv::Mat piecesInside(const cv::Mat& pieces, const cv::Mat& region, double share);
+
 /// The documented decision: damaged when the regions together cover at least damagedShare of the
 /// tissue, or one tear is at least deepTearFrac of the brain width long.
 bool isDamaged(const std::vector<DamageRegion>& regions, double brainWidthPx,

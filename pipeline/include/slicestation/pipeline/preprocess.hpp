@@ -16,6 +16,10 @@ struct PreparedSection {
     /// For damage: all that is clearly above the glass (dark tissue too, the outline slightly
     /// wider), unclosed and barely blurred so thin cracks stay open.
     cv::Mat tissueMaskFine;
+    /// The fine mask's pieces left out of tissueMask as debris (under 2% of the largest piece):
+    /// dust, or a small lobe cut apart from the rest (a paraflocculus) that the atlas expects,
+    /// which damage detection must not take for missing tissue.
+    cv::Mat smallPiecesFine;
     double scale = 1.0; ///< working pixels per full-resolution pixel (<= 1)
     Contrast contrast = Contrast::Fluorescence;
 };
