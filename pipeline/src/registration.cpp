@@ -389,6 +389,7 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     // Algorithm 2: deep, asymmetric concavities of the outline are damage; their edges stay out
     // of the matching. The mirror is the atlas midline seen through the initial placement.
     const double brainWidth = 2 * imgBox.halfMajor;
+    cv::Mat damagedOutline; // where the outline is a deep asymmetric concavity
     if (options.detectDamage) {
         const Outline outline = tissueOutline(mainTissue);
         reg.concavities = deepConcavities(outline, options.damage.alphaFrac * brainWidth);
@@ -397,7 +398,8 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         const cv::Matx23d flip(-1, 0, 2 * midline, 0, 1, 0);
         const cv::Matx23d mirror = compose(invert(best), compose(flip, best));
         markSymmetric(reg.concavities, outline, mirror, brainWidth, options.damage);
-        mei.setTo(0, concavityExclusion(reg.concavities, mei.size(), 0.02 * brainWidth));
+        damagedOutline = concavityExclusion(reg.concavities, mei.size(), 0.02 * brainWidth);
+        mei.setTo(0, damagedOutline);
     }
     reg.sectionEdges = mlsEdgePoints(edgePixels(mei), float(spacingImg),
                                      float(std::max(2.0, 3 * spacingImg)));
@@ -455,6 +457,23 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         // warp is pulled across edges and Laplace's equation carries the rest.
         const std::vector<std::pair<double, double>> rounds{
             {atlasH / 30, 8}, {atlasH / 40, 6}, {atlasH / 50, 5}, {finalDist, 5}};
+        // A section far from its plane's shape (parts shifted apart, the bulbs' or hind
+        // brain's outline changing fast along the cutting axis) keeps a misfit outline that no
+        // edge pair reaches, and the misfit reads as missing tissue. Then the tissue outline
+        // (outside the damaged concavities) is also paired with the atlas outline, one boundary
+        // each, so further away than edges among edges.
+        const bool pullOutline =
+            overlap(tissueFilled, atlasMask, reg.atlasFromWorking) < options.outlinePullBelowOverlap;
+        EdgePoints outline;
+        for (size_t i = 0; pullOutline && i < imgOuter.size(); ++i) {
+            const cv::Point p(std::clamp(cvRound(imgOuter.points[i].x), 0, mei.cols - 1),
+                              std::clamp(cvRound(imgOuter.points[i].y), 0, mei.rows - 1));
+            if (!damagedOutline.empty() && damagedOutline.at<std::uint8_t>(p)) continue;
+            outline.points.push_back(imgOuter.points[i]);
+            outline.normals.push_back(imgOuter.normals[i]);
+        }
+        const double outlineReach = atlasH * options.outlinePullReach;
+        const PointGrid atlasOuterGrid(atlasOuter.points, float(outlineReach / 2));
         for (const auto& [dist, ang] : rounds) {
             mapAll();
             matches = findMatches(mp, mn, reg.atlasEdges, atlasGrid, dist, ang, true,
@@ -467,6 +486,21 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
                 const cv::Point2d p = reg.sectionEdges.points[m.source];
                 pts.push_back(p);
                 disp.push_back(m.target - apply(reg.atlasFromWorking, p));
+            }
+            if (pullOutline) {
+                std::vector<cv::Point2f> op, on;
+                for (size_t i = 0; i < outline.size(); ++i) {
+                    const cv::Point2d p = outline.points[i];
+                    op.push_back(cv::Point2f(apply(reg.atlasFromWorking, p) + reg.warp.at(p)));
+                    on.push_back(mapNormal(reg.atlasFromWorking, outline.normals[i]));
+                }
+                for (const Match& m : findMatches(op, on, atlasOuter, atlasOuterGrid,
+                                                  std::max(dist, outlineReach), 15, true,
+                                                  TargetRule::PointToLine)) {
+                    const cv::Point2d p = outline.points[size_t(m.source)];
+                    pts.push_back(p);
+                    disp.push_back(m.target - apply(reg.atlasFromWorking, p));
+                }
             }
             reg.warp = solveLaplaceWarp(reg.workingGrey.size(), pts, disp, lo);
         }

@@ -28,6 +28,12 @@ struct RegistrationOptions {
     /// part in the matching, e.g. damaged tissue. Empty = none.
     cv::Mat excludeMask;
     DominantEdgeParams edges;
+    /// When the section's tissue and the atlas brain overlap less than this (IoU) after the
+    /// affine, the edges alone leave the outline misfit (a section cut far from the atlas plane's
+    /// shape, parts shifted apart): the warp then also pairs the tissue outline with the atlas
+    /// outline up to outlinePullReach x the atlas height away.
+    double outlinePullBelowOverlap = 0.87;
+    double outlinePullReach = 1.0 / 6;
     bool detectDamage = true;    ///< find damage and keep its edges out of the matching
     DamageParams damage;
     /// Atlas ids that are ventricles (empty like glass in a section): the major-region id 73.
