@@ -177,6 +177,28 @@ double shareMatched(const std::vector<cv::Point2f>& pts, const PointGrid& other,
     return double(hit) / double(pts.size());
 }
 
+/// Warp conditions (section point, displacement from the affine) from the matches of
+/// `section` mapped through `atlasFromWorking` and `warp` against `atlas`.
+void addWarpConditions(const EdgePoints& section, const cv::Matx23d& atlasFromWorking,
+                       const DisplacementField& warp, const EdgePoints& atlas, const PointGrid& grid,
+                       double distance, double angleDeg, std::vector<cv::Point2d>& points,
+                       std::vector<cv::Point2d>& displacements) {
+    std::vector<cv::Point2f> mapped, normals;
+    mapped.reserve(section.size());
+    normals.reserve(section.size());
+    for (size_t i = 0; i < section.size(); ++i) {
+        const cv::Point2d p = section.points[i];
+        mapped.emplace_back(apply(atlasFromWorking, p) + warp.at(p));
+        normals.push_back(mapNormal(atlasFromWorking, section.normals[i]));
+    }
+    for (const Match& m : findMatches(mapped, normals, atlas, grid, distance, angleDeg, true,
+                                      TargetRule::PointToLine)) {
+        const cv::Point2d p = section.points[size_t(m.source)];
+        points.push_back(p);
+        displacements.push_back(m.target - apply(atlasFromWorking, p));
+    }
+}
+
 } // namespace
 
 cv::Point2d Registration::workingFromImage(cv::Point2d p) const {
@@ -448,7 +470,6 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
             mn[i] = mapNormal(reg.atlasFromWorking, reg.sectionEdges.normals[i]);
         }
     };
-    std::vector<Match> matches;
     const double finalDist = atlasH / 60;
     if (options.nonLinear) {
         LaplaceOptions lo;
@@ -475,39 +496,19 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         const double outlineReach = atlasH * options.outlinePullReach;
         const PointGrid atlasOuterGrid(atlasOuter.points, float(outlineReach / 2));
         for (const auto& [dist, ang] : rounds) {
-            mapAll();
-            matches = findMatches(mp, mn, reg.atlasEdges, atlasGrid, dist, ang, true,
-                                  TargetRule::PointToLine);
-            if (matches.size() < 12) break;
             std::vector<cv::Point2d> pts, disp;
-            pts.reserve(matches.size());
-            disp.reserve(matches.size());
-            for (const Match& m : matches) {
-                const cv::Point2d p = reg.sectionEdges.points[m.source];
-                pts.push_back(p);
-                disp.push_back(m.target - apply(reg.atlasFromWorking, p));
-            }
-            if (pullOutline) {
-                std::vector<cv::Point2f> op, on;
-                for (size_t i = 0; i < outline.size(); ++i) {
-                    const cv::Point2d p = outline.points[i];
-                    op.push_back(cv::Point2f(apply(reg.atlasFromWorking, p) + reg.warp.at(p)));
-                    on.push_back(mapNormal(reg.atlasFromWorking, outline.normals[i]));
-                }
-                for (const Match& m : findMatches(op, on, atlasOuter, atlasOuterGrid,
-                                                  std::max(dist, outlineReach), 15, true,
-                                                  TargetRule::PointToLine)) {
-                    const cv::Point2d p = outline.points[size_t(m.source)];
-                    pts.push_back(p);
-                    disp.push_back(m.target - apply(reg.atlasFromWorking, p));
-                }
-            }
+            addWarpConditions(reg.sectionEdges, reg.atlasFromWorking, reg.warp, reg.atlasEdges,
+                              atlasGrid, dist, ang, pts, disp);
+            if (pts.size() < 12) break;
+            if (pullOutline)
+                addWarpConditions(outline, reg.atlasFromWorking, reg.warp, atlasOuter,
+                                  atlasOuterGrid, std::max(dist, outlineReach), 15, pts, disp);
             reg.warp = solveLaplaceWarp(reg.workingGrey.size(), pts, disp, lo);
         }
     }
     mapAll();
-    matches = findMatches(mp, mn, reg.atlasEdges, atlasGrid, finalDist, 5, true,
-                          TargetRule::PointToLine);
+    const std::vector<Match> matches = findMatches(mp, mn, reg.atlasEdges, atlasGrid, finalDist,
+                                                   5, true, TargetRule::PointToLine);
     timer.lap("warp");
 
     reg.quality.correspondences = static_cast<int>(matches.size());
