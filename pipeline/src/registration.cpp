@@ -177,13 +177,13 @@ double shareMatched(const std::vector<cv::Point2f>& pts, const PointGrid& other,
     return double(hit) / double(pts.size());
 }
 
-/// Warp conditions (section point, displacement from the affine) from the matches of
-/// `section` mapped through `atlasFromWorking` and `warp` against `atlas`.
-void addWarpConditions(const EdgePoints& section, const cv::Matx23d& atlasFromWorking,
-                       const DisplacementField& warp, const EdgePoints& atlas, const PointGrid& grid,
-                       double distance, double angleDeg, std::vector<cv::Point2d>& points,
-                       std::vector<cv::Point2d>& displacements) {
-    std::vector<cv::Point2f> mapped, normals;
+/// `section` mapped into the atlas through `atlasFromWorking` and `warp` (normals through the
+/// affine).
+void mapThrough(const EdgePoints& section, const cv::Matx23d& atlasFromWorking,
+                const DisplacementField& warp, std::vector<cv::Point2f>& mapped,
+                std::vector<cv::Point2f>& normals) {
+    mapped.clear();
+    normals.clear();
     mapped.reserve(section.size());
     normals.reserve(section.size());
     for (size_t i = 0; i < section.size(); ++i) {
@@ -191,6 +191,16 @@ void addWarpConditions(const EdgePoints& section, const cv::Matx23d& atlasFromWo
         mapped.emplace_back(apply(atlasFromWorking, p) + warp.at(p));
         normals.push_back(mapNormal(atlasFromWorking, section.normals[i]));
     }
+}
+
+/// Warp conditions (section point, displacement from the affine) from the matches of
+/// `section` mapped through `atlasFromWorking` and `warp` against `atlas`.
+void addWarpConditions(const EdgePoints& section, const cv::Matx23d& atlasFromWorking,
+                       const DisplacementField& warp, const EdgePoints& atlas, const PointGrid& grid,
+                       double distance, double angleDeg, std::vector<cv::Point2d>& points,
+                       std::vector<cv::Point2d>& displacements) {
+    std::vector<cv::Point2f> mapped, normals;
+    mapThrough(section, atlasFromWorking, warp, mapped, normals);
     for (const Match& m : findMatches(mapped, normals, atlas, grid, distance, angleDeg, true,
                                       TargetRule::PointToLine)) {
         const cv::Point2d p = section.points[size_t(m.source)];
@@ -461,15 +471,6 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
 
     // Non-linear: tight correspondences become Dirichlet conditions of Laplace's equation; a few
     // rounds let the warp bring in matches the affine left outside the thresholds.
-    const size_t n = reg.sectionEdges.size();
-    std::vector<cv::Point2f> mp(n), mn(n);
-    auto mapAll = [&] {
-        for (size_t i = 0; i < n; ++i) {
-            const cv::Point2d p = reg.sectionEdges.points[i];
-            mp[i] = apply(reg.atlasFromWorking, p) + reg.warp.at(p);
-            mn[i] = mapNormal(reg.atlasFromWorking, reg.sectionEdges.normals[i]);
-        }
-    };
     const double finalDist = atlasH / 60;
     if (options.nonLinear) {
         LaplaceOptions lo;
@@ -506,7 +507,8 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
             reg.warp = solveLaplaceWarp(reg.workingGrey.size(), pts, disp, lo);
         }
     }
-    mapAll();
+    std::vector<cv::Point2f> mp, mn;
+    mapThrough(reg.sectionEdges, reg.atlasFromWorking, reg.warp, mp, mn);
     const std::vector<Match> matches = findMatches(mp, mn, reg.atlasEdges, atlasGrid, finalDist,
                                                    5, true, TargetRule::PointToLine);
     timer.lap("warp");
