@@ -137,15 +137,7 @@ core::Result<json> runRegister(const RegisterRequest& rq) {
         if (auto w = core::writeImage(*rq.warpedLabels, warped); !w) return w.error();
     }
     if (rq.overlay) {
-        const cv::Mat labelsSmall = reg->warpedLabels(*labels, reg->workingGrey.size());
-        // Damage polygons come in full-resolution pixels; the overlay is at working size.
-        std::vector<std::vector<cv::Point2f>> damage;
-        for (const pipeline::DamageRegion& d : reg->damage) {
-            std::vector<cv::Point2f> poly;
-            for (const cv::Point2f& p : d.polygon) poly.push_back(cv::Point2f(reg->workingFromImage(p)));
-            damage.push_back(std::move(poly));
-        }
-        const cv::Mat picture = pipeline::renderOverlay(reg->workingGrey, labelsSmall, damage);
+        const cv::Mat picture = pipeline::renderOverlay(*reg, *labels);
         if (auto w = core::writeImage(*rq.overlay, picture); !w) return w.error();
     }
     const auto tWritten = Clock::now();

@@ -41,4 +41,16 @@ cv::Mat renderOverlay(const cv::Mat& sectionGrey, const cv::Mat& labelsInImage,
     return bgr;
 }
 
+cv::Mat renderOverlay(const Registration& reg, const cv::Mat& atlasLabels) {
+    // Damage polygons come in full-resolution pixels; the overlay is at working size.
+    std::vector<std::vector<cv::Point2f>> damage;
+    for (const DamageRegion& d : reg.damage) {
+        std::vector<cv::Point2f> poly;
+        for (const cv::Point2f& p : d.polygon) poly.emplace_back(reg.workingFromImage(p));
+        damage.push_back(std::move(poly));
+    }
+    return renderOverlay(reg.workingGrey, reg.warpedLabels(atlasLabels, reg.workingGrey.size()),
+                         damage);
+}
+
 } // namespace slicestation::pipeline

@@ -117,12 +117,8 @@ int main(int argc, char** argv) {
         std::string damage = "-";
         if (reg) {
             iou = reg->quality.tissueOverlap;
-            std::vector<std::vector<cv::Point2f>> polygons;
             std::string kinds;
             for (const auto& d : reg->damage) {
-                std::vector<cv::Point2f> poly;
-                for (const auto& q : d.polygon) poly.emplace_back(reg->workingFromImage(q));
-                polygons.push_back(std::move(poly));
                 kinds += std::string(kinds.empty() ? "" : "+") + std::string(pipeline::toString(d.kind));
             }
             char buf[160];
@@ -137,9 +133,7 @@ int main(int argc, char** argv) {
                 damage += buf;
             }
             if (reg->damaged) flagged.push_back(n);
-            tile = pipeline::renderOverlay(reg->workingGrey,
-                                           reg->warpedLabels(atlas, reg->workingGrey.size()),
-                                           polygons);
+            tile = pipeline::renderOverlay(*reg, atlas);
         } else {
             tile = cv::Mat(300, 420, CV_8UC3, cv::Scalar(0, 0, 80));
         }
