@@ -104,15 +104,28 @@ bool damagedByRule(const sim::GroundTruth& truth) {
     return pipeline::isDamaged(regions, width, pipeline::DamageParams{});
 }
 
+/// "precision P recall R (tp, fp, fn)" of the flags against the truth `truthOf` picks.
+std::string flagScore(const std::vector<DamageRow>& d, bool DamageRow::*truthOf) {
+    int tp = 0, fp = 0, fn = 0;
+    for (const auto& r : d) {
+        tp += r.*truthOf && r.flagged;
+        fp += !(r.*truthOf) && r.flagged;
+        fn += r.*truthOf && !r.flagged;
+    }
+    char buf[96];
+    std::snprintf(buf, sizeof buf, "precision %.3f recall %.3f (tp %d, fp %d, fn %d)",
+                  tp + fp ? double(tp) / (tp + fp) : 1.0, tp + fn ? double(tp) / (tp + fn) : 1.0,
+                  tp, fp, fn);
+    return buf;
+}
+
 void printDamage(const std::vector<DamageRow>& d, const std::vector<Row>& rows) {
-    int tp = 0, fp = 0, fn = 0, regions = 0, overlapped = 0;
+    int regions = 0, overlapped = 0, below = 0;
     std::vector<double> ms;
     for (const auto& r : d) {
-        tp += r.truth && r.flagged;
-        fp += !r.truth && r.flagged;
-        fn += r.truth && !r.flagged;
         regions += r.trueRegions;
         overlapped += r.overlapped;
+        below += r.truth && !r.truthByRule;
         ms.push_back(r.ms);
     }
     double clean = 0, damaged = 0;
@@ -122,21 +135,10 @@ void printDamage(const std::vector<DamageRow>& d, const std::vector<Row>& rows) 
         (r.damaged ? damaged : clean) += r.err.rmse;
         ++(r.damaged ? nd : nc);
     }
-    const double precision = tp + fp ? double(tp) / (tp + fp) : 1.0;
-    const double recall = tp + fn ? double(tp) / (tp + fn) : 1.0;
-    std::printf("\ndamage flag: precision %.3f recall %.3f (tp %d, fp %d, fn %d)\n", precision,
-                recall, tp, fp, fn);
-    int rtp = 0, rfp = 0, rfn = 0, below = 0;
-    for (const auto& r : d) {
-        rtp += r.truthByRule && r.flagged;
-        rfp += !r.truthByRule && r.flagged;
-        rfn += r.truthByRule && !r.flagged;
-        below += r.truth && !r.truthByRule;
-    }
+    std::printf("\ndamage flag: %s\n", flagScore(d, &DamageRow::truth).c_str());
     std::printf("  against the painted damage the decision rule counts on the truth (%d damaged "
-                "cases below it): precision %.3f recall %.3f (tp %d, fp %d, fn %d)\n",
-                below, rtp + rfp ? double(rtp) / (rtp + rfp) : 1.0,
-                rtp + rfn ? double(rtp) / (rtp + rfn) : 1.0, rtp, rfp, rfn);
+                "cases below it): %s\n",
+                below, flagScore(d, &DamageRow::truthByRule).c_str());
     std::printf("true damage regions overlapped by a reported region: %d of %d (%.1f%%)\n",
                 overlapped, regions, regions ? 100.0 * overlapped / regions : 100.0);
     if (nc && nd)
@@ -281,14 +283,7 @@ int main(int argc, char** argv) {
             }
             damageRows.push_back(d);
             if (!overlayDir.empty()) {
-                std::vector<std::vector<cv::Point2f>> polygons;
-                for (const auto& r : reg->damage) {
-                    std::vector<cv::Point2f> poly;
-                    for (const auto& q : r.polygon) poly.emplace_back(reg->workingFromImage(q));
-                    polygons.push_back(std::move(poly));
-                }
-                const cv::Mat tile = pipeline::renderOverlay(
-                    reg->workingGrey, reg->warpedLabels(plane, reg->workingGrey.size()), polygons);
+                const cv::Mat tile = pipeline::renderOverlay(*reg, plane);
                 std::filesystem::create_directories(overlayDir);
                 const auto path = std::filesystem::path(overlayDir) /
                                   ("case-" + std::to_string(c.index) + ".png");
