@@ -14,6 +14,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdio>
 #include <filesystem>
 
 using namespace slicestation;
@@ -54,6 +55,46 @@ cv::Mat realPlane(int ap25) {
     auto p = pipeline::coronalPlane(*vol, pipeline::VolumeAxes::QuickNii, ap25);
     if (!p) return {};
     return pipeline::collapseLabels(*p, *onto, pipeline::majorRegionIds(), 8);
+}
+
+const fs::path kSeriesDir = fs::path(SLST_SHARED_DIR) / "sections" / "abba-mouse-series";
+
+/// A section of the real ABBA series (20 um/px) registered against the coronal slice of the
+/// Allen 50 um annotation at `positionUm`, sampled at 25 um/px and collapsed to the major
+/// regions, as the series tool (slst_atlas_series) does.
+struct RealRegistration {
+    cv::Mat labels;
+    pipeline::Registration reg;
+};
+RealRegistration registerRealSection(const std::string& name, double positionUm) {
+    static auto vol = core::readNrrd(kAtlasDir / "annotation_50.nrrd");
+    static auto onto = core::readOntologyCsv(kAtlasDir / "structure_tree_safe_2017.csv");
+    EXPECT_TRUE(vol.ok() && onto.ok());
+    if (!vol || !onto) return {};
+    auto img = core::readImage(kSeriesDir / name);
+    EXPECT_TRUE(img.ok()) << name << ": " << img.error().message;
+    if (!img) return {};
+    auto geometry = pipeline::planeGeometry(
+        *vol, pipeline::VolumeAxes::Allen,
+        {pipeline::PlaneOrientation::Coronal, positionUm, 0, 0, 25});
+    EXPECT_TRUE(geometry.ok());
+    if (!geometry) return {};
+    auto raw = pipeline::sampleLabels(*vol, pipeline::VolumeAxes::Allen, *geometry);
+    EXPECT_TRUE(raw.ok());
+    if (!raw) return {};
+    RealRegistration out;
+    out.labels = pipeline::collapseLabels(*raw, *onto, pipeline::majorRegionIds(), 8);
+    pipeline::RegistrationOptions ro;
+    ro.imageUmPerPx = 20;
+    ro.atlasUmPerPx = 25;
+    auto reg = pipeline::registerSection(*img, out.labels, ro);
+    EXPECT_TRUE(reg.ok()) << name << ": " << reg.error().message;
+    if (reg) out.reg = std::move(*reg);
+    return out;
+}
+
+bool haveRealSeries() {
+    return fs::exists(kSeriesDir / "Section-20.tif") && fs::exists(kAtlasDir / "annotation_50.nrrd");
 }
 
 } // namespace
@@ -245,46 +286,28 @@ TEST(RegistrationAccuracy, RealSectionsFarFromTheirPlanesShapeGetTheOutlinePulle
     // the 25 um slice the series match gives it. Without the outline pairs the mapped atlas
     // brain overlapped their tissue 0.87 and 0.84, and the misfit showed as damage on both
     // (gaps of 2.5% and 1.2% of the tissue).
-    const fs::path dir = fs::path(SLST_SHARED_DIR) / "sections" / "abba-mouse-series";
-    if (!fs::exists(dir / "Section-02.tif") || !fs::exists(kAtlasDir / "annotation_50.nrrd"))
-        GTEST_SKIP() << "../shared is absent: real sections not tested";
-    auto vol = core::readNrrd(kAtlasDir / "annotation_50.nrrd");
-    auto onto = core::readOntologyCsv(kAtlasDir / "structure_tree_safe_2017.csv");
-    ASSERT_TRUE(vol.ok() && onto.ok());
+    if (!haveRealSeries()) GTEST_SKIP() << "../shared is absent: real sections not tested";
     for (const auto& [name, positionUm] : {std::pair{"Section-02.tif", 2800.0},
                                            std::pair{"Section-19.tif", 9100.0}}) {
-        auto img = core::readImage(dir / name);
-        ASSERT_TRUE(img.ok()) << img.error().message;
-        auto geometry = pipeline::planeGeometry(
-            *vol, pipeline::VolumeAxes::Allen,
-            {pipeline::PlaneOrientation::Coronal, positionUm, 0, 0, 25});
-        ASSERT_TRUE(geometry.ok());
-        auto raw = pipeline::sampleLabels(*vol, pipeline::VolumeAxes::Allen, *geometry);
-        ASSERT_TRUE(raw.ok());
-        const cv::Mat labels = pipeline::collapseLabels(*raw, *onto, pipeline::majorRegionIds(), 8);
-        pipeline::RegistrationOptions ro;
-        ro.imageUmPerPx = 20;
-        ro.atlasUmPerPx = 25;
-        auto reg = pipeline::registerSection(*img, labels, ro);
-        ASSERT_TRUE(reg.ok()) << reg.error().message;
+        const auto [labels, reg] = registerRealSection(name, positionUm);
+        ASSERT_FALSE(labels.empty()) << name;
         // Overlap of the whole map (affine and warp): the mapped atlas brain against the tissue
         // with its holes filled.
         std::vector<std::vector<cv::Point>> outer;
-        cv::findContours(reg->workingTissueMask.clone(), outer, cv::RETR_EXTERNAL,
+        cv::findContours(reg.workingTissueMask.clone(), outer, cv::RETR_EXTERNAL,
                          cv::CHAIN_APPROX_NONE);
-        cv::Mat tissue = cv::Mat::zeros(reg->workingTissueMask.size(), CV_8U);
+        cv::Mat tissue = cv::Mat::zeros(reg.workingTissueMask.size(), CV_8U);
         cv::drawContours(tissue, outer, -1, cv::Scalar(255), cv::FILLED);
-        const cv::Mat brain = reg->warpedLabels(labels, tissue.size()) != 0;
+        const cv::Mat brain = reg.warpedLabels(labels, tissue.size()) != 0;
         const double iou = cv::countNonZero(tissue & brain) / double(cv::countNonZero(tissue | brain));
         EXPECT_GT(iou, 0.9) << name;
         // The misfit gaps are gone or smaller.
-        EXPECT_LT(reg->damageFraction, 0.01) << name << ": " << reg->damageSummary;
+        EXPECT_LT(reg.damageFraction, 0.01) << name << ": " << reg.damageSummary;
     }
 }
 
 TEST(RegistrationAccuracy, RealSection12MatchesItsAtlasPlane) {
-    const fs::path section =
-        fs::path(SLST_SHARED_DIR) / "sections" / "abba-mouse-series" / "Section-12.tif";
+    const fs::path section = kSeriesDir / "Section-12.tif";
     if (!fs::exists(section) || !fs::exists(kAtlasDir / "annotation_50.nrrd"))
         GTEST_SKIP() << "../shared is absent: real section not tested";
     auto img = core::readImage(section);
@@ -306,4 +329,37 @@ TEST(RegistrationAccuracy, RealSection12MatchesItsAtlasPlane) {
         best = std::max(best, reg->quality.tissueOverlap);
     }
     EXPECT_GT(best, 0.9);
+}
+
+TEST(DamageRealSeries, TornSectionsAreFlaggedAndCleanOnesAreNot) {
+    // The real series' damage, judged by eye in its README, each section against the slice
+    // the series match gives it (slst_atlas_series: slice index x 100 um). What the rules get
+    // right is held here; what they still get wrong is in docs/damage.md and not asserted
+    // either way: 11 (a crack that shows as a bright line) is missed, the clean 01 (a cleft
+    // between bulb and frontal pole) and 07 (an enlarged ventricle) are flagged, and 19 keeps
+    // a gap of 0.79% of the tissue against the 0.8% of the decision. 10 and 13 are unclear.
+    if (!haveRealSeries()) GTEST_SKIP() << "../shared is absent: real sections not tested";
+    const std::pair<int, double> torn[] = {{9, 5600}, {14, 7400}, {15, 7700}};
+    const std::pair<int, double> clean[] = {{2, 2800},  {3, 3200},  {4, 4600}, {5, 4700},
+                                            {6, 4800},  {8, 5100},  {12, 6500}, {16, 7800},
+                                            {17, 8300}, {18, 9000}, {20, 10100}};
+    const auto name = [](int n) {
+        char buf[32];
+        std::snprintf(buf, sizeof buf, "Section-%02d.tif", n);
+        return std::string(buf);
+    };
+    for (const auto& [n, positionUm] : torn) {
+        const auto [labels, reg] = registerRealSection(name(n), positionUm);
+        ASSERT_FALSE(labels.empty());
+        EXPECT_TRUE(reg.damaged) << name(n) << ": " << reg.damageSummary;
+        // The tears lie inside the tissue, not along the outline.
+        ASSERT_FALSE(reg.damage.empty()) << name(n);
+        EXPECT_EQ(reg.damage.front().kind, pipeline::DamageKind::Tear) << name(n);
+        EXPECT_LT(reg.damage.front().openShare, 0.1) << name(n);
+    }
+    for (const auto& [n, positionUm] : clean) {
+        const auto [labels, reg] = registerRealSection(name(n), positionUm);
+        ASSERT_FALSE(labels.empty());
+        EXPECT_FALSE(reg.damaged) << name(n) << ": " << reg.damageSummary;
+    }
 }
