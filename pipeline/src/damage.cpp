@@ -10,14 +10,16 @@
 #include <array>
 #include <cmath>
 #include <cstdio>
+#include <optional>
 #include <unordered_map>
 
 namespace slicestation::pipeline {
 namespace {
 
-std::vector<cv::Point2f> polygonOf(const cv::Mat& regionMask) {
+std::vector<cv::Point2f> polygonOf(const cv::Mat& regionMask, cv::Point offset = {}) {
     std::vector<std::vector<cv::Point>> contours;
-    cv::findContours(regionMask.clone(), contours, cv::RETR_EXTERNAL, cv::CHAIN_APPROX_SIMPLE);
+    cv::findContours(regionMask.clone(), contours, cv::RETR_EXTERNAL, cv::CHAIN_APPROX_SIMPLE,
+                     offset);
     if (contours.empty()) return {};
     const auto& c = *std::max_element(contours.begin(), contours.end(), [](auto& a, auto& b) {
         return cv::contourArea(a) < cv::contourArea(b);
@@ -27,6 +29,12 @@ std::vector<cv::Point2f> polygonOf(const cv::Mat& regionMask) {
     std::vector<cv::Point2f> out;
     for (const auto& p : simple) out.emplace_back(float(p.x), float(p.y));
     return out;
+}
+
+/// `box` grown by `margin` on every side, within an image of `size`.
+cv::Rect grown(const cv::Rect& box, int margin, cv::Size size) {
+    return (box + cv::Size(2 * margin, 2 * margin) - cv::Point(margin, margin)) &
+           cv::Rect(0, 0, size.width, size.height);
 }
 
 } // namespace
@@ -132,12 +140,91 @@ cv::Mat concavityExclusion(const std::vector<Concavity>& concavities, cv::Size s
     return mask;
 }
 
+GreyLevels greyLevels(const cv::Mat& grey, const cv::Mat& tissueMask) {
+    CV_Assert(grey.type() == CV_32F && tissueMask.type() == CV_8U && grey.size() == tissueMask.size());
+    GreyLevels out;
+    const auto tissuePx = static_cast<size_t>(cv::countNonZero(tissueMask));
+    if (tissuePx == 0 || tissuePx == tissueMask.total()) return out;
+    out.glass = static_cast<float>(cv::mean(grey, ~tissueMask)[0]);
+    // The median on every other pixel.
+    std::vector<float> values;
+    for (int y = 0; y < grey.rows; y += 2) {
+        const float* g = grey.ptr<float>(y);
+        const std::uint8_t* t = tissueMask.ptr<std::uint8_t>(y);
+        for (int x = 0; x < grey.cols; x += 2)
+            if (t[x]) values.push_back(g[x]);
+    }
+    if (values.empty()) return out;
+    std::nth_element(values.begin(), values.begin() + values.size() / 2, values.end());
+    out.tissue = values[values.size() / 2];
+    return out;
+}
+
+cv::Mat darkValleys(const cv::Mat& grey, GreyLevels levels, const DamageParams& params) {
+    CV_Assert(grey.type() == CV_32F);
+    if (levels.tissue <= levels.glass) return cv::Mat::zeros(grey.size(), CV_8U);
+    // A line under a pixel wide is only darker than the tissue beside it: dark against the
+    // tissue's level, and a valley, darker than the tissue on both sides (the black top-hat of a
+    // 5 px disc), which neither dim tissue nor its edge against bright tissue is.
+    cv::Mat sharp, closed;
+    cv::GaussianBlur(grey, sharp, cv::Size(), 0.7);
+    cv::morphologyEx(sharp, closed, cv::MORPH_CLOSE,
+                     cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(5, 5)));
+    const float span = levels.tissue - levels.glass;
+    const float darkBelow = levels.glass + static_cast<float>(params.threadDarkness) * span;
+    const float deeperThan = static_cast<float>(params.threadDepth) * span;
+    return (sharp < darkBelow) & ((closed - sharp) > deeperThan);
+}
+
+GapThreads gapThreads(const cv::Mat& rawGaps, const cv::Mat& openedGaps) {
+    CV_Assert(rawGaps.type() == CV_8U && openedGaps.type() == CV_8U &&
+              rawGaps.size() == openedGaps.size());
+    GapThreads t;
+    cv::Mat centroids;
+    cv::connectedComponentsWithStats(rawGaps & ~openedGaps, t.labels, t.stats, centroids, 8, CV_32S);
+    return t;
+}
+
+double crackLength(const cv::Mat& region, const GapThreads& threads) {
+    CV_Assert(region.type() == CV_8U && threads.labels.size() == region.size());
+    std::vector<cv::Point> piece;
+    cv::findNonZero(region, piece);
+    if (piece.empty()) return 0;
+    // The threads touching the region (8-connected: within one pixel of it).
+    const cv::Rect box = (cv::boundingRect(piece) + cv::Size(2, 2) - cv::Point(1, 1)) &
+                         cv::Rect(0, 0, region.cols, region.rows);
+    cv::Mat near;
+    cv::dilate(region(box), near, cv::Mat());
+    std::vector<int> touching;
+    for (int y = 0; y < box.height; ++y) {
+        const std::uint8_t* n = near.ptr<std::uint8_t>(y);
+        const std::int32_t* l = threads.labels.ptr<std::int32_t>(y + box.y) + box.x;
+        for (int x = 0; x < box.width; ++x)
+            if (n[x] && l[x] && std::find(touching.begin(), touching.end(), l[x]) == touching.end())
+                touching.push_back(l[x]);
+    }
+    for (const int id : touching) {
+        const cv::Rect b(threads.stats.at<int>(id, cv::CC_STAT_LEFT),
+                         threads.stats.at<int>(id, cv::CC_STAT_TOP),
+                         threads.stats.at<int>(id, cv::CC_STAT_WIDTH),
+                         threads.stats.at<int>(id, cv::CC_STAT_HEIGHT));
+        for (int y = b.y; y < b.y + b.height; ++y) {
+            const std::int32_t* l = threads.labels.ptr<std::int32_t>(y);
+            for (int x = b.x; x < b.x + b.width; ++x)
+                if (l[x] == id) piece.emplace_back(x, y);
+        }
+    }
+    const cv::RotatedRect r = cv::minAreaRect(piece);
+    return std::max(r.size.width, r.size.height);
+}
+
 std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const AtlasExpectation& expected,
                                        double brainWidthPx, const DamageParams& params,
-                                       const cv::Mat& knownFragments) {
+                                       const cv::Mat& knownFragments, const cv::Mat& grey) {
     const cv::Mat& expectedTissue = expected.tissue;
     const cv::Mat& expectedBrain = expected.brain;
     CV_Assert(tissueMask.type() == CV_8U && expectedTissue.size() == tissueMask.size() &&
+              (grey.empty() || (grey.type() == CV_32F && grey.size() == tissueMask.size())) &&
               expectedBrain.size() == tissueMask.size() &&
               (expected.parts.empty() || expected.parts.size() == tissueMask.size()));
     std::vector<DamageRegion> out;
@@ -151,9 +238,24 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const AtlasExp
     const cv::Mat disc = cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * r + 1, 2 * r + 1));
     cv::Mat inner;
     cv::erode(expectedTissue, inner, disc);
-    cv::Mat deficit = inner & ~tissueMask;
-    cv::morphologyEx(deficit, deficit, cv::MORPH_OPEN,
+    const cv::Mat rawDeficit = inner & ~tissueMask;
+    cv::Mat deficit;
+    cv::morphologyEx(rawDeficit, deficit, cv::MORPH_OPEN,
                      cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(3, 3)));
+    // A crack's thin end: what the opening removed (noise, and threads of glass) and, where the
+    // grey image is known, the dark line it narrows into under a pixel wide. Looked for around
+    // each tear, as far as the length of a deep tear.
+    std::optional<GreyLevels> levels;
+    const int reach = static_cast<int>(std::lround(params.deepTearFrac * brainWidthPx));
+    const auto crackLengthOf = [&](const cv::Mat& labels, int id, const cv::Rect& box) {
+        const cv::Rect roi = grown(box, reach, labels.size());
+        cv::Mat thin = rawDeficit(roi).clone();
+        if (!grey.empty()) {
+            if (!levels) levels = greyLevels(grey, tissueMask);
+            thin |= darkValleys(grey(roi), *levels, params) & inner(roi);
+        }
+        return crackLength(labels(roi) == id, gapThreads(thin, deficit(roi)));
+    };
     std::vector<std::vector<cv::Point>> outer;
     cv::findContours(tissueMask.clone(), outer, cv::RETR_EXTERNAL, cv::CHAIN_APPROX_SIMPLE);
     cv::Mat outside(tissueMask.size(), CV_8U, cv::Scalar(255));
@@ -164,12 +266,18 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const AtlasExp
         tissueParts = cv::Mat::zeros(tissueMask.size(), CV_8U);
         expected.parts.copyTo(tissueParts, tissueMask);
     }
+    const int ringPx = std::max(1, static_cast<int>(std::lround(params.fissureRingFrac * brainWidthPx)));
     cv::Mat labels, stats, centroids;
     int n = cv::connectedComponentsWithStats(deficit, labels, stats, centroids, 8, CV_32S);
     for (int i = 1; i < n; ++i) {
         const double area = stats.at<int>(i, cv::CC_STAT_AREA);
         if (area < minArea / 4) continue;
-        const cv::Mat region = labels == i;
+        // Each gap is looked at in its box, grown by the farthest any measure below reaches
+        // (the rim, the fissure ring), so that the result is as on the whole image.
+        const cv::Rect bounds(stats.at<int>(i, cv::CC_STAT_LEFT), stats.at<int>(i, cv::CC_STAT_TOP),
+                              stats.at<int>(i, cv::CC_STAT_WIDTH), stats.at<int>(i, cv::CC_STAT_HEIGHT));
+        const cv::Rect roi = grown(bounds, std::max(r + 3, ringPx + 1), labels.size());
+        const cv::Mat region = labels(roi) == i;
         std::vector<cv::Point> pts;
         cv::findNonZero(region, pts);
         const cv::RotatedRect box = cv::minAreaRect(pts);
@@ -186,7 +294,7 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const AtlasExp
                    cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * r + 5, 2 * r + 5)));
         rim &= ~region;
         const double openShare =
-            cv::countNonZero(rim & outside) / std::max(1.0, double(cv::countNonZero(rim)));
+            cv::countNonZero(rim & outside(roi)) / std::max(1.0, double(cv::countNonZero(rim)));
         cv::Mat dist;
         cv::distanceTransform(region, dist, cv::DIST_L2, 3);
         double thickness = 0;
@@ -203,17 +311,16 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const AtlasExp
         // A gap with one part of the brain on one side and another on the other is a natural
         // fissure opened; a tear runs through a part, or across the interface.
         if (!tissueParts.empty() &&
-            betweenParts(region, tissueParts,
-                         std::max(1, static_cast<int>(std::lround(params.fissureRingFrac * brainWidthPx))),
-                         params.fissurePurity))
+            betweenParts(region, tissueParts(roi), ringPx, params.fissurePurity))
             continue;
         DamageRegion d;
         d.kind = length / std::max(meanWidth, 1e-9) >= params.tearElongation ? DamageKind::Tear
                                                                              : DamageKind::Missing;
-        d.polygon = polygonOf(region);
+        d.polygon = polygonOf(region, roi.tl());
         d.areaPx = area;
         d.share = area / tissueArea;
-        d.lengthPx = length;
+        // A crack narrows to a thread; its length runs to the thread's end.
+        d.lengthPx = d.kind == DamageKind::Tear ? crackLengthOf(labels, i, bounds) : length;
         d.openShare = openShare;
         d.thicknessPx = 2 * thickness;
         out.push_back(std::move(d));
@@ -363,7 +470,8 @@ bool isDamaged(const std::vector<DamageRegion>& regions, double brainWidthPx,
     double share = 0;
     for (const DamageRegion& r : regions) {
         share += r.share;
-        if (r.kind == DamageKind::Tear && r.lengthPx >= params.deepTearFrac * brainWidthPx)
+        if (r.kind == DamageKind::Tear && r.lengthPx >= params.deepTearFrac * brainWidthPx &&
+            r.lengthPx >= params.crackElongation * r.thicknessPx)
             return true;
     }
     return share >= params.damagedShare;

@@ -536,7 +536,7 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         const cv::Mat sectionTissue =
             prepared->tissueMaskFine | piecesInside(prepared->smallPiecesFine, expectedBrain, 0.7);
         std::vector<DamageRegion> regions = tissueDamage(sectionTissue, expected, brainWidth,
-                                                         options.damage, fragments);
+                                                         options.damage, fragments, reg.workingGrey);
         reg.damaged = isDamaged(regions, brainWidth, options.damage);
         reg.damageSummary = damageSummary(regions);
         // Report in full-resolution pixels.
@@ -546,6 +546,7 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
                 p = cv::Point2f(float((p.x + 0.5) / s - 0.5), float((p.y + 0.5) / s - 0.5));
             d.areaPx /= s * s;
             d.lengthPx /= s;
+            d.thicknessPx /= s;
             reg.damageFraction += d.share;
         }
         reg.damage = std::move(regions);

@@ -78,7 +78,8 @@ void printTable(const std::vector<Row>& rows) {
 }
 
 /// The decision rule (pipeline::isDamaged, default parameters) applied to the true damage:
-/// each removed region's share of the tissue and its length against the tissue's width.
+/// each removed region's share of the tissue, its length against the tissue's width and its
+/// thickness (twice the largest inscribed radius).
 bool damagedByRule(const sim::GroundTruth& truth) {
     std::vector<std::vector<cv::Point>> outer;
     cv::findContours(truth.tissueMask.clone(), outer, cv::RETR_EXTERNAL, cv::CHAIN_APPROX_NONE);
@@ -99,6 +100,14 @@ bool damagedByRule(const sim::GroundTruth& truth) {
         r.share = t.areaPx / tissue;
         const cv::RotatedRect rb = cv::minAreaRect(t.polygon);
         r.lengthPx = std::max(rb.size.width, rb.size.height);
+        cv::Mat region = cv::Mat::zeros(truth.tissueMask.size(), CV_8U), dist;
+        std::vector<cv::Point> outline;
+        for (const cv::Point2f& q : t.polygon) outline.emplace_back(cvRound(q.x), cvRound(q.y));
+        cv::fillPoly(region, std::vector<std::vector<cv::Point>>{outline}, cv::Scalar(255));
+        cv::distanceTransform(region, dist, cv::DIST_L2, 3);
+        double radius = 0;
+        cv::minMaxLoc(dist, nullptr, &radius);
+        r.thicknessPx = 2 * radius;
         regions.push_back(r);
     }
     return pipeline::isDamaged(regions, width, pipeline::DamageParams{});

@@ -115,6 +115,85 @@ TEST(Damage, GapsTearsAndFragmentsAgainstTheExpectedTissue) {
     EXPECT_NE(damageSummary(regions).find("tear"), std::string::npos);
 }
 
+TEST(Damage, ACracksTaperingEndCountsToItsLength) {
+    const cv::Mat expected = ellipseMask({600, 400}, {300, 200}, {250, 160});
+    // A crack inside the tissue: a wedge 10 px wide narrowing over 40 px, then a thread one
+    // pixel wide for 30 px more, which the gap mask's opening removes.
+    cv::Mat tissue = expected.clone();
+    const std::vector<cv::Point> wedge{{295, 250}, {305, 250}, {300, 210}};
+    cv::fillPoly(tissue, std::vector<std::vector<cv::Point>>{wedge}, cv::Scalar(0));
+    cv::line(tissue, {300, 210}, {300, 180}, cv::Scalar(0), 1);
+    // A stray thread elsewhere is not part of it.
+    cv::line(tissue, {100, 150}, {100, 100}, cv::Scalar(0), 1);
+
+    cv::Mat opened;
+    const cv::Mat raw = expected & ~tissue;
+    cv::morphologyEx(raw, opened, cv::MORPH_OPEN,
+                     cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(3, 3)));
+    const GapThreads threads = gapThreads(raw, opened);
+    cv::Mat region;
+    cv::connectedComponents(opened, region);
+    region = region == 1;
+    std::vector<cv::Point> pts;
+    cv::findNonZero(region, pts);
+    const cv::RotatedRect box = cv::minAreaRect(pts);
+    EXPECT_LT(std::max(box.size.width, box.size.height), 45); // the wedge alone
+    EXPECT_NEAR(crackLength(region, threads), 70, 4);         // with its thread
+
+    // 70 px is over the deep-tear length (10% of a 500 px brain); the wedge alone is not, and
+    // its area is far under the share rule.
+    const auto regions = tissueDamage(tissue, {expected, expected, {}}, 500, DamageParams{});
+    ASSERT_EQ(regions.size(), 1u);
+    EXPECT_EQ(regions[0].kind, DamageKind::Tear);
+    EXPECT_NEAR(regions[0].lengthPx, 70, 4);
+    EXPECT_TRUE(isDamaged(regions, 500, DamageParams{}));
+}
+
+TEST(Damage, DarkValleysAreThinDarkLinesNotDimTissue) {
+    // Textured tissue (0.35-0.65) on glass (0.02), a crack 2 px wide at the glass level, and a
+    // patch of evenly dim tissue (0.15, under the darkness limit on its own).
+    cv::Mat grey(240, 320, CV_32F, cv::Scalar(0.02f));
+    const cv::Mat tissue = ellipseMask(grey.size(), {160, 120}, {140, 100});
+    cv::Mat texture(grey.size(), CV_32F);
+    cv::RNG rng(7);
+    rng.fill(texture, cv::RNG::UNIFORM, 0.35, 0.65);
+    texture.copyTo(grey, tissue);
+    cv::line(grey, {80, 90}, {200, 110}, cv::Scalar(0.02), 2);
+    cv::Mat dim(grey.size(), CV_32F);
+    rng.fill(dim, cv::RNG::UNIFORM, 0.13, 0.17);
+    const cv::Rect patch(150, 150, 60, 40);
+    dim(patch).copyTo(grey(patch));
+
+    const GreyLevels levels = greyLevels(grey, tissue);
+    EXPECT_NEAR(levels.glass, 0.02, 1e-4);
+    EXPECT_NEAR(levels.tissue, 0.5, 0.02);
+    const cv::Mat valleys = darkValleys(grey, levels, DamageParams{});
+    cv::Mat line = cv::Mat::zeros(grey.size(), CV_8U);
+    cv::line(line, {84, 91}, {196, 109}, cv::Scalar(255), 1);
+    EXPECT_GT(cv::countNonZero(valleys & line), 0.9 * cv::countNonZero(line));
+    EXPECT_LT(cv::countNonZero(valleys(patch)), 0.02 * patch.area());
+    cv::Mat elsewhere = tissue.clone();
+    elsewhere(patch).setTo(0);
+    cv::line(elsewhere, {80, 90}, {200, 110}, cv::Scalar(0), 8);
+    EXPECT_LT(cv::countNonZero(valleys & elsewhere), 0.002 * cv::countNonZero(elsewhere));
+}
+
+TEST(Damage, ADeepTearMustBeACrackNotAHole) {
+    // The deep-tear rule is for cracks, long and thin; a hole as long but thick (a ventricle
+    // wall pulled open) counts by its share only.
+    DamageRegion crack;
+    crack.kind = DamageKind::Tear;
+    crack.share = 0.005;
+    crack.lengthPx = 60;
+    crack.thicknessPx = 10;
+    EXPECT_TRUE(isDamaged({crack}, 500, DamageParams{}));
+    DamageRegion hole = crack;
+    hole.thicknessPx = 24; // 2.5 times shorter than long, under crackElongation 3
+    EXPECT_FALSE(isDamaged({hole}, 500, DamageParams{}));
+    hole.share = 0.009;
+    EXPECT_TRUE(isDamaged({hole}, 500, DamageParams{}));
+}
+
 TEST(Damage, IntactTissueAndRegistrationSlackAreNotDamage) {
     const cv::Mat expected = ellipseMask({600, 400}, {300, 200}, {250, 160});
     // The section a few pixels smaller all round: slack along the outline, nothing lost.

@@ -35,6 +35,12 @@ struct DamageParams {
     double minRegionShare = 0.002;    ///< smaller regions are not reported
     double damagedShare = 0.008;      ///< decision: damage of at least this share of the tissue
     double deepTearFrac = 0.10;       ///< decision: or a tear at least this long
+    double crackElongation = 3.0;     ///< and at least this many times its thickest width
+    /// A crack's end under a pixel wide shows as a dark line (darkValleys): below this share of
+    /// the way from the glass to the median tissue level,
+    double threadDarkness = 0.4;
+    /// and a valley at least this share of that span deeper than the tissue on both sides.
+    double threadDepth = 0.25;
     double tearElongation = 3.0;      ///< length / mean width from which a gap is a tear
     double alongOutlineShare = 0.3;   ///< a gap with more of its rim on the outside glass lies
                                       ///< along the outline
@@ -98,10 +104,27 @@ struct AtlasExpectation {
 /// `expected.parts` on one side and another on the other is a fissure opened, and a long band
 /// along the outline is an outline that did not fit: neither is damage.
 /// `knownFragments` (CV_8U or empty): pieces already found detached (see extraPieces); a piece
-/// mostly on them is a fragment wherever it lies.
+/// mostly on them is a fragment wherever it lies. `grey` (CV_32F, tissue bright, or empty): the
+/// section, for the thin dark end of a crack (darkValleys), which counts to a tear's length.
 std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const AtlasExpectation& expected,
                                        double brainWidthPx, const DamageParams& params,
-                                       const cv::Mat& knownFragments = cv::Mat());
+                                       const cv::Mat& knownFragments = cv::Mat(),
+                                       const cv::Mat& grey = cv::Mat());
+
+/// The glass level (mean outside `tissueMask`) and the typical tissue level (median inside) of a
+/// section's grey image (CV_32F, tissue bright); both 0 when the mask is empty or full.
+struct GreyLevels {
+    float glass = 0;
+    float tissue = 0;
+};
+GreyLevels greyLevels(const cv::Mat& grey, const cv::Mat& tissueMask);
+
+/// Thin dark lines in tissue: pixels of `grey` (CV_32F, tissue bright, the whole section or a
+/// part) lightly blurred (0.7 px) below params.threadDarkness of the way from the glass to the
+/// tissue level, in a valley (black top-hat, 5 px disc) at least params.threadDepth of that
+/// span deep. A crack narrower than a pixel is such a line; dim tissue and its edge against
+/// bright tissue are not. CV_8U.
+cv::Mat darkValleys(const cv::Mat& grey, GreyLevels levels, const DamageParams& params);
 
 /// The part of each pixel of `labels` (CV_32S atlas ids): 1 + the index of the group in `parts`
 /// holding its id, 0 for ids in none. CV_8U.
@@ -120,12 +143,26 @@ bool betweenParts(const cv::Mat& region, const cv::Mat& parts, int ringPx, doubl
 /// detached fragments. Returns their mask (empty image when there are none).
 cv::Mat extraPieces(const cv::Mat& tissueMask, const cv::Mat& atlasMask, double minShare = 0.02);
 
+/// The thin threads of a gap mask that an opening removed (`rawGaps` without `openedGaps`, both
+/// CV_8U, same size; rawGaps may hold dark lines too), labelled 8-connected as by
+/// cv::connectedComponentsWithStats.
+struct GapThreads {
+    cv::Mat labels; ///< CV_32S
+    cv::Mat stats;  ///< CC_STAT_* per label
+};
+GapThreads gapThreads(const cv::Mat& rawGaps, const cv::Mat& openedGaps);
+
+/// The length (longest side of the smallest rotated rectangle) of a gap `region` (CV_8U) with
+/// the threads touching it: a crack's tapering end, which the opening cut off, counts.
+double crackLength(const cv::Mat& region, const GapThreads& threads);
+
 /// The pieces (8-connected) of `pieces` (CV_8U) with at least `share` of their area inside
 /// `region` (CV_8U, same size).
 cv::Mat piecesInside(const cv::Mat& pieces, const cv::Mat& region, double share);
 
 /// The documented decision: damaged when the regions together cover at least damagedShare of the
-/// tissue, or one tear is at least deepTearFrac of the brain width long.
+/// tissue, or one tear is a crack at least deepTearFrac of the brain width long and at least
+/// crackElongation times longer than its thickest width (DamageRegion::thicknessPx).
 bool isDamaged(const std::vector<DamageRegion>& regions, double brainWidthPx,
                const DamageParams& params);
 
