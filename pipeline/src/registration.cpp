@@ -234,16 +234,14 @@ void Registration::atlasMaps(cv::Size size, cv::Mat& mapX, cv::Mat& mapY) const 
     const bool hasWarp = !warp.empty();
     cv::Mat fx, fy;
     if (hasWarp) {
-        // Field nodes sit at multiples of cellPx; resample to every working pixel.
-        cv::Mat mx(ws, CV_32F), my(ws, CV_32F);
-        const float inv = float(1.0 / warp.cellPx());
-        for (int y = 0; y < ws.height; ++y)
-            for (int x = 0; x < ws.width; ++x) {
-                mx.at<float>(y, x) = x * inv;
-                my.at<float>(y, x) = y * inv;
-            }
-        cv::remap(warp.dx(), fx, mx, my, cv::INTER_LINEAR, cv::BORDER_REPLICATE);
-        cv::remap(warp.dy(), fy, mx, my, cv::INTER_LINEAR, cv::BORDER_REPLICATE);
+        // Field nodes sit at multiples of cellPx; resample to every working pixel (pixel (x, y)
+        // reads the field at (x, y) / cellPx).
+        const double inv = 1.0 / warp.cellPx();
+        const cv::Matx23d toNodes(inv, 0, 0, 0, inv, 0);
+        cv::warpAffine(warp.dx(), fx, toNodes, ws, cv::INTER_LINEAR | cv::WARP_INVERSE_MAP,
+                       cv::BORDER_REPLICATE);
+        cv::warpAffine(warp.dy(), fy, toNodes, ws, cv::INTER_LINEAR | cv::WARP_INVERSE_MAP,
+                       cv::BORDER_REPLICATE);
     }
     const cv::Matx23d& t = atlasFromWorking;
     for (int y = 0; y < ws.height; ++y) {
@@ -252,9 +250,13 @@ void Registration::atlasMaps(cv::Size size, cv::Mat& mapX, cv::Mat& mapY) const 
         for (int x = 0; x < ws.width; ++x) {
             ox[x] = float(t(0, 0) * x + t(0, 1) * y + t(0, 2));
             oy[x] = float(t(1, 0) * x + t(1, 1) * y + t(1, 2));
-            if (hasWarp) {
-                ox[x] += fx.at<float>(y, x);
-                oy[x] += fy.at<float>(y, x);
+        }
+        if (hasWarp) {
+            const float* px = fx.ptr<float>(y);
+            const float* py = fy.ptr<float>(y);
+            for (int x = 0; x < ws.width; ++x) {
+                ox[x] += px[x];
+                oy[x] += py[x];
             }
         }
     }
