@@ -1,6 +1,7 @@
 #include "slicestation/pipeline/damage.hpp"
 
 #include "slicestation/pipeline/affine.hpp"
+#include "slicestation/pipeline/mask_ops.hpp"
 #include "slicestation/pipeline/medial_axis.hpp"
 #include "slicestation/pipeline/point_grid.hpp"
 
@@ -146,17 +147,7 @@ GreyLevels greyLevels(const cv::Mat& grey, const cv::Mat& tissueMask) {
     const auto tissuePx = static_cast<size_t>(cv::countNonZero(tissueMask));
     if (tissuePx == 0 || tissuePx == tissueMask.total()) return out;
     out.glass = static_cast<float>(cv::mean(grey, ~tissueMask)[0]);
-    // The median on every other pixel.
-    std::vector<float> values;
-    for (int y = 0; y < grey.rows; y += 2) {
-        const float* g = grey.ptr<float>(y);
-        const std::uint8_t* t = tissueMask.ptr<std::uint8_t>(y);
-        for (int x = 0; x < grey.cols; x += 2)
-            if (t[x]) values.push_back(g[x]);
-    }
-    if (values.empty()) return out;
-    std::nth_element(values.begin(), values.begin() + values.size() / 2, values.end());
-    out.tissue = values[values.size() / 2];
+    out.tissue = percentile(grey, 0.5, tissueMask);
     return out;
 }
 
@@ -191,8 +182,7 @@ double crackLength(const cv::Mat& region, const GapThreads& threads) {
     cv::findNonZero(region, piece);
     if (piece.empty()) return 0;
     // The threads touching the region (8-connected: within one pixel of it).
-    const cv::Rect box = (cv::boundingRect(piece) + cv::Size(2, 2) - cv::Point(1, 1)) &
-                         cv::Rect(0, 0, region.cols, region.rows);
+    const cv::Rect box = grown(cv::boundingRect(piece), 1, region.size());
     cv::Mat near;
     cv::dilate(region(box), near, cv::Mat());
     std::vector<int> touching;
@@ -395,9 +385,7 @@ bool betweenParts(const cv::Mat& region, const cv::Mat& parts, int ringPx, doubl
     const double cx = m.m10 / m.m00, cy = m.m01 / m.m00;
     const double angle = 0.5 * std::atan2(2 * m.mu11, m.mu20 - m.mu02);
     const double nx = -std::sin(angle), ny = std::cos(angle);
-    const cv::Rect box = cv::boundingRect(region) + cv::Size(2 * ringPx, 2 * ringPx) -
-                         cv::Point(ringPx, ringPx);
-    const cv::Rect roi = box & cv::Rect(0, 0, region.cols, region.rows);
+    const cv::Rect roi = grown(cv::boundingRect(region), ringPx, region.size());
     cv::Mat ring;
     cv::dilate(region(roi), ring,
                cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * ringPx + 1, 2 * ringPx + 1)));

@@ -16,23 +16,6 @@ namespace {
 using core::ErrorCode;
 using core::makeError;
 
-float percentile(const cv::Mat& f32, double q, const cv::Mat& valid) {
-    std::vector<float> v;
-    v.reserve(f32.total());
-    // A strided sample is plenty for a percentile and keeps this cheap on large images.
-    const int step = std::max(1, static_cast<int>(std::sqrt(f32.total() / 250000.0)));
-    for (int y = 0; y < f32.rows; y += step) {
-        const float* row = f32.ptr<float>(y);
-        const uchar* ok = valid.ptr<uchar>(y);
-        for (int x = 0; x < f32.cols; x += step)
-            if (ok[x]) v.push_back(row[x]);
-    }
-    if (v.empty()) return 0.0f;
-    auto k = static_cast<size_t>(std::clamp(q, 0.0, 1.0) * static_cast<double>(v.size() - 1));
-    std::nth_element(v.begin(), v.begin() + static_cast<std::ptrdiff_t>(k), v.end());
-    return v[k];
-}
-
 /// Median of the outer ring of the image: the glass, on any sensibly framed capture.
 /// Median of the valid pixels nearest the image border: the glass, on any sensibly framed
 /// capture. The ring is found on the valid area's bounding box so zero padding is skipped.

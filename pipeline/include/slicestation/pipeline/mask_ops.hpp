@@ -13,4 +13,8 @@ cv::Mat fillHoles(const cv::Mat& mask);
 /// Every pixel of every outer contour, as points.
 std::vector<cv::Point2f> outerContourPoints(const cv::Mat& mask);
 
+/// The q-quantile (0..1) of the values of `f32` (CV_32F) where `valid` (CV_8U, same size) is
+/// set, on a strided sample of about 250,000 pixels; 0 when none is set.
+float percentile(const cv::Mat& f32, double q, const cv::Mat& valid);
+
 } // namespace slicestation::pipeline
