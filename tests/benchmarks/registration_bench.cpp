@@ -77,6 +77,13 @@ void printTable(const std::vector<Row>& rows) {
     std::printf("(errors in atlas pixels; gross = max landmark error over 25 px or no result)\n");
 }
 
+/// Fills `polygon` (pixel coordinates, rounded) into `mask` with 255.
+void fillPolygon(cv::Mat& mask, const std::vector<cv::Point2f>& polygon) {
+    std::vector<cv::Point> rounded;
+    for (const cv::Point2f& p : polygon) rounded.emplace_back(cvRound(p.x), cvRound(p.y));
+    cv::fillPoly(mask, std::vector<std::vector<cv::Point>>{rounded}, cv::Scalar(255));
+}
+
 /// The decision rule (pipeline::isDamaged, default parameters) applied to the true damage:
 /// each removed region's share of the tissue, its length against the tissue's width and its
 /// thickness (twice the largest inscribed radius).
@@ -101,9 +108,7 @@ bool damagedByRule(const sim::GroundTruth& truth) {
         const cv::RotatedRect rb = cv::minAreaRect(t.polygon);
         r.lengthPx = std::max(rb.size.width, rb.size.height);
         cv::Mat region = cv::Mat::zeros(truth.tissueMask.size(), CV_8U), dist;
-        std::vector<cv::Point> outline;
-        for (const cv::Point2f& q : t.polygon) outline.emplace_back(cvRound(q.x), cvRound(q.y));
-        cv::fillPoly(region, std::vector<std::vector<cv::Point>>{outline}, cv::Scalar(255));
+        fillPolygon(region, t.polygon);
         cv::distanceTransform(region, dist, cv::DIST_L2, 3);
         double radius = 0;
         cv::minMaxLoc(dist, nullptr, &radius);
@@ -274,18 +279,14 @@ int main(int argc, char** argv) {
                 if (name.rfind("damage", 0) == 0) d.ms += ms;
             cv::Mat reported = cv::Mat::zeros(gen->image.size(), CV_8U);
             for (const auto& r : reg->damage) {
-                std::vector<cv::Point> poly;
-                for (const auto& p : r.polygon) poly.emplace_back(cvRound(p.x), cvRound(p.y));
-                cv::fillPoly(reported, std::vector<std::vector<cv::Point>>{poly}, cv::Scalar(255));
+                fillPolygon(reported, r.polygon);
                 d.kinds += std::string(d.kinds.empty() ? "" : ",") +
                            std::string(pipeline::toString(r.kind));
             }
             d.truthByRule = d.truth && damagedByRule(gen->truth);
             for (const auto& t : gen->truth.damage) {
                 cv::Mat truthMask = cv::Mat::zeros(gen->image.size(), CV_8U);
-                std::vector<cv::Point> poly;
-                for (const auto& p : t.polygon) poly.emplace_back(cvRound(p.x), cvRound(p.y));
-                cv::fillPoly(truthMask, std::vector<std::vector<cv::Point>>{poly}, cv::Scalar(255));
+                fillPolygon(truthMask, t.polygon);
                 const int area = std::max(1, cv::countNonZero(truthMask));
                 ++d.trueRegions;
                 if (cv::countNonZero(truthMask & reported) >= 0.1 * area) ++d.overlapped;
