@@ -5,6 +5,7 @@
 #include "slicestation/core/ontology.hpp"
 #include "slicestation/pipeline/atlas.hpp"
 #include "slicestation/pipeline/atlas_slicing.hpp"
+#include "slicestation/pipeline/mask_ops.hpp"
 #include "slicestation/pipeline/registration.hpp"
 #include "slicestation/sim/builtin_atlas.hpp"
 #include "slicestation/sim/section_generator.hpp"
@@ -47,10 +48,20 @@ Score registerAndScore(const cv::Mat& atlas, const sim::GeneratorOptions& o,
     return s;
 }
 
+/// The Allen ontology and the 50 um annotation, each read once for the whole test program.
+const core::Result<core::Ontology>& ontology() {
+    static const auto onto = core::readOntologyCsv(kAtlasDir / "structure_tree_safe_2017.csv");
+    return onto;
+}
+const core::Result<core::Volume>& annotation50() {
+    static const auto vol = core::readNrrd(kAtlasDir / "annotation_50.nrrd");
+    return vol;
+}
+
 /// The real Allen plane (QuickNII 25 um volume), collapsed to the paper's major regions.
 cv::Mat realPlane(int ap25) {
-    static auto vol = core::readNrrd(kAtlasDir / "annotation_25_quicknii.nrrd");
-    static auto onto = core::readOntologyCsv(kAtlasDir / "structure_tree_safe_2017.csv");
+    static const auto vol = core::readNrrd(kAtlasDir / "annotation_25_quicknii.nrrd");
+    const auto& onto = ontology();
     if (!vol || !onto) return {};
     auto p = pipeline::coronalPlane(*vol, pipeline::VolumeAxes::QuickNii, ap25);
     if (!p) return {};
@@ -67,8 +78,8 @@ struct RealRegistration {
     pipeline::Registration reg;
 };
 RealRegistration registerRealSection(const std::string& name, double positionUm) {
-    static auto vol = core::readNrrd(kAtlasDir / "annotation_50.nrrd");
-    static auto onto = core::readOntologyCsv(kAtlasDir / "structure_tree_safe_2017.csv");
+    const auto& vol = annotation50();
+    const auto& onto = ontology();
     EXPECT_TRUE(vol.ok() && onto.ok());
     if (!vol || !onto) return {};
     auto img = core::readImage(kSeriesDir / name);
@@ -332,11 +343,7 @@ TEST(RegistrationAccuracy, RealSectionsFarFromTheirPlanesShapeGetTheOutlinePulle
         ASSERT_FALSE(labels.empty()) << name;
         // Overlap of the whole map (affine and warp): the mapped atlas brain against the tissue
         // with its holes filled.
-        std::vector<std::vector<cv::Point>> outer;
-        cv::findContours(reg.workingTissueMask.clone(), outer, cv::RETR_EXTERNAL,
-                         cv::CHAIN_APPROX_NONE);
-        cv::Mat tissue = cv::Mat::zeros(reg.workingTissueMask.size(), CV_8U);
-        cv::drawContours(tissue, outer, -1, cv::Scalar(255), cv::FILLED);
+        const cv::Mat tissue = pipeline::fillHoles(reg.workingTissueMask);
         const cv::Mat brain = reg.warpedLabels(labels, tissue.size()) != 0;
         const double iou = cv::countNonZero(tissue & brain) / double(cv::countNonZero(tissue | brain));
         EXPECT_GT(iou, 0.9) << name;
@@ -351,8 +358,8 @@ TEST(RegistrationAccuracy, RealSection12MatchesItsAtlasPlane) {
         GTEST_SKIP() << "../shared is absent: real section not tested";
     auto img = core::readImage(section);
     ASSERT_TRUE(img.ok()) << img.error().message;
-    auto vol = core::readNrrd(kAtlasDir / "annotation_50.nrrd");
-    auto onto = core::readOntologyCsv(kAtlasDir / "structure_tree_safe_2017.csv");
+    const auto& vol = annotation50();
+    const auto& onto = ontology();
     ASSERT_TRUE(vol.ok() && onto.ok());
     double best = 0;
     for (int ap = 124; ap <= 136; ap += 3) {
