@@ -246,10 +246,7 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const AtlasExp
         }
         return crackLength(labels(roi) == id, gapThreads(thin, deficit(roi)));
     };
-    std::vector<std::vector<cv::Point>> outer;
-    cv::findContours(tissueMask.clone(), outer, cv::RETR_EXTERNAL, cv::CHAIN_APPROX_SIMPLE);
-    cv::Mat outside(tissueMask.size(), CV_8U, cv::Scalar(255));
-    cv::drawContours(outside, outer, -1, cv::Scalar(0), cv::FILLED);
+    const cv::Mat outside = ~fillHoles(tissueMask);
     // The parts where the section has tissue: a fissure opened has tissue on both sides.
     cv::Mat tissueParts;
     if (!expected.parts.empty()) {
