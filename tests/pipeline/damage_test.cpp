@@ -188,7 +188,7 @@ TEST(Damage, ADeepTearMustBeACrackNotAHole) {
     crack.thicknessPx = 10;
     EXPECT_TRUE(isDamaged({crack}, 500, DamageParams{}));
     DamageRegion hole = crack;
-    hole.thicknessPx = 24; // 2.5 times shorter than long, under crackElongation 3
+    hole.thicknessPx = 24; // only 2.5 times longer than thick, under crackElongation 3
     EXPECT_FALSE(isDamaged({hole}, 500, DamageParams{}));
     hole.share = 0.009;
     EXPECT_TRUE(isDamaged({hole}, 500, DamageParams{}));
