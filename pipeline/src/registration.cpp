@@ -468,6 +468,8 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     }
     reg.atlasFromWorking = affine.targetFromSource;
     reg.quality.residualAffine = affine.rmsResidual;
+    // Through the affine alone: the warp leaves it as it is. It also decides the outline pull.
+    reg.quality.tissueOverlap = overlap(tissueFilled, atlasMask, reg.atlasFromWorking);
     reg.stageAffines.emplace_back("icp", reg.atlasFromWorking);
     timer.lap("icp");
 
@@ -486,8 +488,7 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         // edge pair reaches, and the misfit reads as missing tissue. Then the tissue outline
         // (outside the damaged concavities) is also paired with the atlas outline, one boundary
         // each, so further away than edges among edges.
-        const bool pullOutline =
-            overlap(tissueFilled, atlasMask, reg.atlasFromWorking) < options.outlinePullBelowOverlap;
+        const bool pullOutline = reg.quality.tissueOverlap < options.outlinePullBelowOverlap;
         EdgePoints outline;
         for (size_t i = 0; pullOutline && i < imgOuter.size(); ++i) {
             const cv::Point p(std::clamp(cvRound(imgOuter.points[i].x), 0, mei.cols - 1),
@@ -522,7 +523,6 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     const PointGrid mappedGrid(mp, float(finalDist));
     reg.quality.atlasBoundaryMatched = shareMatched(reg.atlasEdges.points, mappedGrid, atlasH / 80);
     reg.quality.sectionEdgesMatched = shareMatched(mp, atlasGrid, atlasH / 80);
-    reg.quality.tissueOverlap = overlap(tissueFilled, atlasMask, reg.atlasFromWorking);
     reg.quality.scaleAtlasPxPerImagePx = std::sqrt(std::abs(det(reg.affineAtlasFromImage())));
     timer.lap("quality");
 
