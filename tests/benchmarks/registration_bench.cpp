@@ -7,6 +7,7 @@
 #include "slicestation/core/nrrd.hpp"
 #include "slicestation/pipeline/atlas.hpp"
 #include "slicestation/pipeline/damage.hpp"
+#include "slicestation/pipeline/mask_ops.hpp"
 #include "slicestation/pipeline/overlay.hpp"
 #include "slicestation/pipeline/preprocess.hpp"
 #include "slicestation/pipeline/registration.hpp"
@@ -88,10 +89,7 @@ void fillPolygon(cv::Mat& mask, const std::vector<cv::Point2f>& polygon) {
 /// each removed region's share of the tissue, its length against the tissue's width and its
 /// thickness (twice the largest inscribed radius).
 bool damagedByRule(const sim::GroundTruth& truth) {
-    std::vector<std::vector<cv::Point>> outer;
-    cv::findContours(truth.tissueMask.clone(), outer, cv::RETR_EXTERNAL, cv::CHAIN_APPROX_NONE);
-    std::vector<cv::Point> all;
-    for (const auto& c : outer) all.insert(all.end(), c.begin(), c.end());
+    const std::vector<cv::Point2f> all = pipeline::outerContourPoints(truth.tissueMask);
     if (all.empty()) return false;
     const cv::RotatedRect box = cv::minAreaRect(all);
     const double width = std::max(box.size.width, box.size.height);
