@@ -1,10 +1,24 @@
 #!/usr/bin/env bash
-# Installs what is needed, builds, and runs every test (all labels).
+# Installs what is needed, builds, and runs every test (all labels), twice:
+#   build/        the release build (gcc), every test;
+#   build-check/  the checking build (clang, ASan + UBSan on everything), every test again, and
+#                 each fuzz target (label fuzz) replaying its corpus and fuzzing for
+#                 SLST_FUZZ_SECONDS (default 30).
+# SLST_TEST_CHECKING=0 skips the checking build (a quick local run; CI always runs it).
 set -euo pipefail
 here=$(cd "$(dirname "$0")/.." && pwd)
 bash "$here/scripts/build.sh"
 if [ ! -d "$here/../shared" ]; then
     echo "note: ../shared is absent; tests that need the real atlas and sections will skip" >&2
 fi
-cd "$here/build"
-ctest --output-on-failure -j "$(nproc)" --timeout 900
+(cd "$here/build" && ctest --output-on-failure -j "$(nproc)" --timeout 900)
+if [ "${SLST_TEST_CHECKING:-1}" = "0" ]; then
+    echo "note: SLST_TEST_CHECKING=0: the sanitizer build and the fuzz targets did not run" >&2
+    exit 0
+fi
+bash "$here/scripts/build-checking.sh"
+export ASAN_OPTIONS="detect_leaks=1:strict_string_checks=1:check_initialization_order=1:detect_stack_use_after_return=1"
+export LSAN_OPTIONS="suppressions=$here/tests/sanitizer/lsan.supp:print_suppressions=0"
+export UBSAN_OPTIONS="print_stacktrace=1:halt_on_error=1:suppressions=$here/tests/sanitizer/ubsan.supp"
+cd "$here/build-check"
+ctest --output-on-failure -j "$(nproc)" --timeout 1800

@@ -390,7 +390,8 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
             sweep.emplace_back(scorer(rotatedPlacement(imgBox, atlBox, deg, scaleGuess)), deg);
         std::sort(sweep.rbegin(), sweep.rend());
         std::vector<int> picked;
-        for (const auto& [score, deg] : sweep) {
+        for (const auto& candidate : sweep) {
+            const int deg = candidate.second; // a plain local: clang 14 cannot capture a structured binding
             const bool apart = std::all_of(picked.begin(), picked.end(), [&](int other) {
                 const int d = std::abs(deg - other) % 360;
                 return std::min(d, 360 - d) >= 45;
