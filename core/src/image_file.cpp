@@ -25,6 +25,7 @@
 #include <memory>
 #include <mutex>
 #include <new>
+#include <optional>
 #include <string>
 #include <utility>
 #include <vector>
@@ -271,6 +272,60 @@ Result<void> readTiles(TIFF* tif, const TiffFile& file, const std::string& where
     return {};
 }
 
+std::string megabytes(std::uint64_t bytes) {
+    return std::to_string((bytes + (1u << 20) - 1) >> 20) + " MiB";
+}
+
+/// Refuses an image whose decoded size exceeds kMaxImagePixels or kMaxImageBytes.
+Result<void> checkImageSize(const std::string& where, std::uint64_t width, std::uint64_t height,
+                            int channels, int sampleBytes) {
+    const std::uint64_t pixels = width * height; // both < 2^32: no overflow
+    const std::uint64_t bytes =
+        pixels * static_cast<std::uint64_t>(channels) * static_cast<std::uint64_t>(sampleBytes);
+    if (pixels > kMaxImagePixels || bytes > kMaxImageBytes) {
+        return makeError(ErrorCode::Unsupported,
+                         where + ": image of " + std::to_string(width) + " x " +
+                             std::to_string(height) + " px, " + std::to_string(channels) +
+                             " channel(s) of " + std::to_string(8 * sampleBytes) + " bits (" +
+                             megabytes(bytes) + ") exceeds the limit of " +
+                             std::to_string(kMaxImagePixels) + " px and " +
+                             megabytes(kMaxImageBytes));
+    }
+    return {};
+}
+
+/// Refuses strips or tiles whose decoded buffer would exceed kMaxImageBytes (a TIFF may
+/// declare thousands of samples per pixel or tiles far larger than the image).
+Result<void> checkBlockSize(TIFF* tif, const std::string& where, std::uint64_t width,
+                            std::uint64_t height, const TiffLayout& layout) {
+    std::uint64_t blockWidth = width;
+    std::uint64_t blockHeight = height;
+    if (TIFFIsTiled(tif) != 0) {
+        std::uint32_t tileWidth = 0;
+        std::uint32_t tileHeight = 0;
+        TIFFGetField(tif, TIFFTAG_TILEWIDTH, &tileWidth);
+        TIFFGetField(tif, TIFFTAG_TILELENGTH, &tileHeight);
+        blockWidth = tileWidth;
+        blockHeight = tileHeight;
+    } else {
+        std::uint32_t rowsPerStrip = 0;
+        TIFFGetFieldDefaulted(tif, TIFFTAG_ROWSPERSTRIP, &rowsPerStrip);
+        blockHeight = rowsPerStrip == 0 ? height : std::min<std::uint64_t>(rowsPerStrip, height);
+    }
+    const std::uint64_t bytes = blockWidth * blockHeight *
+                                static_cast<std::uint64_t>(layout.blockSamples) *
+                                static_cast<std::uint64_t>(layout.sampleBytes);
+    if (bytes > kMaxImageBytes) {
+        return makeError(ErrorCode::Unsupported,
+                         where + ": one strip or tile of " + std::to_string(blockWidth) + " x " +
+                             std::to_string(blockHeight) + " px and " +
+                             std::to_string(layout.blockSamples) + " samples (" +
+                             megabytes(bytes) + ") exceeds the limit of " +
+                             megabytes(kMaxImageBytes));
+    }
+    return {};
+}
+
 /// Reads the current directory (page) of `tif`.
 Result<cv::Mat> readPage(TIFF* tif, const TiffFile& file, const std::string& where) {
     std::uint32_t width = 0;
@@ -342,6 +397,15 @@ Result<cv::Mat> readPage(TIFF* tif, const TiffFile& file, const std::string& whe
     layout.swapRedBlue = photometric == PHOTOMETRIC_RGB && layout.channels >= 3;
     const int planes = separate ? layout.channels : 1; // planes beyond the 4th are not read
 
+    // Bounded from the header, before anything is allocated or decoded: a few kilobytes of
+    // deflate can claim gigapixels.
+    if (auto fits = checkImageSize(where, width, height, layout.channels, layout.sampleBytes);
+        !fits) {
+        return fits.error();
+    }
+    if (auto fits = checkBlockSize(tif, where, width, height, layout); !fits) {
+        return fits.error();
+    }
     cv::Mat image(static_cast<int>(height), static_cast<int>(width),
                   CV_MAKETYPE(depth, layout.channels));
     const Result<void> read = TIFFIsTiled(tif) != 0
@@ -399,8 +463,15 @@ Result<cv::Mat> readTiff(const fs::path& path) {
         return first; // an ordinary (multi-page) TIFF: the first page
     }
     // ImageJ hyperstack: pages 0..C-1 are the channels of the first slice and frame.
+    const int pages = std::min(channels, 4);
+    if (auto fits = checkImageSize(where, static_cast<std::uint64_t>(first->cols),
+                                   static_cast<std::uint64_t>(first->rows), pages,
+                                   static_cast<int>(first->elemSize1()));
+        !fits) {
+        return fits.error();
+    }
     std::vector<cv::Mat> planes{std::move(first.value())};
-    for (int c = 1; c < std::min(channels, 4); ++c) {
+    for (int c = 1; c < pages; ++c) {
         if (TIFFReadDirectory(tif) != 1) {
             return makeError(ErrorCode::IoError, where + ": ImageJ description declares " +
                                                      std::to_string(channels) +
@@ -423,7 +494,48 @@ Result<cv::Mat> readTiff(const fs::path& path) {
     return image;
 }
 
+/// Width and height from a PNG's IHDR chunk (PNG spec, section 11.2.2), with the bytes a pixel
+/// decodes to; nullopt when `path` is not a PNG.
+struct PngHeader {
+    std::uint64_t width = 0, height = 0;
+    int channels = 1, sampleBytes = 1;
+};
+
+std::optional<PngHeader> readPngHeader(const fs::path& path) {
+    std::array<unsigned char, 26> h{};
+    std::ifstream in(path, std::ios::binary);
+    in.read(reinterpret_cast<char*>(h.data()), static_cast<std::streamsize>(h.size()));
+    static constexpr std::array<unsigned char, 8> kSignature{0x89, 'P', 'N', 'G', '\r', '\n', 0x1A, '\n'};
+    if (in.gcount() != static_cast<std::streamsize>(h.size()) ||
+        !std::equal(kSignature.begin(), kSignature.end(), h.begin()) ||
+        std::memcmp(h.data() + 12, "IHDR", 4) != 0) {
+        return std::nullopt;
+    }
+    const auto be32 = [&](std::size_t at) {
+        return (std::uint64_t{h[at]} << 24) | (std::uint64_t{h[at + 1]} << 16) |
+               (std::uint64_t{h[at + 2]} << 8) | std::uint64_t{h[at + 3]};
+    };
+    PngHeader png;
+    png.width = be32(16);
+    png.height = be32(20);
+    const int bitDepth = h[24];
+    const int colourType = h[25];
+    png.sampleBytes = bitDepth > 8 ? 2 : 1;
+    // 0 grey, 2 RGB, 3 palette (decoded to BGR), 4 grey + alpha, 6 RGBA.
+    png.channels = colourType == 2 || colourType == 3 ? 3 : colourType == 4 ? 2 : colourType == 6 ? 4 : 1;
+    return png;
+}
+
 Result<cv::Mat> readWithOpenCv(const fs::path& path) {
+    // OpenCV itself refuses more than 2^30 px (OPENCV_IO_MAX_IMAGE_PIXELS) for every format;
+    // PNG, the one other format sections come in, is checked against our own limits first.
+    if (const auto png = readPngHeader(path)) {
+        if (auto fits = checkImageSize("PNG " + quoted(path), png->width, png->height,
+                                       png->channels, png->sampleBytes);
+            !fits) {
+            return fits.error();
+        }
+    }
     cv::Mat image = cv::imread(path.string(), cv::IMREAD_UNCHANGED);
     if (image.empty()) {
         return makeError(ErrorCode::IoError, "cannot decode image " + quoted(path) +
@@ -695,10 +807,20 @@ Result<cv::Mat> readImage(const std::filesystem::path& path) {
         return makeError(ErrorCode::IoError, "image file " + quoted(path) + " is empty");
     }
     try {
-        if (magicBytes == 4 && hasTiffMagic(magic)) {
-            return readTiff(path);
+        auto image = magicBytes == 4 && hasTiffMagic(magic) ? readTiff(path) : readWithOpenCv(path);
+        if (image && image->depth() == CV_32F) {
+            // NaN and infinity are no intensity: every threshold and mean downstream would turn
+            // into nonsense without an error.
+            cv::Point where;
+            if (!cv::checkRange(image->reshape(1), true, &where)) {
+                return makeError(ErrorCode::InvalidArgument,
+                                 "image " + quoted(path) + ": NaN or infinite pixel at x=" +
+                                     std::to_string(where.x / image->channels()) +
+                                     ", y=" + std::to_string(where.y) +
+                                     " (float images must hold finite values)");
+            }
         }
-        return readWithOpenCv(path);
+        return image;
     } catch (const std::bad_alloc&) {
         return makeError(ErrorCode::IoError, "image " + quoted(path) + " is too large to load");
     } catch (const cv::Exception& e) {

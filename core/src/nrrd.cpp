@@ -30,8 +30,16 @@ namespace {
 
 namespace fs = std::filesystem;
 
-/// Largest volume accepted, in voxels (the 10 um Allen annotation has 1.2e9).
-constexpr std::uint64_t kMaxVoxels = std::uint64_t{1} << 32;
+/// Largest volume accepted, in voxels: kMaxVolumeBytes of uint32 voxels.
+constexpr std::uint64_t kMaxVoxels = kMaxVolumeBytes / sizeof(std::uint32_t);
+/// Largest file read: a raw volume at the limit plus a generous header.
+constexpr std::uint64_t kMaxFileBytes = kMaxVolumeBytes + (std::uint64_t{1} << 20);
+/// Deflate expands at most 1032:1 (zlib's "technical details": a run of identical bytes is
+/// coded at best as 258 bytes per 2 bits); gzip data shorter than that can not hold the volume.
+constexpr std::uint64_t kMaxDeflateRatio = 1032;
+/// Voxel sizes accepted from "space directions" / "spacings", micrometres.
+constexpr double kMinSpacingUm = 1e-3;
+constexpr double kMaxSpacingUm = 1e6;
 
 struct Field {
     std::string value;
@@ -200,6 +208,13 @@ private:
         if (fs::is_directory(status)) {
             return makeError(ErrorCode::IoError, where() + " is a directory");
         }
+        const std::uintmax_t fileBytes = fs::file_size(path_, ec);
+        if (!ec && fileBytes > kMaxFileBytes) {
+            return makeError(ErrorCode::Unsupported,
+                             where() + ": file of " + std::to_string(fileBytes) +
+                                 " bytes exceeds the limit of " + std::to_string(kMaxFileBytes) +
+                                 " bytes for a volume");
+        }
         std::ifstream in(path_, std::ios::binary);
         if (!in.is_open()) {
             const int err = errno;
@@ -317,13 +332,25 @@ private:
             if (count == 0) {
                 return bad("empty vector");
             }
-            spacing[axis++] = std::sqrt(squares);
+            const double length = std::sqrt(squares);
+            if (!std::isfinite(length) || length > kMaxSpacingUm ||
+                (length > 0 && length < kMinSpacingUm)) {
+                return bad("vector length " + std::to_string(length) + " is outside " +
+                           spacingRange());
+            }
+            spacing[axis++] = length;
             pos = close + 1;
         }
         if (axis != 3) {
             return bad("expected 3 vectors, got " + std::to_string(axis));
         }
         return spacing;
+    }
+
+    static std::string spacingRange() {
+        std::ostringstream os;
+        os << "[" << kMinSpacingUm << ", " << kMaxSpacingUm << "] um";
+        return os.str();
     }
 
     Result<std::array<double, 3>> parseSpacings(const std::string& text) const {
@@ -340,12 +367,27 @@ private:
                                   "'" + words[i] + "' is not a number");
             }
             spacing[i] = std::isfinite(*value) ? std::abs(*value) : 0.0; // "nan": unknown
+            if (spacing[i] > kMaxSpacingUm || (spacing[i] > 0 && spacing[i] < kMinSpacingUm)) {
+                return fieldError(ErrorCode::InvalidArgument, "spacings",
+                                  "'" + words[i] + "' is outside " + spacingRange());
+            }
         }
         return spacing;
     }
 
     Result<std::vector<std::uint8_t>> inflateData(std::size_t expectedBytes) const {
-        std::vector<std::uint8_t> out(expectedBytes);
+        const std::size_t compressedBytes = content_.size() - header_.dataOffset;
+        // gzip and zlib wrappers add at most a few dozen bytes; 64 more covers both.
+        if (expectedBytes / kMaxDeflateRatio > compressedBytes + 64) {
+            return makeError(ErrorCode::IoError,
+                             where() + ": gzip data of " + std::to_string(compressedBytes) +
+                                 " bytes cannot hold the " + std::to_string(expectedBytes) +
+                                 " bytes that 'sizes' and 'type' call for (truncated file or "
+                                 "wrong sizes)");
+        }
+        // Grown as data arrives, so that a stream ending early never cost the full size.
+        constexpr std::size_t kFirstChunk = std::size_t{16} << 20;
+        std::vector<std::uint8_t> out(std::min(expectedBytes, kFirstChunk));
         z_stream stream{};
         // 15 + 32: accept gzip and zlib headers alike.
         if (inflateInit2(&stream, 15 + 32) != Z_OK) {
@@ -369,6 +411,9 @@ private:
                 stream.avail_in = chunk;
                 in += chunk;
                 inLeft -= chunk;
+            }
+            if (outDone == out.size() && out.size() < expectedBytes) {
+                out.resize(std::min(expectedBytes, 2 * out.size()));
             }
             const bool full = outDone == out.size();
             Bytef* target = full ? excess.data() : out.data() + outDone;
@@ -463,7 +508,10 @@ private:
             voxels *= static_cast<std::uint64_t>(*size); // <= 2^93 cannot happen: checked below
             if (voxels > kMaxVoxels) {
                 return fieldError(ErrorCode::Unsupported, "sizes",
-                                  "volume larger than " + std::to_string(kMaxVoxels) + " voxels");
+                                  "'" + *field("sizes") + "' is more than " +
+                                      std::to_string(kMaxVoxels) + " voxels (" +
+                                      std::to_string(kMaxVolumeBytes >> 20) +
+                                      " MiB as 32-bit labels), the limit for a volume");
             }
         }
         if (sizeWords.size() != 3) {

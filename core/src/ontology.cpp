@@ -47,6 +47,10 @@ bool Ontology::isDescendantOf(std::uint32_t id, std::uint32_t ancestorId) const 
 
 namespace {
 
+/// The Allen structure tree is 224 KB; 64 MiB leaves room for any ontology and keeps a wrong
+/// file (a volume given as --ontology) from being read whole into memory.
+constexpr std::uintmax_t kMaxOntologyBytes = std::uintmax_t{64} << 20;
+
 struct CsvRecord {
     int line = 0; ///< physical line on which the record starts, 1-based
     std::vector<std::string> fields;
@@ -197,6 +201,13 @@ private:
         if (!in.is_open() || std::filesystem::is_directory(status)) {
             const int err = errno;
             return makeError(ErrorCode::IoError, "cannot open " + where_, err);
+        }
+        const std::uintmax_t fileBytes = std::filesystem::file_size(path_, ec);
+        if (!ec && fileBytes > kMaxOntologyBytes) {
+            return makeError(ErrorCode::InvalidArgument,
+                             where_ + " has " + std::to_string(fileBytes) + " bytes, more than the " +
+                                 std::to_string(kMaxOntologyBytes >> 20) +
+                                 " MiB an ontology may hold");
         }
         std::ostringstream bytes;
         bytes << in.rdbuf();

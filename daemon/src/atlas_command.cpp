@@ -14,6 +14,8 @@
 #include <cmath>
 
 #include <set>
+#include <sstream>
+#include <tuple>
 
 namespace slicestation::daemon {
 
@@ -27,9 +29,25 @@ namespace {
 /// regions", so the brain keeps its outline where no major region claims a voxel.
 constexpr std::int32_t kOtherId = 8;
 
+
+/// InvalidArgument naming `option` unless `value` is finite and within [min, max].
+core::Result<void> checkRange(const char* option, double value, double min, double max) {
+    if (std::isfinite(value) && value >= min && value <= max) return {};
+    std::ostringstream os;
+    os << option << " " << value << " is not a finite number in [" << min << ", " << max << "]";
+    return makeError(ErrorCode::InvalidArgument, os.str());
+}
+
 } // namespace
 
 core::Result<json> runAtlasSlice(const AtlasSliceRequest& rq) {
+    for (const auto& [option, value, min, max] :
+         {std::tuple{"--interval-um", rq.intervalUm, kMinIntervalUm, kMaxIntervalUm},
+          std::tuple{"--first-um", rq.firstUm, -kMaxPositionUm, kMaxPositionUm},
+          std::tuple{"--tilt-lr-deg", rq.tiltLrDeg, -kMaxTiltDeg, kMaxTiltDeg},
+          std::tuple{"--tilt-dv-deg", rq.tiltDvDeg, -kMaxTiltDeg, kMaxTiltDeg},
+          std::tuple{"--um-per-px", rq.umPerPx, kMinSliceUmPerPx, kMaxUmPerPx}})
+        if (auto r = checkRange(option, value, min, max); !r) return r.error();
     if (rq.regions != "major" && rq.regions != "all")
         return makeError(ErrorCode::InvalidArgument,
                          "--regions must be major or all, not '" + rq.regions + "'");
@@ -169,8 +187,9 @@ core::Result<json> runAtlasMatch(const AtlasMatchRequest& rq) {
     using Clock = std::chrono::steady_clock;
     const auto t0 = Clock::now();
     if (rq.window < 0) return makeError(ErrorCode::InvalidArgument, "--window must be >= 0");
-    if (rq.imageUmPerPx < 0)
-        return makeError(ErrorCode::InvalidArgument, "--image-um-per-px must be positive");
+    if (rq.imageUmPerPx != 0)
+        if (auto r = checkRange("--image-um-per-px", rq.imageUmPerPx, kMinUmPerPx, kMaxUmPerPx); !r)
+            return r.error();
     auto stack = readStack(rq.stack);
     if (!stack) return stack.error();
     const int count = int(stack->slices.size());
@@ -187,8 +206,11 @@ core::Result<json> runAtlasMatch(const AtlasMatchRequest& rq) {
 
     pipeline::MatchOptions opt;
     if (rq.expectedIndex) {
-        opt.first = std::max(0, *rq.expectedIndex - rq.window);
-        opt.last = std::min(count - 1, *rq.expectedIndex + rq.window);
+        // A window wider than the stack searches all of it; bounded first, so that no sum
+        // overflows (expectedIndex < count).
+        const int window = std::min(rq.window, count);
+        opt.first = std::max(0, *rq.expectedIndex - window);
+        opt.last = std::min(count - 1, *rq.expectedIndex + window);
     }
     auto section = pipeline::sectionFeatures(*image, rq.imageUmPerPx, features->front().workUmPerPx);
     if (!section)

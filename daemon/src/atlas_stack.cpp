@@ -1,13 +1,18 @@
 #include "slicestation/daemon/atlas_stack.hpp"
 
 #include "slicestation/core/image_file.hpp"
+#include "slicestation/daemon/config_document.hpp"
 #include "slicestation/daemon/register_command.hpp"
 #include "slicestation/pipeline/atlas.hpp"
 #include "slicestation/sim/builtin_atlas.hpp"
 
 #include <algorithm>
+#include <cctype>
+#include <cerrno>
 #include <cmath>
+#include <cstdint>
 #include <cstdio>
+#include <limits>
 #include <fstream>
 #include <sstream>
 
@@ -21,30 +26,138 @@ namespace fs = std::filesystem;
 
 json vec(const cv::Vec3d& v) { return json::array({v[0], v[1], v[2]}); }
 
-/// Reads field `key` of `j` as T, or an error naming the manifest and the field.
-template <class T>
-core::Result<T> field(const json& j, const char* key, const fs::path& manifest,
-                      const std::string& where) {
-    const auto it = j.find(key);
-    if (it == j.end())
-        return makeError(ErrorCode::InvalidArgument,
-                         manifest.string() + ": " + where + " has no field '" + key + "'");
-    try {
-        return it->get<T>();
-    } catch (const json::exception&) {
-        return makeError(ErrorCode::InvalidArgument,
-                         manifest.string() + ": " + where + "." + key + " has the wrong type");
+/// Bounds of the manifest's fields: a hand-edited or damaged manifest must give a clear error,
+/// never an exception or a slice size nobody can allocate.
+constexpr std::uintmax_t kMaxManifestBytes = std::uintmax_t{64} << 20;
+constexpr double kMaxCoordinateUm = 1e7; ///< positions and frame vectors: 10 m
+constexpr std::int64_t kMaxSliceSidePx = 1 << 16;
+
+/// A 3-vector of finite numbers within +-kMaxCoordinateUm.
+core::Result<cv::Vec3d> vecField(const FieldReader& rd, const json& obj, const std::string& path,
+                                 const char* key) {
+    const std::string field = FieldReader::join(path, key);
+    if (!obj.contains(key)) return rd.bad(field, "missing");
+    const json& a = obj[key];
+    if (!a.is_array() || a.size() != 3) return rd.bad(field, "expected an array of 3 numbers");
+    cv::Vec3d v;
+    for (int i = 0; i < 3; ++i) {
+        // FieldReader reads object members; an array element is checked here alike.
+        const json& e = a[size_t(i)];
+        if (!e.is_number() || !std::isfinite(e.get<double>()) ||
+            std::abs(e.get<double>()) > kMaxCoordinateUm)
+            return rd.bad(field + "[" + std::to_string(i) + "]",
+                          "expected a finite number within +-1e7, got " + e.dump());
+        v[i] = e.get<double>();
     }
+    return v;
 }
 
-core::Result<cv::Vec3d> vecField(const json& j, const char* key, const fs::path& manifest,
-                                 const std::string& where) {
-    auto a = field<std::vector<double>>(j, key, manifest, where);
-    if (!a) return a.error();
-    if (a->size() != 3)
-        return makeError(ErrorCode::InvalidArgument,
-                         manifest.string() + ": " + where + "." + key + " must have 3 numbers");
-    return cv::Vec3d((*a)[0], (*a)[1], (*a)[2]);
+/// A slice file name: relative, inside the stack directory, a plain name.
+core::Result<std::string> sliceFile(const FieldReader& rd, const json& obj,
+                                    const std::string& path) {
+    auto file = rd.string(obj, path, "file", std::nullopt);
+    if (!file) return file.error();
+    const fs::path p(*file);
+    const bool plain = !file->empty() && file->size() <= 255 && p.is_relative() &&
+                       std::none_of(p.begin(), p.end(), [](const fs::path& part) {
+                           return part == ".." || part == ".";
+                       });
+    if (!plain)
+        return rd.bad(FieldReader::join(path, "file"),
+                      "'" + file->substr(0, 80) +
+                          "' is not a relative file name inside the stack directory");
+    return file;
+}
+
+core::Result<StackSlice> sliceEntry(const FieldReader& rd, const json& e, size_t i) {
+    const std::string where = "slices[" + std::to_string(i) + "]";
+    if (!e.is_object()) return rd.bad(where, "expected an object");
+    auto index = rd.integer(e, where, "index", std::nullopt, std::int64_t(i), std::int64_t(i));
+    if (!index) return index.error();
+    auto file = sliceFile(rd, e, where);
+    if (!file) return file.error();
+    auto pos = rd.number(e, where, "position_um", std::nullopt, -kMaxCoordinateUm,
+                         kMaxCoordinateUm);
+    if (!pos) return pos.error();
+    auto um = rd.number(e, where, "um_per_px", std::nullopt, kMinUmPerPx, kMaxUmPerPx);
+    if (!um) return um.error();
+    auto normal = vecField(rd, e, where, "normal");
+    if (!normal) return normal.error();
+    auto width = rd.integer(e, where, "width", 0, 0, kMaxSliceSidePx);
+    if (!width) return width.error();
+    auto height = rd.integer(e, where, "height", 0, 0, kMaxSliceSidePx);
+    if (!height) return height.error();
+    StackSlice s;
+    s.index = int(*index);
+    s.file = *file;
+    s.positionUm = *pos;
+    s.umPerPx = *um;
+    s.geometry.positionUm = *pos;
+    s.geometry.normal = *normal;
+    s.geometry.size = cv::Size(int(*width), int(*height));
+    // The in-plane frame is optional (a hand-made stack may not know it).
+    if (e.contains("origin_um")) {
+        auto o = vecField(rd, e, where, "origin_um");
+        if (!o) return o.error();
+        auto c = vecField(rd, e, where, "column_um");
+        if (!c) return c.error();
+        auto r = vecField(rd, e, where, "row_um");
+        if (!r) return r.error();
+        s.geometry.originUm = *o;
+        s.geometry.columnUm = *c;
+        s.geometry.rowUm = *r;
+    }
+    return s;
+}
+
+core::Result<StackRegion> regionEntry(const FieldReader& rd, const json& e, size_t i) {
+    const std::string where = "regions[" + std::to_string(i) + "]";
+    if (!e.is_object()) return rd.bad(where, "expected an object");
+    auto id = rd.integer(e, where, "id", std::nullopt, 0, std::numeric_limits<std::uint32_t>::max());
+    if (!id) return id.error();
+    auto name = rd.string(e, where, "name", "");
+    if (!name) return name.error();
+    auto acronym = rd.string(e, where, "acronym", "");
+    if (!acronym) return acronym.error();
+    auto color = rd.string(e, where, "color", "#000000");
+    if (!color) return color.error();
+    const bool hex = color->size() == 7 && (*color)[0] == '#' &&
+                     std::all_of(color->begin() + 1, color->end(),
+                                 [](unsigned char c) { return std::isxdigit(c) != 0; });
+    if (!hex) return rd.bad(where + ".color", "'" + color->substr(0, 20) + "' is not #RRGGBB");
+    return StackRegion{std::uint32_t(*id), *name, *acronym,
+                       std::uint32_t(std::stoul(color->substr(1), nullptr, 16))};
+}
+
+core::Result<AtlasStack> stackFromJson(const json& j, const fs::path& manifest) {
+    const FieldReader rd(manifest.string());
+    if (!j.is_object()) return rd.bad("(top level)", "expected an object");
+    if (!j.contains("slices") || !j["slices"].is_array() || j["slices"].empty())
+        return rd.bad("slices", "must be a non-empty array");
+    const json& slices = j["slices"];
+    if (slices.size() > size_t(pipeline::kMaxStackSlices))
+        return rd.bad("slices", std::to_string(slices.size()) + " slices, more than the " +
+                                    std::to_string(pipeline::kMaxStackSlices) + " a stack may hold");
+    AtlasStack stack;
+    stack.dir = manifest.parent_path();
+    for (size_t i = 0; i < slices.size(); ++i) {
+        auto s = sliceEntry(rd, slices[i], i);
+        if (!s) return s.error();
+        stack.slices.push_back(std::move(*s));
+    }
+    if (j.contains("regions")) {
+        const json& regions = j["regions"];
+        if (!regions.is_array()) return rd.bad("regions", "expected an array");
+        for (size_t i = 0; i < regions.size(); ++i) {
+            auto r = regionEntry(rd, regions[i], i);
+            if (!r) return r.error();
+            stack.regions.push_back(std::move(*r));
+        }
+    }
+    if (j.contains("source") && !j["source"].is_object())
+        return rd.bad("source", "expected an object");
+    stack.source = j.value("source", json::object());
+    return stack;
 }
 
 } // namespace
@@ -104,81 +217,33 @@ core::Result<AtlasStack> writeStack(const fs::path& dir,
 }
 
 core::Result<AtlasStack> readStack(const fs::path& dirOrManifest) {
+    std::error_code ec;
     const bool isFile = dirOrManifest.filename() == "manifest.json" ||
-                        (fs::exists(dirOrManifest) && !fs::is_directory(dirOrManifest));
+                        (fs::exists(dirOrManifest, ec) && !fs::is_directory(dirOrManifest, ec));
     const fs::path manifest = isFile ? dirOrManifest : dirOrManifest / "manifest.json";
-    if (!fs::exists(manifest))
+    if (!fs::exists(manifest, ec))
         return makeError(ErrorCode::NotFound, "no atlas stack manifest at " + manifest.string());
-    std::ifstream in(manifest);
-    if (!in) return makeError(ErrorCode::IoError, "cannot read " + manifest.string());
-    json j;
+    const std::uintmax_t bytes = fs::file_size(manifest, ec);
+    if (!ec && bytes > kMaxManifestBytes)
+        return makeError(ErrorCode::InvalidArgument,
+                         manifest.string() + ": " + std::to_string(bytes) +
+                             " bytes, more than a manifest may hold (" +
+                             std::to_string(kMaxManifestBytes >> 20) + " MiB)");
+    std::ifstream in(manifest, std::ios::binary);
+    if (!in) return makeError(ErrorCode::IoError, "cannot read " + manifest.string(), errno);
+    std::ostringstream text;
+    text << in.rdbuf();
+    if (in.bad()) return makeError(ErrorCode::IoError, "cannot read " + manifest.string(), errno);
+    // The one place nlohmann is called on the manifest: no exception gets past it.
     try {
-        j = json::parse(in);
+        auto j = parseDocument(text.str(), DocumentFormat::Json, manifest.string());
+        if (!j) return j.error();
+        return stackFromJson(*j, manifest);
     } catch (const json::exception& e) {
-        return makeError(ErrorCode::InvalidArgument,
-                         manifest.string() + ": not valid JSON (" + e.what() + ")");
+        return makeError(ErrorCode::InvalidArgument, manifest.string() + ": " + e.what());
+    } catch (const std::exception& e) {
+        return makeError(ErrorCode::Internal, manifest.string() + ": " + e.what());
     }
-    if (!j.is_object() || !j.contains("slices") || !j["slices"].is_array() || j["slices"].empty())
-        return makeError(ErrorCode::InvalidArgument,
-                         manifest.string() + ": 'slices' must be a non-empty array");
-    AtlasStack stack;
-    stack.dir = manifest.parent_path();
-    for (size_t i = 0; i < j["slices"].size(); ++i) {
-        const json& e = j["slices"][i];
-        const std::string where = "slices[" + std::to_string(i) + "]";
-        auto index = field<int>(e, "index", manifest, where);
-        if (!index) return index.error();
-        if (*index != int(i))
-            return makeError(ErrorCode::InvalidArgument,
-                             manifest.string() + ": " + where + ".index must be " +
-                                 std::to_string(i) + " (slices in index order)");
-        auto file = field<std::string>(e, "file", manifest, where);
-        auto pos = field<double>(e, "position_um", manifest, where);
-        auto um = field<double>(e, "um_per_px", manifest, where);
-        auto normal = vecField(e, "normal", manifest, where);
-        if (!file) return file.error();
-        if (!pos) return pos.error();
-        if (!um) return um.error();
-        if (!normal) return normal.error();
-        if (!(*um > 0))
-            return makeError(ErrorCode::InvalidArgument,
-                             manifest.string() + ": " + where + ".um_per_px must be positive");
-        StackSlice s;
-        s.index = *index;
-        s.file = *file;
-        s.positionUm = *pos;
-        s.umPerPx = *um;
-        s.geometry.positionUm = *pos;
-        s.geometry.normal = *normal;
-        // The in-plane frame is optional (a hand-made stack may not know it).
-        if (e.contains("origin_um")) {
-            auto o = vecField(e, "origin_um", manifest, where);
-            auto c = vecField(e, "column_um", manifest, where);
-            auto r = vecField(e, "row_um", manifest, where);
-            if (!o) return o.error();
-            if (!c) return c.error();
-            if (!r) return r.error();
-            s.geometry.originUm = *o;
-            s.geometry.columnUm = *c;
-            s.geometry.rowUm = *r;
-        }
-        s.geometry.size = cv::Size(e.value("width", 0), e.value("height", 0));
-        stack.slices.push_back(std::move(s));
-    }
-    if (j.contains("regions") && j["regions"].is_array()) {
-        for (size_t i = 0; i < j["regions"].size(); ++i) {
-            const json& e = j["regions"][i];
-            const std::string where = "regions[" + std::to_string(i) + "]";
-            auto id = field<std::uint32_t>(e, "id", manifest, where);
-            if (!id) return id.error();
-            StackRegion r{*id, e.value("name", ""), e.value("acronym", ""), 0};
-            const std::string color = e.value("color", "#000000");
-            r.colorRgb = std::uint32_t(std::strtoul(color.c_str() + (color[0] == '#'), nullptr, 16));
-            stack.regions.push_back(std::move(r));
-        }
-    }
-    stack.source = j.value("source", json::object());
-    return stack;
 }
 
 core::Result<fs::path> stackSlicePath(const AtlasStack& stack, int index) {
@@ -213,6 +278,12 @@ core::Result<std::vector<pipeline::AtlasSlice>> builtinStackSlices(double interv
                          "first_um " + std::to_string(firstUm) +
                              " is outside the built-in brain (0.." +
                              std::to_string(int(kBuiltinLengthUm)) + " um)");
+    // Known before a plane is drawn: every built-in plane has the size of the first.
+    const double planes = 1 + std::floor((kBuiltinLengthUm + 1e-6 - firstUm) / intervalUm);
+    if (auto budget = pipeline::checkStackBudget(
+            planes, sim::builtinAtlasPlane(firstUm / kBuiltinLengthUm).size());
+        !budget)
+        return budget.error();
     std::vector<pipeline::AtlasSlice> slices;
     for (int i = 0;; ++i) {
         const double pos = firstUm + i * intervalUm;

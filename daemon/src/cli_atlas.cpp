@@ -19,14 +19,17 @@ CommandRunner addAtlasCommands(CLI::App& app) {
     slice->add_option("--axes", sliceRq->axes, "Axis convention of the volume: allen|quicknii");
     slice->add_option("--plane", sliceRq->plane, "coronal|sagittal|horizontal");
     slice->add_option("--interval-um", sliceRq->intervalUm, "Distance between slices")
-        ->check(CLI::PositiveNumber);
-    slice->add_option("--first-um", sliceRq->firstUm, "Position of the first slice");
+        ->check(finiteRange(kMinIntervalUm, kMaxIntervalUm));
+    slice->add_option("--first-um", sliceRq->firstUm, "Position of the first slice")
+        ->check(finiteRange(-kMaxPositionUm, kMaxPositionUm));
     slice->add_option("--tilt-lr-deg", sliceRq->tiltLrDeg,
-                      "Tilt of the normal toward the image columns (coronal: left-right)");
+                      "Tilt of the normal toward the image columns (coronal: left-right)")
+        ->check(finiteRange(-kMaxTiltDeg, kMaxTiltDeg));
     slice->add_option("--tilt-dv-deg", sliceRq->tiltDvDeg,
-                      "Tilt of the normal toward the image rows (coronal: dorsal-ventral)");
+                      "Tilt of the normal toward the image rows (coronal: dorsal-ventral)")
+        ->check(finiteRange(-kMaxTiltDeg, kMaxTiltDeg));
     slice->add_option("--um-per-px", sliceRq->umPerPx, "Pixel size of the slices")
-        ->check(CLI::PositiveNumber);
+        ->check(finiteRange(kMinSliceUmPerPx, kMaxUmPerPx));
     slice->add_option("--regions", sliceRq->regions, "major (paper's 20 + tracts, ventricles)|all");
     slice->add_option("--output", sliceRq->output, "Stack directory")->required();
 
@@ -37,11 +40,11 @@ CommandRunner addAtlasCommands(CLI::App& app) {
         ->required();
     match->add_option("--image", matchRq->image, "Section image (PNG or TIFF)")->required();
     match->add_option("--expected-index", *expected, "Slice the cutting plan expects")
-        ->check(CLI::NonNegativeNumber);
+        ->check(CLI::Range(0, pipeline::kMaxStackSlices - 1));
     match->add_option("--window", matchRq->window, "Slices either side of the expected one")
-        ->check(CLI::NonNegativeNumber);
+        ->check(CLI::Range(0, pipeline::kMaxStackSlices));
     match->add_option("--image-um-per-px", matchRq->imageUmPerPx, "Section pixel size")
-        ->check(CLI::PositiveNumber);
+        ->check(finiteRange(kMinUmPerPx, kMaxUmPerPx));
     match->add_option("--output", matchRq->output, "MATCH.json")->required();
 
     return [=]() -> int {

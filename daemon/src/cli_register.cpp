@@ -2,11 +2,28 @@
 #include "slicestation/daemon/cli.hpp"
 #include "slicestation/daemon/demo_command.hpp"
 #include "slicestation/daemon/register_command.hpp"
+#include "slicestation/pipeline/atlas_slicing.hpp"
 
+#include <cmath>
 #include <iostream>
+#include <sstream>
 #include <memory>
 
 namespace slicestation::daemon {
+
+CLI::Validator finiteRange(double min, double max) {
+    std::ostringstream range;
+    range << "[" << min << ", " << max << "]";
+    const std::string text = range.str();
+    return CLI::Validator(
+        [min, max, text](std::string& value) -> std::string {
+            double v = 0;
+            if (!CLI::detail::lexical_cast(value, v) || !std::isfinite(v) || v < min || v > max)
+                return "'" + value + "' is not a finite number in " + text;
+            return {};
+        },
+        "FINITE in " + text);
+}
 
 int reportError(const char* command, const core::Error& e) {
     std::cerr << "slicectl " << command << ": error: " << e.message << "\n";
@@ -25,16 +42,16 @@ CommandRunner addRegisterCommand(CLI::App& app) {
                     "Atlas label image (ids or colour-coded RGB), or a stack directory with --slice")
         ->required();
     reg->add_option("--slice", o->slice, "Slice index when --atlas is a stack directory")
-        ->check(CLI::NonNegativeNumber);
+        ->check(CLI::Range(0, pipeline::kMaxStackSlices - 1));
     reg->add_option("--image", o->rq.image, "Section image (PNG or TIFF)")->required();
     reg->add_option("--points", o->points, "CSV with header x,y: section pixels to map");
     reg->add_option("--output", o->rq.output, "Result JSON")->required();
     reg->add_option("--overlay", o->overlay, "Overlay PNG: section with atlas outlines");
     reg->add_option("--warped-labels", o->warped, "Atlas labels in the section frame (TIFF)");
     reg->add_option("--image-um-per-px", o->rq.imageUmPerPx, "Section pixel size (prior on scale)")
-        ->check(CLI::PositiveNumber);
+        ->check(finiteRange(kMinUmPerPx, kMaxUmPerPx));
     reg->add_option("--atlas-um-per-px", o->rq.atlasUmPerPx, "Atlas pixel size (prior on scale)")
-        ->check(CLI::PositiveNumber);
+        ->check(finiteRange(kMinUmPerPx, kMaxUmPerPx));
     reg->add_option("--working-size", o->rq.workingMaxSide, "Longer side of the working image")
         ->check(CLI::Range(128, 8192));
     return [o, reg]() -> int {

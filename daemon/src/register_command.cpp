@@ -9,6 +9,10 @@
 #include <opencv2/imgproc.hpp>
 
 #include <cerrno>
+#include <cmath>
+#include <sstream>
+#include <string>
+#include <utility>
 #include <chrono>
 #include <cstdio>
 #include <fcntl.h>
@@ -26,6 +30,37 @@ core::Error inFile(const core::Error& e, const std::filesystem::path& p, const c
     std::string msg = e.message;
     if (msg.find(p.string()) == std::string::npos) msg = std::string(what) + " " + p.string() + ": " + msg;
     return makeError(e.code, msg, e.sysErrno);
+}
+
+/// The atlas outline is what registration fits: a label image needs brain (ids) and outside (0).
+core::Result<void> checkAtlasLabels(const cv::Mat& labels) {
+    double lo = 0, hi = 0;
+    cv::minMaxLoc(labels, &lo, &hi);
+    if (hi <= 0)
+        return makeError(ErrorCode::InvalidArgument,
+                         "atlas label image holds no brain (every pixel is 0)");
+    const int outside = labels.rows * labels.cols - cv::countNonZero(labels);
+    if (lo == hi || outside == 0)
+        return makeError(ErrorCode::InvalidArgument,
+                         "atlas label image has no outside (no pixel is 0)" +
+                             std::string(lo == hi ? ": one label, " + std::to_string(int(lo)) +
+                                                        ", everywhere"
+                                                  : "") +
+                             "; registration needs the brain's outline");
+    return {};
+}
+
+core::Result<void> checkSectionSize(const cv::Mat& section) {
+    const auto inRange = [](int side) {
+        return side >= kMinSectionSidePx && side <= kMaxSectionSidePx;
+    };
+    if (!inRange(section.cols) || !inRange(section.rows))
+        return makeError(ErrorCode::InvalidArgument,
+                         "section image is " + std::to_string(section.cols) + " x " +
+                             std::to_string(section.rows) + " px; sections must be " +
+                             std::to_string(kMinSectionSidePx) + " to " +
+                             std::to_string(kMaxSectionSidePx) + " px on each side");
+    return {};
 }
 
 json affineJson(const cv::Matx23d& a) {
@@ -67,8 +102,16 @@ core::Result<void> writeFileAtomically(const std::filesystem::path& path, const 
 core::Result<json> runRegister(const RegisterRequest& rq) {
     using Clock = std::chrono::steady_clock;
     const auto t0 = Clock::now();
-    if (rq.imageUmPerPx < 0 || rq.atlasUmPerPx < 0)
-        return makeError(ErrorCode::InvalidArgument, "pixel sizes must be positive");
+    for (const auto& [option, value] : {std::pair{"--image-um-per-px", rq.imageUmPerPx},
+                                         std::pair{"--atlas-um-per-px", rq.atlasUmPerPx}}) {
+        // 0 is "unknown"; NaN fails every comparison, so the test is written to catch it.
+        if (value != 0 && !(std::isfinite(value) && value >= kMinUmPerPx && value <= kMaxUmPerPx)) {
+            std::ostringstream os;
+            os << option << " " << value << " is not a finite number in [" << kMinUmPerPx << ", "
+               << kMaxUmPerPx << "]";
+            return makeError(ErrorCode::InvalidArgument, os.str());
+        }
+    }
     if ((rq.imageUmPerPx > 0) != (rq.atlasUmPerPx > 0))
         return makeError(ErrorCode::InvalidArgument,
                          "give both --image-um-per-px and --atlas-um-per-px, or neither");
@@ -77,8 +120,10 @@ core::Result<json> runRegister(const RegisterRequest& rq) {
     if (!atlasImage) return inFile(atlasImage.error(), rq.atlas, "atlas");
     auto labels = pipeline::labelsFromImage(*atlasImage);
     if (!labels) return inFile(labels.error(), rq.atlas, "atlas");
+    if (auto a = checkAtlasLabels(*labels); !a) return inFile(a.error(), rq.atlas, "atlas");
     auto section = core::readImage(rq.image);
     if (!section) return inFile(section.error(), rq.image, "image");
+    if (auto s = checkSectionSize(*section); !s) return inFile(s.error(), rq.image, "image");
     std::vector<cv::Point2d> points;
     if (rq.points) {
         auto p = readPointsCsv(*rq.points);

@@ -19,7 +19,9 @@ int main(int argc, char** argv) {
     try {
         app.parse(argc, argv);
     } catch (const CLI::ParseError& e) {
-        return app.exit(e);
+        // CLI11 prints the problem; a usage error is invalid input: exit 2 (cli.hpp), not
+        // CLI11's own codes (105 for a failed check), so scripts see one code for bad input.
+        return app.exit(e) == 0 ? 0 : 2;
     }
     for (const auto& run : commands)
         if (const int rc = run(); rc >= 0) return rc;

@@ -1,9 +1,11 @@
 #include "slicestation/pipeline/atlas_slicing.hpp"
 
+#include <algorithm>
 #include <array>
 #include <cmath>
 #include <cstdint>
 #include <limits>
+#include <sstream>
 #include <string>
 
 namespace slicestation::pipeline {
@@ -133,9 +135,17 @@ core::Result<SliceGeometry> planeGeometry(const core::Volume& volume, VolumeAxes
 
     const double extentU = m.size[l.columnAxis] * m.spacingUm[l.columnAxis];
     const double extentV = m.size[l.rowAxis] * m.spacingUm[l.rowAxis];
+    // In doubles until bounded: a tiny pixel size would overflow int.
+    const double widthPx = std::max(1.0, std::round(extentU / std::cos(a) / plane.umPerPx));
+    const double heightPx = std::max(1.0, std::round(extentV / std::cos(b) / plane.umPerPx));
+    if (!(widthPx * heightPx <= double(kMaxSlicePixels))) {
+        std::ostringstream os;
+        os << "a plane at " << plane.umPerPx << " um/px is " << widthPx << " x " << heightPx
+           << " px, more than " << kMaxSlicePixels << " px (raise the pixel size)";
+        return makeError(ErrorCode::InvalidArgument, os.str());
+    }
     SliceGeometry g;
-    g.size = cv::Size(std::max(1, int(std::lround(extentU / std::cos(a) / plane.umPerPx))),
-                      std::max(1, int(std::lround(extentV / std::cos(b) / plane.umPerPx))));
+    g.size = cv::Size(int(widthPx), int(heightPx));
     cv::Vec3d centre;
     for (int i = 0; i < 3; ++i) centre[i] = 0.5 * (m.size[i] - 1) * m.spacingUm[i];
     centre[l.normalAxis] = plane.positionUm;
@@ -187,6 +197,31 @@ core::Result<cv::Mat> sampleLabels(const core::Volume& volume, VolumeAxes axes,
     return out;
 }
 
+core::Result<void> checkStackBudget(double slices, cv::Size size) {
+    const double pixels = double(size.width) * size.height;
+    const double bytes = slices * pixels * double(sizeof(std::int32_t));
+    auto mib = [](double b) { return std::to_string(std::llround(b / (1 << 20))) + " MiB"; };
+    const std::string plan = (slices < 1e15 ? std::to_string(std::llround(slices)) : "more than 1e15") +
+                             " slices of " + std::to_string(size.width) + " x " +
+                             std::to_string(size.height) + " px";
+    if (!(slices <= kMaxStackSlices))
+        return makeError(ErrorCode::InvalidArgument,
+                         "the plan cuts " + plan + ", more than the " +
+                             std::to_string(kMaxStackSlices) +
+                             " slices a stack may hold (raise the interval)");
+    if (pixels > double(kMaxSlicePixels))
+        return makeError(ErrorCode::InvalidArgument,
+                         "the plan cuts " + plan + ": more than " +
+                             std::to_string(kMaxSlicePixels) +
+                             " px per slice (raise the pixel size)");
+    if (bytes > double(kMaxStackBytes))
+        return makeError(ErrorCode::InvalidArgument,
+                         "the plan cuts " + plan + ": " + mib(bytes) +
+                             " of labels, beyond the budget of " + mib(double(kMaxStackBytes)) +
+                             " (raise the interval or the pixel size)");
+    return {};
+}
+
 core::Result<std::vector<AtlasSlice>> sliceVolume(const core::Volume& volume, VolumeAxes axes,
                                                   const CuttingPlan& plan) {
     if (!(plan.intervalUm > 0) || !std::isfinite(plan.intervalUm))
@@ -196,6 +231,14 @@ core::Result<std::vector<AtlasSlice>> sliceVolume(const core::Volume& volume, Vo
     std::vector<AtlasSlice> slices;
     CuttingPlane p{plan.orientation, plan.firstUm, plan.tiltColumnsDeg, plan.tiltRowsDeg,
                    plan.umPerPx};
+    // Every plane has the first one's size (the tilts are the plan's): the whole stack is
+    // known before a voxel is sampled.
+    auto first = planeGeometry(volume, axes, p);
+    if (!first) return first.error();
+    const double planes = 1 + std::max(0.0, std::floor((lastUm + 1e-6 - plan.firstUm) /
+                                                       plan.intervalUm));
+    if (auto budget = checkStackBudget(planes, first->size); !budget) return budget.error();
+    slices.reserve(std::size_t(planes));
     // Index-based positions: repeated addition would drift off the plan's grid.
     for (int i = 0;; ++i) {
         p.positionUm = plan.firstUm + i * plan.intervalUm;

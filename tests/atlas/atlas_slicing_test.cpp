@@ -202,6 +202,35 @@ TEST(AtlasSlicing, BadPlanesAreClearErrors) {
               core::ErrorCode::InvalidArgument);
 }
 
+TEST(AtlasSlicing, PlansBeyondTheMemoryBudgetAreRefusedBeforeSampling) {
+    const core::Volume a = rampVolume(); // 220 um along AP, 375 x 270 um in plane
+    // 0.01 um apart: 22001 planes, more than a stack may hold.
+    auto many = sliceVolume(a, VolumeAxes::Allen, {PlaneOrientation::Coronal, 0, 0.01, 0, 0, 20});
+    ASSERT_FALSE(many.ok());
+    EXPECT_EQ(many.error().code, core::ErrorCode::InvalidArgument);
+    EXPECT_NE(many.error().message.find("22001 slices"), std::string::npos)
+        << many.error().message;
+    EXPECT_NE(many.error().message.find(std::to_string(kMaxStackSlices)), std::string::npos);
+    // 0.02 um/px: 18750 x 13500 px planes, more than a plane may hold; 1e-6 um/px would
+    // overflow int.
+    for (double umPerPx : {0.02, 1e-6}) {
+        auto fine =
+            sliceVolume(a, VolumeAxes::Allen, {PlaneOrientation::Coronal, 0, 100, 0, 0, umPerPx});
+        ASSERT_FALSE(fine.ok()) << umPerPx;
+        EXPECT_EQ(fine.error().code, core::ErrorCode::InvalidArgument);
+        EXPECT_NE(fine.error().message.find("raise the pixel size"), std::string::npos)
+            << fine.error().message;
+    }
+    // 0.1 um apart at 0.05 um/px: 2201 planes of 7500 x 5400 px, 332 GiB in all.
+    auto heavy =
+        sliceVolume(a, VolumeAxes::Allen, {PlaneOrientation::Coronal, 0, 0.1, 0, 0, 0.05});
+    ASSERT_FALSE(heavy.ok());
+    EXPECT_NE(heavy.error().message.find("MiB of labels, beyond the budget of 2048 MiB"),
+              std::string::npos)
+        << heavy.error().message;
+    EXPECT_TRUE(checkStackBudget(1000, {456, 320}).ok());
+}
+
 TEST(AtlasSlicing, MajorRegionCollapseOfARealSlice) {
     REQUIRE_ALLEN(v);
     auto onto = core::readOntologyCsv(kAtlasDir / "structure_tree_safe_2017.csv");

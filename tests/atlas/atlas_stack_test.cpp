@@ -4,9 +4,12 @@
 #include "slicestation/daemon/atlas_command.hpp"
 #include "slicestation/daemon/atlas_stack.hpp"
 #include "slicestation/pipeline/atlas.hpp"
+#include "slicestation/sim/builtin_atlas.hpp"
+#include "slicestation/sim/section_generator.hpp"
 
 #include <gtest/gtest.h>
 
+#include <climits>
 #include <filesystem>
 #include <fstream>
 #include <set>
@@ -129,4 +132,110 @@ TEST_F(AtlasStackTest, BadInputsAreClearErrors) {
     auto missing = readStack(dir_);
     ASSERT_FALSE(missing.ok());
     EXPECT_NE(missing.error().message.find("position_um"), std::string::npos);
+}
+
+TEST_F(AtlasStackTest, EveryManifestFieldIsTypeAndRangeChecked) {
+    fs::create_directories(dir_);
+    const std::string good = R"("index": 0, "file": "slice-000.tif", "position_um": 0,
+                                "normal": [1, 0, 0], "um_per_px": 25, "width": 456, "height": 320)";
+    struct Case {
+        std::string manifest, needle;
+    };
+    const std::vector<Case> cases{
+        {"[]", "expected an object"},
+        {R"({"slices": [5]})", "slices[0]"},
+        {R"({"slices": [{)" + good + R"(, "height": "x"}]})", "slices[0].height"},
+        {R"({"slices": [{)" + good + R"(, "width": -4}]})", "slices[0].width"},
+        {R"({"slices": [{)" + good + R"(, "width": 1e12}]})", "slices[0].width"},
+        {R"({"slices": [{)" + good + R"(, "index": 0.5}]})", "slices[0].index"},
+        {R"({"slices": [{)" + good + R"(, "index": 3}]})", "slices[0].index"},
+        {R"({"slices": [{)" + good + R"(, "file": 7}]})", "slices[0].file"},
+        {R"({"slices": [{)" + good + R"(, "file": "../../etc/passwd"}]})", "slices[0].file"},
+        {R"({"slices": [{)" + good + R"(, "file": "/etc/passwd"}]})", "slices[0].file"},
+        {R"({"slices": [{)" + good + R"(, "position_um": "here"}]})", "slices[0].position_um"},
+        {R"({"slices": [{)" + good + R"(, "position_um": 1e300}]})", "slices[0].position_um"},
+        {R"({"slices": [{)" + good + R"(, "um_per_px": 0}]})", "slices[0].um_per_px"},
+        {R"({"slices": [{)" + good + R"(, "um_per_px": null}]})", "slices[0].um_per_px"},
+        {R"({"slices": [{)" + good + R"(, "normal": [1, "a", 0]}]})", "slices[0].normal[1]"},
+        {R"({"slices": [{)" + good + R"(, "normal": {"x": 1}}]})", "slices[0].normal"},
+        {R"({"slices": [{)" + good + R"(, "origin_um": [0, 0, 0]}]})", "slices[0].column_um"},
+        {R"({"slices": [{)" + good + R"(}], "regions": {"id": 1}})", "regions"},
+        {R"({"slices": [{)" + good + R"(}], "regions": [{"id": -3}]})", "regions[0].id"},
+        {R"({"slices": [{)" + good + R"(}], "regions": [{"id": 5, "name": 5}]})",
+         "regions[0].name"},
+        {R"({"slices": [{)" + good + R"(}], "regions": [{"id": 5, "color": 7}]})",
+         "regions[0].color"},
+        {R"({"slices": [{)" + good + R"(}], "regions": [{"id": 5, "color": ""}]})",
+         "regions[0].color"},
+        {R"({"slices": [{)" + good + R"(}], "source": 5})", "source"},
+    };
+    for (const Case& c : cases) {
+        std::ofstream(dir_ / "manifest.json") << c.manifest;
+        auto stack = readStack(dir_);
+        ASSERT_FALSE(stack.ok()) << c.manifest;
+        EXPECT_EQ(stack.error().code, core::ErrorCode::InvalidArgument) << stack.error().message;
+        EXPECT_NE(stack.error().message.find(c.needle), std::string::npos)
+            << "'" << stack.error().message << "' should name " << c.needle;
+        EXPECT_NE(stack.error().message.find("manifest.json"), std::string::npos);
+    }
+    std::ofstream(dir_ / "manifest.json")
+        << R"({"slices": [{)" + good + R"(}], "regions": [{"id": 5, "color": "#A0b0C0"}]})";
+    auto ok = readStack(dir_);
+    ASSERT_TRUE(ok.ok()) << ok.error().message;
+    EXPECT_EQ(ok->slices.front().geometry.size, cv::Size(456, 320));
+    EXPECT_EQ(ok->regions.front().colorRgb, 0xA0B0C0u);
+}
+
+TEST_F(AtlasStackTest, PlansBeyondTheBudgetAndOutOfRangeOptionsAreRefused) {
+    AtlasSliceRequest rq;
+    rq.builtin = true;
+    rq.output = dir_;
+    rq.intervalUm = 1; // 8001 planes of 456 x 320 px: 4.6 GB of labels
+    auto big = runAtlasSlice(rq);
+    ASSERT_FALSE(big.ok());
+    EXPECT_EQ(big.error().code, core::ErrorCode::InvalidArgument);
+    EXPECT_NE(big.error().message.find("8001 slices of 456 x 320 px"), std::string::npos)
+        << big.error().message;
+    EXPECT_NE(big.error().message.find("budget of 2048 MiB"), std::string::npos);
+    EXPECT_FALSE(fs::exists(dir_ / "manifest.json"));
+    // The request's own ranges hold for every caller, not only for slicectl's options.
+    for (auto bad : {+[](AtlasSliceRequest& r) { r.intervalUm = 0.01; },
+                     +[](AtlasSliceRequest& r) { r.tiltLrDeg = std::nan(""); },
+                     +[](AtlasSliceRequest& r) { r.tiltDvDeg = 61; },
+                     +[](AtlasSliceRequest& r) { r.umPerPx = 1e-6; },
+                     +[](AtlasSliceRequest& r) { r.firstUm = INFINITY; }}) {
+        AtlasSliceRequest b;
+        b.builtin = true;
+        b.output = dir_;
+        bad(b);
+        auto out = runAtlasSlice(b);
+        ASSERT_FALSE(out.ok());
+        EXPECT_EQ(out.error().code, core::ErrorCode::InvalidArgument) << out.error().message;
+        EXPECT_NE(out.error().message.find("is not a finite number in"), std::string::npos)
+            << out.error().message;
+    }
+}
+
+TEST_F(AtlasStackTest, MatchWindowOfIntMaxSearchesTheWholeStack) {
+    AtlasSliceRequest rq;
+    rq.builtin = true;
+    rq.intervalUm = 800;
+    rq.output = dir_ / "stack";
+    ASSERT_TRUE(runAtlasSlice(rq).ok());
+    sim::GeneratorOptions o;
+    o.seed = 3;
+    o.imageSize = {900, 660};
+    auto gen = sim::generateSection(sim::builtinAtlasPlane(0.5), o);
+    ASSERT_TRUE(gen.ok()) << gen.error().message;
+    ASSERT_TRUE(core::writeImage(dir_ / "section.tif", gen->image).ok());
+    AtlasMatchRequest m;
+    m.stack = dir_ / "stack";
+    m.image = dir_ / "section.tif";
+    m.expectedIndex = 5;
+    m.window = INT_MAX; // expectedIndex + window overflowed int
+    m.output = dir_ / "match.json";
+    auto r = runAtlasMatch(m);
+    ASSERT_TRUE(r.ok()) << r.error().message;
+    // 11 slices; the ends may hold no brain and are skipped.
+    EXPECT_GE(r->at("candidates").size(), 9u) << "the whole stack searched";
 }

@@ -8,6 +8,7 @@
 
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
+#include <zlib.h>
 #include <opencv2/core.hpp>
 
 #include <array>
@@ -179,5 +180,45 @@ TEST_F(SlicectlAtlas, RegisterStackErrors) {
         EXPECT_NE(r.exitCode, 0) << c.needle;
         EXPECT_NE(r.output.find(c.needle), std::string::npos) << r.output;
         EXPECT_FALSE(fs::exists(p("bad.json"))) << c.needle;
+    }
+}
+
+TEST_F(SlicectlAtlas, HostileVolumesPlansAndOptionsExitTwo) {
+    // 65 KB of gzip claiming 1000^3 voxels (4 GB as labels): refused from the header.
+    {
+        const std::vector<Bytef> zeros(64u << 20, 0);
+        uLongf size = compressBound(static_cast<uLong>(zeros.size()));
+        std::vector<Bytef> packed(size);
+        ASSERT_EQ(compress2(packed.data(), &size, zeros.data(), static_cast<uLong>(zeros.size()), 9),
+                  Z_OK);
+        std::ofstream out(p("bomb.nrrd"), std::ios::binary);
+        out << "NRRD0004\ntype: uint8\ndimension: 3\nsizes: 1000 1000 1000\n"
+               "spacings: 25 25 25\nencoding: gzip\n\n";
+        out.write(reinterpret_cast<const char*>(packed.data()), static_cast<std::streamsize>(size));
+    }
+    ASSERT_LT(fs::file_size(p("bomb.nrrd")), 100u << 10);
+    struct Case {
+        std::string args, needle;
+    };
+    const std::vector<Case> cases{
+        {"slice --volume " + p("bomb.nrrd") + " --regions all", "limit"},
+        {"slice --builtin --interval-um 0.01", "--interval-um"},
+        {"slice --builtin --interval-um 1", "budget"},
+        {"slice --builtin --tilt-lr-deg nan", "--tilt-lr-deg"},
+        {"slice --builtin --tilt-dv-deg 90", "--tilt-dv-deg"},
+        {"slice --builtin --um-per-px 1e-6", "--um-per-px"},
+        {"slice --builtin --first-um inf", "--first-um"},
+        {"match --stack " + p("stack") + " --image " + p("section.tif") +
+             " --expected-index 3 --window 2147483647",
+         "--window"},
+        {"match --stack " + p("stack") + " --image " + p("section.tif") +
+             " --image-um-per-px nan",
+         "--image-um-per-px"},
+    };
+    for (const Case& c : cases) {
+        const CommandResult r = slicectl("atlas " + c.args + " --output " + p("hostile"));
+        EXPECT_EQ(r.exitCode, 2) << c.args << ": " << r.output;
+        EXPECT_NE(r.output.find(c.needle), std::string::npos) << r.output;
+        EXPECT_FALSE(fs::exists(p("hostile"))) << c.args;
     }
 }

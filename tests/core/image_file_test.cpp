@@ -1,12 +1,15 @@
 #include "slicestation/core/image_file.hpp"
 
 #include <gtest/gtest.h>
+#include <zlib.h>
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
 
 #include <unistd.h>
 
 #include <algorithm>
+#include <cmath>
+#include <limits>
 #include <cstdint>
 #include <filesystem>
 #include <fstream>
@@ -656,6 +659,121 @@ TEST_F(ImageFileTest, TruncatedPngIsIoError) {
     const Result<cv::Mat> read = readImage(file("half.png"));
     ASSERT_FALSE(read.ok());
     EXPECT_EQ(read.error().code, ErrorCode::IoError);
+}
+
+// ----------------------------------------------------------------------------------------------
+// Hostile input: small files that claim huge images, non-finite floats
+
+std::vector<std::uint8_t> deflate(const std::vector<std::uint8_t>& data) {
+    uLongf size = compressBound(static_cast<uLong>(data.size()));
+    std::vector<std::uint8_t> out(size);
+    EXPECT_EQ(compress(out.data(), &size, data.data(), static_cast<uLong>(data.size())), Z_OK);
+    out.resize(size);
+    return out;
+}
+
+/// A deflate TIFF of a few hundred bytes whose header claims `width` x `height` px of 8 bits,
+/// in one strip (the data holds only the first rows).
+std::vector<std::uint8_t> hugeDeflateTiff(std::uint32_t width, std::uint32_t height,
+                                          std::uint32_t samples = 1, std::uint32_t tileSide = 0) {
+    TiffBytes tiff(/*bigEndian=*/false);
+    TiffPage page;
+    page.entries = baseEntries(width, height, samples, 8, /*minisblack*/ 1);
+    for (auto& e : page.entries) {
+        if (e.tag == kCompression) e.values = {8}; // adobe deflate
+    }
+    page.tiled = tileSide > 0;
+    if (page.tiled) {
+        page.entries.push_back({kTileWidth, kLong, {tileSide}});
+        page.entries.push_back({kTileLength, kLong, {tileSide}});
+    } else {
+        page.entries.push_back({kRowsPerStrip, kLong, {height}});
+    }
+    page.blocks.push_back(deflate(std::vector<std::uint8_t>(4096, 0)));
+    return tiff.build({page});
+}
+
+TEST_F(ImageFileTest, RefusesATinyTiffClaimingTenGigapixelsBeforeDecoding) {
+    const std::vector<std::uint8_t> bytes = hugeDeflateTiff(100000, 100000);
+    ASSERT_LT(bytes.size(), 1000u);
+    writeBytes(file("bomb.tif"), bytes);
+    const Result<cv::Mat> read = readImage(file("bomb.tif"));
+    ASSERT_FALSE(read.ok());
+    EXPECT_EQ(read.error().code, ErrorCode::Unsupported) << read.error().message;
+    EXPECT_NE(read.error().message.find("bomb.tif"), std::string::npos) << read.error().message;
+    EXPECT_NE(read.error().message.find("100000 x 100000"), std::string::npos)
+        << read.error().message;
+    EXPECT_NE(read.error().message.find("limit"), std::string::npos) << read.error().message;
+}
+
+TEST_F(ImageFileTest, RefusesATiffWhoseBytesExceedTheLimitThoughItsPixelsFit) {
+    // 2^29 px (within the pixel limit) of 16 samples, 4 kept: 8 GiB after decoding; the strip of
+    // 16 interleaved samples alone would need 8 GiB.
+    writeBytes(file("wide.tif"), hugeDeflateTiff(32768, 16384, 16));
+    const Result<cv::Mat> read = readImage(file("wide.tif"));
+    ASSERT_FALSE(read.ok());
+    EXPECT_EQ(read.error().code, ErrorCode::Unsupported) << read.error().message;
+    EXPECT_NE(read.error().message.find("MiB"), std::string::npos) << read.error().message;
+}
+
+TEST_F(ImageFileTest, RefusesATileLargerThanTheLimit) {
+    // 256 x 256 px in one tile of 65536 x 65536 px and 2 samples: an 8 GiB tile buffer.
+    writeBytes(file("tile.tif"), hugeDeflateTiff(256, 256, 2, /*tileSide=*/65536));
+    const Result<cv::Mat> read = readImage(file("tile.tif"));
+    ASSERT_FALSE(read.ok());
+    EXPECT_EQ(read.error().code, ErrorCode::Unsupported) << read.error().message;
+}
+
+/// A PNG whose IHDR claims `width` x `height` RGBA16 pixels, with one tiny IDAT.
+std::vector<std::uint8_t> hugePng(std::uint32_t width, std::uint32_t height) {
+    std::vector<std::uint8_t> out{0x89, 'P', 'N', 'G', '\r', '\n', 0x1A, '\n'};
+    const auto put32 = [](std::vector<std::uint8_t>& v, std::uint32_t x) {
+        for (int shift = 24; shift >= 0; shift -= 8) v.push_back(static_cast<std::uint8_t>(x >> shift));
+    };
+    const auto chunk = [&](const char* type, const std::vector<std::uint8_t>& data) {
+        put32(out, static_cast<std::uint32_t>(data.size()));
+        std::vector<std::uint8_t> body(type, type + 4);
+        body.insert(body.end(), data.begin(), data.end());
+        out.insert(out.end(), body.begin(), body.end());
+        put32(out, static_cast<std::uint32_t>(crc32(0, body.data(), static_cast<uInt>(body.size()))));
+    };
+    std::vector<std::uint8_t> ihdr;
+    put32(ihdr, width);
+    put32(ihdr, height);
+    ihdr.insert(ihdr.end(), {16, 6, 0, 0, 0}); // 16 bits, RGBA, deflate, no filter, no interlace
+    chunk("IHDR", ihdr);
+    chunk("IDAT", deflate(std::vector<std::uint8_t>(4096, 0)));
+    chunk("IEND", {});
+    return out;
+}
+
+TEST_F(ImageFileTest, RefusesATinyPngClaimingMoreBytesThanTheLimit) {
+    // 30000 x 30000 < 2^30 px, so OpenCV's own pixel limit lets it through: 7.2 GB of RGBA16.
+    writeBytes(file("bomb.png"), hugePng(30000, 30000));
+    const Result<cv::Mat> read = readImage(file("bomb.png"));
+    ASSERT_FALSE(read.ok());
+    EXPECT_EQ(read.error().code, ErrorCode::Unsupported) << read.error().message;
+    EXPECT_NE(read.error().message.find("30000 x 30000"), std::string::npos)
+        << read.error().message;
+}
+
+TEST_F(ImageFileTest, RefusesNanAndInfinityInFloatImagesNamingTheFile) {
+    for (const float bad : {std::numeric_limits<float>::quiet_NaN(),
+                            std::numeric_limits<float>::infinity(),
+                            -std::numeric_limits<float>::infinity()}) {
+        cv::Mat image(40, 50, CV_32FC2, cv::Scalar(1.0f, 2.0f));
+        image.at<cv::Vec2f>(7, 11)[1] = bad;
+        ASSERT_TRUE(writeImage(file("float.tif"), image).ok());
+        const Result<cv::Mat> read = readImage(file("float.tif"));
+        ASSERT_FALSE(read.ok()) << bad;
+        EXPECT_EQ(read.error().code, ErrorCode::InvalidArgument) << read.error().message;
+        EXPECT_NE(read.error().message.find("float.tif"), std::string::npos);
+        EXPECT_NE(read.error().message.find("x=11, y=7"), std::string::npos)
+            << read.error().message;
+    }
+    cv::Mat finite(40, 50, CV_32FC1, cv::Scalar(-3.5f));
+    ASSERT_TRUE(writeImage(file("finite.tif"), finite).ok());
+    EXPECT_TRUE(readImage(file("finite.tif")).ok());
 }
 
 // ----------------------------------------------------------------------------------------------

@@ -254,6 +254,61 @@ TEST_F(NrrdTest, GzipWithMoreDataThanSizesIsIoError) {
     expectError(write("long.nrrd", header("uint", "gzip"), data), ErrorCode::IoError, "more");
 }
 
+TEST_F(NrrdTest, SmallGzipClaimingAVolumeBeyondTheLimitIsRefusedBeforeInflating) {
+    // 70 KB of gzip that claims 1000^3 voxels: 4 GB as 32-bit labels, twice the limit.
+    const auto data = gzipBytes(std::vector<std::uint8_t>(16u << 20, 0));
+    ASSERT_LT(data.size(), 100u << 10);
+    expectError(write("bomb.nrrd",
+                      "NRRD0004\ntype: uint8\ndimension: 3\nsizes: 1000 1000 1000\n"
+                      "spacings: 25 25 25\nencoding: gzip\n\n",
+                      data),
+                ErrorCode::Unsupported, "limit");
+}
+
+TEST_F(NrrdTest, GzipFarShorterThanTheClaimedSizeIsIoErrorBeforeInflating) {
+    // 400^3 bytes claimed (within the limit), a few hundred bytes given: no deflate stream of
+    // that length holds 64 MB.
+    const auto data = gzipBytes(std::vector<std::uint8_t>(4096, 0));
+    expectError(write("short.nrrd",
+                      "NRRD0004\ntype: uint8\ndimension: 3\nsizes: 400 400 400\n"
+                      "spacings: 25 25 25\nencoding: gzip\n\n",
+                      data),
+                ErrorCode::IoError, "cannot hold");
+}
+
+TEST_F(NrrdTest, GzipOfTheRightRatioButEndingEarlyIsTruncated) {
+    // 1 MB of zeros compresses ~1000:1: the ratio check passes; the stream then ends early.
+    const auto data = gzipBytes(std::vector<std::uint8_t>(1u << 20, 0));
+    expectError(write("early.nrrd",
+                      "NRRD0004\ntype: uint8\ndimension: 3\nsizes: 128 128 128\n"
+                      "spacings: 25 25 25\nencoding: gzip\n\n",
+                      data),
+                ErrorCode::IoError, "bytes");
+}
+
+TEST_F(NrrdTest, FileLargerThanTheVolumeLimitIsRefusedUnread) {
+    const fs::path path = write("huge.nrrd", header("uint8", "raw"));
+    // Sparse: costs no disk, and the reader must not read it.
+    fs::resize_file(path, kMaxVolumeBytes + (std::uint64_t{4} << 20));
+    expectError(path, ErrorCode::Unsupported, "limit");
+}
+
+TEST_F(NrrdTest, VoxelSizesOutOfRangeAreNamed) {
+    const auto data = encode(ramp(24, 1), 2, false);
+    const std::string start = "NRRD0004\ntype: ushort\ndimension: 3\nsizes: 4 3 2\n";
+    const std::string end = "endian: little\nencoding: raw\n\n";
+    expectError(write("hugedir.nrrd",
+                      start + "space directions: (1e300,1e300,0) (0,30,0) (0,0,40)\n" + end, data),
+                ErrorCode::InvalidArgument, "'space directions'");
+    expectError(write("tinydir.nrrd",
+                      start + "space directions: (1e-9,0,0) (0,30,0) (0,0,40)\n" + end, data),
+                ErrorCode::InvalidArgument, "'space directions'");
+    expectError(write("hugesp.nrrd", start + "spacings: 25 1e9 25\n" + end, data),
+                ErrorCode::InvalidArgument, "'spacings'");
+    expectError(write("tinysp.nrrd", start + "spacings: 25 25 1e-7\n" + end, data),
+                ErrorCode::InvalidArgument, "'spacings'");
+}
+
 TEST_F(NrrdTest, NegativeSignedVoxelIsAnError) {
     auto values = ramp(24, 3);
     values[4 * (1 + 3 * 1) + 2] = 0xFFFFFFFFu; // -1 at (2, 1, 1)

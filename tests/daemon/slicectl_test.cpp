@@ -6,10 +6,13 @@
 #include <gtest/gtest.h>
 #include <opencv2/core.hpp>
 #include <nlohmann/json.hpp>
+#include <tiffio.h>
+#include <zlib.h>
 
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <limits>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
@@ -131,6 +134,70 @@ TEST_F(SlicectlRegister, InvalidInputFailsWithAMessageAndKeepsTheOldResult) {
         std::stringstream ss;
         ss << old.rdbuf();
         EXPECT_EQ(ss.str(), "{\"kept\": true}\n") << "result overwritten for " << c.needle;
+    }
+}
+
+/// A deflate TIFF of about 24 KB claiming width x height px of 8 bits: one strip, whose data
+/// inflates to 24 MB of zeros, written with libtiff as any writer could.
+void writeDeflateBomb(const fs::path& path, std::uint32_t width, std::uint32_t height) {
+    TIFF* tif = TIFFOpen(path.c_str(), "w");
+    ASSERT_NE(tif, nullptr);
+    TIFFSetField(tif, TIFFTAG_IMAGEWIDTH, width);
+    TIFFSetField(tif, TIFFTAG_IMAGELENGTH, height);
+    TIFFSetField(tif, TIFFTAG_BITSPERSAMPLE, 8);
+    TIFFSetField(tif, TIFFTAG_SAMPLESPERPIXEL, 1);
+    TIFFSetField(tif, TIFFTAG_PHOTOMETRIC, PHOTOMETRIC_MINISBLACK);
+    TIFFSetField(tif, TIFFTAG_PLANARCONFIG, PLANARCONFIG_CONTIG);
+    TIFFSetField(tif, TIFFTAG_COMPRESSION, COMPRESSION_ADOBE_DEFLATE);
+    TIFFSetField(tif, TIFFTAG_ROWSPERSTRIP, height);
+    const std::vector<Bytef> zeros(24u << 20, 0);
+    uLongf size = compressBound(static_cast<uLong>(zeros.size()));
+    std::vector<Bytef> packed(size);
+    ASSERT_EQ(compress2(packed.data(), &size, zeros.data(), static_cast<uLong>(zeros.size()), 9), Z_OK);
+    ASSERT_EQ(TIFFWriteRawStrip(tif, 0, packed.data(), static_cast<tmsize_t>(size)),
+              static_cast<tmsize_t>(size));
+    TIFFClose(tif);
+}
+
+TEST_F(SlicectlRegister, HostileImagesAndOptionsExitTwoWithOneLine) {
+    writeDeflateBomb(dir_ / "bomb.tif", 100000, 100000);
+    ASSERT_LT(fs::file_size(dir_ / "bomb.tif"), 64u << 10);
+    // 299 px wide: the README's range is 300 to 8000.
+    ASSERT_TRUE(core::writeImage(p("narrow.tif"), cv::Mat(400, 299, CV_8U, cv::Scalar(30))).ok());
+    // An atlas of one label everywhere: no outline to register to.
+    ASSERT_TRUE(core::writeImage(p("onelabel.tif"), cv::Mat(320, 456, CV_32S, cv::Scalar(5))).ok());
+    cv::Mat nan(880, 1200, CV_32F, cv::Scalar(100.0f));
+    nan.at<float>(3, 4) = std::numeric_limits<float>::quiet_NaN();
+    ASSERT_TRUE(core::writeImage(p("nan.tif"), nan).ok());
+    // A stack whose manifest has a string for a slice's height.
+    fs::create_directories(dir_ / "badstack");
+    ASSERT_TRUE(core::writeImage(dir_ / "badstack" / "slice-000.tif", sim::builtinAtlasPlane(0.5)).ok());
+    std::ofstream(dir_ / "badstack" / "manifest.json")
+        << R"({"slices": [{"index": 0, "file": "slice-000.tif", "position_um": 0,
+              "normal": [1, 0, 0], "um_per_px": 25, "width": 456, "height": "x"}]})";
+    struct Case {
+        std::string atlas, image, extra, needle;
+    };
+    const std::vector<Case> cases{
+        {p("atlas.tif"), p("bomb.tif"), "", "100000 x 100000"},
+        {p("atlas.tif"), p("narrow.tif"), "", "300 to 8000 px"},
+        {p("onelabel.tif"), p("section.tif"), "", "one label"},
+        {p("atlas.tif"), p("nan.tif"), "", "nan.tif"},
+        {p("badstack"), p("section.tif"), "--slice 0", "slices[0].height"},
+        {p("atlas.tif"), p("section.tif"), "--image-um-per-px nan --atlas-um-per-px 25",
+         "--image-um-per-px"},
+        {p("atlas.tif"), p("section.tif"), "--image-um-per-px 2 --atlas-um-per-px inf",
+         "--atlas-um-per-px"},
+        {p("atlas.tif"), p("section.tif"), "--image-um-per-px 1e-6 --atlas-um-per-px 25",
+         "--image-um-per-px"},
+        {p("atlas.tif"), p("section.tif"), "--working-size 100000", "--working-size"},
+    };
+    for (const Case& c : cases) {
+        const CommandResult r = slicectl("register --atlas " + c.atlas + " --image " + c.image +
+                                         " --output " + p("hostile.json") + " " + c.extra);
+        EXPECT_EQ(r.exitCode, 2) << c.needle << ": " << r.output;
+        EXPECT_NE(r.output.find(c.needle), std::string::npos) << r.output;
+        EXPECT_FALSE(fs::exists(p("hostile.json"))) << c.needle;
     }
 }
 

@@ -9,9 +9,18 @@
 
 #include <opencv2/core/mat.hpp>
 
+#include <cstdint>
 #include <filesystem>
 
 namespace slicestation::core {
+
+/// Largest image readImage accepts, checked from the file's header before anything is decoded:
+/// 2^30 pixels (e.g. 32768 x 32768, a 21 x 21 mm tiled section at 0.65 um/px) and 4 GiB once
+/// decoded (pixels x channels kept x bytes per sample; every page of an ImageJ hyperstack
+/// counted). A file may be tiny and claim gigapixels; those limits keep one image from taking
+/// the station's memory.
+inline constexpr std::uint64_t kMaxImagePixels = std::uint64_t{1} << 30;
+inline constexpr std::uint64_t kMaxImageBytes = std::uint64_t{4} << 30;
 
 /// Reads PNG or TIFF (chosen by content, not extension) as stored.
 ///
@@ -26,9 +35,14 @@ namespace slicestation::core {
 /// of the first slice and become the image's channels in page order (the ABBA sections are such
 /// files). Other formats go through cv::imread(IMREAD_UNCHANGED).
 ///
+/// Size: at most kMaxImagePixels and kMaxImageBytes (TIFF and PNG from their headers; other
+/// formats are held to OpenCV's own limit of 2^30 pixels). Float images must be finite.
+///
 /// \return the image (never empty); NotFound (no such file), IoError (unreadable, empty, corrupt
-///         or truncated file), Unsupported (bit depth, sample format, palette/bilevel TIFF, or a
-///         format OpenCV cannot decode to one of the depths above).
+///         or truncated file), Unsupported (bit depth, sample format, palette/bilevel TIFF, a
+///         format OpenCV cannot decode to one of the depths above, or an image beyond the size
+///         limits: the message gives its size and the limit), InvalidArgument (a float image
+///         holding NaN or infinity: the message names the file and the first such pixel).
 [[nodiscard]] Result<cv::Mat> readImage(const std::filesystem::path& path);
 
 /// Writes `image` in the format chosen by the extension (case-insensitive):

@@ -53,7 +53,10 @@ private:
 /// optional UTF-8 byte-order mark. An empty parent_structure_id marks the root (parentId 0).
 /// Blocking file I/O; re-entrant.
 ///
-/// \return the ontology; NotFound (no such file), IoError (unreadable), InvalidArgument (empty
+/// At most 64 MiB (the Allen file is 224 KB).
+///
+/// \return the ontology; NotFound (no such file), IoError (unreadable), InvalidArgument (larger
+///         than 64 MiB, empty
 ///         file, missing column, wrong field count, bad number, path or colour, duplicate id,
 ///         parent not matching the path, broken quoting): the message names the file, the line
 ///         number and the column.

@@ -16,6 +16,14 @@
 
 namespace slicestation::daemon {
 
+/// Accepted ranges of an atlas slice request (checked by runAtlasSlice and by slicectl).
+inline constexpr double kMinIntervalUm = 1;
+inline constexpr double kMaxIntervalUm = 20000;
+inline constexpr double kMaxPositionUm = 100000; ///< |first_um|
+inline constexpr double kMaxTiltDeg = 60;
+inline constexpr double kMinSliceUmPerPx = 1; ///< finer than any atlas voxel
+// kMaxUmPerPx (register_command.hpp) bounds the slice pixel size from above.
+
 struct AtlasSliceRequest {
     bool builtin = false;                ///< the procedural built-in atlas, no files needed
     std::filesystem::path volume;        ///< annotation NRRD (uint16/uint32 ids)
@@ -32,6 +40,9 @@ struct AtlasSliceRequest {
 };
 
 /// Reads the volume and ontology, cuts the plan, collapses regions, writes the stack.
+/// Ranges: interval [kMinIntervalUm, kMaxIntervalUm], first_um within +-kMaxPositionUm, tilts
+/// within +-kMaxTiltDeg, um_per_px [kMinSliceUmPerPx, kMaxUmPerPx], all finite; the whole stack
+/// within pipeline::checkStackBudget.
 /// \return a summary (slice count, positions); InvalidArgument naming the option or file,
 ///         NotFound, IoError, Unsupported (volume type), OutOfRange (plane outside the volume).
 [[nodiscard]] core::Result<nlohmann::json> runAtlasSlice(const AtlasSliceRequest& request);
@@ -40,7 +51,7 @@ struct AtlasMatchRequest {
     std::filesystem::path stack;  ///< stack directory or its manifest.json
     std::filesystem::path image;  ///< section image
     std::optional<int> expectedIndex;
-    int window = 5;               ///< slices either side of expectedIndex to search
+    int window = 5;               ///< slices either side of expectedIndex to search, >= 0
     double imageUmPerPx = 0;      ///< 0 = unknown: the scale is then found per slice
     std::filesystem::path output; ///< MATCH.json
 };

@@ -23,6 +23,10 @@ CommandRunner addAtlasCommands(CLI::App& app);
 /// export: clients of a running slicestationd (cli_daemon.cpp).
 CommandRunner addDaemonCommands(CLI::App& app);
 
+/// A CLI11 check for a number option: finite and within [min, max]. CLI::Range and
+/// CLI::PositiveNumber let "nan" through (every comparison with NaN is false).
+CLI::Validator finiteRange(double min, double max);
+
 /// Prints "slicectl <command>: error: <message>" on stderr and returns the exit code.
 int reportError(const char* command, const core::Error& error);
 

@@ -13,6 +13,7 @@
 
 #include <opencv2/core.hpp>
 
+#include <cstdint>
 #include <string_view>
 #include <vector>
 
@@ -82,13 +83,26 @@ struct CuttingPlan {
     double umPerPx = 25;
 };
 
+/// Budget of a cut stack, checked before any plane is sampled: at most kMaxStackSlices planes,
+/// kMaxSlicePixels per plane and kMaxStackBytes of CV_32S labels in all. A 10 mm brain cut every
+/// 10 um at 25 um/px (1000 planes of 456 x 320 px) takes 584 MB; 1 um/px planes of the whole
+/// 25 um volume are 91 Mpx each.
+inline constexpr int kMaxStackSlices = 10000;
+inline constexpr std::int64_t kMaxSlicePixels = std::int64_t{1} << 27;
+inline constexpr std::int64_t kMaxStackBytes = std::int64_t{2} << 30;
+
+/// InvalidArgument when `slices` planes of `size` exceed the budget above; the message gives the
+/// plan's size and the budget.
+[[nodiscard]] core::Result<void> checkStackBudget(double slices, cv::Size size);
+
 struct AtlasSlice {
     cv::Mat labels; ///< CV_32S
     SliceGeometry geometry;
 };
 
 /// Every plane of `plan`. \return as planeGeometry (OutOfRange when firstUm lies outside),
-///         InvalidArgument for intervalUm <= 0.
+///         InvalidArgument for intervalUm <= 0 or a plan beyond the stack budget
+///         (checkStackBudget), before anything is sampled.
 [[nodiscard]] core::Result<std::vector<AtlasSlice>> sliceVolume(const core::Volume& volume,
                                                                 VolumeAxes axes,
                                                                 const CuttingPlan& plan);
