@@ -364,10 +364,10 @@ core::Result<CameraConfig> parseCamera(const Json& t, const Reader& rd) {
             "driver", "device", "camera_id", "format", "width", "height", "exposure_us", "gain",
             "red_gain", "blue_gain", "capture_timeout_s", "settle_frames", "sim"};
         // A key of another driver is refused as such, not ignored.
-        for (const auto& [key, driver] : {std::pair{"device", "v4l2"}, std::pair{"camera_id", "libcamera"},
+        for (const auto& [key, owner] : {std::pair{"device", "v4l2"}, std::pair{"camera_id", "libcamera"},
                                           std::pair{"sim", "sim"}})
-            if (t.contains(key) && c.driver != driver)
-                return rd.bad(p + key, std::string("only for driver = \"") + driver + "\"");
+            if (t.contains(key) && c.driver != owner)
+                return rd.bad(p + key, std::string("only for driver = \"") + owner + "\"");
         if (auto k = rd.keys(t, p, known); !k) return k.error();
     }
     auto device = rd.string(t, p, "device", c.device);
