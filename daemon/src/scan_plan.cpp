@@ -128,15 +128,15 @@ Result<void> resolveScanPlan(ScanPlan& plan, const hw::StageLimits& limits,
                               std::to_string(s.index) + "]";
         // The whole extent, not only the centre: a tile outside the soft limits would pause the
         // run at scan time, long after the plan was accepted.
-        const std::string quoted = p + " (\"" + s.name + "\" on " + s.slideName + ")";
+
         const auto inside = [&](const hw::AxisRange& r, double centre, double size, const char* axis,
                                 const char* key, const char* sizeKey) -> Result<void> {
             const double lo = centre - size / 2, hi = centre + size / 2;
             if (lo >= r.minUm && hi <= r.maxUm) return {};
             std::ostringstream os;
-            os << "reaches " << axis << " " << lo << " .. " << hi << " um (" << key << " +- " << sizeKey
+            os << "section \"" << s.name << "\" on " << s.slideName << " reaches " << axis << " " << lo << " .. " << hi << " um (" << key << " +- " << sizeKey
                << "/2), outside the stage's " << axis << " limits [" << r.minUm << ", " << r.maxUm << "] um";
-            return rd.bad(quoted + "." + key, os.str());
+            return rd.bad(p + "." + key, os.str());
         };
         if (auto r = inside(limits.x, s.xUm, s.widthUm, "X", "x_um", "width_um"); !r) return r.error();
         if (auto r = inside(limits.y, s.yUm, s.heightUm, "Y", "y_um", "height_um"); !r) return r.error();

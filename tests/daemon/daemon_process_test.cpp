@@ -615,7 +615,7 @@ TEST_F(DaemonProcessTest, HostileStationFilesAndPlansAreRefusedWithAMessageAndNe
          {std::tuple{deep, "application/json", std::string("nested deeper than 64 levels")},
           std::tuple{overflow, "application/json", std::string("number overflow")},
           std::tuple{wide, "application/toml",
-                     std::string("slides[0].sections[0] (\\\"w\\\" on slide-1).y_um: reaches Y 39000 .. 51000 um")},
+                     std::string("slides[0].sections[0].y_um: section \\\"w\\\" on slide-1 reaches Y 39000 .. 51000 um")},
           std::tuple{longName, "application/toml", std::string("300 bytes is longer than the 64")},
           std::tuple{typo, "application/toml", std::string("did you mean \\\"width_um\\\"?")}}) {
         const auto [status, reply] = submit(body, type);

@@ -170,9 +170,9 @@ TEST(SlicectlStationFile, MisspeltAndHostileFilesAreRefusedWithExitTwo) {
     r = slicectl("status --config " + write("deep.toml", stage + dotted + " = 1\n"));
     EXPECT_EQ(r.exitCode, 2) << r.output.substr(0, 300);
     EXPECT_NE(r.output.find("nested deeper than 64 levels"), std::string::npos) << r.output.substr(0, 300);
-    r = slicectl("stage position --config " + write("speed.toml", "[stage]\ndriver = \"sim\"\nspeeed_um_per_s = 5\n"
+    r = slicectl("stage --config " + write("speed.toml", "[stage]\ndriver = \"sim\"\nspeeed_um_per_s = 5\n"
                                                                   "[stage.axes.x]\nmin_um = 0\nmax_um = 1\n"
-                                                                  "[stage.axes.y]\nmin_um = 0\nmax_um = 1\n"));
+                                                                  "[stage.axes.y]\nmin_um = 0\nmax_um = 1\n") + " position");
     EXPECT_EQ(r.exitCode, 2) << r.output;
     EXPECT_NE(r.output.find("did you mean \"speed_um_per_s\"?"), std::string::npos) << r.output;
     fs::remove_all(dir);
