@@ -26,7 +26,8 @@
 #include <deque>
 #include <map>
 #include <optional>
-#include <set>
+#include <initializer_list>
+#include <string_view>
 #include <thread>
 
 extern char** environ; // NOLINT(readability-redundant-declaration): POSIX declares it nowhere
@@ -167,24 +168,11 @@ std::string optionalId(const std::optional<std::int64_t>& id) {
     return id ? std::to_string(*id) : std::string();
 }
 
-Result<void> checkKeys(const nlohmann::json& t, const std::string& path,
-                       const std::set<std::string>& known, const FieldReader& rd) {
-    for (const auto& [key, value] : t.items()) {
-        if (known.contains(key))
-            continue;
-        std::string list;
-        for (const auto& k : known)
-            list += (list.empty() ? "" : ", ") + k;
-        return rd.bad(path + "." + key, "unknown key (known: " + list + ")");
-    }
-    return {};
-}
-
 /// Walks the [[alerts.<name>]] tables (absent: none): each must be a table with only `known`
 /// keys, and `each(table, path)` reads it.
 template <class Each>
 Result<void> forEachTable(const nlohmann::json& alerts, const std::string& name,
-                          const std::set<std::string>& known, const FieldReader& rd, Each each) {
+                          std::initializer_list<std::string_view> known, const FieldReader& rd, Each each) {
     if (!alerts.contains(name))
         return {};
     const auto& list = alerts[name];
@@ -196,7 +184,7 @@ Result<void> forEachTable(const nlohmann::json& alerts, const std::string& name,
         const auto& e = list[i];
         if (!e.is_object())
             return rd.bad(p, "expected a table");
-        if (auto keys = checkKeys(e, p, known, rd); !keys)
+        if (auto keys = rd.onlyKeys(e, p, known); !keys)
             return keys.error();
         if (auto read = each(e, p); !read)
             return read.error();
@@ -224,10 +212,9 @@ Result<AlertSettings> parseAlertSettings(const nlohmann::json& station, const st
     const nlohmann::json& t = station["alerts"];
     if (!t.is_object())
         return rd.bad("alerts", "expected a table [alerts]");
-    if (auto keys = checkKeys(t, "alerts",
+    if (auto keys = rd.onlyKeys(t, "alerts",
                               {"journal", "retries", "backoff_initial_ms", "backoff_max_ms",
-                               "max_per_minute", "min_severity", "webhook", "command"},
-                              rd);
+                               "max_per_minute", "min_severity", "webhook", "command"});
         !keys)
         return keys.error();
 

@@ -32,11 +32,39 @@ const char* formatName(hw::PixelFormat f) {
 
 std::chrono::milliseconds ms(double s) { return std::chrono::milliseconds(std::llround(s * 1000)); }
 
+Result<void> checkObjective(const nlohmann::json& o, const FieldReader& rd, const std::string& op) {
+    if (!o.is_object()) return rd.bad(op, "expected a table");
+    return rd.onlyKeys(o, op, {"um_per_px", "camera_to_stage"});
+}
+
 // The [scan] table; also the run snapshot, which is the same shape with "objective" expanded.
-Result<ScanSettings> readScan(const nlohmann::json& scan, const FieldReader& rd, const std::string& p) {
+// The station file (`snapshot` false) is strict: unknown keys refused; a snapshot is this
+// program's own record and is read as it was written, so that a stored run always resumes.
+Result<ScanSettings> readScan(const nlohmann::json& scan, const FieldReader& rd, const std::string& p,
+                              bool snapshot) {
     ScanSettings s;
     const nlohmann::json empty = nlohmann::json::object();
     const nlohmann::json& t = scan.is_object() ? scan : empty;
+    if (!snapshot) {
+        if (auto k = rd.onlyKeys(t, p,
+                                 {"objective", "objectives", "um_per_px", "format", "width", "height",
+                                  "exposure_us", "gain", "red_gain", "blue_gain", "autofocus", "focus_range_um",
+                                  "focus_coarse_step_um", "focus_fine_step_um", "min_tissue_fraction",
+                                  "start_z_um", "tile_overlap", "move_retries", "capture_retries",
+                                  "move_timeout_s", "capture_timeout_s", "min_free_mb", "register",
+                                  "check_atlas_match", "atlas_mismatch_tolerance"});
+            !k)
+            return k.error();
+        if (t.contains("objectives")) {
+            const auto& all = t["objectives"];
+            const std::string op = FieldReader::join(p, "objectives");
+            if (!all.is_object()) return rd.bad(op, "expected a table of objectives ([scan.objectives.NAME])");
+            for (const auto& [name, o] : all.items())
+                if (auto c = checkObjective(o, rd, op + "." + name); !c) return c.error();
+        }
+        if (t.contains("objective") && !t["objective"].is_string())
+            return rd.bad(FieldReader::join(p, "objective"), "expected the name of a [scan.objectives.NAME] table");
+    }
     // Objective: either a name picked from [scan.objectives] or (snapshot) an expanded table.
     if (t.contains("objective") && t["objective"].is_object()) {
         const auto& o = t["objective"];
@@ -133,7 +161,7 @@ Result<ScanSettings> readScan(const nlohmann::json& scan, const FieldReader& rd,
     auto mt = rd.number(t, p, "min_tissue_fraction", 0.03, 0.0, 1.0);
     if (!mt) return mt.error();
     s.minTissueFraction = *mt;
-    auto sz = rd.number(t, p, "start_z_um", 2'500.0);
+    auto sz = rd.number(t, p, "start_z_um", 2'500.0, -1e6, 1e6);
     if (!sz) return sz.error();
     s.startZUm = *sz;
     auto ov = rd.number(t, p, "tile_overlap", 0.1, 0.0, 0.5);
@@ -156,6 +184,11 @@ Result<ScanSettings> readScan(const nlohmann::json& scan, const FieldReader& rd,
     s.minFreeBytes = static_cast<std::uint64_t>(*mf * 1024 * 1024);
     auto reg = rd.boolean(t, p, "register", true);
     if (!reg) return reg.error();
+    // Nothing skips registration yet (the scanner waits for every capture to be registered):
+    // refused rather than stored and ignored. A snapshot keeps what an older version stored.
+    if (!*reg && !snapshot)
+        return rd.bad(FieldReader::join(p, "register"),
+                      "false is not supported: every captured section is registered; remove the key");
     s.registerSections = *reg;
     auto cm = rd.boolean(t, p, "check_atlas_match", true);
     if (!cm) return cm.error();
@@ -171,9 +204,16 @@ Result<ScanSettings> readScan(const nlohmann::json& scan, const FieldReader& rd,
 Result<DaemonSettings> parseDaemonSettings(const nlohmann::json& station, const std::string& origin) {
     FieldReader rd(origin);
     DaemonSettings d;
+    if (!station.is_object()) return rd.bad("(document)", "expected a table at the top");
+    if (auto k = rd.onlyKeys(station, "(document)", kStationTables); !k) return k.error();
     const nlohmann::json empty = nlohmann::json::object();
     const nlohmann::json& t = station.contains("daemon") ? station["daemon"] : empty;
     if (!t.is_object()) return rd.bad("daemon", "expected a table");
+    if (auto k = rd.onlyKeys(t, "daemon",
+                             {"state_dir", "atlas", "builtin_interval_um", "http_bind", "http_port", "token",
+                              "token_file", "watchdog_stall_s"});
+        !k)
+        return k.error();
     auto sd = rd.string(t, "daemon", "state_dir", std::string());
     if (!sd) return sd.error();
     d.stateDir = *sd;
@@ -198,18 +238,26 @@ Result<DaemonSettings> parseDaemonSettings(const nlohmann::json& station, const 
         if (!tf) return tf.error();
         std::ifstream in(*tf);
         if (!in) return rd.bad("daemon.token_file", "cannot read " + *tf);
-        std::getline(in, d.token);
+        std::string head(kMaxTokenBytes + 2, '\0'); // the first line, bounded
+        in.read(head.data(), static_cast<std::streamsize>(head.size()));
+        head.resize(static_cast<std::size_t>(in.gcount()));
+        d.token = head.substr(0, head.find('\n'));
         while (!d.token.empty() && std::isspace(static_cast<unsigned char>(d.token.back()))) d.token.pop_back();
         if (d.token.empty()) return rd.bad("daemon.token_file", *tf + " is empty");
     }
     if (!d.token.empty() && d.token.size() < 16)
         return rd.bad("daemon.token", "too short: use at least 16 characters");
+    if (d.token.size() > kMaxTokenBytes)
+        return rd.bad("daemon.token", "longer than " + std::to_string(kMaxTokenBytes) + " bytes");
+    for (const char c : d.token)
+        if (static_cast<unsigned char>(c) < 0x20 || c == 0x7f)
+            return rd.bad("daemon.token", "must not contain control characters");
     auto ws = rd.number(t, "daemon", "watchdog_stall_s", 120.0, 1, 86'400);
     if (!ws) return ws.error();
     d.watchdogStall = std::chrono::seconds(std::llround(*ws));
     const nlohmann::json& scan = station.contains("scan") ? station["scan"] : empty;
     if (!scan.is_object()) return rd.bad("scan", "expected a table");
-    auto s = readScan(scan, rd, "scan");
+    auto s = readScan(scan, rd, "scan", false);
     if (!s) return s.error();
     d.scan = *s;
     return d;
@@ -247,7 +295,7 @@ nlohmann::json toJson(const ScanSettings& s) {
 Result<ScanSettings> scanSettingsFromJson(const nlohmann::json& j, const std::string& origin) {
     FieldReader rd(origin);
     if (!j.is_object()) return rd.bad("settings", "the run's settings snapshot is not an object");
-    return readScan(j, rd, "settings");
+    return readScan(j, rd, "settings", true);
 }
 
 } // namespace slicestation::daemon

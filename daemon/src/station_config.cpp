@@ -4,9 +4,13 @@
 #include "slicestation/drivers/v4l2_camera.hpp"
 #include "slicestation/sim/faulty_camera.hpp"
 
-#include <toml++/toml.h>
+#include "slicestation/daemon/config_document.hpp"
+#include "slicestation/daemon/daemon_settings.hpp"
 
+#include <algorithm>
 #include <cmath>
+#include <initializer_list>
+#include <string_view>
 #include <fstream>
 #include <sstream>
 
@@ -17,36 +21,77 @@ using core::makeError;
 
 namespace {
 
+using Json = nlohmann::json;
+
+// The station file is read through parseDocument (size, depth and number limits) and
+// FieldReader (strict keys); `prefix` ends in a dot ("stage.axes.x.").
 struct Reader {
     std::string origin;
+    FieldReader fields{origin};
     core::Error bad(const std::string& key, const std::string& what) const {
         return makeError(ErrorCode::InvalidArgument, origin + ": " + key + ": " + what);
     }
-    core::Result<double> number(const toml::table& t, const std::string& prefix, const char* key,
-                                std::optional<double> fallback, double min = -1e300) const {
-        const toml::node* n = t.get(key);
-        if (!n) {
-            if (fallback) return *fallback;
-            return bad(prefix + key, "missing");
-        }
-        const auto v = n->value<double>();
-        if (!v || !std::isfinite(*v)) return bad(prefix + key, "expected a number");
-        if (*v < min) return bad(prefix + key, "must be >= " + std::to_string(min));
-        return *v;
+    static std::string path(const std::string& prefix) {
+        return prefix.empty() ? prefix : prefix.substr(0, prefix.size() - 1);
     }
-    core::Result<std::string> string(const toml::table& t, const std::string& prefix, const char* key,
-                                     std::optional<std::string> fallback) const {
-        const toml::node* n = t.get(key);
-        if (!n) {
+    core::Result<double> number(const Json& t, const std::string& prefix, const char* key,
+                                std::optional<double> fallback, double min = -1e300, double max = 1e300) const {
+        if (!t.contains(key)) {
             if (fallback) return *fallback;
             return bad(prefix + key, "missing");
         }
-        if (!n->is_string()) return bad(prefix + key, "expected a string");
-        return n->as_string()->get();
+        const Json& v = t[key];
+        if (!v.is_number()) return bad(prefix + key, "expected a number");
+        const double d = v.get<double>();
+        if (!std::isfinite(d)) return bad(prefix + key, "expected a number");
+        if (d < min) return bad(prefix + key, "must be >= " + shortNumber(min));
+        if (d > max) return bad(prefix + key, "must be <= " + shortNumber(max));
+        return d;
+    }
+    core::Result<std::string> string(const Json& t, const std::string& prefix, const char* key,
+                                     std::optional<std::string> fallback) const {
+        if (!t.contains(key)) {
+            if (fallback) return *fallback;
+            return bad(prefix + key, "missing");
+        }
+        if (!t[key].is_string()) return bad(prefix + key, "expected a string");
+        return t[key].get<std::string>();
+    }
+    /// Strict keys: a typo is refused with the nearest known key; a key of another driver or
+    /// transport (`others`) is refused as such, not silently ignored.
+    core::Result<void> keys(const Json& t, const std::string& prefix, std::initializer_list<std::string_view> known,
+                            std::initializer_list<std::string_view> others = {}, const std::string& only = "") const {
+        for (const auto o : others)
+            if (t.contains(o)) return bad(prefix + std::string(o), "only for " + only);
+        return fields.onlyKeys(t, path(prefix), known);
+    }
+    static std::string shortNumber(double v) {
+        std::ostringstream os;
+        os << v;
+        return os.str();
     }
 };
 
-core::Result<StageConfig> parseStage(const toml::table& st, const Reader& rd) {
+const Json* table(const Json& t, const char* key) {
+    return t.contains(key) && t[key].is_object() ? &t[key] : nullptr;
+}
+
+core::Result<bool> boolean(const Json& t, const std::string& key, bool fallback, const Reader& rd) {
+    if (!t.contains(key)) return fallback;
+    if (!t[key].is_boolean()) return rd.bad(key, "expected true or false");
+    return t[key].get<bool>();
+}
+
+core::Result<int> integer(const Reader& rd, const Json& t, const std::string& prefix, const char* key,
+                          int fallback, int min, int max) {
+    auto v = rd.number(t, prefix, key, double(fallback));
+    if (!v) return v.error();
+    if (std::floor(*v) != *v || *v < min || *v > max)
+        return rd.bad(prefix + key, "must be an integer " + std::to_string(min) + ".." + std::to_string(max));
+    return static_cast<int>(*v);
+}
+
+core::Result<StageConfig> parseStage(const Json& st, const Reader& rd) {
     StageConfig c;
     const std::string p = "stage.";
     auto driver = rd.string(st, p, "driver", std::nullopt);
@@ -54,52 +99,80 @@ core::Result<StageConfig> parseStage(const toml::table& st, const Reader& rd) {
     c.driver = *driver;
     if (c.driver != "modbus" && c.driver != "sim")
         return rd.bad("stage.driver", "expected \"modbus\" or \"sim\", got \"" + c.driver + "\"");
+    if (c.driver == "sim") {
+        if (auto k = rd.keys(st, p,
+                             {"driver", "move_timeout_s", "home_timeout_s", "axes", "speed_um_per_s",
+                              "accel_um_per_s2", "position_window_um", "settle_ms"},
+                             {"response_timeout_ms", "retries", "transport", "host", "port", "device", "baud",
+                              "parity", "data_bits", "stop_bits", "map", "preset"},
+                             "driver = \"modbus\"");
+            !k)
+            return k.error();
+    } else {
+        const bool tcp = st.contains("transport") && st["transport"] == "tcp";
+        const std::initializer_list<std::string_view> common = {
+            "driver", "move_timeout_s", "home_timeout_s", "axes", "speed_um_per_s", "accel_um_per_s2",
+            "position_window_um", "settle_ms", "response_timeout_ms", "retries", "transport", "map",
+            "preset", "host", "port", "device", "baud", "parity", "data_bits", "stop_bits"};
+        auto k = tcp ? rd.keys(st, p, common, {"device", "baud", "parity", "data_bits", "stop_bits"},
+                               "transport = \"rtu\"")
+                     : rd.keys(st, p, common, {"host", "port"}, "transport = \"tcp\"");
+        if (!k) return k.error();
+        if (st.contains("map") && st.contains("preset"))
+            return rd.bad("stage.map", "give map or preset, not both");
+    }
     auto ms = [](double s) { return std::chrono::milliseconds(std::llround(s * 1000)); };
-    auto mt = rd.number(st, p, "move_timeout_s", 10.0, 0.001);
+    auto mt = rd.number(st, p, "move_timeout_s", 10.0, 0.001, 3600);
     if (!mt) return mt.error();
     c.moveTimeout = ms(*mt);
-    auto ht = rd.number(st, p, "home_timeout_s", 60.0, 0.001);
+    auto ht = rd.number(st, p, "home_timeout_s", 60.0, 0.001, 3600);
     if (!ht) return ht.error();
     c.homeTimeout = ms(*ht);
 
     // Axes: [stage.axes.x], [stage.axes.y], optional [stage.axes.z].
-    const toml::table* axes = st["axes"].as_table();
+    const Json* axes = table(st, "axes");
     if (!axes) return rd.bad("stage.axes", "missing table (needs [stage.axes.x] and [stage.axes.y])");
+    if (auto k = rd.keys(*axes, "stage.axes.", {"x", "y", "z"}); !k) return k.error();
     std::vector<drivers::ModbusAxisConfig> list;
     for (const char* name : {"x", "y", "z"}) {
-        const toml::table* a = (*axes)[name].as_table();
+        const Json* a = table(*axes, name);
         const std::string ap = "stage.axes." + std::string(name) + ".";
         if (!a) {
-            if (std::string(name) == "z") continue;
+            if (std::string(name) == "z" && !axes->contains("z")) continue;
             return rd.bad("stage.axes." + std::string(name), "missing table");
         }
+        if (auto k = c.driver == "modbus"
+                         ? rd.keys(*a, ap, {"min_um", "max_um", "slave", "steps_per_um"})
+                         : rd.keys(*a, ap, {"min_um", "max_um"}, {"slave", "steps_per_um"}, "driver = \"modbus\"");
+            !k)
+            return k.error();
         drivers::ModbusAxisConfig ax;
         ax.name = name;
-        auto mn = rd.number(*a, ap, "min_um", std::nullopt);
+        auto mn = rd.number(*a, ap, "min_um", std::nullopt, -1e7, 1e7);
         if (!mn) return mn.error();
-        auto mx = rd.number(*a, ap, "max_um", std::nullopt);
+        auto mx = rd.number(*a, ap, "max_um", std::nullopt, -1e7, 1e7);
         if (!mx) return mx.error();
         if (!(*mn < *mx)) return rd.bad(ap + "max_um", "must be greater than min_um");
         ax.minUm = *mn;
         ax.maxUm = *mx;
         if (c.driver == "modbus") {
-            auto slave = rd.number(*a, ap, "slave", std::nullopt, 1);
+            auto slave = rd.number(*a, ap, "slave", std::nullopt, 1, 247);
             if (!slave) return slave.error();
             if (*slave > 247 || std::floor(*slave) != *slave) return rd.bad(ap + "slave", "must be an integer 1..247");
             ax.slave = static_cast<int>(*slave);
-            auto spu = rd.number(*a, ap, "steps_per_um", std::nullopt, 1e-9);
+            auto spu = rd.number(*a, ap, "steps_per_um", std::nullopt, 1e-9, 1e6);
             if (!spu) return spu.error();
             ax.stepsPerUm = *spu;
         }
         list.push_back(ax);
     }
-    auto speed = rd.number(st, p, "speed_um_per_s", 10'000.0, 1e-6);
+    auto speed = rd.number(st, p, "speed_um_per_s", 10'000.0, 1e-6, 1e7);
     if (!speed) return speed.error();
-    auto accel = rd.number(st, p, "accel_um_per_s2", 50'000.0, 1e-6);
+    auto accel = rd.number(st, p, "accel_um_per_s2", 50'000.0, 1e-6, 1e9);
     if (!accel) return accel.error();
-    auto window = rd.number(st, p, "position_window_um", 1.0, 1e-6);
+    auto window = rd.number(st, p, "position_window_um", 1.0, 1e-6, 1e5);
     if (!window) return window.error();
-    auto settle = rd.number(st, p, "settle_ms", 50.0, 0);
+    auto settle = rd.number(st, p, "settle_ms", 50.0, 0, 60'000);
     if (!settle) return settle.error();
 
     if (c.driver == "sim") {
@@ -118,12 +191,12 @@ core::Result<StageConfig> parseStage(const toml::table& st, const Reader& rd) {
     m.accelUmPerS2 = *accel;
     m.positionWindowUm = *window;
     m.settle = std::chrono::milliseconds(std::llround(*settle));
-    auto rto = rd.number(st, p, "response_timeout_ms", 200.0, 1);
+    auto rto = rd.number(st, p, "response_timeout_ms", 200.0, 1, 60'000);
     if (!rto) return rto.error();
     m.responseTimeout = std::chrono::milliseconds(std::llround(*rto));
-    auto retries = rd.number(st, p, "retries", 2.0, 0);
+    auto retries = integer(rd, st, p, "retries", 2, 0, 100);
     if (!retries) return retries.error();
-    m.retries = static_cast<int>(*retries);
+    m.retries = *retries;
 
     auto transport = rd.string(st, p, "transport", std::nullopt);
     if (!transport) return transport.error();
@@ -132,28 +205,27 @@ core::Result<StageConfig> parseStage(const toml::table& st, const Reader& rd) {
         auto host = rd.string(st, p, "host", std::nullopt);
         if (!host) return host.error();
         m.host = *host;
-        auto port = rd.number(st, p, "port", 502.0, 1);
+        auto port = integer(rd, st, p, "port", 502, 1, 65535);
         if (!port) return port.error();
-        if (*port > 65535) return rd.bad("stage.port", "must be 1..65535");
-        m.port = static_cast<int>(*port);
+        m.port = *port;
     } else if (*transport == "rtu") {
         m.transport = drivers::ModbusStageConfig::Transport::Rtu;
         auto dev = rd.string(st, p, "device", std::nullopt);
         if (!dev) return dev.error();
         m.device = *dev;
-        auto baud = rd.number(st, p, "baud", 115200.0, 1);
+        auto baud = integer(rd, st, p, "baud", 115200, 50, 4'000'000);
         if (!baud) return baud.error();
-        m.baud = static_cast<int>(*baud);
+        m.baud = *baud;
         auto parity = rd.string(st, p, "parity", std::string("E"));
         if (!parity) return parity.error();
         if (*parity != "N" && *parity != "E" && *parity != "O") return rd.bad("stage.parity", "expected \"N\", \"E\" or \"O\"");
         m.parity = (*parity)[0];
-        auto db = rd.number(st, p, "data_bits", 8.0, 5);
+        auto db = integer(rd, st, p, "data_bits", 8, 5, 8);
         if (!db) return db.error();
-        m.dataBits = static_cast<int>(*db);
-        auto sb = rd.number(st, p, "stop_bits", 1.0, 1);
+        m.dataBits = *db;
+        auto sb = integer(rd, st, p, "stop_bits", 1, 1, 2);
         if (!sb) return sb.error();
-        m.stopBits = static_cast<int>(*sb);
+        m.stopBits = *sb;
     } else {
         return rd.bad("stage.transport", "expected \"tcp\" or \"rtu\"");
     }
@@ -176,38 +248,32 @@ core::Result<StageConfig> parseStage(const toml::table& st, const Reader& rd) {
     return c;
 }
 
-core::Result<bool> boolean(const toml::table& t, const std::string& key, bool fallback, const Reader& rd) {
-    const toml::node* n = t.get(key);
-    if (!n) return fallback;
-    if (!n->is_boolean()) return rd.bad(key, "expected true or false");
-    return n->as_boolean()->get();
-}
-
-core::Result<int> integer(const Reader& rd, const toml::table& t, const std::string& prefix, const char* key,
-                          int fallback, int min, int max) {
-    auto v = rd.number(t, prefix, key, double(fallback));
-    if (!v) return v.error();
-    if (std::floor(*v) != *v || *v < min || *v > max)
-        return rd.bad(prefix + key, "must be an integer " + std::to_string(min) + ".." + std::to_string(max));
-    return static_cast<int>(*v);
-}
-
-core::Result<SimCameraSection> parseSimCamera(const toml::table& t, const Reader& rd) {
+core::Result<SimCameraSection> parseSimCamera(const Json& t, const Reader& rd) {
     SimCameraSection c;
     const std::string p = "camera.sim.";
+    if (auto k = rd.keys(t, p,
+                         {"sensor_um_per_px", "focus_z_um", "focus_tilt_x", "focus_tilt_y", "blur_sigma_px_per_um",
+                          "slide_um_per_px", "slide_origin_x_um", "slide_origin_y_um", "section_pitch_um",
+                          "section_width_um", "margin_um", "images_um_per_px", "columns", "brightfield",
+                          "timeout_first_captures", "disconnect_after_frames", "images", "sections"});
+        !k)
+        return k.error();
     struct Num {
         const char* key;
         double* target;
         double min;
+        double max;
     };
     auto& sl = c.slide;
-    for (const Num& n : {Num{"sensor_um_per_px", &c.sensorUmPerPx, 1e-6}, Num{"focus_z_um", &c.focusZUm, -1e300},
-                         Num{"focus_tilt_x", &c.focusTiltX, -1e300}, Num{"focus_tilt_y", &c.focusTiltY, -1e300},
-                         Num{"blur_sigma_px_per_um", &c.blurSigmaPxPerUm, 0}, Num{"slide_um_per_px", &sl.umPerPx, 1e-6},
-                         Num{"slide_origin_x_um", &sl.originXUm, -1e300}, Num{"slide_origin_y_um", &sl.originYUm, -1e300},
-                         Num{"section_pitch_um", &sl.sectionPitchUm, 1e-6}, Num{"section_width_um", &sl.sectionWidthUm, 1e-6},
-                         Num{"margin_um", &sl.marginUm, 0}, Num{"images_um_per_px", &c.imagesUmPerPx, 1e-6}}) {
-        auto v = rd.number(t, p, n.key, *n.target, n.min);
+    for (const Num& n : {Num{"sensor_um_per_px", &c.sensorUmPerPx, 1e-3, 1e4}, Num{"focus_z_um", &c.focusZUm, -1e6, 1e6},
+                         Num{"focus_tilt_x", &c.focusTiltX, -10, 10}, Num{"focus_tilt_y", &c.focusTiltY, -10, 10},
+                         Num{"blur_sigma_px_per_um", &c.blurSigmaPxPerUm, 0, 100},
+                         Num{"slide_um_per_px", &sl.umPerPx, 0.1, 1e4},
+                         Num{"slide_origin_x_um", &sl.originXUm, -1e7, 1e7}, Num{"slide_origin_y_um", &sl.originYUm, -1e7, 1e7},
+                         Num{"section_pitch_um", &sl.sectionPitchUm, 1e-3, 1e6},
+                         Num{"section_width_um", &sl.sectionWidthUm, 1e-3, 1e6}, Num{"margin_um", &sl.marginUm, 0, 1e6},
+                         Num{"images_um_per_px", &c.imagesUmPerPx, 0.1, 1e4}}) {
+        auto v = rd.number(t, p, n.key, *n.target, n.min, n.max);
         if (!v) return v.error();
         *n.target = *v;
     }
@@ -225,24 +291,29 @@ core::Result<SimCameraSection> parseSimCamera(const toml::table& t, const Reader
     if (!dc) return dc.error();
     c.disconnectAfterFrames = *dc;
 
-    if (const toml::node* imgs = t.get("images")) {
-        const toml::array* a = imgs->as_array();
-        if (!a || a->empty()) return rd.bad(p + "images", "expected a non-empty array of file names");
+    if (t.contains("images")) {
+        const Json* a = &t["images"];
+        if (!a->is_array() || a->empty()) return rd.bad(p + "images", "expected a non-empty array of file names");
+        if (a->size() > kMaxSimSections)
+            return rd.bad(p + "images", "at most " + std::to_string(kMaxSimSections) + " images");
         for (std::size_t i = 0; i < a->size(); ++i) {
-            const auto v = (*a)[i].value<std::string>();
-            if (!v) return rd.bad(p + "images[" + std::to_string(i) + "]", "expected a file name");
-            std::filesystem::path f = *v;
+            if (!(*a)[i].is_string()) return rd.bad(p + "images[" + std::to_string(i) + "]", "expected a file name");
+            std::filesystem::path f = (*a)[i].get<std::string>();
             if (f.is_relative()) f = std::filesystem::path(rd.origin).parent_path() / f;
             c.images.push_back(f);
         }
         if (t.contains("sections")) return rd.bad(p + "sections", "give either images or sections, not both");
-    } else if (const toml::node* secs = t.get("sections")) {
-        const toml::array* a = secs->as_array();
-        if (!a || a->empty() || !a->is_homogeneous(toml::node_type::table))
+    } else if (t.contains("sections")) {
+        const Json* a = &t["sections"];
+        if (!a->is_array() || a->empty() ||
+            !std::all_of(a->begin(), a->end(), [](const Json& e) { return e.is_object(); }))
             return rd.bad(p + "sections", "expected [[camera.sim.sections]] tables");
+        if (a->size() > kMaxSimSections)
+            return rd.bad(p + "sections", "at most " + std::to_string(kMaxSimSections) + " sections");
         for (std::size_t i = 0; i < a->size(); ++i) {
-            const toml::table& st = *(*a)[i].as_table();
+            const Json& st = (*a)[i];
             const std::string sp = p + "sections[" + std::to_string(i) + "].";
+            if (auto k = rd.keys(st, sp, {"ap_fraction", "damage", "seed"}); !k) return k.error();
             sim::SlideSectionSpec spec;
             auto ap = rd.number(st, sp, "ap_fraction", std::nullopt, 0);
             if (!ap) return ap.error();
@@ -253,7 +324,7 @@ core::Result<SimCameraSection> parseSimCamera(const toml::table& t, const Reader
             if (*dmg != "" && *dmg != "tear" && *dmg != "missing" && *dmg != "fragment")
                 return rd.bad(sp + "damage", "expected \"\", \"tear\", \"missing\" or \"fragment\", got \"" + *dmg + "\"");
             spec.damage = *dmg;
-            auto seed = rd.number(st, sp, "seed", double(i + 1), 0);
+            auto seed = integer(rd, st, sp, "seed", static_cast<int>(i + 1), 0, 2'147'483'647);
             if (!seed) return seed.error();
             spec.seed = static_cast<std::uint64_t>(*seed);
             sl.sections.push_back(spec);
@@ -261,10 +332,26 @@ core::Result<SimCameraSection> parseSimCamera(const toml::table& t, const Reader
     } else { // a default slide: four sections front to back, one torn
         sl.sections = {{0.2, "", 1}, {0.4, "tear", 2}, {0.6, "", 3}, {0.8, "missing", 4}};
     }
+    // The slide is one image in memory: bounded before it is allocated (generated slides carry
+    // a margin; loaded ones are a grid of pitch-sized cells).
+    const double n = static_cast<double>(c.images.empty() ? sl.sections.size() : c.images.size());
+    const double gridCols = std::min<double>(sl.columns, n), gridRows = std::ceil(n / sl.columns);
+    const double pxUm = c.images.empty() ? sl.umPerPx : c.imagesUmPerPx;
+    const double margin = c.images.empty() ? 2 * sl.marginUm : 0;
+    const double wPx = (gridCols * sl.sectionPitchUm + margin) / pxUm;
+    const double hPx = (gridRows * sl.sectionPitchUm + margin) / pxUm;
+    if (wPx > kMaxSimSlideSidePx || hPx > kMaxSimSlideSidePx || wPx * hPx > kMaxSimSlidePixels) {
+        std::ostringstream os;
+        os << "the virtual slide would be " << std::llround(wPx) << " x " << std::llround(hPx)
+           << " px (at most " << kMaxSimSlideSidePx << " a side and " << kMaxSimSlidePixels
+           << " in all): raise " << (c.images.empty() ? "slide_um_per_px" : "images_um_per_px")
+           << " or lower section_pitch_um, margin_um or the number of sections";
+        return rd.bad(p + "section_pitch_um", os.str());
+    }
     return c;
 }
 
-core::Result<CameraConfig> parseCamera(const toml::table& t, const Reader& rd) {
+core::Result<CameraConfig> parseCamera(const Json& t, const Reader& rd) {
     CameraConfig c;
     const std::string p = "camera.";
     auto driver = rd.string(t, p, "driver", std::nullopt);
@@ -272,6 +359,17 @@ core::Result<CameraConfig> parseCamera(const toml::table& t, const Reader& rd) {
     c.driver = *driver;
     if (c.driver != "v4l2" && c.driver != "libcamera" && c.driver != "sim")
         return rd.bad("camera.driver", "expected \"v4l2\", \"libcamera\" or \"sim\", got \"" + c.driver + "\"");
+    {
+        const std::initializer_list<std::string_view> known = {
+            "driver", "device", "camera_id", "format", "width", "height", "exposure_us", "gain",
+            "red_gain", "blue_gain", "capture_timeout_s", "settle_frames", "sim"};
+        // A key of another driver is refused as such, not ignored.
+        for (const auto& [key, owner] : {std::pair{"device", "v4l2"}, std::pair{"camera_id", "libcamera"},
+                                          std::pair{"sim", "sim"}})
+            if (t.contains(key) && c.driver != owner)
+                return rd.bad(p + key, std::string("only for driver = \"") + owner + "\"");
+        if (auto k = rd.keys(t, p, known); !k) return k.error();
+    }
     auto device = rd.string(t, p, "device", c.device);
     if (!device) return device.error();
     c.device = *device;
@@ -294,67 +392,70 @@ core::Result<CameraConfig> parseCamera(const toml::table& t, const Reader& rd) {
     if (!exp) return exp.error();
     if (*exp > 10'000'000) return rd.bad("camera.exposure_us", "must be 1..10000000");
     c.settings.exposureUs = std::llround(*exp);
-    auto gain = rd.number(t, p, "gain", 1.0, 1e-6);
+    auto gain = rd.number(t, p, "gain", 1.0, 1e-6, 1000);
     if (!gain) return gain.error();
     c.settings.analogueGain = *gain;
-    auto rg = rd.number(t, p, "red_gain", 1.0, 1e-6);
+    auto rg = rd.number(t, p, "red_gain", 1.0, 1e-6, 100);
     if (!rg) return rg.error();
-    auto bg = rd.number(t, p, "blue_gain", 1.0, 1e-6);
+    auto bg = rd.number(t, p, "blue_gain", 1.0, 1e-6, 100);
     if (!bg) return bg.error();
     c.settings.redGain = *rg;
     c.settings.blueGain = *bg;
-    auto ct = rd.number(t, p, "capture_timeout_s", 5.0, 0.001);
+    auto ct = rd.number(t, p, "capture_timeout_s", 5.0, 0.001, 600);
     if (!ct) return ct.error();
     c.captureTimeout = std::chrono::milliseconds(std::llround(*ct * 1000));
     auto settle = integer(rd, t, p, "settle_frames", 3, 0, 100);
     if (!settle) return settle.error();
     c.settleFrames = *settle;
     if (c.driver == "sim") {
-        static const toml::table empty;
-        const toml::table* st = t["sim"].as_table();
+        static const Json empty = Json::object();
+        if (t.contains("sim") && !t["sim"].is_object()) return rd.bad("camera.sim", "expected a table");
+        const Json* st = table(t, "sim");
         auto s = parseSimCamera(st ? *st : empty, rd);
         if (!s) return s.error();
         c.sim = std::move(*s);
-    } else if (t.contains("sim")) {
-        return rd.bad("camera.sim", "only for driver = \"sim\"");
     }
     return c;
 }
 
 } // namespace
 
-core::Result<StationConfig> parseStationConfig(std::string_view text, const std::filesystem::path& origin) {
-    toml::table root;
-    try {
-        root = toml::parse(text, origin.string());
-    } catch (const toml::parse_error& e) {
-        std::ostringstream os;
-        os << origin.string() << ":" << e.source().begin.line << ": " << e.description();
-        return makeError(ErrorCode::InvalidArgument, os.str());
-    }
+namespace {
+
+core::Result<StationConfig> stationFromDocument(const Json& root, const std::filesystem::path& origin) {
     Reader rd{origin.string()};
+    if (auto k = rd.fields.onlyKeys(root, "(document)", kStationTables); !k) return k.error();
     StationConfig cfg;
     cfg.file = origin;
-    const toml::table* st = root["stage"].as_table();
+    const Json* st = table(root, "stage");
     if (!st) return rd.bad("stage", "missing table [stage]");
     auto stage = parseStage(*st, rd);
     if (!stage) return stage.error();
     cfg.stage = std::move(*stage);
-    if (const toml::node* cam = root.get("camera")) {
-        if (!cam->is_table()) return rd.bad("camera", "expected a table [camera]");
-        auto c = parseCamera(*cam->as_table(), rd);
+    if (root.contains("camera")) {
+        if (!root["camera"].is_object()) return rd.bad("camera", "expected a table [camera]");
+        auto c = parseCamera(root["camera"], rd);
         if (!c) return c.error();
         cfg.camera = std::move(*c);
     }
     return cfg;
 }
 
+} // namespace
+
+core::Result<StationConfig> parseStationConfig(std::string_view text, const std::filesystem::path& origin) {
+    auto doc = parseDocument(text, DocumentFormat::Toml, origin.string());
+    if (!doc) return doc.error();
+    return stationFromDocument(*doc, origin);
+}
+
 core::Result<StationConfig> loadStationConfig(const std::filesystem::path& file) {
-    std::ifstream in(file);
-    if (!in) return makeError(ErrorCode::NotFound, "station file " + file.string() + " cannot be opened");
-    std::stringstream ss;
-    ss << in.rdbuf();
-    return parseStationConfig(ss.str(), file);
+    std::error_code ec;
+    if (!std::filesystem::exists(file, ec))
+        return makeError(ErrorCode::NotFound, "station file " + file.string() + " cannot be opened");
+    auto doc = readDocument(file); // bounded in size, like every document
+    if (!doc) return doc.error();
+    return stationFromDocument(*doc, file);
 }
 
 core::Result<std::unique_ptr<hw::Stage>> openStage(const StageConfig& config, bool& simulated) {

@@ -305,14 +305,15 @@ TEST(AlertSettings, ErrorsNameTheKey) {
     expectError("[alerts]\n[[alerts.webhook]]\nformat = \"json\"\n",
                 "station.toml: alerts.webhook[0].url: missing");
     expectError("[alerts]\n[[alerts.webhook]]\nurl = \"http://h/\"\nurl_typo = 1\n",
-                "station.toml: alerts.webhook[0].url_typo: unknown key");
+                "station.toml: alerts.webhook[0]: unknown key \"url_typo\" (known: url, format, timeout_s)");
     expectError("[alerts]\n[[alerts.command]]\nargv = []\n",
                 "station.toml: alerts.command[0].argv: empty");
     expectError("[alerts]\n[[alerts.command]]\nargv = [\"\"]\n",
                 "station.toml: alerts.command[0].argv: ");
     expectError("[alerts]\n[[alerts.command]]\nargv = [\"x\", 3]\n",
                 "station.toml: alerts.command[0].argv: ");
-    expectError("[alerts]\nretry = 3\n", "station.toml: alerts.retry: unknown key");
+    expectError("[alerts]\nretry = 3\n",
+                "station.toml: alerts: unknown key \"retry\"; did you mean \"retries\"?");
     expectError("[alerts]\nmin_severity = \"urgent\"\n", "station.toml: alerts.min_severity: ");
     expectError("[alerts]\nretries = -1\n", "station.toml: alerts.retries: ");
     expectError("[alerts]\nbackoff_initial_ms = 5000\nbackoff_max_ms = 100\n",

@@ -34,6 +34,8 @@
 #include <sstream>
 #include <string>
 #include <thread>
+#include <tuple>
+#include <utility>
 #include <vector>
 
 extern char** environ;
@@ -553,6 +555,77 @@ TEST_F(DaemonProcessTest, DroppedCorruptBusyAndSlowModbusRepliesAreRetriedWithou
     daemon_->signal(SIGTERM);
     ASSERT_EQ(daemon_->waitExit(60s), 0);
     checkStored(true);
+}
+
+// Issue 20: hostile station files and plans, through the real daemon. Before the fix a deep plan
+// overflowed the stack (SIGSEGV), x_um = 1e400 ended in std::terminate (SIGABRT) at start and
+// in a 500 through the API, and a misspelt station key was ignored.
+TEST_F(DaemonProcessTest, HostileStationFilesAndPlansAreRefusedWithAMessageAndNeverCrashIt) {
+    const auto expectRefusedAtStart = [&](const std::string& needle) {
+        startDaemon(false);
+        EXPECT_EQ(daemon_->waitExit(60s), 2) << "refused with exit 2, not a crash";
+        const std::string log = readText(dir_ / "daemon.log");
+        EXPECT_NE(log.find(needle), std::string::npos) << log;
+        fs::remove(dir_ / "daemon.log");
+    };
+    std::string station = stationToml(server_->tcpPort(), "", "", 60);
+    station.replace(station.find("speed_um_per_s"), 14, "speeed_um_per_s");
+    writeText(dir_ / "station.toml", station);
+    expectRefusedAtStart("stage: unknown key \"speeed_um_per_s\"; did you mean \"speed_um_per_s\"?");
+    writeStation("min_free_mbb = 3\n");
+    expectRefusedAtStart("scan: unknown key \"min_free_mbb\"; did you mean \"min_free_mb\"?");
+    writeStation("", "http_bnd = \"0.0.0.0\"\n");
+    expectRefusedAtStart("daemon: unknown key \"http_bnd\"; did you mean \"http_bind\"?");
+
+    writeStation();
+    std::string deep = R"({"name": "deep", "slides": )";
+    deep += std::string(300'000, '[') + std::string(300'000, ']') + "}";
+    const std::string overflow = R"({"name": "big", "slides": [{"sections": [{"x_um": 1e400, "y_um": 0}]}]})";
+    for (const auto& [text, needle] : {std::pair{deep, std::string("nested deeper than 64 levels")},
+                                       std::pair{overflow, std::string("number overflow")}}) {
+        writeText(dir_ / "plan.json", text);
+        daemon_ = std::make_unique<DaemonProcess>(
+            std::vector<std::string>{"--config", (dir_ / "station.toml").string(), "--state-dir", state().string(),
+                                     "--plan", (dir_ / "plan.json").string()},
+            std::vector<std::string>{}, dir_ / "daemon.log");
+        ASSERT_TRUE(daemon_->start());
+        EXPECT_EQ(daemon_->waitExit(120s), 2) << needle;
+        const std::string log = readText(dir_ / "daemon.log");
+        EXPECT_NE(log.find(needle), std::string::npos) << log;
+        fs::remove(dir_ / "daemon.log");
+    }
+
+    // The same bodies, and plans the station cannot scan, through the API: 400 with the reason.
+    startDaemon(false);
+    const int port = httpPort();
+    ASSERT_GT(port, 0);
+    httplib::Client cli("127.0.0.1", port);
+    cli.set_read_timeout(30, 0);
+    httplib::Headers auth{{"Authorization", std::string("Bearer ") + kToken}};
+    const auto submit = [&](const std::string& body, const char* type) {
+        auto r = cli.Post("/api/runs", auth, body, type);
+        return r ? std::pair{r->status, r->body} : std::pair{-1, std::string("(no reply)")};
+    };
+    const std::string wide =
+        "name = \"wide\"\n[[slides]]\n[[slides.sections]]\nname = \"w\"\nx_um = 10000\ny_um = 45000\nheight_um = 12000\n";
+    const std::string longName = "name = \"long\"\n[[slides]]\n[[slides.sections]]\nname = \"" + std::string(300, 'n') +
+                                 "\"\nx_um = 10000\ny_um = 10000\n";
+    const std::string typo = "name = \"typo\"\n[[slides]]\n[[slides.sections]]\nx_um = 10000\ny_um = 10000\nwidht_um = 5\n";
+    for (const auto& [body, type, needle] :
+         {std::tuple{deep, "application/json", std::string("nested deeper than 64 levels")},
+          std::tuple{overflow, "application/json", std::string("number overflow")},
+          std::tuple{wide, "application/toml",
+                     std::string("slides[0].sections[0].y_um: section \\\"w\\\" on slide-1 reaches Y 39000 .. 51000 um")},
+          std::tuple{longName, "application/toml", std::string("300 bytes is longer than the 64")},
+          std::tuple{typo, "application/toml", std::string("did you mean \\\"width_um\\\"?")}}) {
+        const auto [status, reply] = submit(body, type);
+        EXPECT_EQ(status, 400) << needle << ": " << reply.substr(0, 300);
+        EXPECT_NE(reply.find(needle), std::string::npos) << reply.substr(0, 300);
+    }
+    EXPECT_FALSE(daemon_->poll()) << "the daemon is still running";
+    EXPECT_TRUE(get(port, "/api/runs").empty()) << "nothing was queued";
+    daemon_->signal(SIGTERM);
+    EXPECT_EQ(daemon_->waitExit(60s), 0);
 }
 
 } // namespace

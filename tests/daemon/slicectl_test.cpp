@@ -217,3 +217,30 @@ TEST(SlicectlDemo, RunsOnBuiltInDefaultsAndIsAccurate) {
     EXPECT_TRUE(fs::exists(out / "result.json"));
     fs::remove_all(out);
 }
+
+// Issue 20: a misspelt or hostile station file is refused with exit 2 and a message naming the
+// key, before slicectl talks to any daemon or device.
+TEST(SlicectlStationFile, MisspeltAndHostileFilesAreRefusedWithExitTwo) {
+    const fs::path dir = fs::temp_directory_path() / ("slst_slicectl_station_" + std::to_string(::getpid()));
+    fs::create_directories(dir);
+    const auto write = [&](const std::string& name, const std::string& text) {
+        std::ofstream(dir / name, std::ios::binary) << text;
+        return (dir / name).string();
+    };
+    const std::string stage = "[stage]\ndriver = \"sim\"\n[stage.axes.x]\nmin_um = 0\nmax_um = 75000\n"
+                              "[stage.axes.y]\nmin_um = 0\nmax_um = 25000\n";
+    auto r = slicectl("status --config " + write("tokn.toml", stage + "[daemon]\ntokn = \"0123456789abcdef\"\n[scan]\num_per_px = 2\n"));
+    EXPECT_EQ(r.exitCode, 2) << r.output;
+    EXPECT_NE(r.output.find("daemon: unknown key \"tokn\"; did you mean \"token\"?"), std::string::npos) << r.output;
+    std::string dotted = "a";
+    for (int i = 0; i < 200'000; ++i) dotted += ".a";
+    r = slicectl("status --config " + write("deep.toml", stage + dotted + " = 1\n"));
+    EXPECT_EQ(r.exitCode, 2) << r.output.substr(0, 300);
+    EXPECT_NE(r.output.find("nested deeper than 64 levels"), std::string::npos) << r.output.substr(0, 300);
+    r = slicectl("stage --config " + write("speed.toml", "[stage]\ndriver = \"sim\"\nspeeed_um_per_s = 5\n"
+                                                                  "[stage.axes.x]\nmin_um = 0\nmax_um = 1\n"
+                                                                  "[stage.axes.y]\nmin_um = 0\nmax_um = 1\n") + " position");
+    EXPECT_EQ(r.exitCode, 2) << r.output;
+    EXPECT_NE(r.output.find("did you mean \"speed_um_per_s\"?"), std::string::npos) << r.output;
+    fs::remove_all(dir);
+}

@@ -20,7 +20,9 @@
 /// um_per_px = 8.0
 /// camera_to_stage = [1.0, 0.0, 0.0, 1.0]  # stage µm per camera px direction, row-major 2x2
 /// ```
-/// Errors: InvalidArgument naming the key.
+/// Errors: InvalidArgument naming the key. Strict: a key not read here is refused with the
+/// nearest known one (`scan: unknown key "exposur_us"; did you mean "exposure_us"?`), also at
+/// the top (kStationTables). `register = false` is refused (registration cannot be skipped yet).
 #include "slicestation/core/camera.hpp"
 #include "slicestation/core/result.hpp"
 
@@ -30,9 +32,16 @@
 #include <chrono>
 #include <cstdint>
 #include <filesystem>
+#include <string_view>
 #include <string>
 
 namespace slicestation::daemon {
+
+/// The tables a station file may have: [stage] and [camera] (station_config), [daemon] and
+/// [scan] (here), [alerts] (alert_channels).
+inline constexpr std::array<std::string_view, 5> kStationTables = {"stage", "camera", "daemon", "scan",
+                                                                  "alerts"};
+inline constexpr std::size_t kMaxTokenBytes = 4096; ///< daemon.token / token_file's first line
 
 struct ObjectiveSettings {
     std::string name = "default";

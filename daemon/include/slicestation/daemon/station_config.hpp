@@ -2,7 +2,9 @@
 /// The station file (TOML): which stage and camera drivers to use and how they are wired.
 /// Simulation is chosen explicitly (driver = "sim") and announced by whoever opens it; nothing
 /// falls back to a simulator. Errors are InvalidArgument naming the key (e.g. stage.axes.x.slave),
-/// NotFound for a missing file.
+/// NotFound for a missing file. Read like every document (config_document.hpp: size, depth and
+/// number limits) and strict: a key no table reads is refused, with the nearest known key, and so
+/// is a key of another driver or transport (`stage.host: only for transport = "tcp"`).
 
 #include "slicestation/core/camera.hpp"
 #include "slicestation/core/result.hpp"
@@ -13,6 +15,7 @@
 #include "slicestation/sim/virtual_slide.hpp"
 
 #include <chrono>
+#include <cstddef>
 #include <filesystem>
 #include <functional>
 #include <memory>
@@ -20,6 +23,10 @@
 #include <vector>
 
 namespace slicestation::daemon {
+
+inline constexpr std::size_t kMaxSimSections = 1'000;        ///< camera.sim.sections / images
+inline constexpr double kMaxSimSlideSidePx = 40'000;          ///< the virtual slide image, a side
+inline constexpr double kMaxSimSlidePixels = 400'000'000;     ///< ... and in all
 
 struct StageConfig {
     std::string driver;                       ///< "modbus" or "sim"
