@@ -242,15 +242,13 @@ void Scanner::settle(std::int64_t runId, RunState state, const std::string& reas
 bool Scanner::storeHeldState(std::int64_t runId) {
     HeldState h;
     {
+        // Locked across the write: once the journal shows the state, it is no longer held.
         std::lock_guard lock(mutex_);
         auto it = held_.find(runId);
         if (it == held_.end()) return true;
         h = it->second;
-    }
-    if (!d_.journal.setRunState(runId, h.state, h.reason)) return false;
-    {
-        std::lock_guard lock(mutex_);
-        held_.erase(runId);
+        if (!d_.journal.setRunState(runId, h.state, h.reason)) return false;
+        held_.erase(it);
     }
     d_.notifier.publish({"run_state", {{"run_id", runId}, {"state", toString(h.state)}, {"reason", h.reason}}});
     return true;
@@ -593,8 +591,8 @@ Scanner::Outcome Scanner::executeRun(const RunRecord& run) {
                                                (d_.stateDir / rel).string() + " is the image of capture " +
                                                    std::to_string(**owner) + "; it is not overwritten",
                                                EEXIST)});
-                std::error_code ec;
-                std::filesystem::remove(d_.stateDir / rel, ec);
+                std::error_code removeEc;
+                std::filesystem::remove(d_.stateDir / rel, removeEc);
                 w = writeOmeTiffAtomic(d_.stateDir / rel, image, info);
             }
             if (!w) return pauseFor({w.error().sysErrno == ENOSPC ? "low_disk" : "storage_fault", w.error()});

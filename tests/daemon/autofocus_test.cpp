@@ -323,7 +323,6 @@ TEST(FocusSurface, StartsTheNextSearchClose) {
 }
 
 } // namespace
-} // namespace slicestation::test
 
 TEST(Autofocus, TellsWhichDeviceFailed) {
     Rig rig = makeRig(true);
@@ -357,3 +356,5 @@ TEST(Autofocus, TellsWhichDeviceFailed) {
     ASSERT_FALSE(invalid);
     EXPECT_EQ(failed, daemon::FocusFailure::Focus);
 }
+
+} // namespace slicestation::test
