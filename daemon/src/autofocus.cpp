@@ -68,7 +68,10 @@ public:
         for (int attempt = 0; !moved && moved.error().code == core::ErrorCode::Timeout && attempt < s_.moveRetries;
              ++attempt)
             moved = stage_.moveTo({at_.xUm, at_.yUm, zUm}, s_.moveTimeout);
-        if (!moved) return moved.error();
+        if (!moved) {
+            failed_ = FocusFailure::Stage;
+            return moved.error();
+        }
         currentZ_ = zUm;
         return {};
     }
@@ -80,7 +83,10 @@ public:
                               attempt < s_.captureRetries;
              ++attempt)
             frame = camera_.capture(s_.captureTimeout);
-        if (!frame) return frame.error();
+        if (!frame) {
+            failed_ = FocusFailure::Camera;
+            return frame.error();
+        }
         ++captures_;
         return frameToMat(*frame);
     }
@@ -103,11 +109,14 @@ public:
     }
     int captures() const { return captures_; }
     double currentZ() const { return currentZ_; }
+    /// Which device failed the last failing call (Focus when none did).
+    FocusFailure failed() const { return failed_; }
 
 private:
     hw::Stage& stage_;
     hw::Camera& camera_;
     hw::StagePosition at_;
+    FocusFailure failed_ = FocusFailure::Focus;
     const AutofocusSettings& s_;
     int captures_ = 0;
     double currentZ_ = 0;
@@ -145,7 +154,7 @@ core::Result<void> validate(const AutofocusSettings& s) {
 }
 
 core::Result<FocusResult> run(hw::Stage& stage, hw::Camera& camera, const hw::StagePosition& at,
-                              const AutofocusSettings& s) {
+                              const AutofocusSettings& s, FocusFailure& failed) {
     if (auto valid = validate(s); !valid) return valid.error();
     const hw::StageLimits limits = stage.limits();
     if (!limits.z) {
@@ -155,6 +164,11 @@ core::Result<FocusResult> run(hw::Stage& stage, hw::Camera& camera, const hw::St
     const double zMax = limits.z->maxUm;
 
     Search search(stage, camera, at, s);
+    struct Report { // tells the caller which device failed, whichever return is taken
+        FocusFailure& out;
+        const Search& search;
+        ~Report() { out = search.failed(); }
+    } report{failed, search};
     FocusResult result;
     result.zUm = at.zUm;
     auto first = search.frameAt(at.zUm);
@@ -263,9 +277,13 @@ double tissueFraction(const cv::Mat& image) {
 }
 
 core::Result<FocusResult> autofocus(hw::Stage& stage, hw::Camera& camera,
-                                    const hw::StagePosition& at, const AutofocusSettings& s) {
+                                    const hw::StagePosition& at, const AutofocusSettings& s,
+                                    FocusFailure* failed) {
+    FocusFailure ignored = FocusFailure::Focus;
+    FocusFailure& out = failed ? *failed : ignored;
+    out = FocusFailure::Focus;
     try {
-        return run(stage, camera, at, s);
+        return run(stage, camera, at, s, out);
     } catch (const cv::Exception& e) {
         return makeError(ErrorCode::Internal, std::string("autofocus: OpenCV: ") + e.what());
     } catch (const std::exception& e) {

@@ -5,6 +5,7 @@
 #include <sqlite3.h>
 
 #include <array>
+#include <cerrno>
 #include <chrono>
 #include <cstdio>
 #include <ctime>
@@ -100,9 +101,13 @@ CREATE INDEX alerts_open ON alerts(acknowledged_utc);
 constexpr std::array<const char*, 1> kMigrations = {kMigration1};
 static_assert(kMigrations.size() == Journal::kSchemaVersion);
 
+/// The last error of `db`. A full disk (SQLITE_FULL) carries sysErrno ENOSPC, like a failed
+/// image write, so that callers treat both alike.
 core::Error sqlError(sqlite3* db, const std::filesystem::path& file, const char* what) {
-    return makeError(ErrorCode::IoError, std::string("journal ") + file.string() + ": " + what +
-                                             ": " + sqlite3_errmsg(db));
+    const int err = sqlite3_errcode(db) == SQLITE_FULL ? ENOSPC : 0;
+    return makeError(ErrorCode::IoError,
+                     std::string("journal ") + file.string() + ": " + what + ": " + sqlite3_errmsg(db),
+                     err);
 }
 
 /// A prepared statement; finalised on destruction. Bind indices start at 1.
@@ -545,6 +550,16 @@ Result<CaptureRecord> Journal::capture(std::int64_t captureId) {
         return makeError(ErrorCode::NotFound, "no capture " + std::to_string(captureId));
     if (rc != SQLITE_ROW) return sqlError(db_, file_, "read capture");
     return readCapture(st);
+}
+
+Result<std::optional<std::int64_t>> Journal::captureWithImage(const std::string& imagePath) {
+    std::lock_guard lock(mutex_);
+    Statement st(db_, "SELECT id FROM captures WHERE image_path = ? ORDER BY id LIMIT 1");
+    st.bind(1, imagePath);
+    const int rc = st.step();
+    if (rc == SQLITE_DONE) return std::optional<std::int64_t>();
+    if (rc != SQLITE_ROW) return sqlError(db_, file_, "find the capture of an image");
+    return std::optional<std::int64_t>(st.i64(0));
 }
 
 Result<std::vector<std::int64_t>> Journal::capturesAwaitingRegistration() {

@@ -14,6 +14,7 @@
 
 #include <algorithm>
 #include <array>
+#include <atomic>
 #include <bit>
 #include <cerrno>
 #include <charconv>
@@ -406,6 +407,9 @@ const char* pixelType(int cvType) {
 // ---------------------------------------------------------------------------------------------
 // libtiff over a file descriptor we own, so that the errno of a failing write (ENOSPC) is kept.
 
+/// errno every write fails with, for tests (0: none); see setOmeTiffWriteFaultForTesting.
+std::atomic<int> gWriteFault{0};
+
 struct TiffIo {
     int fd = -1;
     int firstErrno = 0; ///< errno of the first failed system call
@@ -433,6 +437,10 @@ tmsize_t tiffWrite(thandle_t h, void* buf, tmsize_t size) {
     auto* io = static_cast<TiffIo*>(h);
     tmsize_t done = 0;
     while (done < size) {
+        if (const int fault = gWriteFault.load(); fault != 0) {
+            if (io->firstErrno == 0) io->firstErrno = fault;
+            return -1;
+        }
         const ssize_t n = ::write(io->fd, static_cast<const char*>(buf) + done,
                                   static_cast<std::size_t>(size - done));
         if (n < 0 && errno == EINTR) continue;
@@ -655,11 +663,20 @@ core::Result<void> writeAtomic(const fs::path& path, const cv::Mat& image, OmeTi
         return makeError(ErrorCode::IoError,
                          "cannot close " + quoted(tmp) + ": " + errnoText(err), err);
     }
-    if (::rename(tmp.c_str(), path.c_str()) != 0) {
+    // Never over an existing file: it may be an image the journal refers to (EEXIST instead).
+    // renameat2 where the file system has RENAME_NOREPLACE, else link (which refuses an
+    // existing name too) and unlink.
+    int renamed = ::renameat2(AT_FDCWD, tmp.c_str(), AT_FDCWD, path.c_str(), RENAME_NOREPLACE);
+    if (renamed != 0 && (errno == EINVAL || errno == ENOSYS)) {
+        renamed = ::link(tmp.c_str(), path.c_str());
+        if (renamed == 0) ::unlink(tmp.c_str());
+    }
+    if (renamed != 0) {
         const int err = errno;
         return makeError(ErrorCode::IoError,
-                         "cannot rename " + quoted(tmp) + " to " + quoted(path) + ": " +
-                             errnoText(err),
+                         err == EEXIST ? quoted(path) + " exists already; it is never replaced"
+                                       : "cannot rename " + quoted(tmp) + " to " + quoted(path) +
+                                             ": " + errnoText(err),
                          err);
     }
     committed = true;
@@ -853,6 +870,8 @@ core::Result<OmeXmlContent> parseOmeXml(std::string_view xml) {
     }
     return out;
 }
+
+void setOmeTiffWriteFaultForTesting(int err) noexcept { gWriteFault.store(err); }
 
 core::Result<void> writeOmeTiffAtomic(const std::filesystem::path& path, const cv::Mat& image,
                                       const OmeTiffInfo& info) {

@@ -8,7 +8,9 @@
 #include <opencv2/core.hpp>
 #include <opencv2/imgproc.hpp>
 
+#include <cerrno>
 #include <cmath>
+#include <cstdio>
 #include <cstring>
 #include <map>
 
@@ -26,10 +28,30 @@ struct Fault {
     core::Error error;
 };
 
+/// The readable part of a file name: ASCII letters, digits, '-' and '_' kept, every other byte
+/// '_', at most kMaxNamePart bytes. Not injective ("s/1" and "s_1" both give "s_1"): the path
+/// adds the journal's ids for that (imagePathFor).
+constexpr std::size_t kMaxNamePart = 48;
 std::string safeName(const std::string& s) {
     std::string out;
-    for (char c : s) out += (std::isalnum(static_cast<unsigned char>(c)) || c == '-' || c == '_') ? c : '_';
+    for (char c : s) {
+        if (out.size() == kMaxNamePart) break;
+        const auto u = static_cast<unsigned char>(c);
+        out += (u < 0x80 && (std::isalnum(u) || c == '-' || c == '_')) ? c : '_';
+    }
     return out.empty() ? std::string("_") : out;
+}
+
+/// Where a capture's image goes, relative to the state directory:
+///   runs/<run id>/<slide number, 2+ digits>-<slide name>/<section id>-<section name>-a<attempt>.ome.tif
+/// The run id, slide number (index + 1 within the run) and section id (unique in the journal)
+/// make it injective whatever the names; the names are only there for people.
+std::filesystem::path imagePathFor(const RunRecord& run, const SectionRecord& sec, int attempt) {
+    char slide[16];
+    std::snprintf(slide, sizeof slide, "%02d", sec.slideIndex + 1);
+    return std::filesystem::path("runs") / std::to_string(run.id) /
+           (std::string(slide) + "-" + safeName(sec.slideName)) /
+           (std::to_string(sec.id) + "-" + safeName(sec.name) + "-a" + std::to_string(attempt) + ".ome.tif");
 }
 
 /// The frame's pixels as a Mat (copied; RGB becomes OpenCV's BGR).
@@ -116,19 +138,29 @@ core::Result<void> Scanner::pause(std::int64_t runId) {
         pauseRequested_.insert(runId);
         return {};
     }
+    if (held_.count(runId))
+        return makeError(ErrorCode::InvalidArgument, "run " + std::to_string(runId) + " is " +
+                                                         toString(held_.at(runId).state) +
+                                                         " (not yet stored: the disk is full)");
     lock.unlock();
     if (run->state != RunState::Queued && run->state != RunState::Running)
         return makeError(ErrorCode::InvalidArgument,
                          "run " + std::to_string(runId) + " is " + toString(run->state) + "; it cannot be paused");
-    return d_.notifier.runStateChanged(runId, RunState::Paused, "paused by request");
+    settle(runId, RunState::Paused, "paused by request");
+    return {};
 }
 
 core::Result<void> Scanner::resume(std::int64_t runId, bool resetStageAlarm) {
     auto run = d_.journal.run(runId);
     if (!run) return run.error();
-    if (run->state != RunState::Paused)
+    RunState state = run->state;
+    {
+        std::lock_guard lock(mutex_);
+        if (auto h = held_.find(runId); h != held_.end()) state = h->second.state; // paused in memory
+    }
+    if (state != RunState::Paused)
         return makeError(ErrorCode::InvalidArgument,
-                         "run " + std::to_string(runId) + " is " + toString(run->state) + ", not paused");
+                         "run " + std::to_string(runId) + " is " + toString(state) + ", not paused");
     {
         std::lock_guard lock(mutex_);
         pauseRequested_.erase(runId);
@@ -136,7 +168,11 @@ core::Result<void> Scanner::resume(std::int64_t runId, bool resetStageAlarm) {
     }
     auto r = d_.journal.setRunState(runId, RunState::Queued,
                                     resetStageAlarm ? "resumed, stage alarm reset asked" : "resumed");
-    if (!r) return r;
+    if (!r) return r; // a run paused in memory stays so
+    {
+        std::lock_guard lock(mutex_);
+        held_.erase(runId);
+    }
     d_.notifier.publish({"run_state", {{"run_id", runId}, {"state", "queued"}, {"reason", "resumed"}}});
     wake();
     return {};
@@ -145,6 +181,10 @@ core::Result<void> Scanner::resume(std::int64_t runId, bool resetStageAlarm) {
 core::Result<void> Scanner::cancel(std::int64_t runId) {
     auto run = d_.journal.run(runId);
     if (!run) return run.error();
+    {
+        std::lock_guard lock(mutex_);
+        if (auto h = held_.find(runId); h != held_.end()) run->state = h->second.state;
+    }
     if (isTerminal(run->state) && run->state != RunState::Finished)
         return makeError(ErrorCode::InvalidArgument,
                          "run " + std::to_string(runId) + " is already " + toString(run->state));
@@ -161,7 +201,12 @@ core::Result<void> Scanner::cancel(std::int64_t runId) {
         return {};
     }
     lock.unlock();
-    return d_.notifier.runStateChanged(runId, RunState::Cancelled, "cancelled by request");
+    auto r = d_.notifier.runStateChanged(runId, RunState::Cancelled, "cancelled by request");
+    if (r) {
+        std::lock_guard relock(mutex_);
+        held_.erase(runId);
+    }
+    return r;
 }
 
 std::optional<std::int64_t> Scanner::activeRun() const {
@@ -179,6 +224,36 @@ bool Scanner::idle() const {
     return idle_ && d_.worker.idle();
 }
 
+std::map<std::int64_t, RunState> Scanner::heldRunStates() const {
+    std::lock_guard lock(mutex_);
+    std::map<std::int64_t, RunState> out;
+    for (const auto& [id, h] : held_) out.emplace(id, h.state);
+    return out;
+}
+
+void Scanner::settle(std::int64_t runId, RunState state, const std::string& reason) {
+    if (d_.notifier.runStateChanged(runId, state, reason)) return;
+    // The alert went out (and is held until it can be stored); the state is kept here so the
+    // loop does not take the run up again, and stored as soon as the journal can.
+    std::lock_guard lock(mutex_);
+    held_[runId] = {state, reason};
+}
+
+bool Scanner::storeHeldState(std::int64_t runId) {
+    HeldState h;
+    {
+        // Locked across the write: once the journal shows the state, it is no longer held.
+        std::lock_guard lock(mutex_);
+        auto it = held_.find(runId);
+        if (it == held_.end()) return true;
+        h = it->second;
+        if (!d_.journal.setRunState(runId, h.state, h.reason)) return false;
+        held_.erase(it);
+    }
+    d_.notifier.publish({"run_state", {{"run_id", runId}, {"state", toString(h.state)}, {"reason", h.reason}}});
+    return true;
+}
+
 void Scanner::setActivity(const std::string& text) {
     {
         std::lock_guard lock(mutex_);
@@ -190,6 +265,7 @@ void Scanner::setActivity(const std::string& text) {
 
 void Scanner::loop() {
     while (!shutdown_) {
+        (void)d_.notifier.storeHeldAlerts(); // alerts a full disk kept out of the journal
         auto next = d_.journal.nextRun();
         if (!next) {
             (void)d_.notifier.raise("journal_error", "critical",
@@ -206,6 +282,28 @@ void Scanner::loop() {
                 activity_ = "idle";
             }
             if (d_.status) d_.status("idle: no run queued");
+            if (d_.watchdog) d_.watchdog->setIdle(true);
+            std::unique_lock lock(mutex_);
+            cv_.wait_for(lock, std::chrono::seconds(1), [this] { return wake_ || shutdown_.load(); });
+            wake_ = false;
+            continue;
+        }
+        bool held = false;
+        {
+            std::lock_guard lock(mutex_);
+            held = held_.count((*next)->id) > 0;
+        }
+        if (held) {
+            // Paused (or ended) in memory: the journal could not store it. Never take it up
+            // again; store the state once there is space.
+            if (storeHeldState((*next)->id)) continue;
+            const std::string what = "run " + std::to_string((*next)->id) +
+                                     " paused; the journal cannot store it yet (disk full?)";
+            {
+                std::lock_guard lock(mutex_);
+                activity_ = what;
+            }
+            if (d_.status) d_.status(what);
             if (d_.watchdog) d_.watchdog->setIdle(true);
             std::unique_lock lock(mutex_);
             cv_.wait_for(lock, std::chrono::seconds(1), [this] { return wake_ || shutdown_.load(); });
@@ -230,22 +328,22 @@ Scanner::Outcome Scanner::executeRun(const RunRecord& run) {
     const std::string runLabel = "run " + std::to_string(run.id);
     auto settings = scanSettingsFromJson(run.settings, runLabel + " settings");
     if (!settings) {
-        (void)d_.notifier.runStateChanged(run.id, RunState::Failed, settings.error().message);
+        settle(run.id, RunState::Failed, settings.error().message);
         return Outcome::Failed;
     }
     const ScanSettings& s = *settings;
-    if (run.state == RunState::Queued) {
-        if (auto r = d_.journal.setRunState(run.id, RunState::Running); !r) {
-            (void)d_.notifier.raise("journal_error", "critical", r.error().message, run.id);
-            return Outcome::Failed;
-        }
-        d_.notifier.publish({"run_state", {{"run_id", run.id}, {"state", "running"}, {"reason", ""}}});
-    }
     auto pauseFor = [&](const Fault& f) {
-        (void)d_.notifier.raise(f.kind, "critical", runLabel + ": " + f.error.message, run.id);
-        (void)d_.notifier.runStateChanged(run.id, RunState::Paused, f.kind + ": " + f.error.message);
+        // A full disk, whoever found it (image writer: ENOSPC, journal: SQLITE_FULL).
+        const std::string kind = f.error.sysErrno == ENOSPC ? std::string("low_disk") : f.kind;
+        (void)d_.notifier.raise(kind, "critical", runLabel + ": " + f.error.message, run.id);
+        settle(run.id, RunState::Paused, kind + ": " + f.error.message);
         return Outcome::Paused;
     };
+    if (run.state == RunState::Queued) {
+        if (auto r = d_.journal.setRunState(run.id, RunState::Running); !r)
+            return pauseFor({"journal_error", r.error()});
+        d_.notifier.publish({"run_state", {{"run_id", run.id}, {"state", "running"}, {"reason", ""}}});
+    }
 
     bool resetAlarm = false;
     {
@@ -327,13 +425,13 @@ Scanner::Outcome Scanner::executeRun(const RunRecord& run) {
             std::unique_lock lock(mutex_);
             if (cancelRequested_.count(run.id)) {
                 lock.unlock();
-                (void)d_.notifier.runStateChanged(run.id, RunState::Cancelled, "cancelled by request");
+                settle(run.id, RunState::Cancelled, "cancelled by request");
                 return Outcome::Cancelled;
             }
             if (pauseRequested_.count(run.id)) {
                 pauseRequested_.erase(run.id);
                 lock.unlock();
-                (void)d_.notifier.runStateChanged(run.id, RunState::Paused, "paused by request");
+                settle(run.id, RunState::Paused, "paused by request");
                 return Outcome::Paused;
             }
         }
@@ -357,7 +455,7 @@ Scanner::Outcome Scanner::executeRun(const RunRecord& run) {
                 }
                 continue;
             }
-            (void)d_.notifier.runStateChanged(run.id, RunState::Finished, "");
+            settle(run.id, RunState::Finished, "");
             return Outcome::Done;
         }
         const SectionRecord sec = **next;
@@ -383,7 +481,7 @@ Scanner::Outcome Scanner::executeRun(const RunRecord& run) {
                 std::unique_lock lock(mutex_);
                 if (cancelRequested_.count(run.id)) {
                     lock.unlock();
-                    (void)d_.notifier.runStateChanged(run.id, RunState::Cancelled, "cancelled by request");
+                    settle(run.id, RunState::Cancelled, "cancelled by request");
                     return Outcome::Cancelled;
                 }
             }
@@ -413,11 +511,18 @@ Scanner::Outcome Scanner::executeRun(const RunRecord& run) {
             afs.captureTimeout = s.captureTimeout;
             afs.moveRetries = s.moveRetries;
             afs.captureRetries = s.captureRetries;
-            auto af = autofocus(d_.stage, d_.camera, {sec.xUm, sec.yUm, z}, afs);
-            if (!af && af.error().code != ErrorCode::Cancelled && af.error().code != ErrorCode::Alarm)
-                af = autofocus(d_.stage, d_.camera, {sec.xUm, sec.yUm, z}, afs);
-            // A drive alarm during the focus sweep is a stage fault like any other.
-            if (!af) return handle(af.error(), af.error().code == ErrorCode::Alarm ? "stage_fault" : "focus_fault");
+            FocusFailure failed = FocusFailure::Focus;
+            auto af = autofocus(d_.stage, d_.camera, {sec.xUm, sec.yUm, z}, afs, &failed);
+            // A stage that failed (alarm, disconnect, a move that timed out after its retries)
+            // is not helped by focusing again; a camera or focus failure gets one more try.
+            if (!af && af.error().code != ErrorCode::Cancelled && failed != FocusFailure::Stage)
+                af = autofocus(d_.stage, d_.camera, {sec.xUm, sec.yUm, z}, afs, &failed);
+            // A stage error during the focus sweep is a stage fault like any other, a capture
+            // error a camera fault; only the search itself failing is a focus fault.
+            if (!af)
+                return handle(af.error(), failed == FocusFailure::Stage    ? "stage_fault"
+                                          : failed == FocusFailure::Camera ? "camera_fault"
+                                                                           : "focus_fault");
             if (af->tissueFound) {
                 z = af->zUm;
                 focusFound = true;
@@ -456,9 +561,7 @@ Scanner::Outcome Scanner::executeRun(const RunRecord& run) {
         // Write the image atomically, then journal it, then hand it on.
         setActivity(where + ": writing");
         const int attempt = sec.attempts + 1;
-        const std::filesystem::path rel = std::filesystem::path("runs") / std::to_string(run.id) /
-                                          safeName(sec.slideName) /
-                                          (safeName(sec.name) + "-a" + std::to_string(attempt) + ".ome.tif");
+        const std::filesystem::path rel = imagePathFor(run, sec, attempt);
         {
             PhaseTimer t(d_.stats, "write");
             std::error_code ec;
@@ -475,8 +578,24 @@ Scanner::Outcome Scanner::executeRun(const RunRecord& run) {
             info.exposureUs = meta.exposureUs;
             info.gain = meta.analogueGain;
             info.acquiredUtc = Journal::nowUtc();
-            if (auto w = writeOmeTiffAtomic(d_.stateDir / rel, image, info); !w)
-                return pauseFor({w.error().sysErrno == ENOSPC ? "low_disk" : "storage_fault", w.error()});
+            auto w = writeOmeTiffAtomic(d_.stateDir / rel, image, info);
+            if (!w && w.error().sysErrno == EEXIST) {
+                // The writer never replaces a file. One no capture refers to was written by a
+                // run a crash interrupted before it was journaled: it may go. One a capture
+                // refers to is never overwritten.
+                auto owner = d_.journal.captureWithImage(rel.string());
+                if (!owner) return pauseFor({"journal_error", owner.error()});
+                if (*owner)
+                    return pauseFor({"storage_fault",
+                                     makeError(ErrorCode::IoError,
+                                               (d_.stateDir / rel).string() + " is the image of capture " +
+                                                   std::to_string(**owner) + "; it is not overwritten",
+                                               EEXIST)});
+                std::error_code removeEc;
+                std::filesystem::remove(d_.stateDir / rel, removeEc);
+                w = writeOmeTiffAtomic(d_.stateDir / rel, image, info);
+            }
+            if (!w) return pauseFor({w.error().sysErrno == ENOSPC ? "low_disk" : "storage_fault", w.error()});
         }
         CaptureRecord rec;
         rec.sectionId = sec.id;

@@ -2,6 +2,7 @@
 
 #include "slicestation/daemon/disk_space.hpp"
 #include "slicestation/daemon/scan_plan.hpp"
+#include "slicestation/daemon/temporary_files.hpp"
 
 #include <iostream>
 #include <sstream>
@@ -115,16 +116,10 @@ Result<std::unique_ptr<Station>> Station::create(StationParts parts) {
     st->stack_ = std::move(*stack);
     for (const auto& s : st->stack_.slices) st->slicePositionsUm_.push_back(s.positionUm);
 
-    // Temporary files of writes a crash interrupted are never referenced: remove them.
-    const auto runsDir = st->parts_.stateDir / "runs";
-    if (std::filesystem::exists(runsDir)) {
-        for (auto it = std::filesystem::recursive_directory_iterator(runsDir, ec);
-             !ec && it != std::filesystem::recursive_directory_iterator(); it.increment(ec)) {
-            const std::string n = it->path().filename().string();
-            if (it->is_regular_file() && (n.ends_with(".partial") || n.find(".tmp-") != std::string::npos))
-                std::filesystem::remove(it->path(), ec);
-        }
-    }
+    // Temporary files of writes a crash interrupted are never referenced: remove them (every
+    // writer's naming scheme, anywhere in the state directory; nothing writes yet).
+    if (auto removed = removeTemporaryFiles(st->parts_.stateDir); !removed)
+        std::cerr << "<4>" << removed.error().message << std::endl;
     // A run left "running" means the daemon did not stop cleanly (crash, kill, watchdog).
     if (auto runs = st->journal_->runs()) {
         for (const auto& r : *runs)

@@ -323,4 +323,38 @@ TEST(FocusSurface, StartsTheNextSearchClose) {
 }
 
 } // namespace
+
+TEST(Autofocus, TellsWhichDeviceFailed) {
+    Rig rig = makeRig(true);
+    const hw::StagePosition at{600, 500, trueFocus(600, 500)};
+    daemon::FocusFailure failed = daemon::FocusFailure::Camera;
+    rig.faultyStage->disconnectAfter(3); // mid-sweep
+    auto gone = daemon::autofocus(*rig.stage, *rig.camera, at, {}, &failed);
+    ASSERT_FALSE(gone);
+    EXPECT_EQ(gone.error().code, ErrorCode::Disconnected);
+    EXPECT_EQ(failed, daemon::FocusFailure::Stage);
+    rig.faultyStage->disconnectAfter(-1);
+
+    rig.faultyStage->stallMoves(true);
+    daemon::AutofocusSettings quick;
+    quick.moveTimeout = std::chrono::milliseconds(50);
+    auto stalled = daemon::autofocus(*rig.stage, *rig.camera, at, quick, &failed);
+    ASSERT_FALSE(stalled);
+    EXPECT_EQ(stalled.error().code, ErrorCode::Timeout);
+    EXPECT_EQ(failed, daemon::FocusFailure::Stage) << "a move that timed out is the stage's";
+    rig.faultyStage->stallMoves(false);
+
+    rig.faultyCamera->timeoutNext(1);
+    auto timeout = daemon::autofocus(*rig.stage, *rig.camera, at, {}, &failed);
+    ASSERT_FALSE(timeout);
+    EXPECT_EQ(timeout.error().code, ErrorCode::Timeout);
+    EXPECT_EQ(failed, daemon::FocusFailure::Camera) << "a capture that timed out is the camera's";
+
+    daemon::AutofocusSettings bad;
+    bad.fineStepUm = 0;
+    auto invalid = daemon::autofocus(*rig.stage, *rig.camera, at, bad, &failed);
+    ASSERT_FALSE(invalid);
+    EXPECT_EQ(failed, daemon::FocusFailure::Focus);
+}
+
 } // namespace slicestation::test

@@ -1,9 +1,11 @@
 // The SQLite journal on real files: states, transactions, rescans, alerts, migrations, bad files.
+#include "full_disk_vfs.hpp"
 #include "slicestation/daemon/journal.hpp"
 
 #include <gtest/gtest.h>
 #include <sqlite3.h>
 
+#include <cerrno>
 #include <filesystem>
 #include <fstream>
 
@@ -245,4 +247,42 @@ TEST_F(JournalTest, RefusesANewerSchemaAndAFileThatIsNotADatabase) {
     auto m = Journal::open(dir_ / "no-such-dir" / "j.sqlite");
     ASSERT_FALSE(m);
     EXPECT_EQ(m.error().code, core::ErrorCode::IoError);
+}
+
+TEST_F(JournalTest, AFullDiskIsReportedAsEnospcAndNothingIsLost) {
+    auto& vfs = testing_vfs::FullDiskVfs::install();
+    auto j = Journal::open(file());
+    ASSERT_TRUE(j);
+    auto run = (*j)->createRun("r", {}, {}, twoSlides());
+    ASSERT_TRUE(run) << run.error().message;
+    auto secs = (*j)->sections(*run);
+    ASSERT_TRUE(secs);
+    AlertRecord a;
+    a.kind = "low_disk";
+    a.severity = "critical";
+    a.message = "full";
+    vfs.setFull(true);
+    auto refused = (*j)->raiseAlert(a);
+    auto refusedCapture = (*j)->recordCapture(captureOf((*secs)[0].id));
+    auto refusedState = (*j)->setRunState(*run, RunState::Paused, "low_disk");
+    vfs.setFull(false);
+    ASSERT_FALSE(refused);
+    EXPECT_EQ(refused.error().sysErrno, ENOSPC) << refused.error().message;
+    ASSERT_FALSE(refusedCapture);
+    EXPECT_EQ(refusedCapture.error().sysErrno, ENOSPC) << refusedCapture.error().message;
+    ASSERT_FALSE(refusedState);
+    EXPECT_EQ(refusedState.error().sysErrno, ENOSPC);
+    // Nothing half-written; the same writes succeed once there is space.
+    EXPECT_TRUE((*j)->alerts(false)->empty());
+    EXPECT_TRUE((*j)->captures((*secs)[0].id)->empty());
+    EXPECT_TRUE((*j)->checkIntegrity());
+    ASSERT_TRUE((*j)->raiseAlert(a));
+    auto c = (*j)->recordCapture(captureOf((*secs)[0].id));
+    ASSERT_TRUE(c);
+    ASSERT_TRUE((*j)->setRunState(*run, RunState::Paused, "low_disk"));
+    // The capture that refers to an image is found by its path (the image writer asks it).
+    auto owner = (*j)->captureWithImage("runs/1/x.ome.tif");
+    ASSERT_TRUE(owner);
+    EXPECT_EQ(*owner, std::optional<std::int64_t>(*c));
+    EXPECT_EQ(*(*j)->captureWithImage("runs/1/y.ome.tif"), std::nullopt);
 }

@@ -325,36 +325,52 @@ TEST(OmeTiff, DiskFullReportsEnospcAndLeavesNothing) {
     EXPECT_TRUE(listDir(small).empty());
 }
 
-TEST(OmeTiff, ExistingFileIsReplacedAtomically) {
+TEST(OmeTiff, AnExistingFileIsNeverReplaced) {
     TempDir dir;
     const fs::path file = dir.path() / "r.ome.tif";
     const cv::Mat first = randomImage(CV_16UC1, 200, 100, 1);
     const cv::Mat second = randomImage(CV_16UC1, 120, 80, 2);
     ASSERT_TRUE(daemon::writeOmeTiffAtomic(file, first, sampleInfo()));
-    // A reader that opened the old file keeps reading the complete old file.
-    const int oldFd = ::open(file.c_str(), O_RDONLY);
-    ASSERT_GE(oldFd, 0);
     struct stat oldStat {};
-    ASSERT_EQ(::fstat(oldFd, &oldStat), 0);
+    ASSERT_EQ(::stat(file.c_str(), &oldStat), 0);
     // A stale temporary from a crashed writer does not get in the way.
     std::ofstream(dir.path() / ".r.ome.tif.partial") << "junk from a crash";
 
     OmeTiffInfo info = sampleInfo();
     info.name = "second";
-    ASSERT_TRUE(daemon::writeOmeTiffAtomic(file, second, info));
-    struct stat newStat {};
-    ASSERT_EQ(::stat(file.c_str(), &newStat), 0);
-    EXPECT_NE(newStat.st_ino, oldStat.st_ino) << "replaced by rename, not rewritten in place";
+    auto r = daemon::writeOmeTiffAtomic(file, second, info);
+    ASSERT_FALSE(r) << "the second image would silently replace the first";
+    EXPECT_EQ(r.error().code, ErrorCode::IoError);
+    EXPECT_EQ(r.error().sysErrno, EEXIST) << r.error().message;
+    EXPECT_NE(r.error().message.find("r.ome.tif"), std::string::npos) << r.error().message;
     struct stat still {};
-    ASSERT_EQ(::fstat(oldFd, &still), 0);
-    EXPECT_EQ(still.st_size, oldStat.st_size);
-    ::close(oldFd);
-
+    ASSERT_EQ(::stat(file.c_str(), &still), 0);
+    EXPECT_EQ(still.st_ino, oldStat.st_ino);
     auto read = daemon::readOmeTiff(file);
+    ASSERT_TRUE(read);
+    EXPECT_EQ(cv::norm(read->image, first, cv::NORM_INF), 0.0);
+    EXPECT_EQ(listDir(dir.path()), std::vector<std::string>{"r.ome.tif"}) << "the temporary is removed";
+
+    // Once the caller has removed the old file (its decision), the new one is written.
+    ASSERT_TRUE(fs::remove(file));
+    ASSERT_TRUE(daemon::writeOmeTiffAtomic(file, second, info));
+    read = daemon::readOmeTiff(file);
     ASSERT_TRUE(read);
     EXPECT_EQ(read->info.name, "second");
     EXPECT_EQ(cv::norm(read->image, second, cv::NORM_INF), 0.0);
-    EXPECT_EQ(listDir(dir.path()), std::vector<std::string>{"r.ome.tif"});
+}
+
+TEST(OmeTiff, AFailingWriteReportsItsErrnoAndLeavesNothing) {
+    // The injected fault goes through the writer's real error path (no root, no mount).
+    TempDir dir;
+    daemon::setOmeTiffWriteFaultForTesting(ENOSPC);
+    auto r = daemon::writeOmeTiffAtomic(dir.path() / "full.ome.tif", randomImage(CV_8UC1), sampleInfo());
+    daemon::setOmeTiffWriteFaultForTesting(0);
+    ASSERT_FALSE(r);
+    EXPECT_EQ(r.error().code, ErrorCode::IoError);
+    EXPECT_EQ(r.error().sysErrno, ENOSPC) << r.error().message;
+    EXPECT_TRUE(listDir(dir.path()).empty());
+    EXPECT_TRUE(daemon::writeOmeTiffAtomic(dir.path() / "full.ome.tif", randomImage(CV_8UC1), sampleInfo()));
 }
 
 TEST(OmeTiff, ReadErrors) {

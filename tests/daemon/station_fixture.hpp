@@ -15,6 +15,7 @@
 
 #include <unistd.h>
 
+#include <atomic>
 #include <chrono>
 #include <cmath>
 #include <filesystem>
@@ -71,6 +72,7 @@ struct Rig {
     std::shared_ptr<std::mutex> posMutex = std::make_shared<std::mutex>();
     std::shared_ptr<hw::StagePosition> pos = std::make_shared<hw::StagePosition>();
     std::uint64_t freeBytes = 100ull << 30;
+    std::shared_ptr<std::atomic<int>> moves = std::make_shared<std::atomic<int>>(0); ///< stage moves done
 };
 
 class StationTest : public ::testing::Test {
@@ -126,7 +128,9 @@ protected:
         parts.stateDir = rig_.dir;
         std::uint64_t* freeBytes = &rig_.freeBytes;
         parts.freeSpace = [freeBytes](const std::filesystem::path&) -> core::Result<std::uint64_t> { return *freeBytes; };
-        parts.stageMoved = [pos, mu](const hw::StagePosition& p) {
+        auto moves = rig_.moves;
+        parts.stageMoved = [pos, mu, moves](const hw::StagePosition& p) {
+            ++*moves;
             std::lock_guard lock(*mu);
             *pos = p;
         };

@@ -1,6 +1,7 @@
 // The station end to end in one process: simulated stage and camera over a virtual slide of
 // generated sections (one torn), the built-in atlas, a real SQLite journal and real files.
 // Whole runs, rescans, every fault policy, and the HTTP API over real HTTP.
+#include "full_disk_vfs.hpp"
 #include "station_fixture.hpp"
 
 #include "slicestation/core/unique_fd.hpp"
@@ -14,11 +15,16 @@
 #include <netinet/in.h>
 #include <sys/socket.h>
 
+#include <algorithm>
 #include <atomic>
+#include <cerrno>
 #include <chrono>
 #include <cmath>
+#include <condition_variable>
 #include <filesystem>
+#include <fstream>
 #include <mutex>
+#include <set>
 #include <thread>
 
 using namespace slicestation;
@@ -379,4 +385,248 @@ TEST_F(StationTest, HttpApiStreamsEventsAndServesImagesAndRegions) {
     EXPECT_NE(page->body.find("<title>slicestation</title>"), std::string::npos);
     EXPECT_EQ(page->body.find("http://"), std::string::npos) << "no external resources";
     EXPECT_EQ(page->body.find("https://"), std::string::npos) << "no external resources";
+}
+
+// ---------------------------------------------------------------------------------------------
+// Storage under hostile names, a full disk and crashes (issue 20).
+
+namespace {
+
+/// A plan section at virtual-slide section `i` (as planFor makes them) with another name.
+nlohmann::json sectionAt(int i, const std::string& name) {
+    auto s = planFor({i})["slides"][0]["sections"][0];
+    s["name"] = name;
+    return s;
+}
+
+/// Alerts delivered to a channel, waited for with a deadline.
+struct DeliveredAlerts {
+    std::mutex mutex;
+    std::condition_variable cv;
+    std::vector<AlertRecord> alerts;
+
+    /// The channel keeps `self` alive: the station may outlive the test's scope.
+    static Notifier::AlertChannel channel(const std::shared_ptr<DeliveredAlerts>& self) {
+        return [self](const AlertRecord& a) {
+            std::lock_guard lock(self->mutex);
+            self->alerts.push_back(a);
+            self->cv.notify_all();
+        };
+    }
+    std::size_t count(const std::string& kind) {
+        std::lock_guard lock(mutex);
+        return static_cast<std::size_t>(
+            std::count_if(alerts.begin(), alerts.end(), [&](const AlertRecord& a) { return a.kind == kind; }));
+    }
+    bool waitFor(const std::string& kind, std::chrono::seconds limit = 60s) {
+        std::unique_lock lock(mutex);
+        return cv.wait_for(lock, limit, [&] {
+            return std::any_of(alerts.begin(), alerts.end(), [&](const AlertRecord& a) { return a.kind == kind; });
+        });
+    }
+};
+
+std::vector<std::filesystem::path> imagesUnder(const std::filesystem::path& dir) {
+    std::vector<std::filesystem::path> out;
+    if (!std::filesystem::exists(dir)) return out;
+    for (const auto& e : std::filesystem::recursive_directory_iterator(dir))
+        if (e.path().filename().string().ends_with(".ome.tif")) out.push_back(e.path());
+    return out;
+}
+
+/// Clears the OME-TIFF writer's injected fault whatever the test does.
+struct WriteFault {
+    explicit WriteFault(int err) { setOmeTiffWriteFaultForTesting(err); }
+    ~WriteFault() { clear(); }
+    void clear() { setOmeTiffWriteFaultForTesting(0); }
+};
+
+} // namespace
+
+TEST_F(StationTest, NamesThatLookAlikeAsFileNamesAreStoredInDistinctFiles) {
+    build("autofocus = false\n");
+    // "s/1" and "s_1", "s01é" and "s01è" on one slide, and slides "slide 1" and "slide_1":
+    // each pair has one safe name, and each image went to one file before.
+    nlohmann::json plan = {{"name", "look-alike"},
+                           {"slides",
+                            {{{"name", "slide 1"}, {"sections", {sectionAt(0, "s/1"), sectionAt(1, "s_1")}}},
+                             {{"name", "slide_1"},
+                              {"sections", {sectionAt(2, "s/1"), sectionAt(3, "s01é"), sectionAt(1, "s01è")}}}}}};
+    auto id = rig_.station->submitPlan(plan, "plan");
+    ASSERT_TRUE(id) << id.error().message;
+    rig_.station->start();
+    const RunRecord run = waitRun(*id, RunState::Finished);
+    EXPECT_EQ(run.doneCount, 5);
+    auto secs = rig_.station->journal().sections(*id);
+    ASSERT_TRUE(secs);
+    ASSERT_EQ(secs->size(), 5u);
+    std::set<std::string> paths;
+    for (const auto& s : *secs) {
+        SCOPED_TRACE(s.slideName + " / " + s.name);
+        auto caps = rig_.station->journal().captures(s.id);
+        ASSERT_TRUE(caps);
+        ASSERT_EQ(caps->size(), 1u);
+        paths.insert(caps->front().imagePath);
+        // The file holds this section's own image: its name and its stage position.
+        auto img = readOmeTiff(rig_.dir / caps->front().imagePath);
+        ASSERT_TRUE(img) << img.error().message;
+        EXPECT_EQ(img->info.name, "look-alike / " + s.slideName + " / " + s.name);
+        EXPECT_NEAR(img->info.stage.xUm, s.xUm, 1.0);
+        // The readable part is kept for people; the id makes the name unique.
+        EXPECT_NE(caps->front().imagePath.find("/" + std::to_string(s.id) + "-"), std::string::npos)
+            << caps->front().imagePath;
+    }
+    EXPECT_EQ(paths.size(), 5u) << "two captures share one file";
+    EXPECT_EQ(imagesUnder(rig_.dir / "runs").size(), 5u);
+    EXPECT_TRUE(alertsOf("storage_fault").empty());
+}
+
+TEST_F(StationTest, AFullDiskPausesTheRunOnceAndKeepsTheAlertUntilItCanBeStored) {
+    auto& vfs = testing_vfs::FullDiskVfs::install();
+    build("min_free_mb = 0\n");
+    auto deliveredPtr = std::make_shared<DeliveredAlerts>();
+    DeliveredAlerts& delivered = *deliveredPtr;
+    rig_.station->notifier().addChannel(DeliveredAlerts::channel(deliveredPtr));
+    auto id = rig_.station->submitPlan(planFor({0}), "plan");
+    ASSERT_TRUE(id);
+    // The disk fills once the run has started: the free-space check (0 >= 0 MB) lets it go on,
+    // the image write fails with ENOSPC and the journal with SQLITE_FULL.
+    rig_.freeBytes = 0;
+    WriteFault enospc(ENOSPC);
+    auto filled = std::make_shared<std::atomic<bool>>(false); // once: not again after the resume
+    rig_.station->notifier().addListener([&vfs, filled](const StationEvent& e) {
+        if (e.type == "run_state" && e.data.value("state", "") == "running" && !filled->exchange(true))
+            vfs.setFull(true);
+    });
+    struct ClearVfs {
+        testing_vfs::FullDiskVfs& v;
+        ~ClearVfs() { v.setFull(false); }
+    } clearVfs{vfs};
+    const int refusedBefore = vfs.refusedWrites();
+    rig_.station->start();
+
+    // The alert reaches the channels at once although it cannot be stored.
+    ASSERT_TRUE(delivered.waitFor("run_paused"));
+    EXPECT_EQ(delivered.count("low_disk"), 1u);
+    EXPECT_GT(vfs.refusedWrites(), refusedBefore) << "the journal's writes were refused for real";
+    auto run = rig_.station->journal().run(*id);
+    ASSERT_TRUE(run);
+    EXPECT_EQ(run->state, RunState::Running) << "the journal could not store the pause";
+    const auto heldStates = rig_.station->scanner().heldRunStates();
+    ASSERT_EQ(heldStates.count(*id), 1u);
+    EXPECT_EQ(heldStates.at(*id), RunState::Paused);
+    auto held = rig_.station->notifier().heldAlerts();
+    ASSERT_EQ(held.size(), 2u);
+    EXPECT_EQ(held[0].kind, "low_disk");
+    EXPECT_LT(held[0].id, 0);
+    EXPECT_EQ(held[1].kind, "run_paused");
+    EXPECT_TRUE(imagesUnder(rig_.dir / "runs").empty());
+
+    // Paused in memory: the stage does not go back to the section. (Waiting for something not
+    // to happen needs a time; the loop used to retry at once, many times a second.)
+    const int moves = rig_.moves->load();
+    std::this_thread::sleep_for(1500ms);
+    EXPECT_EQ(rig_.moves->load(), moves) << "the scan loop went on retrying the section";
+    EXPECT_EQ(delivered.count("low_disk"), 1u);
+    EXPECT_EQ(rig_.station->notifier().heldAlerts().size(), 2u);
+
+    // Space again: the pause and both alerts are stored, with their first raised time.
+    enospc.clear();
+    vfs.setFull(false);
+    rig_.freeBytes = 100ull << 30;
+    waitRun(*id, RunState::Paused);
+    const auto deadline = std::chrono::steady_clock::now() + 30s;
+    while (!rig_.station->notifier().heldAlerts().empty() && std::chrono::steady_clock::now() < deadline)
+        std::this_thread::sleep_for(50ms); // polling the notifier, bounded
+    EXPECT_TRUE(rig_.station->notifier().heldAlerts().empty());
+    auto lowDisk = alertsOf("low_disk");
+    ASSERT_EQ(lowDisk.size(), 1u);
+    EXPECT_EQ(lowDisk[0].raisedUtc, held[0].raisedUtc);
+    EXPECT_FALSE(lowDisk[0].acknowledgedUtc.has_value());
+    EXPECT_EQ(alertsOf("run_paused").size(), 1u);
+    EXPECT_TRUE(rig_.station->scanner().heldRunStates().empty());
+
+    ASSERT_TRUE(rig_.station->scanner().resume(*id));
+    waitRun(*id, RunState::Finished);
+    auto secs = rig_.station->journal().sections(*id);
+    auto caps = rig_.station->journal().captures((*secs)[0].id);
+    ASSERT_EQ(caps->size(), 1u);
+    EXPECT_TRUE(readOmeTiff(rig_.dir / caps->front().imagePath));
+}
+
+TEST_F(StationTest, AFullJournalPausesTheRunAndTheImageItCouldNotRecordIsReplacedOnResume) {
+    auto& vfs = testing_vfs::FullDiskVfs::install();
+    build("autofocus = false\n");
+    auto deliveredPtr = std::make_shared<DeliveredAlerts>();
+    DeliveredAlerts& delivered = *deliveredPtr;
+    rig_.station->notifier().addChannel(DeliveredAlerts::channel(deliveredPtr));
+    auto id = rig_.station->submitPlan(planFor({1}), "plan");
+    ASSERT_TRUE(id);
+    auto filled = std::make_shared<std::atomic<bool>>(false); // once: not again after the resume
+    rig_.station->notifier().addListener([&vfs, filled](const StationEvent& e) {
+        if (e.type == "run_state" && e.data.value("state", "") == "running" && !filled->exchange(true))
+            vfs.setFull(true);
+    });
+    struct ClearVfs {
+        testing_vfs::FullDiskVfs& v;
+        ~ClearVfs() { v.setFull(false); }
+    } clearVfs{vfs};
+    rig_.station->start();
+    ASSERT_TRUE(delivered.waitFor("run_paused"));
+    EXPECT_EQ(delivered.count("low_disk"), 1u) << "SQLITE_FULL is a full disk, not a journal fault";
+    EXPECT_EQ(delivered.count("journal_error"), 0u);
+    // The image was written, the capture could not be recorded: no capture refers to the file.
+    auto orphans = imagesUnder(rig_.dir / "runs");
+    ASSERT_EQ(orphans.size(), 1u);
+
+    vfs.setFull(false);
+    waitRun(*id, RunState::Paused);
+    EXPECT_EQ(alertsOf("low_disk").size(), 1u);
+    ASSERT_TRUE(rig_.station->scanner().resume(*id));
+    waitRun(*id, RunState::Finished);
+    auto secs = rig_.station->journal().sections(*id);
+    auto caps = rig_.station->journal().captures((*secs)[0].id);
+    ASSERT_EQ(caps->size(), 1u);
+    // The same name (attempt 1): the file no capture referred to was replaced, not refused.
+    EXPECT_EQ(rig_.dir / caps->front().imagePath, orphans[0]);
+    EXPECT_TRUE(readOmeTiff(orphans[0]));
+    EXPECT_EQ(imagesUnder(rig_.dir / "runs").size(), 1u);
+    EXPECT_TRUE(alertsOf("storage_fault").empty());
+}
+
+TEST_F(StationTest, AStageDisconnectDuringAutofocusIsAStageFault) {
+    build();
+    // The move to the section succeeds; the focus sweep's first move finds the stage gone.
+    rig_.stage->disconnectAfter(1);
+    auto id = rig_.station->submitPlan(planFor({0}), "plan");
+    ASSERT_TRUE(id);
+    rig_.station->start();
+    const RunRecord paused = waitRun(*id, RunState::Paused);
+    EXPECT_NE(paused.reason.find("stage_fault"), std::string::npos) << paused.reason;
+    EXPECT_EQ(alertsOf("stage_fault").size(), 1u);
+    EXPECT_TRUE(alertsOf("focus_fault").empty()) << "the advice would be about the camera";
+    EXPECT_GE(rig_.moves->load(), 1);
+}
+
+TEST_F(StationTest, RestartRemovesTheTemporaryFilesOfEveryWriter) {
+    namespace fs = std::filesystem;
+    const fs::path slideDir = rig_.dir / "runs" / "1" / "01-slide-01";
+    fs::create_directories(slideDir);
+    fs::create_directories(rig_.dir / "atlas-builtin-100um");
+    const std::vector<fs::path> leftovers = {
+        slideDir / ".7-s1-a1.ome.tif.partial",                        // writeOmeTiffAtomic
+        slideDir / ".7-s1-a1.overlay.png.tmp.4242.3.81234",            // core image writers
+        rig_.dir / "atlas-builtin-100um" / ".slice-003.tif.tmp.17.0.5", // core, atlas stack
+        slideDir / "7-s1-a1.result.json.tmp-4242",                      // writeFileAtomically
+    };
+    const std::vector<fs::path> kept = {
+        slideDir / "7-s1-a1.ome.tif", slideDir / "7-s1-a1.overlay.png", slideDir / "tmp-notes.txt",
+        slideDir / ".partial",        slideDir / "x.tmp-abc",           slideDir / ".a.tmp.1.2",
+    };
+    for (const auto& p : leftovers) std::ofstream(p) << "interrupted";
+    for (const auto& p : kept) std::ofstream(p) << "data";
+    build();
+    for (const auto& p : leftovers) EXPECT_FALSE(fs::exists(p)) << p;
+    for (const auto& p : kept) EXPECT_TRUE(fs::exists(p)) << p;
+    EXPECT_TRUE(fs::exists(rig_.dir / "journal.sqlite"));
 }

@@ -60,6 +60,11 @@ struct FocusResult {
     bool peakAtRangeEdge = false;
 };
 
+/// Which part failed when autofocus() returns an error: the stage (a move: Timeout after the
+/// retries, Alarm, Disconnected, Cancelled), the camera (a capture), or the focus search itself
+/// (settings, no Z axis, a library failure).
+enum class FocusFailure { Focus, Stage, Camera };
+
 /// Moves to `at` (x, y and start z), captures, and returns at once with tissueFound=false and
 /// zUm=at.zUm when the field holds less tissue than minTissueFraction (never focuses on blank
 /// glass). Otherwise: a coarse sweep over [z - range/2, z + range/2] (clamped to the stage's Z
@@ -71,9 +76,11 @@ struct FocusResult {
 /// \return the result; InvalidArgument (steps not > 0, fineStep > coarseStep, range < coarse
 ///         step, minTissueFraction outside [0, 1], the stage has no Z axis); errors of the stage
 ///         and camera are returned unchanged (Timeout, Alarm, Disconnected, Cancelled, ...).
+///         On an error, `*failed` (when given) says which device failed.
 [[nodiscard]] core::Result<FocusResult> autofocus(hw::Stage& stage, hw::Camera& camera,
                                                   const hw::StagePosition& at,
-                                                  const AutofocusSettings& s);
+                                                  const AutofocusSettings& s,
+                                                  FocusFailure* failed = nullptr);
 
 /// Focus heights measured on one slide, and the height predicted elsewhere.
 /// Prediction: with 0 points nullopt; with 1 point, or points all at the same x/y, their mean;

@@ -158,6 +158,8 @@ public:
     [[nodiscard]] core::Result<std::int64_t> recordCapture(CaptureRecord capture);
     [[nodiscard]] core::Result<std::vector<CaptureRecord>> captures(std::int64_t sectionId);
     [[nodiscard]] core::Result<CaptureRecord> capture(std::int64_t captureId);
+    /// The capture whose image is `imagePath` (relative to the state directory), if any.
+    [[nodiscard]] core::Result<std::optional<std::int64_t>> captureWithImage(const std::string& imagePath);
     /// Captures whose section is `captured` and that have no registration (after a crash).
     [[nodiscard]] core::Result<std::vector<std::int64_t>> capturesAwaitingRegistration();
     /// Stores the registration and moves the section to registered or damaged.

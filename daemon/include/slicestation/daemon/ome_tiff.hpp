@@ -42,16 +42,24 @@ struct OmeTiffInfo {
 
 /// Writes `image` (CV_8UC1, CV_16UC1 or CV_8UC3 in OpenCV's BGR order; stored as RGB) to `path`
 /// atomically: the data goes to `.<filename>.partial` in the same directory, which is fsync'ed,
-/// renamed over `path`, and the directory is fsync'ed. A reader sees the old file or the complete
-/// new one, never a partial one; on failure the temporary file is removed and `path` is untouched.
+/// renamed to `path` (never over it: RENAME_NOREPLACE, or link + unlink where the file system
+/// lacks it), and the directory is fsync'ed. A reader never sees a partial file; on failure the
+/// temporary file is removed and `path` is untouched. An existing `path` is never replaced
+/// (IoError with sysErrno EEXIST): whether an old file may go is the caller's decision.
 /// A stale `.partial` left by a crash is overwritten.
 ///
 /// \return InvalidArgument (empty image, unsupported Mat type, umPerPx not > 0, non-finite
 ///         stage position, negative exposure, gain not > 0, acquiredUtc not ISO 8601, a name or
 ///         channel with control characters), IoError naming the path with Error::sysErrno set
-///         (missing or read-only directory, disk full = ENOSPC, fsync or rename failure).
+///         (missing or read-only directory, disk full = ENOSPC, `path` exists = EEXIST, fsync or
+///         rename failure).
 [[nodiscard]] core::Result<void> writeOmeTiffAtomic(const std::filesystem::path& path,
                                                     const cv::Mat& image, const OmeTiffInfo& info);
+
+/// For tests of storage faults only: from now on every write(2) of writeOmeTiffAtomic fails
+/// with `err` (e.g. ENOSPC) through the writer's real error path, until called with 0.
+/// Process-wide.
+void setOmeTiffWriteFaultForTesting(int err) noexcept;
 
 struct OmeTiffImage {
     cv::Mat image; ///< CV_8UC1, CV_16UC1 or CV_8UC3 (BGR)

@@ -7,7 +7,13 @@
 ///
 /// Faults follow a policy: moves and captures are retried a bounded number of times (a camera is
 /// re-initialised between attempts); then, and at once for a drive alarm or a low disk, the run
-/// is paused with the reason and an alert. Nothing is skipped silently.
+/// is paused with the reason and an alert. Nothing is skipped silently. A full disk (ENOSPC from
+/// the image writer, SQLITE_FULL from the journal) pauses the run with a `low_disk` alert; when
+/// the journal cannot store the pause either, the run is paused in memory (heldRunStates();
+/// likewise a finished, failed or cancelled state the journal refused): the loop does not work
+/// on it, retries storing the state about once a second (and the held alerts,
+/// Notifier::storeHeldAlerts), and once stored the run is paused like any other. resume() and
+/// cancel() act on a run paused in memory as on a paused one.
 ///
 /// Control (from any thread): pause/resume/cancel take effect between sections; cancel and
 /// shutdown also preempt a move or capture in progress (stage/camera stop()). Shutdown leaves
@@ -25,6 +31,7 @@
 #include <cstdint>
 #include <filesystem>
 #include <functional>
+#include <map>
 #include <mutex>
 #include <optional>
 #include <set>
@@ -80,12 +87,20 @@ public:
     std::string activity() const;
     /// No run to work on and the registration worker idle.
     bool idle() const;
+    /// Runs whose new state (paused, or finished/failed/cancelled) the journal could not store
+    /// yet (disk full), with that state; the journal still shows them running or queued.
+    std::map<std::int64_t, RunState> heldRunStates() const;
 
 private:
     void loop();
     enum class Outcome { Done, Paused, Cancelled, Shutdown, Failed };
     Outcome executeRun(const RunRecord& run);
     void setActivity(const std::string& text);
+    /// Journals the run's new state (with its alert); when the journal cannot, holds it in
+    /// memory (the loop then leaves the run alone).
+    void settle(std::int64_t runId, RunState state, const std::string& reason);
+    /// Tries to store the held state of `runId`. \return true when stored (or none was held).
+    bool storeHeldState(std::int64_t runId);
 
     ScannerDeps d_;
     mutable std::mutex mutex_;
@@ -96,6 +111,11 @@ private:
     std::set<std::int64_t> pauseRequested_;
     std::set<std::int64_t> cancelRequested_;
     std::set<std::int64_t> alarmResetRequested_;
+    struct HeldState {
+        RunState state = RunState::Paused;
+        std::string reason;
+    };
+    std::map<std::int64_t, HeldState> held_; ///< run states not yet journaled (disk full)
     std::string activity_ = "starting";
     bool idle_ = false;
     std::thread thread_;
