@@ -9,12 +9,26 @@
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
+#include <fcntl.h>
+#include <netdb.h>
+#include <poll.h>
+#include <sys/socket.h>
+#include <unistd.h>
+
 #include <algorithm>
+#include <array>
+#include <atomic>
+#include <cerrno>
 #include <charconv>
 #include <cmath>
 #include <condition_variable>
+#include <cstring>
 #include <deque>
+#include <functional>
+#include <limits>
 #include <mutex>
+#include <set>
+#include <thread>
 
 namespace slicestation::daemon {
 
@@ -23,7 +37,10 @@ using core::makeError;
 
 namespace {
 
-constexpr std::size_t kMaxBody = 1 << 20; // a plan of thousands of sections fits in far less
+using Clock = std::chrono::steady_clock;
+using L = HttpLimits;
+constexpr std::size_t kMaxBody = L::kMaxBody; // a plan of thousands of sections fits in far less
+static_assert(L::kWorkers > L::kMaxEventStreams + 32, "room besides the event streams");
 
 int httpStatus(const core::Error& e) {
     switch (e.code) {
@@ -35,9 +52,19 @@ int httpStatus(const core::Error& e) {
     }
 }
 
+/// Never throws on what it sends: bytes that are not UTF-8 become U+FFFD.
+std::string dumpJson(const nlohmann::json& j) {
+    return j.dump(-1, ' ', false, nlohmann::json::error_handler_t::replace);
+}
+
 void sendJson(httplib::Response& res, const nlohmann::json& j, int status = 200) {
     res.status = status;
-    res.set_content(j.dump(), "application/json");
+    res.set_content(dumpJson(j), "application/json");
+}
+
+/// Something from the request, for a message: quoted and cut to 40 bytes.
+std::string echo(const std::string& s) {
+    return "\"" + (s.size() > 40 ? s.substr(0, 40) + "..." : s) + "\"";
 }
 
 void sendError(httplib::Response& res, int status, const std::string& message) {
@@ -46,13 +73,24 @@ void sendError(httplib::Response& res, int status, const std::string& message) {
 
 void sendError(httplib::Response& res, const core::Error& e) { sendError(res, httpStatus(e), e.message); }
 
+/// A control request refused: 404 no such record, 409 not in a state for it, 400 a bad value.
+int controlStatus(const core::Error& e) {
+    switch (e.code) {
+    case ErrorCode::NotFound: return 404;
+    case ErrorCode::InvalidArgument: return 409;
+    case ErrorCode::OutOfRange:
+    case ErrorCode::Unsupported: return 400;
+    default: return 500;
+    }
+}
+
 /// The numeric id in path capture 1; 400 for anything else (no path reaches a file).
 std::optional<std::int64_t> idParam(const httplib::Request& req, httplib::Response& res) {
     const std::string s = req.matches.size() > 1 ? std::string(req.matches[1]) : std::string();
     std::int64_t v = 0;
     const auto [p, ec] = std::from_chars(s.data(), s.data() + s.size(), v);
     if (ec != std::errc() || p != s.data() + s.size() || v <= 0) {
-        sendError(res, 400, "bad id \"" + s + "\"");
+        sendError(res, 400, "bad id " + echo(s));
         return std::nullopt;
     }
     return v;
@@ -70,7 +108,7 @@ std::optional<int> intQuery(const httplib::Request& req, httplib::Response& res,
     const auto [p, ec] = std::from_chars(s.data(), s.data() + s.size(), v);
     if (ec != std::errc() || p != s.data() + s.size() || v < lo || v > hi) {
         sendError(res, 400, std::string(name) + ": expected an integer " + std::to_string(lo) + ".." +
-                                std::to_string(hi) + ", got \"" + s + "\"");
+                                std::to_string(hi) + ", got " + echo(s));
         return std::nullopt;
     }
     return v;
@@ -138,6 +176,318 @@ void sendStoredImage(httplib::Response& res, const std::filesystem::path& stateD
     sendImage(res, *img, width, ext);
 }
 
+/// One client connection, as the httplib::Stream the request parser reads: every read is
+/// bounded in bytes (the head to kMaxHead, the body to what the admission allowed) and in time
+/// (a deadline per request, not per byte, so a client trickling bytes is cut off all the same).
+/// Writes give up after kWriteStall without progress. Used on the connection's worker only.
+class Connection final : public httplib::Stream {
+public:
+    explicit Connection(int fd) : fd_(fd) {}
+
+    /// Waits up to `idle` for the next request to begin. False: closed, idle, or refused.
+    bool awaitRequest(Clock::duration idle) {
+        if (mustClose_) return false;
+        if (pos_ < len_) return true;
+        return waitFor(POLLIN, Clock::now() + idle) && fill() > 0;
+    }
+    /// A new request: its head may take kMaxHead bytes and kHeadDeadline.
+    void beginRequest() {
+        used_ = 0;
+        limit_ = L::kMaxHead;
+        deadline_ = Clock::now() + L::kHeadDeadline;
+        eofAtLimit_ = false;
+    }
+    /// After the head: the body is `length` bytes, within kBodyDeadline. nullopt: no body at all
+    /// (reads end there, as HTTP says of a request without Content-Length).
+    void allowBody(std::optional<std::size_t> length) {
+        limit_ = used_ + length.value_or(0);
+        eofAtLimit_ = !length;
+        deadline_ = Clock::now() + L::kBodyDeadline;
+    }
+    /// The connection ends after this response (its body was not read, or it was refused).
+    void closeAfterResponse() { mustClose_ = true; }
+    bool mustClose() const { return mustClose_; }
+    /// The client has gone (an event stream's client never sends anything after its request).
+    bool peerGone() const {
+        pollfd p{fd_, POLLRDHUP, 0};
+        return ::poll(&p, 1, 0) > 0 && (p.revents & (POLLRDHUP | POLLHUP | POLLERR)) != 0;
+    }
+    /// Before closing a connection whose request body was left unread: the answer is sent
+    /// (FIN) and what the client still sends is discarded for a moment, so that the close does
+    /// not reset the connection before the client has read the answer.
+    void lingerBeforeClose() {
+        ::shutdown(fd_, SHUT_WR);
+        const auto until = Clock::now() + std::chrono::seconds(1);
+        std::size_t discarded = 0;
+        while (discarded < (4u << 20) && waitFor(POLLIN, until)) {
+            char tmp[16384];
+            const ssize_t n = ::recv(fd_, tmp, sizeof tmp, 0);
+            if (n <= 0) break;
+            discarded += static_cast<std::size_t>(n);
+        }
+    }
+
+    bool is_readable() const override { return pos_ < len_ || waitFor(POLLIN, deadline_); }
+    bool is_writable() const override { return waitFor(POLLOUT, Clock::now() + L::kWriteStall); }
+    ssize_t read(char* ptr, std::size_t size) override {
+        if (used_ >= limit_) {
+            if (eofAtLimit_) return 0;
+            mustClose_ = true; // over the limit: the request is cut off here
+            return -1;
+        }
+        size = std::min(size, limit_ - used_);
+        if (pos_ == len_) {
+            if (!waitFor(POLLIN, deadline_)) {
+                mustClose_ = true; // too slow
+                return -1;
+            }
+            const ssize_t n = fill();
+            if (n <= 0) {
+                mustClose_ = true;
+                return n;
+            }
+        }
+        const std::size_t n = std::min(size, len_ - pos_);
+        std::memcpy(ptr, buf_.data() + pos_, n);
+        pos_ += n;
+        used_ += n;
+        return static_cast<ssize_t>(n);
+    }
+    ssize_t write(const char* ptr, std::size_t size) override {
+        std::size_t done = 0;
+        while (done < size) {
+            if (!waitFor(POLLOUT, Clock::now() + L::kWriteStall)) return -1;
+            const ssize_t n = ::send(fd_, ptr + done, size - done, MSG_NOSIGNAL | MSG_DONTWAIT);
+            if (n < 0 && (errno == EAGAIN || errno == EWOULDBLOCK || errno == EINTR)) continue;
+            if (n <= 0) return -1;
+            done += static_cast<std::size_t>(n);
+        }
+        return static_cast<ssize_t>(size);
+    }
+    void get_remote_ip_and_port(std::string& ip, int& port) const override { address(false, ip, port); }
+    void get_local_ip_and_port(std::string& ip, int& port) const override { address(true, ip, port); }
+    int socket() const override { return fd_; }
+
+private:
+    bool waitFor(short events, Clock::time_point until) const {
+        for (;;) {
+            const auto left = std::chrono::duration_cast<std::chrono::milliseconds>(until - Clock::now()).count();
+            if (left <= 0) return false;
+            pollfd p{fd_, events, 0};
+            const int r = ::poll(&p, 1, static_cast<int>(std::min<long long>(left, 1000 * 60)));
+            if (r > 0) return true; // ready, or an error the next call reports
+            if (r < 0 && errno != EINTR) return false;
+        }
+    }
+    ssize_t fill() {
+        for (;;) {
+            const ssize_t n = ::recv(fd_, buf_.data(), buf_.size(), 0);
+            if (n < 0 && errno == EINTR) continue;
+            pos_ = 0;
+            len_ = n > 0 ? static_cast<std::size_t>(n) : 0;
+            return n;
+        }
+    }
+    void address(bool local, std::string& ip, int& port) const {
+        sockaddr_storage a{};
+        socklen_t n = sizeof a;
+        const int r = local ? ::getsockname(fd_, reinterpret_cast<sockaddr*>(&a), &n)
+                            : ::getpeername(fd_, reinterpret_cast<sockaddr*>(&a), &n);
+        std::array<char, NI_MAXHOST> host{};
+        std::array<char, NI_MAXSERV> serv{};
+        if (r != 0 || ::getnameinfo(reinterpret_cast<sockaddr*>(&a), n, host.data(), host.size(), serv.data(),
+                                    serv.size(), NI_NUMERICHOST | NI_NUMERICSERV) != 0)
+            return;
+        ip = host.data();
+        port = std::atoi(serv.data());
+    }
+
+    int fd_;
+    std::array<char, 4096> buf_{};
+    std::size_t pos_ = 0, len_ = 0;
+    std::size_t used_ = 0, limit_ = L::kMaxHead;
+    bool eofAtLimit_ = false;
+    bool mustClose_ = false;
+    Clock::time_point deadline_ = Clock::now() + L::kHeadDeadline;
+};
+
+/// The connection the calling worker serves (request handlers run on it).
+thread_local Connection* tConnection = nullptr;
+
+} // namespace
+
+/// httplib's request parsing and routing, over connections this class accepts and bounds
+/// itself: httplib 0.11's own loop bounds neither the size of a request head or chunked body
+/// nor the total time a client may take to send them, and serves a fixed pool from an
+/// unbounded queue.
+class HttpApi::Server final : public httplib::Server {
+public:
+    ~Server() override { stopServing(); }
+
+    core::Result<int> bindTo(const std::string& host, int port) {
+        addrinfo hints{};
+        hints.ai_family = AF_UNSPEC;
+        hints.ai_socktype = SOCK_STREAM;
+        hints.ai_flags = AI_PASSIVE | AI_NUMERICSERV;
+        addrinfo* found = nullptr;
+        if (::getaddrinfo(host.c_str(), std::to_string(port).c_str(), &hints, &found) != 0 || !found)
+            return makeError(ErrorCode::IoError, "HTTP: cannot resolve " + host);
+        for (addrinfo* a = found; a && listenFd_ < 0; a = a->ai_next) {
+            const int fd = ::socket(a->ai_family, a->ai_socktype | SOCK_CLOEXEC, a->ai_protocol);
+            if (fd < 0) continue;
+            const int yes = 1;
+            ::setsockopt(fd, SOL_SOCKET, SO_REUSEADDR, &yes, sizeof yes);
+            if (::bind(fd, a->ai_addr, a->ai_addrlen) == 0 && ::listen(fd, 64) == 0)
+                listenFd_ = fd;
+            else
+                ::close(fd);
+        }
+        ::freeaddrinfo(found);
+        if (listenFd_ < 0)
+            return makeError(ErrorCode::IoError, "HTTP: cannot bind " + host + ":" + std::to_string(port) +
+                                                     " (in use, or not an address of this machine)");
+        sockaddr_storage a{};
+        socklen_t n = sizeof a;
+        ::getsockname(listenFd_, reinterpret_cast<sockaddr*>(&a), &n);
+        int bound = 0;
+        if (a.ss_family == AF_INET) bound = ntohs(reinterpret_cast<sockaddr_in*>(&a)->sin_port);
+        if (a.ss_family == AF_INET6) bound = ntohs(reinterpret_cast<sockaddr_in6*>(&a)->sin6_port);
+        return bound;
+    }
+
+    core::Result<void> startServing() {
+        if (::pipe2(wake_.data(), O_CLOEXEC | O_NONBLOCK) != 0)
+            return makeError(ErrorCode::IoError, "HTTP: cannot create a pipe");
+        svr_sock_ = listenFd_; // httplib streams responses while this is valid
+        pool_ = std::make_unique<httplib::ThreadPool>(static_cast<std::size_t>(L::kWorkers));
+        acceptor_ = std::thread([this] { acceptLoop(); });
+        return {};
+    }
+
+    void stopServing() noexcept {
+        if (stopping_.exchange(true)) return;
+        svr_sock_ = INVALID_SOCKET; // ends every streamed response at its next step
+        if (wake_[1] >= 0) {
+            [[maybe_unused]] const auto n = ::write(wake_[1], "x", 1);
+        }
+        if (acceptor_.joinable()) acceptor_.join();
+        {
+            std::lock_guard lock(mutex_);
+            for (int fd : open_) ::shutdown(fd, SHUT_RDWR); // wakes every wait on them
+        }
+        if (pool_) pool_->shutdown();
+        pool_.reset();
+        for (int& fd : wake_)
+            if (fd >= 0) ::close(std::exchange(fd, -1));
+        if (listenFd_ >= 0) ::close(std::exchange(listenFd_, -1));
+    }
+
+private:
+    void acceptLoop() {
+        for (;;) {
+            std::array<pollfd, 2> p{pollfd{listenFd_, POLLIN, 0}, pollfd{wake_[0], POLLIN, 0}};
+            if (::poll(p.data(), p.size(), -1) < 0 && errno != EINTR) break;
+            if (stopping_ || p[1].revents) break;
+            if (!(p[0].revents & POLLIN)) continue;
+            const int fd = ::accept4(listenFd_, nullptr, nullptr, SOCK_CLOEXEC);
+            if (fd < 0) {
+                if (errno == EMFILE || errno == ENFILE) // out of descriptors: let the others finish
+                    ::poll(nullptr, 0, 10);
+                continue;
+            }
+            {
+                std::lock_guard lock(mutex_);
+                if (open_.size() >= static_cast<std::size_t>(L::kMaxConnections)) {
+                    static const std::string busy =
+                        "HTTP/1.1 503 Service Unavailable\r\nContent-Type: application/json\r\n"
+                        "Content-Length: 52\r\nConnection: close\r\nRetry-After: 5\r\n\r\n"
+                        "{\"error\": \"too many connections; try again shortly\"}";
+                    [[maybe_unused]] auto n = ::send(fd, busy.data(), busy.size(), MSG_NOSIGNAL | MSG_DONTWAIT);
+                    ::close(fd);
+                    continue;
+                }
+                open_.insert(fd);
+            }
+            pool_->enqueue([this, fd] { serve(fd); });
+        }
+    }
+
+    void serve(int fd) noexcept {
+        try {
+            Connection conn(fd);
+            tConnection = &conn;
+            for (int left = L::kKeepAliveRequests; left > 0 && !stopping_; --left) {
+                if (!conn.awaitRequest(L::kIdle)) break;
+                conn.beginRequest();
+                bool closed = false;
+                // Range headers are ignored (the whole content is sent, as HTTP allows): httplib
+                // 0.11 bounds neither their number nor their offsets.
+                const bool ok = process_request(conn, left == 1 || stopping_, closed,
+                                                [](httplib::Request& req) { req.ranges.clear(); });
+                if (!ok || closed || conn.mustClose()) {
+                    if (ok && conn.mustClose()) conn.lingerBeforeClose();
+                    break;
+                }
+            }
+        } catch (...) { // nothing leaves a worker; the connection just ends
+        }
+        tConnection = nullptr;
+        std::lock_guard lock(mutex_);
+        open_.erase(fd);
+        ::close(fd);
+    }
+
+    int listenFd_ = -1;
+    std::array<int, 2> wake_{-1, -1};
+    std::atomic<bool> stopping_{false};
+    std::unique_ptr<httplib::ThreadPool> pool_;
+    std::thread acceptor_;
+    std::mutex mutex_;
+    std::set<int> open_;
+};
+
+namespace {
+
+/// Admission, before httplib reads a body: POSTs need the token and a Content-Length within
+/// kMaxBody; other methods carry no body. \return false when refused (the answer is in `res`
+/// and the connection closes after it).
+bool admit(const httplib::Request& req, httplib::Response& res, const std::function<bool(const httplib::Request&, httplib::Response&)>& authorised) {
+    Connection* conn = tConnection;
+    auto refuse = [&](int status, const std::string& message) {
+        if (!message.empty()) sendError(res, status, message);
+        res.set_header("Connection", "close");
+        if (conn) conn->closeAfterResponse();
+        return false;
+    };
+    std::optional<std::size_t> length;
+    if (req.has_header("Content-Length")) {
+        const std::string s = req.get_header_value("Content-Length");
+        std::uint64_t v = 0;
+        const auto [p, ec] = std::from_chars(s.data(), s.data() + s.size(), v);
+        if (ec == std::errc::result_out_of_range) v = std::numeric_limits<std::uint64_t>::max();
+        else if (ec != std::errc() || p != s.data() + s.size() || req.get_header_value_count("Content-Length") != 1)
+            return refuse(400, "Content-Length: expected one number of bytes, got " + echo(s));
+        length = static_cast<std::size_t>(std::min<std::uint64_t>(v, kMaxBody + 1));
+    }
+    const bool chunked = req.has_header("Transfer-Encoding");
+    if (req.method == "POST") {
+        if (!authorised(req, res)) return refuse(401, "");
+        if (chunked)
+            return refuse(411, "a request body needs a Content-Length (chunked bodies are not accepted)");
+        if (length && *length > kMaxBody)
+            return refuse(413, "request body over the limit of " + std::to_string(kMaxBody) + " bytes");
+        if (conn) conn->allowBody(length);
+        return true;
+    }
+    if (req.method != "GET" && req.method != "HEAD") {
+        res.set_header("Allow", "GET, HEAD, POST");
+        return refuse(405, "method " + echo(req.method) + " not allowed");
+    }
+    if (chunked || length.value_or(0) > 0) return refuse(400, "a " + req.method + " request has no body");
+    if (conn) conn->allowBody(std::nullopt);
+    return true;
+}
+
 } // namespace
 
 /// Station events fanned out to every event-stream client. A client that does not keep up
@@ -170,9 +520,13 @@ struct HttpApi::EventHub {
                 c->cv.notify_one();
             }
     }
+    /// A new client; null when kMaxEventStreams are open (a client is open while its
+    /// response lives).
     std::shared_ptr<Client> subscribe() {
-        auto c = std::make_shared<Client>();
         std::lock_guard lock(mutex);
+        std::erase_if(clients, [](const auto& w) { return w.expired(); });
+        if (clients.size() >= static_cast<std::size_t>(L::kMaxEventStreams)) return nullptr;
+        auto c = std::make_shared<Client>();
         c->closed = closed;
         clients.push_back(c);
         return c;
@@ -192,13 +546,13 @@ struct HttpApi::EventHub {
 core::Result<std::unique_ptr<HttpApi>> HttpApi::start(Station& station, const std::string& bind, int port,
                                                       std::string token) {
     std::unique_ptr<HttpApi> api(new HttpApi());
-    api->server_ = std::make_unique<httplib::Server>();
+    api->server_ = std::make_unique<Server>();
     auto& srv = *api->server_;
+    // The connections, their timeouts and sizes are bounded by Server and Connection (HttpLimits);
+    // these only make httplib's own checks and Keep-Alive header agree.
     srv.set_payload_max_length(kMaxBody);
-    // Event streams hold a thread each: room for a few browsers besides slicectl.
-    srv.new_task_queue = [] { return new httplib::ThreadPool(16); };
-    srv.set_read_timeout(10, 0);
-    srv.set_write_timeout(10, 0);
+    srv.set_keep_alive_max_count(static_cast<std::size_t>(L::kKeepAliveRequests));
+    srv.set_keep_alive_timeout(std::chrono::duration_cast<std::chrono::seconds>(L::kIdle).count());
 
     // Control requests need the bearer token; without a configured token they are refused.
     auto authorised = [token](const httplib::Request& req, httplib::Response& res) {
@@ -221,6 +575,15 @@ core::Result<std::unique_ptr<HttpApi>> HttpApi::start(Station& station, const st
         return true;
     };
     Station* st = &station;
+    // Before any body is read (httplib runs this after the head, before reading content).
+    srv.set_pre_routing_handler([authorised](const httplib::Request& req, httplib::Response& res) {
+        return admit(req, res, authorised) ? httplib::Server::HandlerResponse::Unhandled
+                                           : httplib::Server::HandlerResponse::Handled;
+    });
+    // A client that asks before sending its body is told the same, before it sends it.
+    srv.set_expect_100_continue_handler([authorised](const httplib::Request& req, httplib::Response& res) {
+        return admit(req, res, authorised) ? 100 : res.status;
+    });
 
     // The page: self-contained, and the browser is told to load nothing from elsewhere.
     srv.Get("/", [](const httplib::Request&, httplib::Response& res) {
@@ -288,16 +651,25 @@ core::Result<std::unique_ptr<HttpApi>> HttpApi::start(Station& station, const st
     {
         std::weak_ptr<EventHub> hub = api->events_;
         station.notifier().addListener([hub](const StationEvent& e) {
-            if (auto h = hub.lock()) h->publish("event: " + e.type + "\ndata: " + e.data.dump() + "\n\n");
+            if (auto h = hub.lock()) h->publish("event: " + e.type + "\ndata: " + dumpJson(e.data) + "\n\n");
         });
     }
     srv.Get("/api/events", [hub = api->events_](const httplib::Request&, httplib::Response& res) {
         auto client = hub->subscribe();
+        Connection* conn = tConnection;
+        if (!client || !conn) {
+            res.set_header("Retry-After", "5");
+            res.set_header("Connection", "close");
+            if (conn) conn->closeAfterResponse();
+            return sendError(res, 503,
+                             "too many event streams: " + std::to_string(L::kMaxEventStreams) +
+                                 " are open; try again later");
+        }
         res.set_header("Cache-Control", "no-cache");
         res.set_header("X-Accel-Buffering", "no");
         res.set_chunked_content_provider(
             "text/event-stream",
-            [client](std::size_t, httplib::DataSink& sink) {
+            [client, conn](std::size_t, httplib::DataSink& sink) {
                 std::string out;
                 {
                     std::unique_lock lock(client->mutex);
@@ -305,8 +677,16 @@ core::Result<std::unique_ptr<HttpApi>> HttpApi::start(Station& station, const st
                         client->greeted = true;
                         out = "retry: 3000\n: connected\n\n";
                     } else {
-                        client->cv.wait_for(lock, std::chrono::seconds(15),
-                                            [&] { return !client->queue.empty() || client->closed; });
+                        // Up to 15 s for events; a client that has gone frees its place within 0.5 s.
+                        const auto keepalive = Clock::now() + std::chrono::seconds(15);
+                        while (!client->cv.wait_for(lock, std::chrono::milliseconds(500),
+                                                    [&] { return !client->queue.empty() || client->closed; }) &&
+                               Clock::now() < keepalive) {
+                            lock.unlock();
+                            const bool gone = conn->peerGone();
+                            lock.lock();
+                            if (gone) return false;
+                        }
                         if (client->closed) return false;
                         if (client->dropped > 0) {
                             out += "event: events_dropped\ndata: {\"count\": " + std::to_string(client->dropped) +
@@ -407,14 +787,18 @@ core::Result<std::unique_ptr<HttpApi>> HttpApi::start(Station& station, const st
                 cache->labels = *img;
                 cache->path = file->string();
             }
+            // In double, and checked before the cast: scaled, x and y may lie far beyond int.
+            double fx = *x, fy = *y;
             if (*ofWidth > 0) {
                 const double f = static_cast<double>(cache->labels.cols) / *ofWidth;
-                *x = static_cast<int>(std::floor((*x + 0.5) * f));
-                *y = static_cast<int>(std::floor((*y + 0.5) * f));
+                fx = std::floor((fx + 0.5) * f);
+                fy = std::floor((fy + 0.5) * f);
             }
-            if (*x >= cache->labels.cols || *y >= cache->labels.rows)
+            if (!(fx >= 0 && fx < cache->labels.cols && fy >= 0 && fy < cache->labels.rows))
                 return sendError(res, 400, "x, y: outside the " + std::to_string(cache->labels.cols) + "x" +
                                                std::to_string(cache->labels.rows) + " image");
+            *x = static_cast<int>(fx);
+            *y = static_cast<int>(fy);
             region = cache->labels.at<std::int32_t>(*y, *x);
         }
         nlohmann::json j{{"id", region}, {"x", *x}, {"y", *y}};
@@ -446,12 +830,7 @@ core::Result<std::unique_ptr<HttpApi>> HttpApi::start(Station& station, const st
             auto id = idParam(req, res);
             if (!id) return;
             core::Result<void> r = action(*st, *id);
-            if (!r) {
-                const int code = r.error().code == ErrorCode::NotFound ? 404
-                                 : r.error().code == ErrorCode::InvalidArgument ? 409
-                                                                                 : 500;
-                return sendError(res, code, r.error().message);
-            }
+            if (!r) return sendError(res, controlStatus(r.error()), r.error().message);
             sendJson(res, {{"ok", true}});
         });
     };
@@ -468,10 +847,7 @@ core::Result<std::unique_ptr<HttpApi>> HttpApi::start(Station& station, const st
             resetAlarm = j.value("reset_stage_alarm", false);
         }
         auto r = st->scanner().resume(*id, resetAlarm);
-        if (!r)
-            return sendError(res, r.error().code == ErrorCode::NotFound ? 404
-                                  : r.error().code == ErrorCode::InvalidArgument ? 409 : 500,
-                             r.error().message);
+        if (!r) return sendError(res, controlStatus(r.error()), r.error().message);
         sendJson(res, {{"ok", true}});
     });
     control(R"(/api/runs/([^/]+)/cancel)", [](Station& s, std::int64_t id) { return s.scanner().cancel(id); });
@@ -504,16 +880,11 @@ core::Result<std::unique_ptr<HttpApi>> HttpApi::start(Station& station, const st
         sendError(res, 500, "internal error");
     });
 
-    if (port == 0) {
-        api->port_ = srv.bind_to_any_port(bind.c_str());
-        if (api->port_ < 0) return makeError(ErrorCode::IoError, "HTTP: cannot bind " + bind);
-    } else {
-        if (!srv.bind_to_port(bind.c_str(), port))
-            return makeError(ErrorCode::IoError, "HTTP: cannot bind " + bind + ":" + std::to_string(port) +
-                                                     " (in use, or not an address of this machine)");
-        api->port_ = port;
-    }
-    api->thread_ = std::thread([&srv] { srv.listen_after_bind(); });
+    if (port < 0 || port > 65535) return makeError(ErrorCode::InvalidArgument, "HTTP: port " + std::to_string(port));
+    auto bound = srv.bindTo(bind, port);
+    if (!bound) return bound.error();
+    api->port_ = *bound;
+    if (auto r = srv.startServing(); !r) return r.error();
     return api;
 }
 
@@ -521,8 +892,7 @@ HttpApi::~HttpApi() { stop(); }
 
 void HttpApi::stop() noexcept {
     if (events_) events_->close(); // event streams end at once, so the server can stop
-    if (server_) server_->stop();
-    if (thread_.joinable()) thread_.join();
+    if (server_) server_->stopServing();
 }
 
 } // namespace slicestation::daemon

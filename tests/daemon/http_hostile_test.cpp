@@ -1,0 +1,433 @@
+// The HTTP API under hostile input and load (issue 20): numbers that overflow, ids that are not
+// UTF-8, bodies that never end, and many clients that hold connections open, all over real
+// sockets on 127.0.0.1 against the API of a real station in this process.
+#include "station_fixture.hpp"
+
+#include "slicestation/core/image_file.hpp"
+#include "slicestation/core/unique_fd.hpp"
+
+#include <gtest/gtest.h>
+#include <httplib.h>
+
+#include <arpa/inet.h>
+#include <netinet/in.h>
+#include <poll.h>
+#include <sys/socket.h>
+
+#include <atomic>
+#include <chrono>
+#include <fstream>
+#include <functional>
+#include <mutex>
+#include <string>
+#include <thread>
+#include <vector>
+
+using namespace slicestation;
+using namespace slicestation::daemon;
+using namespace slicestation::testing_station;
+using namespace std::chrono_literals;
+using Clock = std::chrono::steady_clock;
+
+namespace {
+
+core::UniqueFd connectTo(int port) {
+    core::UniqueFd fd(::socket(AF_INET, SOCK_STREAM | SOCK_CLOEXEC, 0));
+    sockaddr_in addr{};
+    addr.sin_family = AF_INET;
+    addr.sin_port = htons(static_cast<std::uint16_t>(port));
+    addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+    if (::connect(fd.get(), reinterpret_cast<sockaddr*>(&addr), sizeof addr) != 0) fd.reset();
+    // A send the server does not take fails after 3 s instead of blocking the test.
+    timeval tv{3, 0};
+    if (fd) ::setsockopt(fd.get(), SOL_SOCKET, SO_SNDTIMEO, &tv, sizeof tv);
+    return fd;
+}
+
+bool sendAll(int fd, const std::string& s) {
+    std::size_t done = 0;
+    while (done < s.size()) {
+        const ssize_t n = ::send(fd, s.data() + done, s.size() - done, MSG_NOSIGNAL);
+        if (n <= 0) return false;
+        done += static_cast<std::size_t>(n);
+    }
+    return true;
+}
+
+/// Reads into `buf` until `enough(buf)`, the peer closes, or `deadline`. \return enough(buf).
+template <class Pred>
+bool readUntil(int fd, std::string& buf, Pred enough, Clock::time_point deadline) {
+    while (!enough(buf)) {
+        const auto left = std::chrono::duration_cast<std::chrono::milliseconds>(deadline - Clock::now()).count();
+        if (left <= 0) return false;
+        pollfd p{fd, POLLIN, 0};
+        if (::poll(&p, 1, static_cast<int>(left)) <= 0) continue;
+        char tmp[4096];
+        const ssize_t n = ::recv(fd, tmp, sizeof tmp, 0);
+        if (n <= 0) return enough(buf);
+        buf.append(tmp, static_cast<std::size_t>(n));
+    }
+    return true;
+}
+
+/// The status code of the HTTP response at the start of `s`, 0 when there is none.
+int statusOf(const std::string& s) {
+    if (s.rfind("HTTP/1.1 ", 0) != 0 || s.size() < 12) return 0;
+    return std::atoi(s.substr(9, 3).c_str());
+}
+
+/// Resident memory of this process (the API runs in it), bytes.
+std::size_t residentBytes() {
+    std::ifstream in("/proc/self/status");
+    std::string line;
+    while (std::getline(in, line))
+        if (line.rfind("VmRSS:", 0) == 0) return std::stoull(line.substr(6)) * 1024;
+    return 0;
+}
+
+/// Runs `f` when leaving the scope, also when an assertion returns early.
+struct Finally {
+    std::function<void()> f;
+    ~Finally() { f(); }
+};
+
+} // namespace
+
+class HttpHostileTest : public StationTest {
+protected:
+    void startApi() {
+        build();
+        auto api = HttpApi::start(*rig_.station, "127.0.0.1", 0, kToken);
+        ASSERT_TRUE(api) << api.error().message;
+        rig_.api = std::move(*api);
+        port_ = rig_.api->port();
+    }
+    /// A section with a capture and a registration whose label image is `cols` x `rows`
+    /// (label = column index + 1), journaled directly: no scan needed. \return its id.
+    std::int64_t registeredSection(int cols, int rows) {
+        auto run = rig_.station->submitPlan(planFor({0}), "plan");
+        EXPECT_TRUE(run) << run.error().message;
+        if (!run) return 0;
+        auto secs = rig_.station->journal().sections(*run);
+        EXPECT_TRUE(secs && !secs->empty());
+        if (!secs || secs->empty()) return 0;
+        const std::int64_t id = secs->front().id;
+        cv::Mat labels(rows, cols, CV_32SC1);
+        for (int y = 0; y < rows; ++y)
+            for (int x = 0; x < cols; ++x) labels.at<std::int32_t>(y, x) = x + 1;
+        std::filesystem::create_directories(rig_.dir);
+        auto written = core::writeImage(rig_.dir / "big.labels.tif", labels);
+        EXPECT_TRUE(written) << written.error().message;
+        CaptureRecord cap;
+        cap.sectionId = id;
+        cap.imagePath = "big.tif";
+        cap.umPerPx = kUmPerPx;
+        auto capId = rig_.station->journal().recordCapture(cap);
+        EXPECT_TRUE(capId) << capId.error().message;
+        if (!capId) return 0;
+        RegistrationRecord reg;
+        reg.captureId = *capId;
+        reg.labelsPath = "big.labels.tif";
+        reg.overlayPath = "big.overlay.png";
+        reg.resultPath = "big.json";
+        auto regId = rig_.station->journal().recordRegistration(reg);
+        EXPECT_TRUE(regId) << regId.error().message;
+        return id;
+    }
+    int port_ = 0;
+    const httplib::Headers auth_{{"Authorization", std::string("Bearer ") + kToken}};
+};
+
+// Finding 1: a pixel of a scaled image that maps beyond INT_MAX once scaled to a large label
+// image made the daemon read outside the image (SIGSEGV), whoever asked.
+TEST_F(HttpHostileTest, ARegionPixelThatOverflowsOnceScaledIsA400NotACrash) {
+    startApi();
+    // 2048 columns: (1048576 + 0.5) * 2048 / 1 is beyond INT_MAX; 1025 rows so that y = 0
+    // (scaled to 1024) lies inside and only x is out of range.
+    const std::string id = std::to_string(registeredSection(2048, 1025));
+    httplib::Client cli("127.0.0.1", port_);
+    for (const char* q : {"x=1048576&y=0&of_width=1", "x=1048576&y=0&of_width=2", "x=0&y=1048576&of_width=1",
+                          "x=1048576&y=1048576&of_width=1", "x=2048&y=0", "x=0&y=1025"}) {
+        auto r = cli.Get("/api/sections/" + id + "/region?" + q);
+        ASSERT_TRUE(r) << q << ": no answer (the daemon died?)";
+        EXPECT_EQ(r->status, 400) << q << ": " << r->body;
+        EXPECT_NE(r->body.find("outside the 2048x1025 image"), std::string::npos) << r->body;
+    }
+    // Inside, scaled and not: the label names the column.
+    auto edge = cli.Get("/api/sections/" + id + "/region?x=2047&y=1024");
+    ASSERT_TRUE(edge);
+    ASSERT_EQ(edge->status, 200) << edge->body;
+    EXPECT_EQ(nlohmann::json::parse(edge->body)["id"], 2048);
+    auto scaled = cli.Get("/api/sections/" + id + "/region?x=1&y=0&of_width=4"); // (1.5 * 512) = 768
+    ASSERT_TRUE(scaled);
+    ASSERT_EQ(scaled->status, 200) << scaled->body;
+    EXPECT_EQ(nlohmann::json::parse(scaled->body)["x"], 768);
+    EXPECT_EQ(nlohmann::json::parse(scaled->body)["id"], 769);
+}
+
+// Finding 4 (second half): bytes that are not UTF-8 in what the API echoes made the JSON dump
+// throw, answered 500; bad input is a 400 with a JSON body, whatever the bytes.
+TEST_F(HttpHostileTest, IdsAndParametersThatAreNotUtf8AreA400WithValidJson) {
+    startApi();
+    httplib::Client cli("127.0.0.1", port_);
+    for (const std::string& path : std::vector<std::string>{"/api/runs/%ff", "/api/runs/%ff%fe/sections", "/api/sections/%c3", "/api/sections/%ff/region?x=1&y=1",
+          "/api/runs/1/export?format=%ff", "/api/sections/1/image.jpg?width=%ff", "/api/runs/%00",
+          "/api/runs/" + std::string(3000, '9')}) {
+        auto r = cli.Get(path);
+        ASSERT_TRUE(r) << path;
+        EXPECT_TRUE(r->status == 400 || r->status == 404) << path << " -> " << r->status << " " << r->body;
+        const auto j = nlohmann::json::parse(r->body, nullptr, false);
+        ASSERT_FALSE(j.is_discarded()) << path << ": " << r->body;
+        EXPECT_TRUE(j.contains("error")) << r->body;
+        EXPECT_LT(r->body.size(), 400u) << "what is echoed is bounded";
+    }
+    for (const char* path : {"/api/runs/%ff/pause", "/api/alerts/%ff/ack", "/api/sections/%ff/rescan"}) {
+        auto r = cli.Post(path, auth_, "", "text/plain");
+        ASSERT_TRUE(r) << path;
+        EXPECT_EQ(r->status, 400) << path << ": " << r->body;
+    }
+    // Bodies: not UTF-8, nested without end, numbers out of range: 400, never 500.
+    for (const std::string& body : {std::string("{\"name\": \"\xff\xfe\"}"), std::string(100000, '['),
+                                   std::string("{\"slides\": [") + std::string(50000, '{'),
+                                   std::string("name = \"\xff\"\n")}) {
+        auto r = cli.Post("/api/runs", auth_, body, body[0] == 'n' ? "application/toml" : "application/json");
+        ASSERT_TRUE(r);
+        EXPECT_EQ(r->status, 400) << r->body.substr(0, 200);
+        EXPECT_FALSE(nlohmann::json::parse(r->body, nullptr, false).is_discarded());
+    }
+    // Ranges (httplib 0.11 bounds neither their number nor their offsets): ignored, the page
+    // is sent whole, once; a range it cannot parse is a 416.
+    const std::size_t page = cli.Get("/")->body.size();
+    for (const char* range : {"bytes=0-0,1-1,2-2,0-,0-,0-", "bytes=99999999-", "bytes=10-5", "bytes=-99999999999",
+                              "bytes=0-,0-,0-,0-,0-,0-,0-,0-,0-,0-,0-,0-,0-,0-,0-,0-,0-,0-,0-,0-,0-,0-,0-"}) {
+        auto r = cli.Get("/", httplib::Headers{{"Range", range}});
+        ASSERT_TRUE(r) << range;
+        EXPECT_TRUE(r->status == 200 || r->status == 416) << range << " -> " << r->status;
+        EXPECT_FALSE(r->has_header("Content-Range")) << range;
+        EXPECT_LE(r->body.size(), page) << range;
+    }
+    auto ack = cli.Post("/api/alerts/1/ack", auth_, std::string(100000, '['), "application/json");
+    ASSERT_TRUE(ack);
+    EXPECT_EQ(ack->status, 400);
+    EXPECT_EQ(cli.Get("/api/status")->status, 200) << "still serving";
+}
+
+// Finding 4: a body is refused before it is read: without a token (401), chunked (411), or
+// announced over the limit (413). The old server read a chunked body whole, then said 401.
+TEST_F(HttpHostileTest, PostBodiesAreRefusedBeforeTheyAreRead) {
+    startApi();
+    auto refusal = [&](const std::string& head) {
+        auto fd = connectTo(port_);
+        EXPECT_TRUE(fd);
+        if (!fd) return std::string();
+        EXPECT_TRUE(sendAll(fd.get(), head));
+        std::string got;
+        // The answer comes without the body being sent at all.
+        readUntil(
+            fd.get(), got, [](const std::string& b) { return b.find("\r\n\r\n") != std::string::npos; },
+            Clock::now() + 3s);
+        return got;
+    };
+    const std::string bearer = std::string("Authorization: Bearer ") + kToken + "\r\n";
+    std::string r = refusal("POST /api/runs HTTP/1.1\r\nHost: x\r\nTransfer-Encoding: chunked\r\n\r\n");
+    EXPECT_EQ(statusOf(r), 401) << r;
+    r = refusal("POST /api/runs HTTP/1.1\r\nHost: x\r\n" + bearer + "Transfer-Encoding: chunked\r\n\r\n");
+    EXPECT_EQ(statusOf(r), 411) << r;
+    r = refusal("POST /api/runs HTTP/1.1\r\nHost: x\r\n" + bearer + "Content-Length: 1048577\r\n\r\n");
+    EXPECT_EQ(statusOf(r), 413) << r;
+    r = refusal("POST /api/runs HTTP/1.1\r\nHost: x\r\n" + bearer + "Content-Length: 99999999999999999999999\r\n\r\n");
+    EXPECT_EQ(statusOf(r), 413) << r;
+    r = refusal("POST /api/runs HTTP/1.1\r\nHost: x\r\n" + bearer + "Content-Length: -5\r\n\r\n");
+    EXPECT_EQ(statusOf(r), 400) << r;
+    r = refusal("PUT /api/runs HTTP/1.1\r\nHost: x\r\nContent-Length: 1000000\r\n\r\n");
+    EXPECT_EQ(statusOf(r), 405) << r;
+    // A request line or header that never ends is cut off, not buffered.
+    {
+        auto fd = connectTo(port_);
+        ASSERT_TRUE(fd);
+        ASSERT_TRUE(sendAll(fd.get(), "GET /"));
+        const std::string junk(64 << 10, 'a');
+        std::size_t sent = 0;
+        while (sent < (256u << 20) && sendAll(fd.get(), junk)) sent += junk.size();
+        EXPECT_LT(sent, 64u << 20) << "the server stopped reading";
+    }
+    // A small body without a token: the 401 arrives although the body was not read.
+    httplib::Client cli("127.0.0.1", port_);
+    auto noToken = cli.Post("/api/runs", planFor({0}).dump(), "application/json");
+    ASSERT_TRUE(noToken);
+    EXPECT_EQ(noToken->status, 401);
+    // And with the token, the plan goes in.
+    auto ok = cli.Post("/api/runs", auth_, planFor({0}).dump(), "application/json");
+    ASSERT_TRUE(ok);
+    EXPECT_EQ(ok->status, 201) << ok->body;
+}
+
+// Finding 3 and the issue's hostile clients: 50 event streams, 20 slow-header clients and a
+// chunked 1 GB body at once. A normal client is answered within 1 s each time, the streams past
+// the limit are refused quickly, the slow clients are cut off, the body is refused without
+// being read (memory does not grow), and a scan run goes on and is streamed to the clients.
+TEST_F(HttpHostileTest, HostileClientsDoNotStopTheApiOrTheStation) {
+    startApi();
+    httplib::Client cli("127.0.0.1", port_);
+    cli.set_connection_timeout(1, 0);
+    cli.set_read_timeout(1, 0);
+    auto ok = cli.Post("/api/runs", auth_, planFor({1}).dump(), "application/json");
+    ASSERT_TRUE(ok);
+    ASSERT_EQ(ok->status, 201) << ok->body;
+    const auto runId = nlohmann::json::parse(ok->body)["run_id"].get<std::int64_t>();
+
+    std::atomic<bool> attackOver{false};
+    std::atomic<int> slowOpen{0};
+    std::thread normal, slow;
+    Finally joinAll{[&] {
+        attackOver = true;
+        if (slow.joinable()) slow.join();
+        if (normal.joinable()) normal.join();
+    }};
+    // The normal client, all along: every answer within 1 s.
+    std::vector<double> latencies;
+    int failures = 0;
+    normal = std::thread([&] {
+        httplib::Client c("127.0.0.1", port_);
+        c.set_connection_timeout(1, 0);
+        c.set_read_timeout(1, 0);
+        for (int i = 0; i < 200 && (i < 5 || !attackOver.load()); ++i) {
+            const auto t0 = Clock::now();
+            auto r = c.Get("/api/status");
+            latencies.push_back(std::chrono::duration<double>(Clock::now() - t0).count());
+            if (!r || r->status != 200) ++failures;
+            std::this_thread::sleep_for(100ms); // pacing: a request every ~0.1 s over the attack
+        }
+    });
+
+    // 20 slow-header clients: a request line, then a header byte every second, never finished.
+    std::vector<double> slowCutAfter(20, -1);
+    slow = std::thread([&] {
+        std::vector<core::UniqueFd> fds;
+        std::vector<Clock::time_point> since;
+        for (int i = 0; i < 20; ++i) {
+            fds.push_back(connectTo(port_));
+            since.push_back(Clock::now());
+            if (fds.back()) sendAll(fds.back().get(), "GET /api/status HTTP/1.1\r\nX-Slow: ");
+        }
+        slowOpen = 20;
+        const auto stop = Clock::now() + 15s;
+        while (slowOpen.load() > 0 && Clock::now() < stop && !attackOver.load()) {
+            for (int i = 0; i < 20; ++i) {
+                if (!fds[static_cast<std::size_t>(i)] || slowCutAfter[static_cast<std::size_t>(i)] >= 0) continue;
+                const int fd = fds[static_cast<std::size_t>(i)].get();
+                pollfd p{fd, POLLIN, 0};
+                bool closed = ::poll(&p, 1, 0) > 0 && (p.revents & (POLLHUP | POLLERR)) != 0;
+                if (!closed && (p.revents & POLLIN)) closed = true; // an answer (400) or EOF: given up on
+                if (!closed) closed = ::send(fd, "a", 1, MSG_NOSIGNAL) != 1;
+                if (closed) {
+                    slowCutAfter[static_cast<std::size_t>(i)] =
+                        std::chrono::duration<double>(Clock::now() - since[static_cast<std::size_t>(i)]).count();
+                    --slowOpen;
+                }
+            }
+            std::this_thread::sleep_for(250ms); // the slow client's pace
+        }
+    });
+
+    // 50 event streams, one after the other: the first 16 are accepted, the rest refused at once.
+    std::vector<core::UniqueFd> streams;
+    std::vector<std::string> streamData;
+    int accepted = 0, refused = 0;
+    for (int i = 0; i < 50; ++i) {
+        const auto t0 = Clock::now();
+        auto fd = connectTo(port_);
+        ASSERT_TRUE(fd);
+        ASSERT_TRUE(sendAll(fd.get(), "GET /api/events HTTP/1.1\r\nHost: x\r\n\r\n"));
+        std::string got;
+        const bool answered = readUntil(
+            fd.get(), got,
+            [](const std::string& b) {
+                const auto head = b.find("\r\n\r\n");
+                return b.find(": connected") != std::string::npos ||
+                       (head != std::string::npos && b.rfind("HTTP/1.1 200", 0) != 0 &&
+                        b.find('}', head) != std::string::npos);
+            },
+            t0 + 2s);
+        if (!answered) {
+            ADD_FAILURE() << "stream " << i << " got no answer within 2 s: " << got;
+            break;
+        }
+        EXPECT_LT(std::chrono::duration<double>(Clock::now() - t0).count(), 1.0) << "stream " << i;
+        if (statusOf(got) == 200) {
+            ++accepted;
+            EXPECT_LT(i, 16) << "stream " << i << " accepted";
+        } else {
+            ++refused;
+            EXPECT_EQ(statusOf(got), 503) << got;
+            EXPECT_NE(got.find("too many event streams"), std::string::npos) << got;
+        }
+        streamData.push_back(got);
+        streams.push_back(std::move(fd));
+    }
+    EXPECT_EQ(accepted, 16);
+    EXPECT_EQ(refused, 34);
+
+    // A chunked 1 GB body without a token, sent lazily until the server answers or closes.
+    const std::size_t rssBefore = residentBytes();
+    std::size_t bodySent = 0;
+    std::string bodyAnswer;
+    {
+        auto fd = connectTo(port_);
+        ASSERT_TRUE(fd);
+        ASSERT_TRUE(sendAll(fd.get(), "POST /api/runs HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+                                      "Transfer-Encoding: chunked\r\n\r\n"));
+        const std::string chunk = "10000\r\n" + std::string(0x10000, '{') + "\r\n";
+        const auto stop = Clock::now() + 10s;
+        while (bodySent < (1ull << 30) && Clock::now() < stop) {
+            pollfd p{fd.get(), POLLIN | POLLOUT, 0};
+            if (::poll(&p, 1, 1000) <= 0) continue;
+            if (p.revents & (POLLIN | POLLHUP | POLLERR)) break; // answered or closed
+            if (!sendAll(fd.get(), chunk)) break;
+            bodySent += 0x10000;
+        }
+        readUntil(
+            fd.get(), bodyAnswer, [](const std::string& b) { return b.find("\r\n\r\n") != std::string::npos; },
+            Clock::now() + 2s);
+    }
+    const std::size_t rssAfter = residentBytes();
+    EXPECT_LT(bodySent, 64u << 20) << "the server stopped taking the body";
+    EXPECT_LT(rssAfter, rssBefore + (64u << 20)) << "resident memory " << rssBefore << " -> " << rssAfter;
+    if (!bodyAnswer.empty()) {
+        EXPECT_EQ(statusOf(bodyAnswer), 401) << bodyAnswer;
+    }
+
+    // The scan goes on meanwhile, and the accepted streams carry its events.
+    rig_.station->start();
+    slow.join();
+    attackOver = true;
+    normal.join();
+    ASSERT_FALSE(streams.empty());
+    for (std::size_t i = 0; i < slowCutAfter.size(); ++i) {
+        EXPECT_GE(slowCutAfter[i], 0) << "slow client " << i << " was never cut off";
+        EXPECT_LT(slowCutAfter[i], 8.0) << "slow client " << i;
+    }
+    EXPECT_EQ(failures, 0);
+    ASSERT_GE(latencies.size(), 5u);
+    for (double t : latencies) EXPECT_LT(t, 1.0) << "a status request took " << t << " s";
+    waitRun(runId, RunState::Finished, 120s);
+    EXPECT_TRUE(readUntil(
+        streams[0].get(), streamData[0], [](const std::string& b) { return b.find("\"finished\"") != std::string::npos; },
+        Clock::now() + 5s))
+        << streamData[0];
+    // Streams that go away free their place at once.
+    streams.clear();
+    bool again = false;
+    for (const auto stop = Clock::now() + 3s; !again && Clock::now() < stop;) {
+        auto fd = connectTo(port_);
+        ASSERT_TRUE(fd);
+        ASSERT_TRUE(sendAll(fd.get(), "GET /api/events HTTP/1.1\r\nHost: x\r\n\r\n"));
+        std::string got;
+        readUntil(
+            fd.get(), got, [](const std::string& b) { return b.find("\r\n\r\n") != std::string::npos; },
+            Clock::now() + 1s);
+        again = statusOf(got) == 200;
+        if (!again) std::this_thread::sleep_for(100ms); // the server notices closed streams within 0.5 s
+    }
+    EXPECT_TRUE(again) << "a new stream is accepted once the others closed";
+}
