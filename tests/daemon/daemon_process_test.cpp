@@ -25,6 +25,8 @@
 #include <atomic>
 #include <chrono>
 #include <cmath>
+#include <cstdint>
+#include <cstdlib>
 #include <filesystem>
 #include <fstream>
 #include <map>
@@ -46,6 +48,19 @@ namespace {
 namespace fs = std::filesystem;
 using namespace std::chrono_literals;
 using Clock = std::chrono::steady_clock;
+
+/// Deadlines are for a loaded machine; SLST_TEST_TIME_SCALE (the sanitizer build sets it, the
+/// daemon runs several times slower there) stretches every one of them, and the kill moments.
+double timeScale() {
+    const char* v = std::getenv("SLST_TEST_TIME_SCALE");
+    const double f = v ? std::atof(v) : 1.0;
+    return f >= 1.0 && f <= 100.0 ? f : 1.0;
+}
+template <class Rep, class Period>
+std::chrono::milliseconds scaled(std::chrono::duration<Rep, Period> d) {
+    return std::chrono::milliseconds(static_cast<std::int64_t>(
+        std::chrono::duration<double, std::milli>(d).count() * timeScale()));
+}
 
 constexpr const char* kToken = "process-test-token-0123";
 constexpr int kSections = 6; // two slides of three
@@ -152,7 +167,7 @@ public:
     }
     /// Waits for the exit (bounded). \return the exit status, or -1 when still running.
     int waitExit(std::chrono::seconds limit) {
-        const auto deadline = Clock::now() + limit;
+        const auto deadline = Clock::now() + scaled(limit);
         while (!poll()) {
             if (Clock::now() > deadline) return -1;
             std::this_thread::sleep_for(20ms); // polling a child's exit
@@ -202,7 +217,7 @@ public:
     }
     /// Waits (bounded) for a datagram containing `needle` that arrived at or after `since`.
     std::optional<Message> waitFor(const std::string& needle, Clock::time_point since, std::chrono::seconds limit) {
-        const auto deadline = Clock::now() + limit;
+        const auto deadline = Clock::now() + scaled(limit);
         for (;;) {
             for (const auto& m : messages())
                 if (m.at >= since && m.text.find(needle) != std::string::npos) return m;
@@ -266,7 +281,7 @@ protected:
     }
     /// The HTTP port, once the daemon has written it (bounded).
     int httpPort() {
-        const auto deadline = Clock::now() + 60s;
+        const auto deadline = Clock::now() + scaled(60s);
         while (Clock::now() < deadline) {
             const std::string t = readText(state() / "http.port");
             if (!t.empty() && t.back() == '\n') return std::stoi(t);
@@ -288,7 +303,7 @@ protected:
     }
     /// Waits (bounded) until run 1 is in one of `states`; returns its record.
     nlohmann::json waitRun(int port, const std::set<std::string>& states, std::chrono::seconds limit = 180s) {
-        const auto deadline = Clock::now() + limit;
+        const auto deadline = Clock::now() + scaled(limit);
         nlohmann::json run;
         while (Clock::now() < deadline) {
             run = get(port, "/api/runs/1");
@@ -300,7 +315,7 @@ protected:
     }
     int doneCount(int port) { return get(port, "/api/runs/1").value("done", 0); }
     void waitDone(int port, int n) {
-        const auto deadline = Clock::now() + 120s;
+        const auto deadline = Clock::now() + scaled(120s);
         while (doneCount(port) < n && Clock::now() < deadline) std::this_thread::sleep_for(50ms);
         ASSERT_GE(doneCount(port), n);
     }
@@ -375,7 +390,7 @@ TEST_F(DaemonProcessTest, KilledAtRandomMomentsItResumesWithoutLosingOrDuplicati
     for (int round = 0; round < 10; ++round) {
         startDaemon(round == 0);
         const int delay = delayMs(rng);
-        std::this_thread::sleep_for(std::chrono::milliseconds(delay)); // the random moment of the kill
+        std::this_thread::sleep_for(scaled(std::chrono::milliseconds(delay))); // the random moment of the kill
         if (daemon_->poll()) break; // it finished on its own: nothing left to kill
         daemon_->killHard();
         ++kills;
