@@ -441,6 +441,25 @@ struct WriteFault {
     void clear() { setOmeTiffWriteFaultForTesting(0); }
 };
 
+/// The journal's disk fills when a run first goes to "running" (once: not again after a
+/// resume), and is emptied again when the test ends, whatever it does.
+class JournalFillsOnceRunning {
+public:
+    JournalFillsOnceRunning(testing_vfs::FullDiskVfs& vfs, Notifier& notifier) : vfs_(vfs) {
+        auto filled = std::make_shared<std::atomic<bool>>(false);
+        notifier.addListener([&vfs, filled](const StationEvent& e) {
+            if (e.type == "run_state" && e.data.value("state", "") == "running" && !filled->exchange(true))
+                vfs.setFull(true);
+        });
+    }
+    ~JournalFillsOnceRunning() { vfs_.setFull(false); }
+    JournalFillsOnceRunning(const JournalFillsOnceRunning&) = delete;
+    JournalFillsOnceRunning& operator=(const JournalFillsOnceRunning&) = delete;
+
+private:
+    testing_vfs::FullDiskVfs& vfs_;
+};
+
 } // namespace
 
 TEST_F(StationTest, NamesThatLookAlikeAsFileNamesAreStoredInDistinctFiles) {
@@ -494,15 +513,7 @@ TEST_F(StationTest, AFullDiskPausesTheRunOnceAndKeepsTheAlertUntilItCanBeStored)
     // the image write fails with ENOSPC and the journal with SQLITE_FULL.
     rig_.freeBytes = 0;
     WriteFault enospc(ENOSPC);
-    auto filled = std::make_shared<std::atomic<bool>>(false); // once: not again after the resume
-    rig_.station->notifier().addListener([&vfs, filled](const StationEvent& e) {
-        if (e.type == "run_state" && e.data.value("state", "") == "running" && !filled->exchange(true))
-            vfs.setFull(true);
-    });
-    struct ClearVfs {
-        testing_vfs::FullDiskVfs& v;
-        ~ClearVfs() { v.setFull(false); }
-    } clearVfs{vfs};
+    const JournalFillsOnceRunning fill(vfs, rig_.station->notifier());
     const int refusedBefore = vfs.refusedWrites();
     rig_.station->start();
 
@@ -569,15 +580,7 @@ TEST_F(StationTest, AFullJournalPausesTheRunAndTheImageItCouldNotRecordIsReplace
     rig_.station->notifier().addChannel(DeliveredAlerts::channel(deliveredPtr));
     auto id = rig_.station->submitPlan(planFor({1}), "plan");
     ASSERT_TRUE(id);
-    auto filled = std::make_shared<std::atomic<bool>>(false); // once: not again after the resume
-    rig_.station->notifier().addListener([&vfs, filled](const StationEvent& e) {
-        if (e.type == "run_state" && e.data.value("state", "") == "running" && !filled->exchange(true))
-            vfs.setFull(true);
-    });
-    struct ClearVfs {
-        testing_vfs::FullDiskVfs& v;
-        ~ClearVfs() { v.setFull(false); }
-    } clearVfs{vfs};
+    const JournalFillsOnceRunning fill(vfs, rig_.station->notifier());
     rig_.station->start();
     ASSERT_TRUE(delivered.waitFor("run_paused"));
     EXPECT_EQ(delivered.count("low_disk"), 1u) << "SQLITE_FULL is a full disk, not a journal fault";
