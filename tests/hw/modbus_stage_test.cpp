@@ -295,6 +295,45 @@ TEST(RegisterMap, MapFileErrorsNameTheKey) {
     EXPECT_EQ(drivers::loadRegisterMap("/nonexistent/map.toml").error().code, ErrorCode::NotFound);
 }
 
+// A value the drive's register cannot hold is refused, never clipped or wrapped: before, a
+// 16-bit speed was clipped to 65535 and a 32-bit one wrapped to whatever its low 32 bits said.
+TEST(RegisterMap, LiteralsThatDoNotFitTheirRegisterAreRefused) {
+    const auto text = drivers::presetToml("leadshine-pr").value();
+    auto bad16 = text;
+    bad16.replace(bad16.find("value = 0x0001"), 14, "value = 70000");
+    auto r = drivers::parseRegisterMap(bad16, "my.toml");
+    ASSERT_FALSE(r);
+    EXPECT_NE(r.error().message.find("move_abs[0].value"), std::string::npos) << r.error().message;
+    EXPECT_NE(r.error().message.find("16-bit"), std::string::npos) << r.error().message;
+    auto az = drivers::presetToml("oriental-az").value();
+    az.replace(az.find("1000, 1]"), 8, "5000000000, 1]");
+    r = drivers::parseRegisterMap(az, "my.toml");
+    ASSERT_FALSE(r);
+    EXPECT_NE(r.error().message.find("move_abs[0].values[6]"), std::string::npos) << r.error().message;
+    auto neg = drivers::presetToml("leadshine-pr").value();
+    neg.replace(neg.find("value = 0x0001"), 14, "value = -1");
+    EXPECT_FALSE(drivers::parseRegisterMap(neg, "my.toml"));
+}
+
+TEST(ModbusStage, AMoveWhoseSpeedDoesNotFitTheDriveRegisterSendsNothing) {
+    for (const char* preset : {"oriental-az", "leadshine-pr"}) {
+        SCOPED_TRACE(preset);
+        sim::StageServerConfig sc;
+        sc.protocol = sim::stageProtocolFromName(preset).value();
+        auto server = sim::ModbusStageServer::create(sc).value();
+        auto cfg = rigConfig(preset, *server, true, false);
+        cfg.map.speedScale = 1e6; // 1e5 steps/s become 1e11 drive units: more than 32 bits hold
+        auto stage = drivers::ModbusStage::create(cfg).value();
+        const auto before = server->requestCount();
+        auto r = stage->moveTo({1000, 500, 250}, 5s);
+        ASSERT_FALSE(r);
+        EXPECT_EQ(r.error().code, ErrorCode::OutOfRange);
+        EXPECT_NE(r.error().message.find("speed"), std::string::npos) << r.error().message;
+        EXPECT_EQ(server->requestCount(), before) << "nothing sent, not even to the first axis";
+        EXPECT_EQ(server->axisState(1).feedbackSteps, 0);
+    }
+}
+
 TEST(RegisterMap, MapFileDrivesTheSimulator) {
     // A custom map file equal to the AZ preset but with the words of 32-bit values spelled out
     // as two 16-bit writes would not be atomic; the file format keeps write32 instead.

@@ -197,26 +197,49 @@ struct ModbusStage::Impl {
         return join32(r);
     }
 
+    /// The registers each step writes, every value encoded and checked first: a value that does
+    /// not fit its register (a speed or position beyond what the drive can hold) is OutOfRange
+    /// naming it, and nothing of the sequence is sent, rather than a clipped or wrapped value
+    /// reaching the drive.
+    core::Result<std::vector<std::vector<std::uint16_t>>> encodeSteps(const std::vector<MapStep>& steps,
+                                                                      const ModbusAxisConfig& a,
+                                                                      const MoveQuantities& q) const {
+        std::vector<std::vector<std::uint16_t>> out;
+        for (const MapStep& s : steps) {
+            std::vector<std::uint16_t> regs;
+            const bool wide = s.kind == MapStep::Kind::Write32 || s.kind == MapStep::Kind::Write32Block;
+            if (s.kind == MapStep::Kind::Write16 || wide) {
+                for (const MapValue& v : s.values) {
+                    auto e = encodeChecked(cfg.map, v, q, wide);
+                    if (!e)
+                        return makeError(ErrorCode::OutOfRange, describe() + " slave " + std::to_string(a.slave) +
+                                                                    " (axis " + a.name + ") register " +
+                                                                    hex(s.address) + ": " + e.error().message);
+                    if (wide) {
+                        auto w = split32(*e);
+                        regs.insert(regs.end(), w.begin(), w.end());
+                    } else {
+                        regs.push_back(static_cast<std::uint16_t>(*e));
+                    }
+                }
+            }
+            out.push_back(std::move(regs));
+        }
+        return out;
+    }
+
     core::Result<void> runSteps(const std::vector<MapStep>& steps, const ModbusAxisConfig& a,
                                 const MoveQuantities& q, Clock::time_point deadline) {
-        for (const MapStep& s : steps) {
+        auto encoded = encodeSteps(steps, a, q);
+        if (!encoded) return encoded.error();
+        for (std::size_t i = 0; i < steps.size(); ++i) {
+            const MapStep& s = steps[i];
+            const auto& regs = (*encoded)[i];
             core::Result<void> r;
             switch (s.kind) {
-            case MapStep::Kind::Write16: {
-                const auto v = std::clamp<std::int64_t>(encodeValue(cfg.map, s.values[0], q), 0, 0xFFFF);
-                r = write16(a, s.address, static_cast<std::uint16_t>(v), deadline);
-                break;
-            }
+            case MapStep::Kind::Write16: r = write16(a, s.address, regs[0], deadline); break;
             case MapStep::Kind::Write32:
-            case MapStep::Kind::Write32Block: {
-                std::vector<std::uint16_t> regs;
-                for (const MapValue& v : s.values) {
-                    auto w = split32(encodeValue(cfg.map, v, q));
-                    regs.insert(regs.end(), w.begin(), w.end());
-                }
-                r = writeMany(a, s.address, regs, deadline);
-                break;
-            }
+            case MapStep::Kind::Write32Block: r = writeMany(a, s.address, regs, deadline); break;
             case MapStep::Kind::PulseBit:
                 r = write16(a, s.address, static_cast<std::uint16_t>(1u << s.bit), deadline);
                 if (r) r = write16(a, s.address, 0, deadline);
@@ -401,11 +424,19 @@ core::Result<hw::StagePosition> ModbusStage::moveTo(const hw::StagePosition& tar
     impl_->stopSignal.clear();
     if (auto r = hw::checkWithinLimits(limits(), target); !r) return r.error();
     const auto deadline = Clock::now() + timeout;
+    std::vector<MoveQuantities> moves;
     for (const auto& a : impl_->cfg.axes) {
         MoveQuantities q;
         q.positionSteps = std::llround(Impl::coord(target, a.name) * a.stepsPerUm);
         q.speedStepsPerS = impl_->cfg.speedUmPerS * a.stepsPerUm;
         q.accelStepsPerS2 = impl_->cfg.accelUmPerS2 * a.stepsPerUm;
+        // Every axis's registers are checked before any axis moves: no half-started move.
+        if (auto e = impl_->encodeSteps(impl_->cfg.map.moveAbs, a, q); !e) return e.error();
+        moves.push_back(q);
+    }
+    for (std::size_t i = 0; i < impl_->cfg.axes.size(); ++i) {
+        const auto& a = impl_->cfg.axes[i];
+        const MoveQuantities& q = moves[i];
         if (auto r = impl_->runSteps(impl_->cfg.map.moveAbs, a, q, deadline); !r) {
             impl_->sendStopAll(impl_->stopDeadline());
             return r.error();

@@ -2,7 +2,9 @@
 
 #include <toml++/toml.h>
 
+#include <algorithm>
 #include <cmath>
+#include <iomanip>
 #include <fstream>
 #include <sstream>
 
@@ -112,6 +114,17 @@ core::Result<MapValue> value(const toml::node* n, std::string_view origin, const
     return bad(origin, key, "expected an integer or a placeholder string");
 }
 
+/// A literal must fit the register it is written to (0..65535; 32-bit: signed or unsigned).
+core::Result<void> literalFits(const MapValue& v, bool register32, std::string_view origin, const std::string& key) {
+    if (v.kind != MapValue::Kind::Literal) return {};
+    const std::int64_t lo = register32 ? -2147483648LL : 0, hi = register32 ? 4294967295LL : 65535;
+    if (v.literal < lo || v.literal > hi)
+        return bad(origin, key,
+                   std::to_string(v.literal) + " does not fit a " + (register32 ? "32" : "16") + "-bit register (" +
+                       std::to_string(lo) + ".." + std::to_string(hi) + ")");
+    return {};
+}
+
 core::Result<std::vector<MapStep>> steps(const toml::table& t, const char* name,
                                          std::string_view origin, bool required) {
     std::vector<MapStep> out;
@@ -135,6 +148,7 @@ core::Result<std::vector<MapStep>> steps(const toml::table& t, const char* name,
             step.address = *a;
             auto v = value(st->get("value"), origin, key + ".value");
             if (!v) return v.error();
+            if (auto fits = literalFits(*v, w32, origin, key + ".value"); !fits) return fits.error();
             step.values.push_back(*v);
         } else if (st->contains("write32_block")) {
             step.kind = MapStep::Kind::Write32Block;
@@ -147,6 +161,8 @@ core::Result<std::vector<MapStep>> steps(const toml::table& t, const char* name,
             for (std::size_t j = 0; j < vals->size(); ++j) {
                 auto v = value(vals->get(j), origin, key + ".values[" + std::to_string(j) + "]");
                 if (!v) return v.error();
+                if (auto fits = literalFits(*v, true, origin, key + ".values[" + std::to_string(j) + "]"); !fits)
+                    return fits.error();
                 step.values.push_back(*v);
             }
         } else if (st->contains("pulse_bit")) {
@@ -290,6 +306,32 @@ std::int64_t encodeValue(const RegisterMap& map, const MapValue& v, const MoveQu
         return std::llround(q.accelStepsPerS2 * map.accelScale);
     }
     return 0;
+}
+
+core::Result<std::int64_t> encodeChecked(const RegisterMap& map, const MapValue& v, const MoveQuantities& q,
+                                         bool register32) {
+    double x = 0;
+    const char* what = "value";
+    switch (v.kind) {
+    case MapValue::Kind::Literal: x = static_cast<double>(v.literal); break;
+    case MapValue::Kind::Position: x = static_cast<double>(q.positionSteps); what = "position"; break;
+    case MapValue::Kind::Speed: x = q.speedStepsPerS * map.speedScale; what = "speed"; break;
+    case MapValue::Kind::Accel:
+    case MapValue::Kind::Decel:
+        x = map.accelInverse > 0 ? map.accelInverse / std::max(q.accelStepsPerS2, 1e-9)
+                                 : q.accelStepsPerS2 * map.accelScale;
+        what = v.kind == MapValue::Kind::Accel ? "acceleration" : "deceleration";
+        break;
+    }
+    const double lo = register32 ? -2147483648.0 : 0.0;
+    const double hi = register32 ? 4294967295.0 : 65535.0;
+    if (!std::isfinite(x) || std::round(x) < lo || std::round(x) > hi) {
+        std::ostringstream m;
+        m << what << " " << x << " (drive units) does not fit a " << (register32 ? "32" : "16")
+          << "-bit register (" << std::fixed << std::setprecision(0) << lo << ".." << hi << ")";
+        return makeError(ErrorCode::OutOfRange, m.str());
+    }
+    return static_cast<std::int64_t>(std::llround(x));
 }
 
 } // namespace slicestation::drivers
