@@ -3,7 +3,7 @@
 # The one list of build and test dependencies; scripts/demo.sh and scripts/test.sh call it.
 set -euo pipefail
 packages=(
-    build-essential cmake ninja-build pkg-config
+    build-essential cmake ninja-build pkg-config ccache
     libopencv-dev libeigen3-dev libcgal-dev libgmp-dev libmpfr-dev
     libtiff-dev zlib1g-dev
     nlohmann-json3-dev libcli11-dev libtomlplusplus-dev libcpp-httplib-dev libssl-dev

@@ -11,6 +11,7 @@
 #include <sys/socket.h>
 #include <termios.h>
 
+#include <algorithm>
 #include <atomic>
 #include <cerrno>
 #include <cmath>
@@ -197,7 +198,7 @@ struct ModbusStageServer::Impl {
         const int n = (fc == 6 || fc == 5) ? 1 : (req[off + 3] << 8) | req[off + 4];
         std::vector<std::uint8_t> reply(MODBUS_MAX_ADU_LENGTH);
         int replyLen = 0;
-        bool drop = false, corrupt = false;
+        bool drop = false, corrupt = false, truncated = false;
         std::chrono::milliseconds delay{0};
         {
             std::lock_guard lock(mu);
@@ -214,6 +215,7 @@ struct ModbusStageServer::Impl {
                 drop = fault == ReplyFault::Drop;
                 corrupt = fault == ReplyFault::Corrupt;
                 exception = fault == ReplyFault::Exception;
+                truncated = fault == ReplyFault::Truncated;
                 if (fault == ReplyFault::Slow) delay = slowDelay;
             }
             modbus_set_slave(ctx.get(), slaveId);
@@ -228,6 +230,7 @@ struct ModbusStageServer::Impl {
             if (rc > 0) replyLen = static_cast<int>(::read(capture.get(), reply.data(), reply.size()));
         }
         if (drop || replyLen <= 0) return;
+        if (truncated) replyLen = std::max(1, replyLen - 3); // the last bytes never come
         if (corrupt) {
             if (cfg.tcp) reply[1] ^= 0x5A; // transaction id: the client rejects the header
             else reply[static_cast<std::size_t>(replyLen) - 1] ^= 0xFF; // CRC

@@ -130,6 +130,20 @@ TEST_P(ModbusStageProtocol, PersistentExceptionIsAnIoError) {
     EXPECT_NE(r.error().message.find("busy"), std::string::npos) << r.error().message;
 }
 
+// Found by fuzz_modbus: libmodbus waits its own byte timeout (0.5 s) for the rest of a frame, so
+// a truncated reply held each attempt that long, whatever the caller's deadline.
+TEST_P(ModbusStageProtocol, ATruncatedReplyDoesNotHoldTheDriverPastItsDeadline) {
+    server().injectReplyFault(ReplyFault::Truncated, -1);
+    const auto t0 = std::chrono::steady_clock::now();
+    auto r = stage().position(150ms);
+    const auto took = std::chrono::steady_clock::now() - t0;
+    ASSERT_FALSE(r);
+    EXPECT_TRUE(r.error().code == ErrorCode::Timeout || r.error().code == ErrorCode::IoError) << r.error().message;
+    EXPECT_LT(took, 400ms) << "the 150 ms deadline was overrun";
+    server().clearReplyFaults();
+    EXPECT_TRUE(stage().position(1s)) << "the driver recovers once the replies are whole again";
+}
+
 TEST_P(ModbusStageProtocol, SlowRepliesWithinTheTimeoutWork) {
     server().injectReplyFault(ReplyFault::Slow, -1, 20ms);
     auto r = stage().position(2s);

@@ -105,8 +105,13 @@ struct ModbusStage::Impl {
             }
             const auto remaining = std::chrono::duration_cast<std::chrono::microseconds>(
                 std::min<Clock::duration>(cfg.responseTimeout, deadline - now));
-            modbus_set_response_timeout(ctx.get(), static_cast<std::uint32_t>(remaining.count() / 1'000'000),
-                                        static_cast<std::uint32_t>(remaining.count() % 1'000'000));
+            const auto sec = static_cast<std::uint32_t>(remaining.count() / 1'000'000);
+            const auto usec = static_cast<std::uint32_t>(remaining.count() % 1'000'000);
+            modbus_set_response_timeout(ctx.get(), sec, usec);
+            // libmodbus waits up to its byte timeout (0.5 s by default) between the bytes of a
+            // reply: a drive that sends a truncated frame held every request that long, past the
+            // caller's deadline. The same bound applies to the rest of a frame.
+            modbus_set_byte_timeout(ctx.get(), sec, usec);
             modbus_set_slave(ctx.get(), axis.slave);
             errno = 0;
             if (op(ctx.get()) >= 0) return {};

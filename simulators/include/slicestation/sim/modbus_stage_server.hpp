@@ -37,6 +37,7 @@ enum class ReplyFault {
     Corrupt,   ///< RTU: bad CRC; TCP: corrupt MBAP header
     Exception, ///< exception 06 "slave device busy"
     Slow,      ///< reply after slowDelay
+    Truncated, ///< only the first part of the reply frame, the rest never comes
 };
 
 class ModbusStageServer {
