@@ -326,6 +326,66 @@ Result<void> checkBlockSize(TIFF* tif, const std::string& where, std::uint64_t w
     return {};
 }
 
+/// The most a codec can expand its data, decoded bytes per stored byte: deflate's format limit
+/// (1032:1), LZW's with 12-bit codes and a table reset (about 1400:1), PackBits' (64:1), JPEG's
+/// (two bits a block at best for each component: under 1024:1 with subsampled chroma); for
+/// the other codecs libtiff may have (ZSTD, LZMA, WebP, LERC...), zstd's run-length blocks
+/// (about 32000:1).
+double maxExpansion(std::uint16_t compression) {
+    switch (compression) {
+    case COMPRESSION_NONE: return 1;
+    case COMPRESSION_PACKBITS: return 64;
+    case COMPRESSION_ADOBE_DEFLATE:
+    case COMPRESSION_DEFLATE: return 1032;
+    case COMPRESSION_LZW: return 2000;
+    case COMPRESSION_JPEG: return 1024;
+    default: return 40000;
+    }
+}
+
+/// Refuses an image whose strips or tiles cannot hold what the header claims, before the image
+/// is allocated: a few hundred bytes could otherwise claim gigabytes within the size limits and
+/// have them allocated, then found missing. Every block must lie inside the file, and the
+/// stored bytes they cover (each byte once, so that blocks sharing data do not count twice)
+/// times the codec's largest expansion must reach the decoded size.
+Result<void> checkStoredData(TIFF* tif, const std::string& where, std::uint64_t decodedBytes,
+                             std::uint16_t compression) {
+    const std::uint64_t fileSize = TIFFGetSizeProc(tif)(TIFFClientdata(tif));
+    const bool tiled = TIFFIsTiled(tif) != 0;
+    const std::uint32_t blocks = tiled ? TIFFNumberOfTiles(tif) : TIFFNumberOfStrips(tif);
+    std::vector<std::pair<std::uint64_t, std::uint64_t>> ranges;
+    ranges.reserve(blocks);
+    for (std::uint32_t i = 0; i < blocks; ++i) {
+        int err = 0;
+        const std::uint64_t offset = TIFFGetStrileOffsetWithErr(tif, i, &err);
+        const std::uint64_t count = err == 0 ? TIFFGetStrileByteCountWithErr(tif, i, &err) : 0;
+        if (err != 0 || offset > fileSize || count > fileSize - offset) {
+            return makeError(ErrorCode::IoError,
+                             where + ": " + (tiled ? "tile " : "strip ") + std::to_string(i) +
+                                 " lies beyond the end of the file (" + std::to_string(fileSize) +
+                                 " bytes): truncated or corrupt");
+        }
+        if (count > 0) ranges.emplace_back(offset, offset + count);
+    }
+    std::sort(ranges.begin(), ranges.end());
+    std::uint64_t stored = 0;
+    std::uint64_t end = 0;
+    for (const auto& [from, to] : ranges) {
+        const std::uint64_t start = std::max(from, end);
+        if (to > start) stored += to - start;
+        end = std::max(end, to);
+    }
+    const double reach = static_cast<double>(stored) * maxExpansion(compression);
+    if (reach < static_cast<double>(decodedBytes)) {
+        return makeError(ErrorCode::IoError,
+                         where + ": the header claims " + megabytes(decodedBytes) +
+                             " of pixels but the file stores " + std::to_string(stored) +
+                             " bytes of image data, more than compression scheme " +
+                             std::to_string(compression) + " can expand (truncated or hostile)");
+    }
+    return {};
+}
+
 /// Reads the current directory (page) of `tif`.
 Result<cv::Mat> readPage(TIFF* tif, const TiffFile& file, const std::string& where) {
     std::uint32_t width = 0;
@@ -405,6 +465,12 @@ Result<cv::Mat> readPage(TIFF* tif, const TiffFile& file, const std::string& whe
     }
     if (auto fits = checkBlockSize(tif, where, width, height, layout); !fits) {
         return fits.error();
+    }
+    const std::uint64_t decodedBytes = std::uint64_t{width} * height *
+                                       static_cast<std::uint64_t>(planes > 1 ? planes : samples) *
+                                       static_cast<std::uint64_t>(layout.sampleBytes);
+    if (auto held = checkStoredData(tif, where, decodedBytes, compression); !held) {
+        return held.error();
     }
     cv::Mat image(static_cast<int>(height), static_cast<int>(width),
                   CV_MAKETYPE(depth, layout.channels));
@@ -499,6 +565,11 @@ Result<cv::Mat> readTiff(const fs::path& path) {
 struct PngHeader {
     std::uint64_t width = 0, height = 0;
     int channels = 1, sampleBytes = 1;
+    /// Bits a pixel takes before decoding (a palette index, 1-bit grey...): what the
+    /// compressed stream holds, as opposed to channels x sampleBytes after decoding.
+    int storedBitsPerPixel = 8;
+    /// The codec's largest expansion of one stored byte (0: no useful bound).
+    double maxExpansion = 0;
 };
 
 std::optional<PngHeader> readPngHeader(const fs::path& path) {
@@ -523,17 +594,98 @@ std::optional<PngHeader> readPngHeader(const fs::path& path) {
     png.sampleBytes = bitDepth > 8 ? 2 : 1;
     // 0 grey, 2 RGB, 3 palette (decoded to BGR), 4 grey + alpha, 6 RGBA.
     png.channels = colourType == 2 || colourType == 3 ? 3 : colourType == 4 ? 2 : colourType == 6 ? 4 : 1;
+    const int storedSamples = colourType == 2 ? 3 : colourType == 4 ? 2 : colourType == 6 ? 4 : 1;
+    png.storedBitsPerPixel = std::max(1, bitDepth) * storedSamples;
+    png.maxExpansion = 1032; // zlib's deflate: at most 1032:1
     return png;
+}
+
+/// Width, height and components from a baseline or progressive JPEG's frame header (the first
+/// SOFn marker, ITU T.81 B.2.2); nullopt when `path` is not a JPEG or has no frame header in
+/// its first 1 MiB.
+std::optional<PngHeader> readJpegHeader(const fs::path& path) {
+    std::ifstream in(path, std::ios::binary);
+    std::vector<unsigned char> h(1 << 20);
+    in.read(reinterpret_cast<char*>(h.data()), static_cast<std::streamsize>(h.size()));
+    h.resize(static_cast<std::size_t>(in.gcount()));
+    if (h.size() < 4 || h[0] != 0xFF || h[1] != 0xD8) {
+        return std::nullopt;
+    }
+    std::size_t at = 2;
+    while (at + 9 < h.size()) {
+        if (h[at] != 0xFF) {
+            return std::nullopt;
+        }
+        const unsigned marker = h[at + 1];
+        if (marker == 0xFF) { // fill byte
+            ++at;
+            continue;
+        }
+        const std::size_t length = (std::size_t{h[at + 2]} << 8) | h[at + 3];
+        const bool frame = marker >= 0xC0 && marker <= 0xCF && marker != 0xC4 && marker != 0xC8 &&
+                           marker != 0xCC;
+        if (frame) {
+            PngHeader jpeg;
+            jpeg.height = (std::uint64_t{h[at + 5]} << 8) | h[at + 6];
+            jpeg.width = (std::uint64_t{h[at + 7]} << 8) | h[at + 8];
+            jpeg.channels = h[at + 9] >= 3 ? 3 : 1;
+            jpeg.sampleBytes = 1;
+            jpeg.storedBitsPerPixel = 8 * jpeg.channels;
+            // Sequential Huffman coding spends at least two bits (DC, end of block) on each 8 x 8
+            // block of each component: under 1024:1 even with chroma subsampled 4 x 4.
+            // Progressive scans can end thousands of blocks with one code, but the DC scan still
+            // spends a bit a block: under 2048:1. Arithmetic coding (SOF9..SOF15) has no floor.
+            const bool progressive = marker == 0xC2 || marker == 0xC6;
+            jpeg.maxExpansion = marker >= 0xC9 ? 0 : progressive ? 2048 : 1024;
+            return jpeg;
+        }
+        if (length < 2) {
+            return std::nullopt;
+        }
+        at += 2 + length;
+    }
+    return std::nullopt;
+}
+
+/// Refuses a compressed file too small to hold the pixels its header claims, given the most its
+/// codec turns one stored byte into. Checked before OpenCV allocates the image, which it does
+/// from the header alone.
+Result<void> checkFileHolds(const fs::path& path, const char* format, const PngHeader& header) {
+    std::error_code ec;
+    const std::uint64_t fileSize = fs::file_size(path, ec);
+    const double stored = static_cast<double>(header.height) *
+                          std::ceil(static_cast<double>(header.width) * header.storedBitsPerPixel / 8.0);
+    if (!ec && header.maxExpansion > 0 && static_cast<double>(fileSize) * header.maxExpansion < stored) {
+        return makeError(ErrorCode::IoError,
+                         std::string(format) + " " + quoted(path) + ": the header claims " +
+                             std::to_string(header.width) + " x " + std::to_string(header.height) +
+                             " px but the file has only " + std::to_string(fileSize) +
+                             " bytes, fewer than its compression can expand (truncated or hostile)");
+    }
+    return {};
 }
 
 Result<cv::Mat> readWithOpenCv(const fs::path& path) {
     // OpenCV itself refuses more than 2^30 px (OPENCV_IO_MAX_IMAGE_PIXELS) for every format;
-    // PNG, the one other format sections come in, is checked against our own limits first.
+    // PNG and JPEG, the other formats sections come in, are checked against our own limits and
+    // against what the file can hold first: OpenCV allocates the image from the header alone.
     if (const auto png = readPngHeader(path)) {
         if (auto fits = checkImageSize("PNG " + quoted(path), png->width, png->height,
                                        png->channels, png->sampleBytes);
             !fits) {
             return fits.error();
+        }
+        if (auto held = checkFileHolds(path, "PNG", *png); !held) {
+            return held.error();
+        }
+    } else if (const auto jpeg = readJpegHeader(path)) {
+        if (auto fits = checkImageSize("JPEG " + quoted(path), jpeg->width, jpeg->height,
+                                       jpeg->channels, jpeg->sampleBytes);
+            !fits) {
+            return fits.error();
+        }
+        if (auto held = checkFileHolds(path, "JPEG", *jpeg); !held) {
+            return held.error();
         }
     }
     cv::Mat image = cv::imread(path.string(), cv::IMREAD_UNCHANGED);

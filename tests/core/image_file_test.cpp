@@ -724,6 +724,37 @@ TEST_F(ImageFileTest, RefusesATileLargerThanTheLimit) {
     EXPECT_EQ(read.error().code, ErrorCode::Unsupported) << read.error().message;
 }
 
+// Found by fuzz_image: within the size limits, a few hundred bytes could still claim gigabytes
+// and have them allocated before the data was found missing (3.4 GB for a 1 KB TIFF).
+TEST_F(ImageFileTest, RefusesATinyTiffWhoseDataCannotHoldTheImageItClaims) {
+    const std::vector<std::uint8_t> bytes = hugeDeflateTiff(30000, 30000); // 900 MB: within the limits
+    ASSERT_LT(bytes.size(), 1000u);
+    writeBytes(file("claims.tif"), bytes);
+    const Result<cv::Mat> read = readImage(file("claims.tif"));
+    ASSERT_FALSE(read.ok());
+    EXPECT_EQ(read.error().code, ErrorCode::IoError) << read.error().message;
+    EXPECT_NE(read.error().message.find("claims"), std::string::npos) << read.error().message;
+    EXPECT_NE(read.error().message.find("claims.tif"), std::string::npos) << read.error().message;
+}
+
+TEST_F(ImageFileTest, ReadsAHighlyCompressedTiffThatReallyHoldsItsImage) {
+    // 4000 x 4000 px of zeros, deflated to a few kilobytes: near deflate's own limit, and valid.
+    const cv::Mat zeros = cv::Mat::zeros(4000, 4000, CV_8UC1);
+    ASSERT_TRUE(writeImage(file("zeros.tif"), zeros).ok());
+    const Result<cv::Mat> read = readImage(file("zeros.tif"));
+    ASSERT_TRUE(read.ok()) << read.error().message;
+    EXPECT_EQ(cv::countNonZero(*read), 0);
+    EXPECT_EQ(read->size(), zeros.size());
+    ASSERT_TRUE(cv::imwrite(file("zeros.png").string(), zeros, {cv::IMWRITE_PNG_COMPRESSION, 9}));
+    const Result<cv::Mat> png = readImage(file("zeros.png"));
+    ASSERT_TRUE(png.ok()) << png.error().message;
+    EXPECT_EQ(png->size(), zeros.size());
+    ASSERT_TRUE(cv::imwrite(file("zeros.jpg").string(), zeros));
+    const Result<cv::Mat> jpeg = readImage(file("zeros.jpg"));
+    ASSERT_TRUE(jpeg.ok()) << jpeg.error().message;
+    EXPECT_EQ(jpeg->size(), zeros.size());
+}
+
 /// A PNG whose IHDR claims `width` x `height` RGBA16 pixels, with one tiny IDAT.
 std::vector<std::uint8_t> hugePng(std::uint32_t width, std::uint32_t height) {
     std::vector<std::uint8_t> out{0x89, 'P', 'N', 'G', '\r', '\n', 0x1A, '\n'};
@@ -755,6 +786,33 @@ TEST_F(ImageFileTest, RefusesATinyPngClaimingMoreBytesThanTheLimit) {
     EXPECT_EQ(read.error().code, ErrorCode::Unsupported) << read.error().message;
     EXPECT_NE(read.error().message.find("30000 x 30000"), std::string::npos)
         << read.error().message;
+}
+
+TEST_F(ImageFileTest, RefusesATinyPngOrJpegWhoseDataCannotHoldTheImageItClaims) {
+    // 20000 x 20000 RGBA16: 3.2 GB, within the limits, from a file of a few hundred bytes.
+    writeBytes(file("claims.png"), hugePng(20000, 20000));
+    Result<cv::Mat> read = readImage(file("claims.png"));
+    ASSERT_FALSE(read.ok());
+    EXPECT_EQ(read.error().code, ErrorCode::IoError) << read.error().message;
+    EXPECT_NE(read.error().message.find("claims"), std::string::npos) << read.error().message;
+
+    // A real 16 x 16 JPEG whose frame header is changed to claim 30000 x 30000 px (2.7 GB).
+    std::vector<std::uint8_t> jpeg;
+    ASSERT_TRUE(cv::imencode(".jpg", cv::Mat(16, 16, CV_8UC3, cv::Scalar(40, 80, 120)), jpeg));
+    bool patched = false;
+    for (std::size_t i = 2; i + 9 < jpeg.size() && !patched; ++i) {
+        if (jpeg[i] == 0xFF && jpeg[i + 1] == 0xC0) { // SOF0: length, precision, height, width
+            jpeg[i + 5] = 30000 >> 8, jpeg[i + 6] = 30000 & 0xFF;
+            jpeg[i + 7] = 30000 >> 8, jpeg[i + 8] = 30000 & 0xFF;
+            patched = true;
+        }
+    }
+    ASSERT_TRUE(patched);
+    writeBytes(file("claims.jpg"), jpeg);
+    read = readImage(file("claims.jpg"));
+    ASSERT_FALSE(read.ok());
+    EXPECT_EQ(read.error().code, ErrorCode::IoError) << read.error().message;
+    EXPECT_NE(read.error().message.find("30000 x 30000"), std::string::npos) << read.error().message;
 }
 
 TEST_F(ImageFileTest, RefusesNanAndInfinityInFloatImagesNamingTheFile) {
