@@ -1,5 +1,7 @@
 #include "slicestation/daemon/station/autofocus.hpp"
 
+#include "slicestation/daemon/station/retry_policy.hpp"
+
 #include <opencv2/core.hpp>
 #include <opencv2/imgproc.hpp>
 
@@ -64,10 +66,7 @@ public:
         : stage_(stage), camera_(camera), at_(at), s_(s) {}
 
     core::Result<void> moveZ(double zUm) {
-        auto moved = stage_.moveTo({at_.xUm, at_.yUm, zUm}, s_.moveTimeout);
-        for (int attempt = 0; !moved && moved.error().code == core::ErrorCode::Timeout && attempt < s_.moveRetries;
-             ++attempt)
-            moved = stage_.moveTo({at_.xUm, at_.yUm, zUm}, s_.moveTimeout);
+        auto moved = moveWithRetries(stage_, {at_.xUm, at_.yUm, zUm}, s_.moveTimeout, s_.moveRetries);
         if (!moved) {
             failed_ = FocusFailure::Stage;
             return moved.error();
@@ -78,11 +77,7 @@ public:
     /// Moves to `zUm`, captures, and returns the frame as an image.
     core::Result<cv::Mat> frameAt(double zUm) {
         if (auto moved = moveZ(zUm); !moved) return moved.error();
-        auto frame = camera_.capture(s_.captureTimeout);
-        for (int attempt = 0; !frame && frame.error().code != core::ErrorCode::Cancelled &&
-                              attempt < s_.captureRetries;
-             ++attempt)
-            frame = camera_.capture(s_.captureTimeout);
+        auto frame = captureWithRetries(camera_, s_.captureTimeout, s_.captureRetries, s_.camera);
         if (!frame) {
             failed_ = FocusFailure::Camera;
             return frame.error();

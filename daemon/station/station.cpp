@@ -133,9 +133,9 @@ Result<std::unique_ptr<Station>> Station::create(StationParts parts) {
 
     st->worker_ = std::make_unique<RegistrationWorker>(*st->journal_, *st->notifier_, st->stack_,
                                                        st->parts_.stateDir, st->stats_);
-    ScannerDeps deps{*st->parts_.stage, *st->parts_.camera, *st->journal_, *st->notifier_, *st->worker_,
-                     st->stats_,        st->parts_.stateDir, st->parts_.freeSpace, st->parts_.watchdog,
-                     st->parts_.status, st->parts_.stageMoved};
+    ScannerDeps deps{*st->parts_.stage, *st->parts_.camera, *st->journal_,     *st->notifier_,
+                     *st->worker_,      st->stats_,         st->parts_.stateDir, st->parts_.freeSpace,
+                     st->parts_.watchdog, st->parts_.status};
     st->scanner_ = std::make_unique<Scanner>(std::move(deps));
     return st;
 }
@@ -180,114 +180,15 @@ Result<void> Station::requestRescan(std::int64_t sectionId) {
     return {};
 }
 
-nlohmann::json Station::status() {
-    nlohmann::json j;
-    const auto active = scanner_->activeRun();
-    j["state"] = active ? "scanning" : (scanner_->idle() ? "idle" : "working");
-    j["activity"] = scanner_->activity();
-    j["active_run"] = active ? nlohmann::json(*active) : nlohmann::json();
-    j["simulated"] = {{"stage", parts_.simulatedStage}, {"camera", parts_.simulatedCamera}};
-    j["atlas"] = {{"dir", stack_.dir.string()}, {"slices", stack_.slices.size()}};
-    j["state_dir"] = parts_.stateDir.string();
-    if (auto a = journal_->alerts(true)) j["open_alerts"] = a->size();
-    if (auto f = parts_.freeSpace(parts_.stateDir)) j["free_mb"] = static_cast<double>(*f) / (1 << 20);
-    j["phases"] = stats_.summary();
-    if (active)
-        if (auto r = journal_->run(*active)) j["run"] = toJson(*r);
-    return j;
-}
-
-Result<nlohmann::json> Station::sectionDetail(std::int64_t sectionId) {
-    auto s = journal_->section(sectionId);
-    if (!s) return s.error();
-    nlohmann::json j = toJson(*s);
-    auto caps = journal_->captures(sectionId);
-    if (!caps) return caps.error();
-    auto regs = journal_->registrations(sectionId);
-    if (!regs) return regs.error();
-    j["captures"] = nlohmann::json::array();
-    for (const auto& c : *caps) j["captures"].push_back(toJson(c));
-    j["registrations"] = nlohmann::json::array();
-    for (const auto& r : *regs) {
-        nlohmann::json rj = toJson(r);
-        if (r.result.contains("damage_regions")) rj["damage_regions"] = r.result["damage_regions"];
-        if (r.result.contains("regions")) rj["regions"] = r.result["regions"];
-        if (r.result.contains("quality")) rj["quality_detail"] = r.result["quality"];
-        j["registrations"].push_back(rj);
+Result<AlertRecord> Station::acknowledgeAlert(std::int64_t alertId, const std::string& action) {
+    auto alert = journal_->alert(alertId);
+    if (!alert) return alert.error();
+    if (action == "rescan") {
+        if (!alert->sectionId)
+            return makeError(ErrorCode::InvalidArgument, "alert " + std::to_string(alertId) + " concerns no section");
+        if (auto r = requestRescan(*alert->sectionId); !r) return r.error();
     }
-    return j;
-}
-
-namespace {
-std::string csvField(const std::string& s) {
-    if (s.find_first_of(",\"\n") == std::string::npos) return s;
-    std::string out = "\"";
-    for (char c : s) out += c == '"' ? std::string("\"\"") : std::string(1, c);
-    return out + "\"";
-}
-} // namespace
-
-Result<std::string> Station::exportRun(std::int64_t runId, const std::string& format) {
-    if (format != "json" && format != "csv")
-        return makeError(ErrorCode::InvalidArgument, "format: expected \"json\" or \"csv\", got \"" + format + "\"");
-    auto run = journal_->run(runId);
-    if (!run) return run.error();
-    auto secs = journal_->sections(runId);
-    if (!secs) return secs.error();
-    nlohmann::json rows = nlohmann::json::array();
-    for (const auto& s : *secs) {
-        nlohmann::json row{{"run_id", runId}, {"slide", s.slideName}, {"section", s.name},
-                           {"section_id", s.id}, {"state", toString(s.state)}, {"attempts", s.attempts}};
-        row["expected_slice"] = s.expectedSlice ? nlohmann::json(*s.expectedSlice) : nlohmann::json();
-        auto caps = journal_->captures(s.id);
-        auto regs = journal_->registrations(s.id);
-        if (caps && !caps->empty()) {
-            const auto& c = caps->back();
-            row["image"] = c.imagePath;
-            row["stage_x_um"] = c.stage.xUm;
-            row["stage_y_um"] = c.stage.yUm;
-            row["stage_z_um"] = c.stage.zUm;
-            row["um_per_px"] = c.umPerPx;
-            row["focus_found"] = c.focusFound;
-            if (regs)
-                for (const auto& r : *regs)
-                    if (r.captureId == c.id) {
-                        row["atlas_slice"] = r.atlasSlice;
-                        row["matched_slice"] = r.matchedSlice ? nlohmann::json(*r.matchedSlice) : nlohmann::json();
-                        row["quality"] = r.quality;
-                        row["damaged"] = r.damaged;
-                        row["damage_fraction"] = r.damageFraction;
-                        row["damage_summary"] = r.summary;
-                        row["warning"] = r.warning;
-                        row["overlay"] = r.overlayPath;
-                    }
-        }
-        rows.push_back(row);
-    }
-    if (format == "json") return nlohmann::json{{"run", toJson(*run)}, {"sections", rows}}.dump(2) + "\n";
-    static const char* cols[] = {"run_id", "slide", "section", "section_id", "state", "attempts",
-                                 "image", "stage_x_um", "stage_y_um", "stage_z_um", "um_per_px",
-                                 "focus_found", "expected_slice", "atlas_slice", "matched_slice",
-                                 "quality", "damaged", "damage_fraction", "damage_summary", "warning",
-                                 "overlay"};
-    std::ostringstream os;
-    for (std::size_t i = 0; i < std::size(cols); ++i) os << (i ? "," : "") << cols[i];
-    os << "\n";
-    for (const auto& row : rows) {
-        for (std::size_t i = 0; i < std::size(cols); ++i) {
-            if (i) os << ",";
-            if (!row.contains(cols[i]) || row[cols[i]].is_null()) continue;
-            const auto& v = row[cols[i]];
-            os << csvField(v.is_string() ? v.get<std::string>() : v.dump());
-        }
-        os << "\n";
-    }
-    return os.str();
-}
-
-std::shared_ptr<const hw::Frame> Station::liveFrame() const {
-    std::lock_guard lock(liveMutex_);
-    return live_;
+    return notifier_->acknowledge(alertId, action);
 }
 
 } // namespace slicestation::daemon

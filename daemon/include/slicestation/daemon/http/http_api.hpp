@@ -21,10 +21,13 @@
 /// event streams or connections), 500 (a fault of the station, never of the request).
 /// Hostile clients: every request's head and body are bounded in size and time before they are
 /// read (HttpLimits); a POST is refused (401/411/413) before its body is read.
+/// Errors map to statuses by one table (daemon/http/http_util.hpp, docs/architecture.md).
+/// Layout: http_api.cpp wires the parts; http_server.cpp accepts and bounds connections;
+/// one routes_*.cpp per resource, over StationApi (station/station_api.hpp) alone.
 /// Threading: the server runs on its own threads (an acceptor and a pool of workers, one per
 /// connection being served); stop() joins them.
 #include "slicestation/core/result.hpp"
-#include "slicestation/daemon/station/station.hpp"
+#include "slicestation/daemon/station/station_api.hpp"
 
 #include <chrono>
 #include <cstddef>
@@ -47,10 +50,16 @@ struct HttpLimits {
     static constexpr auto kWriteStall = std::chrono::seconds(5);  ///< a client that takes nothing this long is dropped
 };
 
+namespace http {
+class BoundedServer;
+struct EventHub;
+} // namespace http
+
 class HttpApi {
 public:
-    /// Binds (port 0: any free port) and starts serving. IoError when the address is taken.
-    [[nodiscard]] static core::Result<std::unique_ptr<HttpApi>> start(Station& station, const std::string& bind,
+    /// Binds (port 0: any free port) and starts serving `station` (borrowed: it must outlive
+    /// the API). IoError when the address is taken, InvalidArgument for a port outside 0..65535.
+    [[nodiscard]] static core::Result<std::unique_ptr<HttpApi>> start(StationApi& station, const std::string& bind,
                                                                       int port, std::string token);
     ~HttpApi();
     int port() const { return port_; }
@@ -58,10 +67,8 @@ public:
 
 private:
     HttpApi() = default;
-    struct EventHub;
-    class Server;
-    std::shared_ptr<EventHub> events_;
-    std::unique_ptr<Server> server_;
+    std::shared_ptr<http::EventHub> events_;
+    std::unique_ptr<http::BoundedServer> server_;
     int port_ = 0;
 };
 

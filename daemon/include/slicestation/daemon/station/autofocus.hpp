@@ -45,8 +45,13 @@ struct AutofocusSettings {
     double minTissueFraction = 0.03; ///< below this at the start z: blank glass, no search
     std::chrono::milliseconds moveTimeout{10'000};   ///< per move
     std::chrono::milliseconds captureTimeout{5'000}; ///< per capture
-    int moveRetries = 0;    ///< extra attempts after a move timed out (an alarm is never retried)
-    int captureRetries = 0; ///< extra attempts after a failed capture (not after a cancel)
+    /// Extra attempts of a move and of a capture, under the station's one retry policy
+    /// (retry_policy.hpp: never after Cancelled, OutOfRange or Alarm).
+    int moveRetries = 0;
+    int captureRetries = 0;
+    /// The run's camera settings: the camera is re-initialised with them before a capture is
+    /// tried again. None: a capture is simply tried again.
+    std::optional<hw::CameraSettings> camera;
 };
 
 struct FocusResult {

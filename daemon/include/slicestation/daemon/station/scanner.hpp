@@ -5,8 +5,9 @@
 /// larger than the field of view, stitched), write the OME-TIFF atomically, journal it, and
 /// hand it to the registration worker — the stage moves on at once.
 ///
-/// Faults follow a policy: moves and captures are retried a bounded number of times (a camera is
-/// re-initialised between attempts); then, and at once for a drive alarm or a low disk, the run
+/// Faults follow one policy (retry_policy.hpp): moves, captures and the camera's configuration
+/// are retried a bounded number of times (a camera is re-initialised between capture attempts);
+/// then, and at once for a drive alarm or a low disk, the run
 /// is paused with the reason and an alert. Nothing is skipped silently. A full disk (ENOSPC from
 /// the image writer, SQLITE_FULL from the journal) pauses the run with a `low_disk` alert; when
 /// the journal cannot store the pause either, the run is paused in memory (heldRunStates();
@@ -25,6 +26,7 @@
 #include "slicestation/daemon/alerts/notifier.hpp"
 #include "slicestation/daemon/station/phase_stats.hpp"
 #include "slicestation/daemon/station/registration_worker.hpp"
+#include "slicestation/daemon/station/section_steps.hpp"
 
 #include <atomic>
 #include <condition_variable>
@@ -55,8 +57,6 @@ struct ScannerDeps {
     /// Progress and STATUS= for systemd; may be null.
     ProgressWatchdog* watchdog = nullptr;
     std::function<void(const std::string&)> status;
-    /// Told where the stage settled (the simulated camera looks there).
-    std::function<void(const hw::StagePosition&)> stageMoved;
 };
 
 class Scanner {
@@ -94,7 +94,23 @@ public:
 private:
     void loop();
     enum class Outcome { Done, Paused, Cancelled, Shutdown, Failed };
+    struct RunContext;
+    /// One run: startRun(), then per section takeRequest() and scanSection() (the steps of
+    /// section_steps.hpp), until finishOnceRegistered() or a fault.
     Outcome executeRun(const RunRecord& run);
+    /// Running, the stage alarm reset when asked, the camera configured, the focus surfaces
+    /// rebuilt. nullopt: go on.
+    std::optional<Outcome> startRun(RunContext& ctx, SectionSteps& steps);
+    /// A pause or cancel asked for this run, taken between sections.
+    std::optional<Outcome> takeRequest(std::int64_t runId);
+    /// Every section captured: Done once all are registered; nullopt while waiting.
+    std::optional<Outcome> finishOnceRegistered(const RunContext& ctx);
+    /// Disk, move, focus, capture, write, journal, hand to the worker. nullopt: captured.
+    std::optional<Outcome> scanSection(RunContext& ctx, SectionSteps& steps, const SectionRecord& section);
+    /// The run paused with the fault's alert (low_disk for any ENOSPC).
+    Outcome pauseFor(const RunContext& ctx, const Fault& fault);
+    /// As pauseFor, but a Cancelled device call ends the run as cancelled (or shuts down).
+    Outcome onFault(const RunContext& ctx, const Fault& fault);
     void setActivity(const std::string& text);
     /// Journals the run's new state (with its alert); when the journal cannot, holds it in
     /// memory (the loop then leaves the run alone).

@@ -17,6 +17,7 @@
 #include "slicestation/daemon/station/phase_stats.hpp"
 #include "slicestation/daemon/station/registration_worker.hpp"
 #include "slicestation/daemon/station/scanner.hpp"
+#include "slicestation/daemon/station/station_api.hpp"
 
 #include <nlohmann/json.hpp>
 
@@ -48,7 +49,7 @@ struct StationParts {
     std::vector<Notifier::AlertChannel> alertChannels;
 };
 
-class Station {
+class Station final : public StationApi {
 public:
     /// Opens the journal, prepares the atlas stack, removes half-written temporary files, and
     /// raises a "restarted" alert when a run was in progress (a crash or watchdog restart).
@@ -60,18 +61,35 @@ public:
     /// Clean stop: stage stopped, current transaction finished, threads joined.
     void stop() noexcept;
 
-    /// Validates and journals a plan (TOML/JSON already parsed) with a snapshot of the scan
-    /// settings. \return the run id; InvalidArgument naming the field.
-    [[nodiscard]] core::Result<std::int64_t> submitPlan(const nlohmann::json& plan, const std::string& origin);
-    [[nodiscard]] core::Result<void> requestRescan(std::int64_t sectionId);
-
-    /// {"state", "activity", "active_run", "simulated": {...}, "open_alerts", "phases", ...}
-    nlohmann::json status();
-    /// Section detail: record, captures, registrations (with region names), alerts.
-    [[nodiscard]] core::Result<nlohmann::json> sectionDetail(std::int64_t sectionId);
+    // StationApi (station_api.hpp): what the HTTP API asks; the views are in station_views.cpp.
+    nlohmann::json status() override;
+    [[nodiscard]] core::Result<std::vector<RunRecord>> runs() override;
+    [[nodiscard]] core::Result<RunRecord> run(std::int64_t runId) override;
+    [[nodiscard]] core::Result<std::vector<SectionRecord>> sections(std::int64_t runId) override;
     /// Export rows of a run: per section the image path, stage position, atlas slice,
     /// registration quality and damage. Format "json" or "csv".
-    [[nodiscard]] core::Result<std::string> exportRun(std::int64_t runId, const std::string& format);
+    [[nodiscard]] core::Result<std::string> exportRun(std::int64_t runId, const std::string& format) override;
+    /// Section detail: record, captures, registrations (with region names), alerts.
+    [[nodiscard]] core::Result<nlohmann::json> sectionDetail(std::int64_t sectionId) override;
+    [[nodiscard]] core::Result<std::vector<AlertRecord>> alerts(bool openOnly) override;
+    /// The latest frame the camera delivered (autofocus frames included), for the live view;
+    /// null before the first. Any thread.
+    std::shared_ptr<const hw::Frame> liveFrame() const override;
+    [[nodiscard]] core::Result<cv::Mat> sectionImage(std::int64_t sectionId, bool overlay) override;
+    [[nodiscard]] core::Result<RegionAtPixel> regionAt(std::int64_t sectionId, int x, int y, int ofWidth) override;
+    /// Validates and journals a plan (TOML/JSON already parsed) with a snapshot of the scan
+    /// settings. \return the run id; InvalidArgument naming the field.
+    [[nodiscard]] core::Result<std::int64_t> submitPlan(const nlohmann::json& plan, const std::string& origin) override;
+    [[nodiscard]] core::Result<void> pauseRun(std::int64_t runId) override { return scanner_->pause(runId); }
+    [[nodiscard]] core::Result<void> resumeRun(std::int64_t runId, bool resetStageAlarm) override {
+        return scanner_->resume(runId, resetStageAlarm);
+    }
+    [[nodiscard]] core::Result<void> cancelRun(std::int64_t runId) override { return scanner_->cancel(runId); }
+    [[nodiscard]] core::Result<void> requestRescan(std::int64_t sectionId) override;
+    [[nodiscard]] core::Result<AlertRecord> acknowledgeAlert(std::int64_t alertId, const std::string& action) override;
+    void addListener(std::function<void(const StationEvent&)> listener) override {
+        notifier_->addListener(std::move(listener));
+    }
 
     Journal& journal() { return *journal_; }
     Scanner& scanner() { return *scanner_; }
@@ -80,9 +98,6 @@ public:
     const AtlasStack& atlas() const { return stack_; }
     const std::filesystem::path& stateDir() const { return parts_.stateDir; }
     const DaemonSettings& settings() const { return parts_.settings; }
-    /// The latest frame the camera delivered (autofocus frames included), for the live view;
-    /// null before the first. Any thread.
-    std::shared_ptr<const hw::Frame> liveFrame() const;
     /// No run left to work on and nothing being registered.
     bool idle() const { return scanner_->idle(); }
 
@@ -98,6 +113,9 @@ private:
     std::unique_ptr<Scanner> scanner_;
     mutable std::mutex liveMutex_;
     std::shared_ptr<const hw::Frame> live_;
+    std::mutex labelsMutex_; ///< the labels regionAt() read last, kept for the next pixel
+    std::string labelsPath_;
+    cv::Mat labels_;
 };
 
 /// The stack named by settings.atlas: "builtin" (written under stateDir on first use) or a
