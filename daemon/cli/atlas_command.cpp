@@ -1,5 +1,7 @@
 #include "slicestation/daemon/cli/atlas_command.hpp"
 
+#include "slicestation/core/atomic_file.hpp"
+
 #include "slicestation/core/nrrd.hpp"
 #include "slicestation/core/ontology.hpp"
 #include "slicestation/daemon/storage/atlas_stack.hpp"
@@ -165,24 +167,6 @@ core::Result<void> useStackSlice(RegisterRequest& rq, int slice) {
     return {};
 }
 
-core::Result<std::vector<pipeline::SliceFeatures>> stackFeatures(const AtlasStack& stack) {
-    std::vector<cv::Mat> labels;
-    for (const StackSlice& s : stack.slices) {
-        auto l = readStackSlice(stack, s.index);
-        if (!l) return l.error();
-        labels.push_back(std::move(*l));
-    }
-    // One working pixel size for the whole stack, from its largest brain and finest slices.
-    double umPerPx = stack.slices.front().umPerPx;
-    for (const StackSlice& s : stack.slices) umPerPx = std::min(umPerPx, s.umPerPx);
-    const double workUm = pipeline::matchWorkUmPerPx(labels, umPerPx);
-    std::vector<pipeline::SliceFeatures> features;
-    for (size_t i = 0; i < labels.size(); ++i)
-        features.push_back(pipeline::sliceFeatures(labels[i], stack.slices[i].umPerPx,
-                                                    stack.slices[i].positionUm, workUm));
-    return features;
-}
-
 core::Result<json> runAtlasMatch(const AtlasMatchRequest& rq) {
     using Clock = std::chrono::steady_clock;
     const auto t0 = Clock::now();
@@ -244,7 +228,7 @@ core::Result<json> runAtlasMatch(const AtlasMatchRequest& rq) {
         // order, skipped or tilted); the caller decides whether that is a warning.
         out["mismatch"] = std::abs(m->index - *rq.expectedIndex) > 1;
     }
-    if (auto w = writeFileAtomically(rq.output, out.dump(2) + "\n"); !w) return w.error();
+    if (auto w = core::writeFileAtomically(rq.output, out.dump(2) + "\n"); !w) return w.error();
     return out;
 }
 

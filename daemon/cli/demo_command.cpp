@@ -1,5 +1,7 @@
 #include "slicestation/daemon/cli/demo_command.hpp"
 
+#include "slicestation/core/atomic_file.hpp"
+
 #include "slicestation/core/image_file.hpp"
 #include "slicestation/daemon/cli/register_command.hpp"
 #include "slicestation/sim/builtin_atlas.hpp"
@@ -37,8 +39,8 @@ core::Result<json> runDemo(const DemoRequest& rq) {
         pts << l.image.x << ',' << l.image.y << '\n';
         truth << l.image.x << ',' << l.image.y << ',' << l.atlas.x << ',' << l.atlas.y << '\n';
     }
-    if (auto w = writeFileAtomically(dir / "landmarks.csv", pts.str()); !w) return w.error();
-    if (auto w = writeFileAtomically(dir / "truth.csv", truth.str()); !w) return w.error();
+    if (auto w = core::writeFileAtomically(dir / "landmarks.csv", pts.str()); !w) return w.error();
+    if (auto w = core::writeFileAtomically(dir / "truth.csv", truth.str()); !w) return w.error();
 
     RegisterRequest rr;
     rr.atlas = dir / "atlas-labels.tif";

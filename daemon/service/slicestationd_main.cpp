@@ -2,10 +2,11 @@
 // and the atlas, serves the HTTP API, and scans the queued runs until SIGTERM.
 // Only this program logs; lines carry sd-daemon priority prefixes for the systemd journal.
 #include "slicestation/daemon/alerts/alert_channels.hpp"
+
+#include "slicestation/core/atomic_file.hpp"
 #include "slicestation/daemon/config/config_document.hpp"
 #include "slicestation/daemon/config/daemon_settings.hpp"
 #include "slicestation/daemon/http/http_api.hpp"
-#include "slicestation/daemon/cli/register_command.hpp"
 #include "slicestation/daemon/station/station.hpp"
 #include "slicestation/daemon/config/station_config.hpp"
 #include "slicestation/daemon/service/systemd_notifier.hpp"
@@ -138,7 +139,7 @@ int main(int argc, char** argv) {
     Station& s = **st;
     auto api = HttpApi::start(s, settings->httpBind, settings->httpPort, settings->token);
     if (!api) return fail("HTTP API", api.error());
-    (void)writeFileAtomically(stateDir / "http.port", std::to_string((*api)->port()) + "\n");
+    (void)core::writeFileAtomically(stateDir / "http.port", std::to_string((*api)->port()) + "\n");
     std::cerr << "<6>slicestationd: state " << stateDir << ", atlas " << s.atlas().dir << " ("
               << s.atlas().slices.size() << " slices), HTTP on " << settings->httpBind << ":" << (*api)->port()
               << std::endl;

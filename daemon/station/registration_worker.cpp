@@ -1,8 +1,7 @@
 #include "slicestation/daemon/station/registration_worker.hpp"
 
-#include "slicestation/daemon/cli/atlas_command.hpp"
 #include "slicestation/daemon/config/daemon_settings.hpp"
-#include "slicestation/daemon/cli/register_command.hpp"
+#include "slicestation/daemon/station/registration_service.hpp"
 #include "slicestation/core/image_file.hpp"
 
 #include <algorithm>
@@ -107,6 +106,64 @@ core::Result<int> RegistrationWorker::matchToStack(const std::filesystem::path& 
     return m->index;
 }
 
+namespace {
+
+/// The atlas regions a section shows (its warped labels), named from the stack's ontology,
+/// largest first, each with its share of the brain in the section.
+nlohmann::json regionsShown(const cv::Mat& labels, const AtlasStack& stack) {
+    std::map<std::int32_t, std::int64_t> counts;
+    std::int64_t inside = 0;
+    for (int y = 0; y < labels.rows; ++y) {
+        const auto* row = labels.ptr<std::int32_t>(y);
+        for (int x = 0; x < labels.cols; ++x)
+            if (row[x] > 0) {
+                ++counts[row[x]];
+                ++inside;
+            }
+    }
+    std::vector<std::pair<std::int64_t, std::int32_t>> order;
+    for (const auto& [regionId, n] : counts) order.push_back({n, regionId});
+    std::sort(order.rbegin(), order.rend());
+    nlohmann::json regions = nlohmann::json::array();
+    for (const auto& [n, regionId] : order) {
+        nlohmann::json r{{"id", regionId}, {"share", inside > 0 ? static_cast<double>(n) / inside : 0.0}};
+        if (const StackRegion* sr = findRegion(stack, static_cast<std::uint32_t>(regionId))) {
+            r["name"] = sr->name;
+            r["acronym"] = sr->acronym;
+            r["color"] = colorHex(sr->colorRgb);
+        }
+        regions.push_back(std::move(r));
+    }
+    return regions;
+}
+
+} // namespace
+
+core::Result<RegistrationWorker::SliceChoice> RegistrationWorker::chooseSlice(const SectionRecord& section,
+                                                                           const CaptureRecord& capture,
+                                                                           const ScanSettings& settings) {
+    SliceChoice choice;
+    choice.slice = section.expectedSlice;
+    if (!settings.checkAtlasMatch && choice.slice) return choice;
+    PhaseTimer matchTimer(stats_, "atlas_match");
+    // The whole stack is searched: a section mounted far out of order must show where it belongs.
+    auto m = matchToStack(stateDir_ / capture.imagePath, capture.umPerPx, std::nullopt, 0);
+    if (!m) {
+        if (!choice.slice)
+            return core::makeError(m.error().code,
+                                   "no atlas slice planned and matching failed: " + m.error().message);
+        return choice;
+    }
+    choice.matched = *m;
+    if (!choice.slice) {
+        choice.slice = *m;
+    } else if (std::abs(*m - *choice.slice) > settings.mismatchToleranceSlices) {
+        choice.warning = "the section matches atlas slice " + std::to_string(*m) + ", not the planned " +
+                         std::to_string(*choice.slice) + " (mounted out of order?); registered to the planned slice";
+    }
+    return choice;
+}
+
 void RegistrationWorker::process(std::int64_t captureId) {
     PhaseTimer timer(stats_, "register");
     auto capture = journal_.capture(captureId);
@@ -115,8 +172,8 @@ void RegistrationWorker::process(std::int64_t captureId) {
     if (!section || section->state != SectionState::Captured) return; // a rescan overtook it
     auto run = journal_.run(section->runId);
     if (!run) return;
-    const std::string label = "section " + section->name + " (" + section->slideName + ", run " +
-                              std::to_string(run->id) + ")";
+    const std::string label =
+        "section " + section->name + " (" + section->slideName + ", run " + std::to_string(run->id) + ")";
     auto fail = [&](const std::string& why) {
         (void)journal_.failSection(section->id, why);
         (void)notifier_.raise("registration_failed", "warning", label + ": " + why, run->id, section->id);
@@ -124,102 +181,65 @@ void RegistrationWorker::process(std::int64_t captureId) {
     };
     auto settings = scanSettingsFromJson(run->settings, "run " + std::to_string(run->id) + " settings");
     if (!settings) return fail(settings.error().message);
+    auto choice = chooseSlice(*section, *capture, *settings);
+    if (!choice) return fail(choice.error().message);
+    const int slice = *choice->slice;
+    auto atlas = stackSlicePath(stack_, slice);
+    if (!atlas) return fail(atlas.error().message);
 
+    // Outputs beside the image: <section>-a<attempt>.result.json, .overlay.png, .labels.tif.
     const std::filesystem::path image = stateDir_ / capture->imagePath;
-    const std::filesystem::path base =
-        image.parent_path() / (image.filename().string().substr(0, image.filename().string().find('.')));
-    const auto rel = [&](const std::filesystem::path& p) {
-        return std::filesystem::relative(p, stateDir_).string();
-    };
-
-    RegistrationRecord rec;
-    rec.captureId = captureId;
-    std::optional<int> slice = section->expectedSlice;
-    std::string warning;
-    if (settings->checkAtlasMatch || !slice) {
-        PhaseTimer matchTimer(stats_, "atlas_match");
-        // The whole stack is searched: a section mounted far out of order must show where it belongs.
-        auto m = matchToStack(image, capture->umPerPx, std::nullopt, 0);
-        if (m) {
-            rec.matchedSlice = *m;
-            if (!slice) {
-                slice = rec.matchedSlice;
-            } else if (std::abs(*rec.matchedSlice - *slice) > settings->mismatchToleranceSlices) {
-                warning = "the section matches atlas slice " + std::to_string(*rec.matchedSlice) +
-                          ", not the planned " + std::to_string(*slice) +
-                          " (mounted out of order?); registered to the planned slice";
-            }
-        } else if (!slice) {
-            return fail("no atlas slice planned and matching failed: " + m.error().message);
-        }
-    }
-    rec.atlasSlice = *slice;
-
+    const std::string stem = image.filename().string().substr(0, image.filename().string().find('.'));
+    const std::filesystem::path base = image.parent_path() / stem;
     RegisterRequest rq;
-    rq.atlas = stack_.dir;
+    rq.atlas = *atlas;
     rq.image = image;
     rq.imageUmPerPx = capture->umPerPx;
+    if (rq.imageUmPerPx > 0) rq.atlasUmPerPx = stack_.slices[static_cast<std::size_t>(slice)].umPerPx;
     rq.output = base.string() + ".result.json";
     rq.overlay = base.string() + ".overlay.png";
     rq.warpedLabels = base.string() + ".labels.tif";
-    if (auto u = useStackSlice(rq, *slice); !u) return fail(u.error().message);
-    auto result = runRegister(rq);
+    auto result = registerSectionFiles(rq);
     if (!result) return fail("registration failed: " + result.error().message);
 
-    rec.damaged = result->value("damaged", false);
-    rec.damageFraction = result->value("damage_fraction", 0.0);
-    rec.summary = result->value("damage_summary", std::string());
-    rec.warning = warning;
-    if (result->contains("quality")) rec.quality = (*result)["quality"].value("tissue_overlap", 0.0);
+    const auto rel = [&](const std::filesystem::path& p) { return std::filesystem::relative(p, stateDir_).string(); };
+    RegistrationRecord rec;
+    rec.captureId = captureId;
+    rec.atlasSlice = slice;
+    rec.matchedSlice = choice->matched;
+    rec.warning = choice->warning;
+    rec.damaged = result->registration.damaged;
+    rec.damageFraction = result->registration.damageFraction;
+    rec.summary = result->registration.damageSummary;
+    rec.quality = result->registration.quality.tissueOverlap;
     rec.resultPath = rel(rq.output);
     rec.overlayPath = rel(*rq.overlay);
     rec.labelsPath = rel(*rq.warpedLabels);
-    rec.result = *result;
-    // The atlas regions the section shows, named from the stack's ontology, largest first.
-    if (auto labels = core::readImage(*rq.warpedLabels); labels && labels->type() == CV_32SC1) {
-        std::map<std::int32_t, std::int64_t> counts;
-        std::int64_t inside = 0;
-        for (int y = 0; y < labels->rows; ++y) {
-            const auto* row = labels->ptr<std::int32_t>(y);
-            for (int x = 0; x < labels->cols; ++x)
-                if (row[x] > 0) {
-                    ++counts[row[x]];
-                    ++inside;
-                }
-        }
-        std::vector<std::pair<std::int64_t, std::int32_t>> order;
-        for (const auto& [regionId, n] : counts) order.push_back({n, regionId});
-        std::sort(order.rbegin(), order.rend());
-        nlohmann::json regions = nlohmann::json::array();
-        for (const auto& [n, regionId] : order) {
-            nlohmann::json r{{"id", regionId}, {"share", inside > 0 ? static_cast<double>(n) / inside : 0.0}};
-            if (const StackRegion* sr = findRegion(stack_, static_cast<std::uint32_t>(regionId))) {
-                r["name"] = sr->name;
-                r["acronym"] = sr->acronym;
-                r["color"] = colorHex(sr->colorRgb);
-            }
-            regions.push_back(std::move(r));
-        }
-        rec.result["regions"] = std::move(regions);
-    }
+    rec.result = result->document;
+    rec.result["regions"] = regionsShown(result->warpedLabels, stack_);
+    record(rec, *run, *section, label);
+}
+
+void RegistrationWorker::record(RegistrationRecord& rec, const RunRecord& run, const SectionRecord& section,
+                                const std::string& label) {
     auto id = journal_.recordRegistration(rec);
     if (!id) {
-        (void)notifier_.raise("journal_error", "critical", label + ": cannot store registration: " +
-                                                               id.error().message, run->id, section->id);
+        (void)notifier_.raise("journal_error", "critical",
+                              label + ": cannot store registration: " + id.error().message, run.id, section.id);
         return;
     }
     rec.id = *id;
     nlohmann::json ev = toJson(rec);
-    ev["section_id"] = section->id;
-    ev["run_id"] = run->id;
+    ev["section_id"] = section.id;
+    ev["run_id"] = run.id;
     notifier_.publish({rec.damaged ? "section_damaged" : "section_registered", ev});
-    if (!warning.empty())
-        (void)notifier_.raise("atlas_mismatch", "warning", label + ": " + warning, run->id, section->id);
+    if (!rec.warning.empty())
+        (void)notifier_.raise("atlas_mismatch", "warning", label + ": " + rec.warning, run.id, section.id);
     if (rec.damaged)
         (void)notifier_.raise("damaged", "critical",
                               label + " is damaged (" + rec.summary +
                                   "): re-mount it and request a rescan, or accept it as is",
-                              run->id, section->id);
+                              run.id, section.id);
 }
 
 } // namespace slicestation::daemon

@@ -1,5 +1,9 @@
 #include "slicestation/daemon/storage/atlas_stack.hpp"
 
+#include "slicestation/pipeline/atlas_matching.hpp"
+
+#include "slicestation/core/atomic_file.hpp"
+
 #include "slicestation/core/image_file.hpp"
 #include "slicestation/daemon/config/config_document.hpp"
 #include "slicestation/daemon/cli/register_command.hpp"
@@ -209,7 +213,7 @@ core::Result<AtlasStack> writeStack(const fs::path& dir,
                       {"color", colorHex(r.colorRgb)}});
     source["frame"] = "micrometres along (AP, DV, LR) from the centre of the first voxel";
     const json manifest = {{"slices", js}, {"regions", jr}, {"source", source}};
-    if (auto w = writeFileAtomically(dir / "manifest.json", manifest.dump(2) + "\n"); !w)
+    if (auto w = core::writeFileAtomically(dir / "manifest.json", manifest.dump(2) + "\n"); !w)
         return w.error();
     stack.regions = std::move(regions);
     stack.source = std::move(source);
@@ -308,6 +312,24 @@ std::vector<StackRegion> builtinStackRegions() {
     for (const sim::RegionInfo& r : sim::builtinRegions())
         out.push_back({std::uint32_t(r.id), r.name, r.acronym, r.colorRgb});
     return out;
+}
+
+core::Result<std::vector<pipeline::SliceFeatures>> stackFeatures(const AtlasStack& stack) {
+    std::vector<cv::Mat> labels;
+    for (const StackSlice& s : stack.slices) {
+        auto l = readStackSlice(stack, s.index);
+        if (!l) return l.error();
+        labels.push_back(std::move(*l));
+    }
+    // One working pixel size for the whole stack, from its largest brain and finest slices.
+    double umPerPx = stack.slices.front().umPerPx;
+    for (const StackSlice& s : stack.slices) umPerPx = std::min(umPerPx, s.umPerPx);
+    const double workUm = pipeline::matchWorkUmPerPx(labels, umPerPx);
+    std::vector<pipeline::SliceFeatures> features;
+    for (size_t i = 0; i < labels.size(); ++i)
+        features.push_back(pipeline::sliceFeatures(labels[i], stack.slices[i].umPerPx,
+                                                    stack.slices[i].positionUm, workUm));
+    return features;
 }
 
 } // namespace slicestation::daemon

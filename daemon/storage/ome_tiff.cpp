@@ -1,5 +1,7 @@
 #include "slicestation/daemon/storage/ome_tiff.hpp"
 
+#include "slicestation/core/atomic_file.hpp"
+
 #include "slicestation/core/image_file.hpp"
 #include "slicestation/core/unique_fd.hpp"
 
@@ -630,66 +632,14 @@ core::Result<void> writeAtomic(const fs::path& path, const cv::Mat& image, OmeTi
     if (info.acquiredUtc.empty()) info.acquiredUtc = utcNowIso8601();
     const std::string xml = makeOmeXml(image.cols, image.rows, image.type(), info);
 
-    const fs::path dir = path.parent_path().empty() ? fs::path(".") : path.parent_path();
-    const fs::path tmp = dir / ("." + path.filename().string() + ".partial");
-    // 0666 minus the umask, like any other new file. A stale .partial from a crash is truncated.
-    core::UniqueFd fd(::open(tmp.c_str(), O_RDWR | O_CREAT | O_TRUNC | O_CLOEXEC, 0666));
-    if (!fd) {
-        const int err = errno;
-        return makeError(ErrorCode::IoError,
-                         "cannot create " + quoted(tmp) + " to write " + quoted(path) + ": " +
-                             errnoText(err),
-                         err);
-    }
-    bool committed = false;
-    struct Remover {
-        const fs::path& file;
-        const bool& keep;
-        ~Remover() {
-            if (!keep) ::unlink(file.c_str());
-        }
-    } remover{tmp, committed};
-
-    if (auto written = writeTiff(fd.get(), tmp, image, xml, info.umPerPx); !written) {
-        return written;
-    }
-    if (::fsync(fd.get()) != 0) {
-        const int err = errno;
-        return makeError(ErrorCode::IoError,
-                         "cannot fsync " + quoted(tmp) + ": " + errnoText(err), err);
-    }
-    if (::close(fd.release()) != 0) {
-        const int err = errno;
-        return makeError(ErrorCode::IoError,
-                         "cannot close " + quoted(tmp) + ": " + errnoText(err), err);
-    }
     // Never over an existing file: it may be an image the journal refers to (EEXIST instead).
-    // renameat2 where the file system has RENAME_NOREPLACE, else link (which refuses an
-    // existing name too) and unlink.
-    int renamed = ::renameat2(AT_FDCWD, tmp.c_str(), AT_FDCWD, path.c_str(), RENAME_NOREPLACE);
-    if (renamed != 0 && (errno == EINVAL || errno == ENOSYS)) {
-        renamed = ::link(tmp.c_str(), path.c_str());
-        if (renamed == 0) ::unlink(tmp.c_str());
-    }
-    if (renamed != 0) {
-        const int err = errno;
-        return makeError(ErrorCode::IoError,
-                         err == EEXIST ? quoted(path) + " exists already; it is never replaced"
-                                       : "cannot rename " + quoted(tmp) + " to " + quoted(path) +
-                                             ": " + errnoText(err),
-                         err);
-    }
-    committed = true;
-    // Make the rename durable. Some file systems cannot fsync a directory (EINVAL): not an error.
-    core::UniqueFd dirFd(::open(dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC));
-    if (!dirFd || (::fsync(dirFd.get()) != 0 && errno != EINVAL)) {
-        const int err = errno;
-        return makeError(ErrorCode::IoError,
-                         "cannot fsync directory " + quoted(dir) + " after writing " +
-                             quoted(path) + ": " + errnoText(err),
-                         err);
-    }
-    return {};
+    auto r = core::replaceAtomically(
+        path, [&](int fd, const fs::path& tmp) { return writeTiff(fd, tmp, image, xml, info.umPerPx); },
+        core::Replace::Never);
+    // This writer's contract: a missing directory is an IoError (with ENOENT) like any other.
+    if (!r && r.error().code == ErrorCode::NotFound)
+        return makeError(ErrorCode::IoError, r.error().message, r.error().sysErrno);
+    return r;
 }
 
 core::Result<std::string> readDescription(const fs::path& path) {

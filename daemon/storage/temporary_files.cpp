@@ -1,5 +1,7 @@
 #include "slicestation/daemon/storage/temporary_files.hpp"
 
+#include "slicestation/core/atomic_file.hpp"
+
 #include <string>
 #include <system_error>
 
@@ -17,28 +19,14 @@ bool isDigits(std::string_view s) noexcept {
     return true;
 }
 
-/// `rest` is `count` runs of digits separated by '.'.
-bool isDottedNumbers(std::string_view rest, int count) noexcept {
-    for (int i = 0; i < count; ++i) {
-        const std::size_t dot = i + 1 < count ? rest.find('.') : rest.size();
-        if (dot == std::string_view::npos || !isDigits(rest.substr(0, dot))) return false;
-        rest = dot < rest.size() ? rest.substr(dot + 1) : std::string_view();
-    }
-    return rest.empty();
-}
-
 } // namespace
 
 bool isTemporaryFileName(std::string_view n) noexcept {
-    // `.NAME.partial`
+    // `.NAME.tmp.PID.N.STAMP`: core::replaceAtomically, every writer since issue 21.
+    if (core::isAtomicTemporaryName(n)) return true;
+    // Older versions' schemes: `.NAME.partial` (the OME-TIFF writer), `NAME.tmp-PID` (results).
     constexpr std::string_view partial = ".partial";
     if (n.size() > partial.size() + 1 && n.front() == '.' && n.ends_with(partial)) return true;
-    // `.NAME.tmp.PID.N.STAMP`
-    if (n.size() > 1 && n.front() == '.') {
-        for (std::size_t at = n.find(".tmp.", 1); at != std::string_view::npos; at = n.find(".tmp.", at + 1))
-            if (at > 1 && isDottedNumbers(n.substr(at + 5), 3)) return true;
-    }
-    // `NAME.tmp-PID`
     const std::size_t dash = n.rfind(".tmp-");
     return dash != std::string_view::npos && dash > 0 && isDigits(n.substr(dash + 5));
 }

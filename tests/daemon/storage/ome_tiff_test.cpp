@@ -333,8 +333,10 @@ TEST(OmeTiff, AnExistingFileIsNeverReplaced) {
     ASSERT_TRUE(daemon::writeOmeTiffAtomic(file, first, sampleInfo()));
     struct stat oldStat {};
     ASSERT_EQ(::stat(file.c_str(), &oldStat), 0);
-    // A stale temporary from a crashed writer does not get in the way.
+    // A stale temporary from a crashed writer (this version's scheme, or an older version's)
+    // does not get in the way; the clean-up at start removes it, not the writer.
     std::ofstream(dir.path() / ".r.ome.tif.partial") << "junk from a crash";
+    std::ofstream(dir.path() / ".r.ome.tif.tmp.1.2.3") << "junk from a crash";
 
     OmeTiffInfo info = sampleInfo();
     info.name = "second";
@@ -349,7 +351,8 @@ TEST(OmeTiff, AnExistingFileIsNeverReplaced) {
     auto read = daemon::readOmeTiff(file);
     ASSERT_TRUE(read);
     EXPECT_EQ(cv::norm(read->image, first, cv::NORM_INF), 0.0);
-    EXPECT_EQ(listDir(dir.path()), std::vector<std::string>{"r.ome.tif"}) << "the temporary is removed";
+    EXPECT_EQ(listDir(dir.path()), (std::vector<std::string>{".r.ome.tif.partial", ".r.ome.tif.tmp.1.2.3", "r.ome.tif"}))
+        << "the writer's own temporary is removed";
 
     // Once the caller has removed the old file (its decision), the new one is written.
     ASSERT_TRUE(fs::remove(file));

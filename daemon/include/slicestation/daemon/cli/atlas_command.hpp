@@ -72,8 +72,5 @@ struct AtlasMatchRequest {
 ///         errors of readStack.
 [[nodiscard]] core::Result<void> useStackSlice(RegisterRequest& request, int slice);
 
-/// Matching features of every slice of `stack` (read from disk), one working pixel size.
-[[nodiscard]] core::Result<std::vector<pipeline::SliceFeatures>> stackFeatures(
-    const AtlasStack& stack);
 
 } // namespace slicestation::daemon

@@ -10,6 +10,7 @@
 /// Crash safety: the queue is not persistent: after a restart the daemon re-enqueues
 /// Journal::capturesAwaitingRegistration().
 /// Threading: enqueue()/idle()/waitIdle() from any thread; stop() joins.
+#include "slicestation/daemon/config/daemon_settings.hpp"
 #include "slicestation/daemon/storage/atlas_stack.hpp"
 #include "slicestation/daemon/storage/journal.hpp"
 #include "slicestation/daemon/alerts/notifier.hpp"
@@ -48,6 +49,19 @@ public:
 private:
     void loop();
     void process(std::int64_t captureId);
+    /// The slice to register to: the planned one; the matched one when none is planned. With
+    /// settings.checkAtlasMatch the whole stack is searched and a match beyond the tolerance
+    /// gives a warning. InvalidArgument-like errors when no slice is planned and matching fails.
+    struct SliceChoice {
+        std::optional<int> slice;   ///< set on success
+        std::optional<int> matched; ///< what matching found, when it ran and succeeded
+        std::string warning;
+    };
+    core::Result<SliceChoice> chooseSlice(const SectionRecord& section, const CaptureRecord& capture,
+                                          const ScanSettings& settings);
+    /// Journals the registration and tells: an event, and alerts for a mismatch or damage.
+    void record(RegistrationRecord& rec, const RunRecord& run, const SectionRecord& section,
+                const std::string& label);
     /// The stack slice the image matches best (within `window` of `expected` when given).
     core::Result<int> matchToStack(const std::filesystem::path& image, double umPerPx,
                                    std::optional<int> expected, int window);

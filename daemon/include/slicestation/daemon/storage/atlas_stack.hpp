@@ -13,6 +13,7 @@
 /// volume's first voxel (pipeline/atlas_slicing.hpp). Blocking file I/O; re-entrant.
 
 #include "slicestation/core/result.hpp"
+#include "slicestation/pipeline/atlas_matching.hpp"
 #include "slicestation/pipeline/atlas_slicing.hpp"
 
 #include <nlohmann/json.hpp>
@@ -84,5 +85,9 @@ inline constexpr double kBuiltinUmPerPx = 25;
 [[nodiscard]] core::Result<std::vector<pipeline::AtlasSlice>> builtinStackSlices(double intervalUm,
                                                                                  double firstUm);
 std::vector<StackRegion> builtinStackRegions();
+
+/// Matching features of every slice of `stack` (read from disk), one working pixel size.
+[[nodiscard]] core::Result<std::vector<pipeline::SliceFeatures>> stackFeatures(
+    const AtlasStack& stack);
 
 } // namespace slicestation::daemon

@@ -41,12 +41,11 @@ struct OmeTiffInfo {
 };
 
 /// Writes `image` (CV_8UC1, CV_16UC1 or CV_8UC3 in OpenCV's BGR order; stored as RGB) to `path`
-/// atomically: the data goes to `.<filename>.partial` in the same directory, which is fsync'ed,
-/// renamed to `path` (never over it: RENAME_NOREPLACE, or link + unlink where the file system
-/// lacks it), and the directory is fsync'ed. A reader never sees a partial file; on failure the
-/// temporary file is removed and `path` is untouched. An existing `path` is never replaced
-/// (IoError with sysErrno EEXIST): whether an old file may go is the caller's decision.
-/// A stale `.partial` left by a crash is overwritten.
+/// atomically through core::replaceAtomically (core/atomic_file.hpp: a temporary file beside
+/// it, fsync'ed, renamed, the directory fsync'ed), never over an existing file (RENAME_NOREPLACE,
+/// or link + unlink where the file system lacks it). A reader never sees a partial file; on
+/// failure the temporary file is removed and `path` is untouched. An existing `path` is never
+/// replaced (IoError with sysErrno EEXIST): whether an old file may go is the caller's decision.
 ///
 /// \return InvalidArgument (empty image, unsupported Mat type, umPerPx not > 0, non-finite
 ///         stage position, negative exposure, gain not > 0, acquiredUtc not ISO 8601, a name or

@@ -1,13 +1,13 @@
 #pragma once
 /// The temporary files of the station's atomic writers, and their removal after a crash.
 ///
-/// Every writer writes a temporary file beside its target, fsyncs it and renames it into place,
-/// so a kill leaves at most a temporary file, which nothing refers to. The three writers name
-/// them differently; isTemporaryFileName() knows every scheme:
-///   `.NAME.partial`            writeOmeTiffAtomic (section images)
-///   `.NAME.tmp.PID.N.STAMP`    core::writeImage and the other core image writers (overlays,
-///                              label images, atlas slices)
-///   `NAME.tmp-PID`             writeFileAtomically (registration results, manifests)
+/// Every file is written through core::replaceAtomically (atomic_file.hpp): a temporary file
+/// `.NAME.tmp.PID.N.STAMP` beside its target, fsync'ed and renamed into place, so a kill leaves
+/// at most a temporary file, which nothing refers to. Older versions named them two other ways,
+/// and a state directory may still hold those; isTemporaryFileName() knows all three:
+///   `.NAME.tmp.PID.N.STAMP`    every writer now
+///   `.NAME.partial`            the OME-TIFF writer before issue 21
+///   `NAME.tmp-PID`             the result/manifest writer before issue 21
 /// (PID, N and STAMP are decimal numbers.)
 ///
 /// Threading: plain functions; removeTemporaryFiles() must run while no writer is writing into
