@@ -1,5 +1,7 @@
 #include "slicestation/core/image_file.hpp"
 
+#include "slicestation/core/atomic_file.hpp"
+
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
 
@@ -714,110 +716,6 @@ bool hasTiffMagic(const std::array<char, 4>& m) {
 // ---------------------------------------------------------------------------------------------
 // Writing
 
-/// Closes a file descriptor on scope exit.
-class FdGuard {
-public:
-    explicit FdGuard(int fd) noexcept : fd_(fd) {}
-    FdGuard(const FdGuard&) = delete;
-    FdGuard& operator=(const FdGuard&) = delete;
-    ~FdGuard() { close(); }
-    int get() const noexcept { return fd_; }
-    int close() noexcept {
-        const int rc = fd_ >= 0 ? ::close(fd_) : 0;
-        fd_ = -1;
-        return rc;
-    }
-
-private:
-    int fd_ = -1;
-};
-
-Result<void> writeAll(int fd, const std::vector<std::uint8_t>& bytes, const fs::path& path) {
-    std::size_t done = 0;
-    while (done < bytes.size()) {
-        const ssize_t n = ::write(fd, bytes.data() + done, bytes.size() - done);
-        if (n < 0 && errno == EINTR) {
-            continue;
-        }
-        if (n <= 0) {
-            const int err = errno;
-            return makeError(ErrorCode::IoError,
-                             "cannot write " + quoted(path) + ": " + std::strerror(err), err);
-        }
-        done += static_cast<std::size_t>(n);
-    }
-    return {};
-}
-
-using FillFn = std::function<Result<void>(int fd, const fs::path& tmpPath)>;
-
-/// Creates a new file beside `path`, lets `fill` write it, fsyncs it, renames it over `path`
-/// and fsyncs the directory, so that readers never see a partial file. The temporary file is
-/// removed on any failure.
-Result<void> replaceAtomically(const fs::path& path, const FillFn& fill) {
-    static std::atomic<unsigned> counter{0};
-    const fs::path dir = path.parent_path().empty() ? fs::path(".") : path.parent_path();
-    fs::path tmp;
-    int fd = -1;
-    for (int attempt = 0; attempt < 100 && fd < 0; ++attempt) {
-        const auto stamp = std::chrono::steady_clock::now().time_since_epoch().count();
-        tmp = dir / ("." + path.filename().string() + ".tmp." + std::to_string(::getpid()) + "." +
-                     std::to_string(counter.fetch_add(1)) + "." + std::to_string(stamp % 100000));
-        // 0666 minus the umask, like any other new file.
-        fd = ::open(tmp.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC, 0666);
-        if (fd < 0 && errno != EEXIST) {
-            break;
-        }
-    }
-    if (fd < 0) {
-        const int err = errno;
-        const ErrorCode code =
-            err == ENOENT || err == ENOTDIR ? ErrorCode::NotFound : ErrorCode::IoError;
-        return makeError(code,
-                         "cannot create a file in directory " + quoted(dir) + " to write " +
-                             quoted(path) + ": " + std::strerror(err),
-                         err);
-    }
-    FdGuard guard(fd);
-    bool committed = false;
-    struct Remover {
-        const fs::path& file;
-        const bool& keep;
-        ~Remover() {
-            if (!keep) {
-                std::error_code ignored;
-                fs::remove(file, ignored);
-            }
-        }
-    } remover{tmp, committed};
-
-    if (auto filled = fill(fd, tmp); !filled) {
-        return filled.error();
-    }
-    // fsync flushes the file's data whichever descriptor wrote it (libtiff uses its own).
-    if (::fsync(fd) != 0 || guard.close() != 0) {
-        const int err = errno;
-        return makeError(ErrorCode::IoError,
-                         "cannot flush " + quoted(tmp) + " to disk: " + std::strerror(err), err);
-    }
-    if (::rename(tmp.c_str(), path.c_str()) != 0) {
-        const int err = errno;
-        return makeError(ErrorCode::IoError,
-                         "cannot rename " + quoted(tmp) + " to " + quoted(path) + ": " +
-                             std::strerror(err),
-                         err);
-    }
-    committed = true;
-    // Make the rename itself durable. Some file systems cannot fsync a directory (EINVAL).
-    FdGuard dirFd(::open(dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC));
-    if (dirFd.get() >= 0 && ::fsync(dirFd.get()) != 0 && errno != EINVAL) {
-        const int err = errno;
-        return makeError(ErrorCode::IoError,
-                         "cannot flush directory " + quoted(dir) + ": " + std::strerror(err), err);
-    }
-    return {};
-}
-
 /// BGR(A) -> RGB(A) for any depth (cv::cvtColor does not take CV_32S).
 cv::Mat toRgbOrder(const cv::Mat& image) {
     if (image.channels() < 3) {
@@ -903,8 +801,8 @@ Result<void> writeImageImpl(const fs::path& path, const cv::Mat& image) {
         if (!cv::imencode(".png", image, bytes)) {
             return makeError(ErrorCode::Internal, what + "OpenCV could not encode the PNG");
         }
-        return replaceAtomically(
-            path, [&](int fd, const fs::path& /*tmp*/) { return writeAll(fd, bytes, path); });
+        return writeFileAtomically(
+            path, std::string_view(reinterpret_cast<const char*>(bytes.data()), bytes.size()));
     }
     if (ext == ".tif" || ext == ".tiff") {
         if ((depth != CV_8U && depth != CV_16U && depth != CV_32S && depth != CV_32F) ||

@@ -1,8 +1,8 @@
 // Atlas stacks on disk: `atlas slice` on the real volume and the built-in atlas, manifest
 // round trip, and the errors a user can provoke.
 #include "slicestation/core/image_file.hpp"
-#include "slicestation/daemon/atlas_command.hpp"
-#include "slicestation/daemon/atlas_stack.hpp"
+#include "slicestation/daemon/cli/atlas_command.hpp"
+#include "slicestation/daemon/storage/atlas_stack.hpp"
 #include "slicestation/pipeline/atlas.hpp"
 #include "slicestation/sim/builtin_atlas.hpp"
 #include "slicestation/sim/section_generator.hpp"

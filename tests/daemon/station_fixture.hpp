@@ -2,9 +2,9 @@
 // The station in one process for tests: simulated stage and camera over a virtual slide of four
 // generated sections (the third torn), the built-in atlas, a real SQLite journal and real files
 // in a temporary state directory. Shared by the station tests and the browser tests of the page.
-#include "slicestation/daemon/config_document.hpp"
-#include "slicestation/daemon/http_api.hpp"
-#include "slicestation/daemon/station.hpp"
+#include "slicestation/daemon/config/config_document.hpp"
+#include "slicestation/daemon/http/http_api.hpp"
+#include "slicestation/daemon/station/station.hpp"
 #include "slicestation/sim/faulty_camera.hpp"
 #include "slicestation/sim/faulty_stage.hpp"
 #include "slicestation/sim/sim_camera.hpp"

@@ -3,9 +3,9 @@
 // behind it is whole (journal, simulated stage and camera, built-in atlas) but not started, so
 // a submitted plan is validated and journaled without a scan. A crash, hang or leak of the
 // server is a finding; the seed corpus holds one request per route, with and without the token.
-#include "slicestation/daemon/config_document.hpp"
-#include "slicestation/daemon/http_api.hpp"
-#include "slicestation/daemon/station.hpp"
+#include "slicestation/daemon/config/config_document.hpp"
+#include "slicestation/daemon/http/http_api.hpp"
+#include "slicestation/daemon/station/station.hpp"
 #include "slicestation/sim/sim_camera.hpp"
 #include "slicestation/sim/sim_stage.hpp"
 #include "slicestation/sim/virtual_slide.hpp"

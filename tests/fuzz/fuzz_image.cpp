@@ -2,7 +2,7 @@
 // the atlas reader and the daemon read from disk.
 #include "fuzz_common.hpp"
 #include "slicestation/core/image_file.hpp"
-#include "slicestation/daemon/ome_tiff.hpp"
+#include "slicestation/daemon/storage/ome_tiff.hpp"
 
 using namespace slicestation;
 

@@ -1,6 +1,6 @@
 // An atlas stack's manifest.json, as the daemon and slicectl read it at start.
 #include "fuzz_common.hpp"
-#include "slicestation/daemon/atlas_stack.hpp"
+#include "slicestation/daemon/storage/atlas_stack.hpp"
 
 using namespace slicestation;
 

@@ -1,7 +1,7 @@
 // Scan plans as a technician submits them (TOML or JSON): parse, validate, resolve against a
 // station's stage limits and atlas stack. Anything but a clean Result is a finding.
-#include "slicestation/daemon/config_document.hpp"
-#include "slicestation/daemon/scan_plan.hpp"
+#include "slicestation/daemon/config/config_document.hpp"
+#include "slicestation/daemon/config/scan_plan.hpp"
 
 #include <cstddef>
 #include <cstdint>

@@ -1,7 +1,7 @@
 // Small text formats from outside: the points CSV of `slicectl register --points` (first byte
 // even) and the OME-XML block of an OME-TIFF (first byte odd).
-#include "slicestation/daemon/ome_tiff.hpp"
-#include "slicestation/daemon/points_csv.hpp"
+#include "slicestation/daemon/storage/ome_tiff.hpp"
+#include "slicestation/daemon/cli/points_csv.hpp"
 
 #include <cstddef>
 #include <cstdint>

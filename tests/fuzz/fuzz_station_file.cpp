@@ -1,8 +1,8 @@
 // The station file (TOML): devices, [daemon], [scan], [alerts]. Read as slicestationd and
 // slicectl read it; anything but a clean Result is a finding.
-#include "slicestation/daemon/config_document.hpp"
-#include "slicestation/daemon/daemon_settings.hpp"
-#include "slicestation/daemon/station_config.hpp"
+#include "slicestation/daemon/config/config_document.hpp"
+#include "slicestation/daemon/config/daemon_settings.hpp"
+#include "slicestation/daemon/config/station_config.hpp"
 
 #include <cstddef>
 #include <cstdint>

@@ -1,5 +1,5 @@
 // slicectl stage commands against stage-sim (in this process) and the simulated stage.
-#include "slicestation/daemon/station_config.hpp"
+#include "slicestation/daemon/config/station_config.hpp"
 #include "slicestation/sim/modbus_stage_server.hpp"
 
 #include <gtest/gtest.h>

@@ -1,0 +1,235 @@
+#include "slicestation/daemon/cli/atlas_command.hpp"
+
+#include "slicestation/core/atomic_file.hpp"
+
+#include "slicestation/core/nrrd.hpp"
+#include "slicestation/core/ontology.hpp"
+#include "slicestation/daemon/storage/atlas_stack.hpp"
+#include "slicestation/pipeline/atlas.hpp"
+#include "slicestation/pipeline/atlas_matching.hpp"
+#include "slicestation/pipeline/atlas_slicing.hpp"
+#include "slicestation/core/image_file.hpp"
+#include "slicestation/daemon/cli/register_command.hpp"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+
+#include <set>
+#include <sstream>
+#include <tuple>
+
+namespace slicestation::daemon {
+
+using core::ErrorCode;
+using core::makeError;
+using nlohmann::json;
+
+namespace {
+
+/// Id of the "everything else" region after the major collapse: Allen's "Basic cell groups and
+/// regions", so the brain keeps its outline where no major region claims a voxel.
+constexpr std::int32_t kOtherId = 8;
+
+
+/// InvalidArgument naming `option` unless `value` is finite and within [min, max].
+core::Result<void> checkRange(const char* option, double value, double min, double max) {
+    if (std::isfinite(value) && value >= min && value <= max) return {};
+    std::ostringstream os;
+    os << option << " " << value << " is not a finite number in [" << min << ", " << max << "]";
+    return makeError(ErrorCode::InvalidArgument, os.str());
+}
+
+} // namespace
+
+core::Result<json> runAtlasSlice(const AtlasSliceRequest& rq) {
+    for (const auto& [option, value, min, max] :
+         {std::tuple{"--interval-um", rq.intervalUm, kMinIntervalUm, kMaxIntervalUm},
+          std::tuple{"--first-um", rq.firstUm, -kMaxPositionUm, kMaxPositionUm},
+          std::tuple{"--tilt-lr-deg", rq.tiltLrDeg, -kMaxTiltDeg, kMaxTiltDeg},
+          std::tuple{"--tilt-dv-deg", rq.tiltDvDeg, -kMaxTiltDeg, kMaxTiltDeg},
+          std::tuple{"--um-per-px", rq.umPerPx, kMinSliceUmPerPx, kMaxUmPerPx}})
+        if (auto r = checkRange(option, value, min, max); !r) return r.error();
+    if (rq.regions != "major" && rq.regions != "all")
+        return makeError(ErrorCode::InvalidArgument,
+                         "--regions must be major or all, not '" + rq.regions + "'");
+    if (rq.output.empty()) return makeError(ErrorCode::InvalidArgument, "--output is required");
+    json source;
+    std::vector<pipeline::AtlasSlice> slices;
+    std::vector<StackRegion> regions;
+
+    if (rq.builtin) {
+        if (rq.plane != "coronal")
+            return makeError(ErrorCode::InvalidArgument,
+                             "--plane: the built-in atlas has coronal planes only");
+        auto s = builtinStackSlices(rq.intervalUm, rq.firstUm);
+        if (!s) return s.error();
+        slices = std::move(*s);
+        regions = builtinStackRegions();
+        source = {{"kind", "builtin"},
+                  {"plane", "coronal"},
+                  {"interval_um", rq.intervalUm},
+                  {"first_um", rq.firstUm},
+                  {"length_um", kBuiltinLengthUm}};
+    } else {
+        if (rq.volume.empty())
+            return makeError(ErrorCode::InvalidArgument, "--volume is required (or --builtin)");
+        pipeline::VolumeAxes axes;
+        if (rq.axes == "allen")
+            axes = pipeline::VolumeAxes::Allen;
+        else if (rq.axes == "quicknii")
+            axes = pipeline::VolumeAxes::QuickNii;
+        else
+            return makeError(ErrorCode::InvalidArgument,
+                             "--axes must be allen or quicknii, not '" + rq.axes + "'");
+        auto orientation = pipeline::parsePlaneOrientation(rq.plane);
+        if (!orientation)
+            return makeError(ErrorCode::InvalidArgument, "--plane: " + orientation.error().message);
+        if (rq.regions == "major" && rq.ontology.empty())
+            return makeError(ErrorCode::InvalidArgument,
+                             "--regions major needs --ontology (structure_id_path)");
+        auto volume = core::readNrrd(rq.volume);
+        if (!volume) return volume.error();
+        core::Ontology ontology;
+        if (!rq.ontology.empty()) {
+            auto o = core::readOntologyCsv(rq.ontology);
+            if (!o) return o.error();
+            ontology = std::move(*o);
+        }
+        const pipeline::CuttingPlan plan{*orientation,  rq.firstUm, rq.intervalUm,
+                                         rq.tiltLrDeg, rq.tiltDvDeg, rq.umPerPx};
+        auto cut = pipeline::sliceVolume(*volume, axes, plan);
+        if (!cut)
+            return makeError(cut.error().code, rq.volume.string() + ": " + cut.error().message);
+        slices = std::move(*cut);
+        std::set<std::uint32_t> ids;
+        if (rq.regions == "major") {
+            for (auto& s : slices)
+                s.labels = pipeline::collapseLabels(s.labels, ontology, pipeline::majorRegionIds(),
+                                                    kOtherId);
+            ids.insert(pipeline::majorRegionIds().begin(), pipeline::majorRegionIds().end());
+            ids.insert(kOtherId);
+        } else {
+            for (const auto& s : slices)
+                for (auto it = s.labels.begin<int>(); it != s.labels.end<int>(); ++it)
+                    if (*it != 0) ids.insert(std::uint32_t(*it));
+        }
+        for (std::uint32_t id : ids) {
+            const core::Structure* st = ontology.find(id);
+            regions.push_back(st ? StackRegion{id, st->name, st->acronym, st->colorRgb}
+                                 : StackRegion{id, "", "", 0});
+        }
+        const cv::Vec3d extent = pipeline::volumeExtentUm(*volume, axes);
+        source = {{"kind", "volume"},
+                  {"volume", rq.volume.string()},
+                  {"ontology", rq.ontology.string()},
+                  {"axes", rq.axes},
+                  {"volume_sizes", volume->sizes},
+                  {"volume_spacing_um", volume->spacingUm},
+                  {"extent_um", {extent[0], extent[1], extent[2]}},
+                  {"plane", rq.plane},
+                  {"interval_um", rq.intervalUm},
+                  {"first_um", rq.firstUm},
+                  {"tilt_lr_deg", rq.tiltLrDeg},
+                  {"tilt_dv_deg", rq.tiltDvDeg},
+                  {"regions", rq.regions}};
+    }
+    source["um_per_px"] = rq.builtin ? kBuiltinUmPerPx : rq.umPerPx;
+    auto stack = writeStack(rq.output, slices, std::move(regions), source);
+    if (!stack) return stack.error();
+    return json{{"slices", stack->slices.size()},
+                {"first_position_um", stack->slices.front().positionUm},
+                {"last_position_um", stack->slices.back().positionUm},
+                {"regions", stack->regions.size()},
+                {"manifest", (rq.output / "manifest.json").string()}};
+}
+
+core::Result<void> useStackSlice(RegisterRequest& rq, int slice) {
+    namespace fs = std::filesystem;
+    const bool isStack = fs::is_directory(rq.atlas) || rq.atlas.filename() == "manifest.json";
+    if (!isStack) {
+        if (slice >= 0)
+            return makeError(ErrorCode::InvalidArgument,
+                             "--slice needs --atlas to be a stack directory, not " +
+                                 rq.atlas.string());
+        return {};
+    }
+    if (slice < 0)
+        return makeError(ErrorCode::InvalidArgument,
+                         "--atlas " + rq.atlas.string() + " is a stack: choose one with --slice N");
+    auto stack = readStack(rq.atlas);
+    if (!stack) return stack.error();
+    auto path = stackSlicePath(*stack, slice);
+    if (!path) return path.error();
+    rq.atlas = *path;
+    if (rq.imageUmPerPx > 0 && rq.atlasUmPerPx <= 0)
+        rq.atlasUmPerPx = stack->slices[size_t(slice)].umPerPx;
+    return {};
+}
+
+core::Result<json> runAtlasMatch(const AtlasMatchRequest& rq) {
+    using Clock = std::chrono::steady_clock;
+    const auto t0 = Clock::now();
+    if (rq.window < 0) return makeError(ErrorCode::InvalidArgument, "--window must be >= 0");
+    if (rq.imageUmPerPx != 0)
+        if (auto r = checkRange("--image-um-per-px", rq.imageUmPerPx, kMinUmPerPx, kMaxUmPerPx); !r)
+            return r.error();
+    auto stack = readStack(rq.stack);
+    if (!stack) return stack.error();
+    const int count = int(stack->slices.size());
+    if (rq.expectedIndex && (*rq.expectedIndex < 0 || *rq.expectedIndex >= count))
+        return makeError(ErrorCode::OutOfRange, "--expected-index " +
+                                                    std::to_string(*rq.expectedIndex) +
+                                                    " is not in the stack (0.." +
+                                                    std::to_string(count - 1) + ")");
+    auto image = core::readImage(rq.image);
+    if (!image) return image.error();
+    auto features = stackFeatures(*stack);
+    if (!features) return features.error();
+    const auto tLoaded = Clock::now();
+
+    pipeline::MatchOptions opt;
+    if (rq.expectedIndex) {
+        // A window wider than the stack searches all of it; bounded first, so that no sum
+        // overflows (expectedIndex < count).
+        const int window = std::min(rq.window, count);
+        opt.first = std::max(0, *rq.expectedIndex - window);
+        opt.last = std::min(count - 1, *rq.expectedIndex + window);
+    }
+    auto section = pipeline::sectionFeatures(*image, rq.imageUmPerPx, features->front().workUmPerPx);
+    if (!section)
+        return makeError(section.error().code, rq.image.string() + ": " + section.error().message);
+    auto m = pipeline::matchSection(*section, *features, opt);
+    if (!m) return makeError(m.error().code, rq.image.string() + ": " + m.error().message);
+    const auto tMatched = Clock::now();
+
+    json candidates = json::array();
+    for (const auto& c : m->candidates)
+        candidates.push_back({{"index", c.index},
+                              {"position_um", stack->slices[size_t(c.index)].positionUm},
+                              {"score", c.score},
+                              {"overlap", c.overlap}});
+    auto ms = [](auto a, auto b) { return std::chrono::duration<double, std::milli>(b - a).count(); };
+    json out = {{"index", m->index},
+                {"position_um", m->positionUm},
+                {"slice_position_um", stack->slices[size_t(m->index)].positionUm},
+                {"score", m->score},
+                {"tilt_lr_deg", m->tiltColumnsDeg},
+                {"tilt_dv_deg", m->tiltRowsDeg},
+                {"tilt_estimated", m->tiltEstimated},
+                {"candidates", std::move(candidates)},
+                {"stack", stack->dir.string()},
+                {"image", rq.image.string()},
+                {"timings_ms", {{"load", ms(t0, tLoaded)}, {"match", ms(tLoaded, tMatched)},
+                                {"total", ms(t0, Clock::now())}}}};
+    if (rq.expectedIndex) {
+        out["expected_index"] = *rq.expectedIndex;
+        // More than one slice off: the plan and the section disagree (sections mounted out of
+        // order, skipped or tilted); the caller decides whether that is a warning.
+        out["mismatch"] = std::abs(m->index - *rq.expectedIndex) > 1;
+    }
+    if (auto w = core::writeFileAtomically(rq.output, out.dump(2) + "\n"); !w) return w.error();
+    return out;
+}
+
+} // namespace slicestation::daemon

@@ -1,0 +1,90 @@
+#include "slicestation/daemon/cli/atlas_command.hpp"
+#include "slicestation/daemon/cli/cli.hpp"
+#include "slicestation/daemon/cli/demo_command.hpp"
+#include "slicestation/daemon/cli/register_command.hpp"
+#include "slicestation/pipeline/atlas_slicing.hpp"
+
+#include <cmath>
+#include <iostream>
+#include <sstream>
+#include <memory>
+
+namespace slicestation::daemon {
+
+CLI::Validator finiteRange(double min, double max) {
+    std::ostringstream range;
+    range << "[" << min << ", " << max << "]";
+    const std::string text = range.str();
+    return CLI::Validator(
+        [min, max, text](std::string& value) -> std::string {
+            double v = 0;
+            if (!CLI::detail::lexical_cast(value, v) || !std::isfinite(v) || v < min || v > max)
+                return "'" + value + "' is not a finite number in " + text;
+            return {};
+        },
+        "FINITE in " + text);
+}
+
+int reportError(const char* command, const core::Error& e) {
+    std::cerr << "slicectl " << command << ": error: " << e.message << "\n";
+    return e.code == core::ErrorCode::Internal ? 1 : 2;
+}
+
+CommandRunner addRegisterCommand(CLI::App& app) {
+    struct Opts {
+        RegisterRequest rq;
+        std::string points, overlay, warped;
+        int slice = -1;
+    };
+    auto o = std::make_shared<Opts>();
+    auto* reg = app.add_subcommand("register", "Register one section image to one atlas slice");
+    reg->add_option("--atlas", o->rq.atlas,
+                    "Atlas label image (ids or colour-coded RGB), or a stack directory with --slice")
+        ->required();
+    reg->add_option("--slice", o->slice, "Slice index when --atlas is a stack directory")
+        ->check(CLI::Range(0, pipeline::kMaxStackSlices - 1));
+    reg->add_option("--image", o->rq.image, "Section image (PNG or TIFF)")->required();
+    reg->add_option("--points", o->points, "CSV with header x,y: section pixels to map");
+    reg->add_option("--output", o->rq.output, "Result JSON")->required();
+    reg->add_option("--overlay", o->overlay, "Overlay PNG: section with atlas outlines");
+    reg->add_option("--warped-labels", o->warped, "Atlas labels in the section frame (TIFF)");
+    reg->add_option("--image-um-per-px", o->rq.imageUmPerPx, "Section pixel size (prior on scale)")
+        ->check(finiteRange(kMinUmPerPx, kMaxUmPerPx));
+    reg->add_option("--atlas-um-per-px", o->rq.atlasUmPerPx, "Atlas pixel size (prior on scale)")
+        ->check(finiteRange(kMinUmPerPx, kMaxUmPerPx));
+    reg->add_option("--working-size", o->rq.workingMaxSide, "Longer side of the working image")
+        ->check(CLI::Range(128, 8192));
+    return [o, reg]() -> int {
+        if (!*reg) return -1;
+        RegisterRequest rq = o->rq;
+        if (!o->points.empty()) rq.points = o->points;
+        if (!o->overlay.empty()) rq.overlay = o->overlay;
+        if (!o->warped.empty()) rq.warpedLabels = o->warped;
+        if (auto s = useStackSlice(rq, o->slice); !s) return reportError("register", s.error());
+        auto r = runRegister(rq);
+        if (!r) return reportError("register", r.error());
+        std::cout << "registered " << rq.image.string() << " -> " << rq.output.string()
+                  << " (tissue overlap " << (*r)["quality"]["tissue_overlap"].get<double>() << ", "
+                  << (*r)["quality"]["correspondences"].get<int>() << " correspondences, "
+                  << (*r)["timings_ms"]["total"].get<double>() << " ms)\n";
+        return 0;
+    };
+}
+
+CommandRunner addDemoCommand(CLI::App& app) {
+    auto demo = std::make_shared<DemoRequest>();
+    auto* dem = app.add_subcommand(
+        "demo", "Generate a section from the built-in atlas, register it, check it");
+    dem->add_option("--output-dir", demo->outputDir, "Where to write the files");
+    dem->add_option("--seed", demo->seed, "Generator seed");
+    dem->add_flag("--damaged", demo->damaged, "Tear the generated section");
+    return [demo, dem]() -> int {
+        if (!*dem) return -1;
+        auto r = runDemo(*demo);
+        if (!r) return reportError("demo", r.error());
+        std::cout << r->dump(2) << "\n";
+        return 0;
+    };
+}
+
+} // namespace slicestation::daemon

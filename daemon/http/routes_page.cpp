@@ -1,0 +1,31 @@
+// The page, the station's status and the live view.
+#include "routes.hpp"
+
+#include "slicestation/daemon/http/web_page.hpp"
+#include "slicestation/daemon/station/autofocus.hpp"
+
+namespace slicestation::daemon::http {
+
+void addPageRoutes(httplib::Server& srv, StationApi& st) {
+    // The page: self-contained, and the browser is told to load nothing from elsewhere.
+    srv.Get("/", [](const httplib::Request&, httplib::Response& res) {
+        res.set_header("Content-Security-Policy",
+                       "default-src 'self'; img-src 'self' blob:; style-src 'unsafe-inline'; "
+                       "script-src 'unsafe-inline'; connect-src 'self'");
+        res.set_header("X-Content-Type-Options", "nosniff");
+        res.set_header("Cache-Control", "no-cache");
+        const auto page = webPage();
+        res.set_content(page.data(), page.size(), "text/html; charset=utf-8");
+    });
+    srv.Get("/api/status", [&st](const httplib::Request&, httplib::Response& res) { sendJson(res, st.status()); });
+    // The latest camera frame, scaled to ?width= (16..4096).
+    srv.Get("/api/live.jpg", [&st](const httplib::Request& req, httplib::Response& res) {
+        auto width = intQuery(req, res, "width", 16, 4096, 1024);
+        if (!width) return;
+        auto frame = st.liveFrame();
+        if (!frame) return sendError(res, 404, "no frame yet");
+        sendImage(res, frameToMat(*frame), *width, ".jpg");
+    });
+}
+
+} // namespace slicestation::daemon::http

@@ -1,0 +1,62 @@
+#pragma once
+/// Registering one section image to one atlas label image, with typed results: what the
+/// registration worker (and `slicectl register`) call. Reads both images, checks them,
+/// registers (pipeline::registerSection), and writes every requested output atomically: the
+/// result document (RESULT.json, docs/operation.md), the overlay PNG and the atlas labels in the
+/// section frame (CV_32S TIFF).
+///
+/// Threading: re-entrant; blocking file I/O and a registration of about a second.
+#include "slicestation/core/result.hpp"
+#include "slicestation/pipeline/registration.hpp"
+
+#include <nlohmann/json.hpp>
+#include <opencv2/core.hpp>
+
+#include <filesystem>
+#include <functional>
+#include <optional>
+#include <vector>
+
+namespace slicestation::daemon {
+
+/// Pixel sizes a request may give (micrometres per pixel): from a 100x objective to a
+/// 1 mm-per-pixel thumbnail.
+inline constexpr double kMinUmPerPx = 0.01;
+inline constexpr double kMaxUmPerPx = 1000;
+/// Section images registered: 300 to 8000 px on each side (README). Smaller holds too little
+/// tissue to find edges in; larger is a tiled scan to be reduced before registration.
+inline constexpr int kMinSectionSidePx = 300;
+inline constexpr int kMaxSectionSidePx = 8000;
+
+struct RegisterRequest {
+    std::filesystem::path atlas;  ///< label image (8/16/32-bit ids or colour-coded RGB)
+    std::filesystem::path image;  ///< section image (PNG or TIFF)
+    std::optional<std::filesystem::path> points;       ///< CSV x,y to map (read by loadPoints)
+    std::filesystem::path output;                      ///< RESULT.json
+    std::optional<std::filesystem::path> overlay;      ///< PNG
+    std::optional<std::filesystem::path> warpedLabels; ///< TIFF, CV_32S ids at section size
+    double imageUmPerPx = 0; ///< 0 = unknown
+    double atlasUmPerPx = 0; ///< 0 = unknown
+    int workingMaxSide = 1024;
+};
+
+/// A section registered, typed; `document` is what was written to RESULT.json.
+struct RegisteredSection {
+    pipeline::Registration registration;
+    cv::Size sectionSize;
+    cv::Mat warpedLabels; ///< CV_32S atlas ids at section size; empty unless requested
+    nlohmann::json document;
+};
+
+/// Checks: pixel sizes 0 (unknown) or finite within [kMinUmPerPx, kMaxUmPerPx] (both or
+/// neither); the section kMinSectionSidePx..kMaxSectionSidePx on each side; the atlas labels
+/// holding both brain (non-zero ids) and outside (0).
+/// \return the first error met: NotFound / IoError for files, InvalidArgument for malformed
+///         input (the message names the file and what is wrong), NoTissue. Nothing is written
+///         then.
+/// Reads the points file of a request (slicectl's CSV reader); called after both images are read.
+using PointsLoader = std::function<core::Result<std::vector<cv::Point2d>>(const std::filesystem::path&)>;
+[[nodiscard]] core::Result<RegisteredSection> registerSectionFiles(const RegisterRequest& request,
+                                                                   const PointsLoader& loadPoints = {});
+
+} // namespace slicestation::daemon

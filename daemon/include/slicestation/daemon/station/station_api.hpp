@@ -1,0 +1,80 @@
+#pragma once
+/// What the outward parts (the HTTP API) may ask of the station, and nothing more: the journal's
+/// records, the station's views of them, the stored images, and the control requests. Station
+/// is the model; tests use a fake (tests/daemon/http/fake_station.hpp).
+///
+/// Errors follow one rule, so that the HTTP API maps them with one table (http/http_util.hpp):
+///   reads:    NotFound (no such record, or nothing of it yet), InvalidArgument / OutOfRange /
+///             Unsupported (the request's values), anything else a fault of the station;
+///   controls: NotFound (no such record), InvalidArgument (the record is not in a state for
+///             the request, e.g. resuming a run that is not paused), OutOfRange / Unsupported
+///             (a bad value), anything else a fault of the station.
+/// Threading: every call from any thread (the HTTP server's workers).
+#include "slicestation/core/frame.hpp"
+#include "slicestation/core/result.hpp"
+#include "slicestation/daemon/alerts/notifier.hpp"
+#include "slicestation/daemon/storage/journal.hpp"
+
+#include <nlohmann/json.hpp>
+#include <opencv2/core.hpp>
+
+#include <cstdint>
+#include <memory>
+#include <string>
+#include <vector>
+
+namespace slicestation::daemon {
+
+/// The atlas region at a pixel of a section's latest registered capture.
+struct RegionAtPixel {
+    std::int32_t id = 0; ///< 0: outside the brain
+    int x = 0, y = 0;    ///< the full-resolution pixel looked at
+    std::string name, acronym; ///< empty when the ontology lacks the id (or id 0)
+};
+
+class StationApi {
+public:
+    virtual ~StationApi() = default;
+
+    // Reads.
+    /// {"state", "activity", "active_run", "simulated", "open_alerts", "phases", ...}
+    virtual nlohmann::json status() = 0;
+    [[nodiscard]] virtual core::Result<std::vector<RunRecord>> runs() = 0;
+    [[nodiscard]] virtual core::Result<RunRecord> run(std::int64_t runId) = 0;
+    /// NotFound when the run does not exist.
+    [[nodiscard]] virtual core::Result<std::vector<SectionRecord>> sections(std::int64_t runId) = 0;
+    /// Format "json" or "csv" (else InvalidArgument).
+    [[nodiscard]] virtual core::Result<std::string> exportRun(std::int64_t runId, const std::string& format) = 0;
+    [[nodiscard]] virtual core::Result<nlohmann::json> sectionDetail(std::int64_t sectionId) = 0;
+    [[nodiscard]] virtual core::Result<std::vector<AlertRecord>> alerts(bool openOnly) = 0;
+    /// The latest camera frame, null before the first.
+    virtual std::shared_ptr<const hw::Frame> liveFrame() const = 0;
+    /// The image of a section's latest capture, or (`overlay`) its registration overlay, as
+    /// stored. NotFound: no such section, no capture yet, not registered yet (overlay); IoError:
+    /// the stored file is unreadable or its journal path leaves the state directory.
+    [[nodiscard]] virtual core::Result<cv::Mat> sectionImage(std::int64_t sectionId, bool overlay) = 0;
+    /// The atlas region at pixel (x, y) of the section's latest registered capture; with
+    /// ofWidth > 0, (x, y) is a pixel of that image scaled to width ofWidth. NotFound as
+    /// sectionImage(overlay); InvalidArgument: the pixel lies outside the image; IoError: the
+    /// stored labels are unreadable.
+    [[nodiscard]] virtual core::Result<RegionAtPixel> regionAt(std::int64_t sectionId, int x, int y,
+                                                               int ofWidth) = 0;
+
+    // Controls.
+    /// Validates and journals a plan (TOML/JSON already parsed). \return the run id.
+    [[nodiscard]] virtual core::Result<std::int64_t> submitPlan(const nlohmann::json& plan,
+                                                                const std::string& origin) = 0;
+    [[nodiscard]] virtual core::Result<void> pauseRun(std::int64_t runId) = 0;
+    [[nodiscard]] virtual core::Result<void> resumeRun(std::int64_t runId, bool resetStageAlarm) = 0;
+    [[nodiscard]] virtual core::Result<void> cancelRun(std::int64_t runId) = 0;
+    [[nodiscard]] virtual core::Result<void> requestRescan(std::int64_t sectionId) = 0;
+    /// Acknowledges an alert with `action` ("rescan": the alert's section is rescanned first,
+    /// InvalidArgument when it concerns no section; "accept" or any text).
+    [[nodiscard]] virtual core::Result<AlertRecord> acknowledgeAlert(std::int64_t alertId,
+                                                                     const std::string& action) = 0;
+
+    /// Every station event from now on (called on the raiser's thread; must not block).
+    virtual void addListener(std::function<void(const StationEvent&)> listener) = 0;
+};
+
+} // namespace slicestation::daemon

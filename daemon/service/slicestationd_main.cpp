@@ -1,0 +1,180 @@
+// slicestationd: the station daemon. Opens the devices named in the station file, the journal
+// and the atlas, serves the HTTP API, and scans the queued runs until SIGTERM.
+// Only this program logs; lines carry sd-daemon priority prefixes for the systemd journal.
+#include "slicestation/daemon/alerts/alert_channels.hpp"
+
+#include "slicestation/core/atomic_file.hpp"
+#include "slicestation/daemon/config/config_document.hpp"
+#include "slicestation/daemon/config/daemon_settings.hpp"
+#include "slicestation/daemon/http/http_api.hpp"
+#include "slicestation/daemon/station/station.hpp"
+#include "slicestation/daemon/config/station_config.hpp"
+#include "slicestation/daemon/service/systemd_notifier.hpp"
+
+#include <CLI/CLI.hpp>
+
+#include <atomic>
+#include <mutex>
+#include <csignal>
+#include <cstdlib>
+#include <iostream>
+#include <pthread.h>
+
+namespace {
+
+using namespace slicestation;
+using namespace slicestation::daemon;
+
+int fail(const std::string& what, const core::Error& e) {
+    std::cerr << "<3>slicestationd: " << what << ": " << e.message << std::endl;
+    return e.code == core::ErrorCode::InvalidArgument || e.code == core::ErrorCode::NotFound ? 2 : 1;
+}
+
+} // namespace
+
+int main(int argc, char** argv) {
+    CLI::App app{"slicestationd: the slide-scanning station daemon"};
+    std::string configFile, stateDirOpt;
+    std::vector<std::string> plans;
+    std::optional<int> httpPort;
+    bool exitWhenIdle = false;
+    app.add_option("--config", configFile, "Station file (TOML): [stage], [camera], [daemon], [scan]")->required();
+    app.add_option("--state-dir", stateDirOpt, "State directory (default: $STATE_DIRECTORY, then daemon.state_dir)");
+    app.add_option("--plan", plans, "Submit this scan plan at start (TOML or JSON); repeatable");
+    app.add_option("--http-port", httpPort, "Override daemon.http_port (0: any free port)");
+    app.add_flag("--exit-when-idle", exitWhenIdle, "Exit once no run is left to scan (demo, benchmark)");
+    try {
+        app.parse(argc, argv);
+    } catch (const CLI::ParseError& e) {
+        return app.exit(e);
+    }
+
+    // Signals are taken synchronously by the main thread; every other thread has them blocked.
+    sigset_t signals;
+    sigemptyset(&signals);
+    sigaddset(&signals, SIGTERM);
+    sigaddset(&signals, SIGINT);
+    pthread_sigmask(SIG_BLOCK, &signals, nullptr);
+    std::signal(SIGPIPE, SIG_IGN);
+
+    auto station = loadStationConfig(configFile);
+    if (!station) return fail("station file", station.error());
+    auto doc = readDocument(configFile);
+    if (!doc) return fail("station file", doc.error());
+    auto settings = parseDaemonSettings(*doc, configFile);
+    if (!settings) return fail("station file", settings.error());
+    if (httpPort) settings->httpPort = *httpPort;
+    auto alertSettings = parseAlertSettings(*doc, configFile);
+    if (!alertSettings) return fail("station file", alertSettings.error());
+    auto alertSinks = makeAlertSinks(*alertSettings);
+    if (!alertSinks) return fail("station file", alertSinks.error());
+
+    std::filesystem::path stateDir = stateDirOpt;
+    if (stateDir.empty())
+        if (const char* env = std::getenv("STATE_DIRECTORY"); env && *env) stateDir = env;
+    if (stateDir.empty()) stateDir = settings->stateDir;
+    if (stateDir.empty())
+        return fail("state directory", core::makeError(core::ErrorCode::InvalidArgument,
+                                                       "none given: use --state-dir, $STATE_DIRECTORY or daemon.state_dir"));
+
+    SystemdNotifier notifier = SystemdNotifier::fromEnvironment();
+    notifier.status("opening devices");
+
+    // The camera looks where the stage last settled: the simulated camera renders from that.
+    struct LastStage {
+        std::mutex mutex;
+        hw::StagePosition position;
+        void store(const hw::StagePosition& p) { std::lock_guard lock(mutex); position = p; }
+        hw::StagePosition load() { std::lock_guard lock(mutex); return position; }
+    };
+    auto lastStage = std::make_shared<LastStage>();
+    StationParts parts;
+    auto stage = openStage(station->stage, parts.simulatedStage);
+    if (!stage) return fail("stage", stage.error());
+    parts.stage = std::move(*stage);
+    if (auto p = parts.stage->position(std::chrono::milliseconds(2000))) lastStage->store(*p);
+    auto camera = openCamera(station->camera, [lastStage] { return lastStage->load(); }, parts.simulatedCamera);
+    if (!camera) return fail("camera", camera.error());
+    parts.camera = std::move(*camera);
+    if (parts.simulatedStage) std::cerr << "<4>slicestationd: SIMULATED stage (stage.driver = \"sim\")" << std::endl;
+    if (parts.simulatedCamera) std::cerr << "<4>slicestationd: SIMULATED camera (camera.driver = \"sim\")" << std::endl;
+    parts.settings = *settings;
+    parts.stateDir = stateDir;
+    parts.stageMoved = [lastStage](const hw::StagePosition& p) { lastStage->store(p); };
+
+    std::unique_ptr<ProgressWatchdog> watchdog;
+    core::SteadyClock clock;
+    if (notifier.watchdogInterval())
+        watchdog = std::make_unique<ProgressWatchdog>(notifier, settings->watchdogStall, clock);
+    parts.watchdog = watchdog.get();
+    parts.status = [&notifier](const std::string& s) { notifier.status(s); };
+
+    // Outward alert delivery ([alerts]), set up before the station so that it also carries the
+    // "restarted" alert raised while the station opens its journal, and declared before it so
+    // that it outlives the station's threads. A channel that gives up is logged here; the alert
+    // itself stays open in the journal. Without journald (a container) the journal channel
+    // fails for every alert: that is said once.
+    auto journalFailureLogged = std::make_shared<std::atomic<bool>>(false);
+    auto alerts = std::make_unique<AlertDispatcher>(
+        *alertSettings, std::move(*alertSinks),
+        [journalFailureLogged](const std::string& channel, const AlertRecord& a, const core::Error& e) {
+            if (channel == "journal" && journalFailureLogged->exchange(true)) return;
+            // The message names the channel.
+            std::cerr << "<4>slicestationd: alert " << a.id << " (" << a.kind << ") not delivered: " << e.message
+                      << (channel == "journal" ? " (not repeated)" : "") << std::endl;
+        });
+    {
+        std::string names;
+        for (const auto& n : alerts->channelNames()) names += (names.empty() ? "" : ", ") + n;
+        std::cerr << "<6>slicestationd: alert channels: " << (names.empty() ? "none (journal disabled)" : names)
+                  << " (min severity " << alertSettings->minSeverity << ", " << alertSettings->retries
+                  << " retries, " << alertSettings->maxPerWindow << "/min per channel)" << std::endl;
+    }
+    parts.alertChannels.push_back([d = alerts.get()](const AlertRecord& a) { d->post(a); });
+    auto st = Station::create(std::move(parts));
+    if (!st) {
+        alerts->stop(std::chrono::seconds(5));
+        return fail("station", st.error());
+    }
+    Station& s = **st;
+    auto api = HttpApi::start(s, settings->httpBind, settings->httpPort, settings->token);
+    if (!api) return fail("HTTP API", api.error());
+    (void)core::writeFileAtomically(stateDir / "http.port", std::to_string((*api)->port()) + "\n");
+    std::cerr << "<6>slicestationd: state " << stateDir << ", atlas " << s.atlas().dir << " ("
+              << s.atlas().slices.size() << " slices), HTTP on " << settings->httpBind << ":" << (*api)->port()
+              << std::endl;
+
+    for (const auto& plan : plans) {
+        auto pd = readDocument(plan);
+        if (!pd) return fail("plan", pd.error());
+        auto id = s.submitPlan(*pd, plan);
+        if (!id) return fail("plan", id.error());
+        std::cerr << "<6>slicestationd: plan " << plan << " queued as run " << *id << std::endl;
+    }
+
+    s.start();
+    notifier.ready();
+
+    int rc = 0;
+    for (;;) {
+        const timespec wait{0, 200'000'000};
+        const int sig = sigtimedwait(&signals, nullptr, &wait);
+        if (sig == SIGTERM || sig == SIGINT) {
+            std::cerr << "<5>slicestationd: " << (sig == SIGTERM ? "SIGTERM" : "SIGINT") << ": stopping" << std::endl;
+            break;
+        }
+        if (exitWhenIdle && s.idle()) {
+            auto next = s.journal().nextRun();
+            if (next && !*next) break;
+        }
+    }
+    notifier.stopping();
+    notifier.status("stopping: stage halted, finishing the current transaction");
+    if (watchdog) watchdog->stop();
+    (*api)->stop();
+    s.stop();
+    // After the station: its last alerts (a paused run) still get out, within 5 s.
+    alerts->stop(std::chrono::seconds(5));
+    std::cerr << "<6>slicestationd: stopped" << std::endl;
+    return rc;
+}
