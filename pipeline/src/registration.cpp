@@ -271,21 +271,28 @@ cv::Point2d Registration::atlasFromImage(cv::Point2d imagePx) const {
 void Registration::atlasMaps(cv::Size size, cv::Mat& mapX, cv::Mat& mapY) const {
     // Evaluate on the working grid, then resize: the field is smooth, and this keeps an
     // 8000 x 5000 map at two resizes instead of 40 million bilinear look-ups.
-    const cv::Size ws = workingGrey.size();
+    // A copy smaller than the working image is evaluated directly (its pixel (x, y) is working
+    // pixel ((x + 0.5) sx - 0.5, ...), the cv::resize alignment); larger ones are resized from
+    // the working grid below.
+    const cv::Size full = workingGrey.size();
+    const bool direct = size.width <= full.width && size.height <= full.height;
+    const cv::Size ws = direct ? size : full;
+    const double sx = double(full.width) / ws.width, sy = double(full.height) / ws.height;
+    const cv::Matx23d workingFromOut(sx, 0, 0.5 * sx - 0.5, 0, sy, 0.5 * sy - 0.5);
     cv::Mat wx(ws, CV_32F), wy(ws, CV_32F);
     const bool hasWarp = !warp.empty();
     cv::Mat fx, fy;
     if (hasWarp) {
-        // Field nodes sit at multiples of cellPx; resample to every working pixel (pixel (x, y)
-        // reads the field at (x, y) / cellPx).
+        // Field nodes sit at multiples of cellPx: pixel (x, y) reads the field at its working
+        // position / cellPx.
         const double inv = 1.0 / warp.cellPx();
-        const cv::Matx23d toNodes(inv, 0, 0, 0, inv, 0);
+        const cv::Matx23d toNodes = compose(cv::Matx23d(inv, 0, 0, 0, inv, 0), workingFromOut);
         cv::warpAffine(warp.dx(), fx, toNodes, ws, cv::INTER_LINEAR | cv::WARP_INVERSE_MAP,
                        cv::BORDER_REPLICATE);
         cv::warpAffine(warp.dy(), fy, toNodes, ws, cv::INTER_LINEAR | cv::WARP_INVERSE_MAP,
                        cv::BORDER_REPLICATE);
     }
-    const cv::Matx23d& t = atlasFromWorking;
+    const cv::Matx23d t = compose(atlasFromWorking, workingFromOut);
     for (int y = 0; y < ws.height; ++y) {
         float* ox = wx.ptr<float>(y);
         float* oy = wy.ptr<float>(y);
@@ -572,29 +579,33 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     // Dense refinement (beyond the paper): the atlas regions are fitted to the section's own
     // contrast inside the tissue on a reduced grid; damaged and excluded parts stay out.
     if (options.denseRefine) {
-        cv::Mat measured;
-        const int band = std::max(2, static_cast<int>(std::lround(reg.workingGrey.cols / 100.0)));
-        cv::dilate(tissueFilled, measured,
-                   cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * band + 1, 2 * band + 1)));
-        if (!options.excludeMask.empty()) {
-            cv::Mat ex;
-            cv::resize(options.excludeMask != 0, ex, reg.workingGrey.size(), 0, 0, cv::INTER_NEAREST);
-            measured.setTo(0, ex);
-        }
-        if (!fragments.empty()) {
-            cv::Mat grown;
-            cv::dilate(fragments, grown, cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * band + 1, 2 * band + 1)));
-            measured.setTo(0, grown);
-        }
-        if (!damagedOutline.empty()) measured.setTo(0, damagedOutline);
+        // Work on the refinement grid from the start: the masks are reduced first (a grid
+        // pixel counts when mostly tissue; any excluded share excludes it), then the glass
+        // band is grown there.
         const cv::Size ws = reg.workingGrey.size();
         const double f = std::min(1.0, double(options.dense.gridMaxSide) / std::max(ws.width, ws.height));
         const cv::Size gs(std::max(8, static_cast<int>(std::lround(ws.width * f))),
                           std::max(8, static_cast<int>(std::lround(ws.height * f))));
-        cv::Mat grey, weight, mx, my;
+        cv::Mat grey, weight, excluded, mx, my;
         cv::resize(reg.workingGrey, grey, gs, 0, 0, cv::INTER_AREA);
-        cv::resize(measured, weight, gs, 0, 0, cv::INTER_AREA);
-        weight = weight > 200;
+        cv::resize(tissueFilled, weight, gs, 0, 0, cv::INTER_AREA);
+        weight = weight > 127;
+        const int band = std::max(1, static_cast<int>(std::lround(gs.width / 100.0)));
+        cv::dilate(weight, weight,
+                   cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * band + 1, 2 * band + 1)));
+        auto exclude = [&](const cv::Mat& mask, int grownBy) {
+            if (mask.empty()) return;
+            cv::resize(mask != 0, excluded, gs, 0, 0, cv::INTER_AREA);
+            excluded = excluded > 0;
+            if (grownBy > 0)
+                cv::dilate(excluded, excluded,
+                           cv::getStructuringElement(cv::MORPH_ELLIPSE,
+                                                     cv::Size(2 * grownBy + 1, 2 * grownBy + 1)));
+            weight.setTo(0, excluded);
+        };
+        exclude(options.excludeMask, 0);
+        exclude(fragments, band);
+        exclude(damagedOutline, 0);
         reg.atlasMaps(gs, mx, my);
         const DenseRefinement dense = refineDense(grey, weight, mx, my, atlasLabels,
                                                   options.atlasIntensity, options.dense);
