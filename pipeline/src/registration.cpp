@@ -209,6 +209,48 @@ void addWarpConditions(const EdgePoints& section, const cv::Matx23d& atlasFromWo
     }
 }
 
+/// Smallest Jacobian determinant of working px -> atlas px (affine + warp) on the warp's nodes,
+/// relative to the affine's.
+double minJacobianRelative(const cv::Matx23d& affine, const DisplacementField& warp) {
+    if (warp.empty() || warp.dx().cols < 2 || warp.dx().rows < 2) return 1.0;
+    const double inv = 1.0 / warp.cellPx();
+    cv::Mat xx, xy, yx, yy;
+    cv::Sobel(warp.dx(), xx, CV_32F, 1, 0, 1, 0.5 * inv, affine(0, 0), cv::BORDER_REPLICATE);
+    cv::Sobel(warp.dx(), xy, CV_32F, 0, 1, 1, 0.5 * inv, affine(0, 1), cv::BORDER_REPLICATE);
+    cv::Sobel(warp.dy(), yx, CV_32F, 1, 0, 1, 0.5 * inv, affine(1, 0), cv::BORDER_REPLICATE);
+    cv::Sobel(warp.dy(), yy, CV_32F, 0, 1, 1, 0.5 * inv, affine(1, 1), cv::BORDER_REPLICATE);
+    double m = 0;
+    cv::minMaxLoc(xx.mul(yy) - xy.mul(yx), &m);
+    return m / det(affine);
+}
+
+/// `warp` plus a displacement sampled on a reduced copy (`ux`, `uy`, CV_32F) of the working
+/// domain `working` (cv::resize pixel-centre alignment); a warp with no nodes yet gets them.
+DisplacementField addToWarp(const DisplacementField& warp, cv::Size working, const cv::Mat& ux,
+                            const cv::Mat& uy) {
+    cv::Mat dx = warp.empty() ? cv::Mat() : warp.dx().clone();
+    cv::Mat dy = warp.empty() ? cv::Mat() : warp.dy().clone();
+    double cell = warp.empty() ? 0 : warp.cellPx();
+    if (warp.empty()) {
+        cell = std::max(2.0, std::max(working.width, working.height) / 200.0);
+        const int cols = static_cast<int>(std::ceil((working.width - 1) / cell)) + 1;
+        const int rows = static_cast<int>(std::ceil((working.height - 1) / cell)) + 1;
+        dx = cv::Mat::zeros(rows, cols, CV_32F);
+        dy = cv::Mat::zeros(rows, cols, CV_32F);
+    }
+    const double fx = double(ux.cols) / working.width, fy = double(ux.rows) / working.height;
+    cv::Mat mx(dx.size(), CV_32F), my(dx.size(), CV_32F);
+    for (int i = 0; i < dx.rows; ++i)
+        for (int j = 0; j < dx.cols; ++j) {
+            mx.at<float>(i, j) = float((j * cell + 0.5) * fx - 0.5);
+            my.at<float>(i, j) = float((i * cell + 0.5) * fy - 0.5);
+        }
+    cv::Mat ax, ay;
+    cv::remap(ux, ax, mx, my, cv::INTER_LINEAR, cv::BORDER_REPLICATE);
+    cv::remap(uy, ay, mx, my, cv::INTER_LINEAR, cv::BORDER_REPLICATE);
+    return DisplacementField(dx + ax, dy + ay, cell);
+}
+
 } // namespace
 
 cv::Point2d Registration::workingFromImage(cv::Point2d p) const {
@@ -229,21 +271,28 @@ cv::Point2d Registration::atlasFromImage(cv::Point2d imagePx) const {
 void Registration::atlasMaps(cv::Size size, cv::Mat& mapX, cv::Mat& mapY) const {
     // Evaluate on the working grid, then resize: the field is smooth, and this keeps an
     // 8000 x 5000 map at two resizes instead of 40 million bilinear look-ups.
-    const cv::Size ws = workingGrey.size();
+    // A copy smaller than the working image is evaluated directly (its pixel (x, y) is working
+    // pixel ((x + 0.5) sx - 0.5, ...), the cv::resize alignment); larger ones are resized from
+    // the working grid below.
+    const cv::Size full = workingGrey.size();
+    const bool direct = size.width <= full.width && size.height <= full.height;
+    const cv::Size ws = direct ? size : full;
+    const double sx = double(full.width) / ws.width, sy = double(full.height) / ws.height;
+    const cv::Matx23d workingFromOut(sx, 0, 0.5 * sx - 0.5, 0, sy, 0.5 * sy - 0.5);
     cv::Mat wx(ws, CV_32F), wy(ws, CV_32F);
     const bool hasWarp = !warp.empty();
     cv::Mat fx, fy;
     if (hasWarp) {
-        // Field nodes sit at multiples of cellPx; resample to every working pixel (pixel (x, y)
-        // reads the field at (x, y) / cellPx).
+        // Field nodes sit at multiples of cellPx: pixel (x, y) reads the field at its working
+        // position / cellPx.
         const double inv = 1.0 / warp.cellPx();
-        const cv::Matx23d toNodes(inv, 0, 0, 0, inv, 0);
+        const cv::Matx23d toNodes = compose(cv::Matx23d(inv, 0, 0, 0, inv, 0), workingFromOut);
         cv::warpAffine(warp.dx(), fx, toNodes, ws, cv::INTER_LINEAR | cv::WARP_INVERSE_MAP,
                        cv::BORDER_REPLICATE);
         cv::warpAffine(warp.dy(), fy, toNodes, ws, cv::INTER_LINEAR | cv::WARP_INVERSE_MAP,
                        cv::BORDER_REPLICATE);
     }
-    const cv::Matx23d& t = atlasFromWorking;
+    const cv::Matx23d t = compose(atlasFromWorking, workingFromOut);
     for (int y = 0; y < ws.height; ++y) {
         float* ox = wx.ptr<float>(y);
         float* oy = wy.ptr<float>(y);
@@ -287,6 +336,20 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         return makeError(ErrorCode::InvalidArgument, "working size must be at least 128 px");
     if (options.imageUmPerPx < 0 || options.atlasUmPerPx < 0)
         return makeError(ErrorCode::InvalidArgument, "pixel sizes must be positive");
+    if (!options.atlasIntensity.empty() &&
+        (options.atlasIntensity.type() != CV_32F || options.atlasIntensity.size() != atlasLabels.size()))
+        return makeError(ErrorCode::InvalidArgument,
+                         "atlas intensity must be CV_32F and the size of the atlas labels");
+    if (options.denseRefine &&
+        (options.dense.gridMaxSide < 32 || options.dense.levels.empty() ||
+         options.dense.fieldSigma < 0 || options.dense.damping < 0 ||
+         std::any_of(options.dense.levels.begin(), options.dense.levels.end(),
+                     [](const DenseLevel& l) {
+                         return l.imageSigma < 0 || l.window < 1 || l.iterations < 0;
+                     })))
+        return makeError(ErrorCode::InvalidArgument,
+                         "dense refinement options: grid at least 32 px, at least one level, "
+                         "windows at least 1, no negative sigma, damping or iterations");
     const cv::Mat atlasMask = atlasLabels != 0;
     if (cv::countNonZero(atlasMask) < 16)
         return makeError(ErrorCode::InvalidArgument, "atlas slice has no labelled brain");
@@ -511,11 +574,56 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
             reg.warp = solveLaplaceWarp(reg.workingGrey.size(), pts, disp, lo);
         }
     }
+    timer.lap("warp");
+
+    // Dense refinement (beyond the paper): the atlas regions are fitted to the section's own
+    // contrast inside the tissue on a reduced grid; damaged and excluded parts stay out.
+    if (options.denseRefine) {
+        // Work on the refinement grid from the start: the masks are reduced first (a grid
+        // pixel counts when mostly tissue; any excluded share excludes it), then the glass
+        // band is grown there.
+        const cv::Size ws = reg.workingGrey.size();
+        const double f = std::min(1.0, double(options.dense.gridMaxSide) / std::max(ws.width, ws.height));
+        const cv::Size gs(std::max(8, static_cast<int>(std::lround(ws.width * f))),
+                          std::max(8, static_cast<int>(std::lround(ws.height * f))));
+        cv::Mat grey, weight, excluded, mx, my;
+        cv::resize(reg.workingGrey, grey, gs, 0, 0, cv::INTER_AREA);
+        cv::resize(tissueFilled, weight, gs, 0, 0, cv::INTER_AREA);
+        weight = weight > 127;
+        const int band = std::max(1, static_cast<int>(std::lround(gs.width / 100.0)));
+        cv::dilate(weight, weight,
+                   cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * band + 1, 2 * band + 1)));
+        auto exclude = [&](const cv::Mat& mask, int grownBy) {
+            if (mask.empty()) return;
+            cv::resize(mask != 0, excluded, gs, 0, 0, cv::INTER_AREA);
+            excluded = excluded > 0;
+            if (grownBy > 0)
+                cv::dilate(excluded, excluded,
+                           cv::getStructuringElement(cv::MORPH_ELLIPSE,
+                                                     cv::Size(2 * grownBy + 1, 2 * grownBy + 1)));
+            weight.setTo(0, excluded);
+        };
+        exclude(options.excludeMask, 0);
+        exclude(fragments, band);
+        exclude(damagedOutline, 0);
+        reg.atlasMaps(gs, mx, my);
+        const DenseRefinement dense = refineDense(grey, weight, mx, my, atlasLabels,
+                                                  options.atlasIntensity, options.dense);
+        reg.quality.explainedBeforeRefine = dense.explainedBefore;
+        reg.quality.explainedAfterRefine = dense.explainedAfter;
+        reg.quality.refined = dense.accepted;
+        if (dense.accepted) reg.warp = addToWarp(reg.warp, ws, dense.ux, dense.uy);
+        cv::resize(dense.confidence, reg.confidence, ws, 0, 0, cv::INTER_LINEAR);
+        reg.regionConfidence =
+            meanByLabel(dense.confidence, reg.warpedLabels(atlasLabels, gs), weight);
+        timer.lap("refine");
+    }
+    reg.quality.minJacobian = minJacobianRelative(reg.atlasFromWorking, reg.warp);
+
     std::vector<cv::Point2f> mp, mn;
     mapThrough(reg.sectionEdges, reg.atlasFromWorking, reg.warp, mp, mn);
     const std::vector<Match> matches = findMatches(mp, mn, reg.atlasEdges, atlasGrid, finalDist,
                                                    5, true, TargetRule::PointToLine);
-    timer.lap("warp");
 
     reg.quality.correspondences = static_cast<int>(matches.size());
     double ss = 0;

@@ -194,7 +194,9 @@ int main(int argc, char** argv) {
     app.add_option("--csv", csvPath, "Write per-case rows here");
     std::vector<int> only;
     app.add_option("--only", only, "Run only these case indices of the --cases set (to look into them)");
-    std::string overlayDir;
+    std::string overlayDir, refineMode = "on";
+    app.add_option("--refine", refineMode, "Dense refinement of ours: on | off")
+        ->check(CLI::IsMember({"on", "off"}));
     app.add_option("--overlays", overlayDir, "Write each case's overlay (ours, damage in red) here");
     CLI11_PARSE(app, argc, argv);
     int w = 0, h = 0;
@@ -253,7 +255,9 @@ int main(int argc, char** argv) {
         ours.method = "ours";
         ours.damaged = c.damaged();
         const auto t0 = std::chrono::steady_clock::now();
-        auto reg = pipeline::registerSection(gen->image, plane);
+        pipeline::RegistrationOptions ro;
+        ro.denseRefine = refineMode == "on";
+        auto reg = pipeline::registerSection(gen->image, plane, ro);
         ours.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
         if (reg) {
             std::vector<cv::Point2d> mapped;
@@ -298,6 +302,11 @@ int main(int argc, char** argv) {
                 if (auto written = core::writeImage(path, tile); !written)
                     std::cerr << path << ": " << written.error().message << "\n";
             }
+            char refined[64];
+            std::snprintf(refined, sizeof refined, " | explained %.3f -> %.3f%s",
+                          reg->quality.explainedBeforeRefine, reg->quality.explainedAfterRefine,
+                          reg->quality.refined ? " kept" : "");
+            steps += refined;
             steps += " | damage " + std::string(d.flagged ? "FLAGGED " : "clean ") + d.kinds;
         }
         std::fprintf(stderr, "%-45s ours    rmse %6.2f max %6.2f  %.3f s (ms:%s)\n",

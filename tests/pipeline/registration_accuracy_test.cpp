@@ -409,3 +409,87 @@ TEST(DamageRealSeries, TornSectionsAreFlaggedAndCleanOnesAreNot) {
         EXPECT_FALSE(reg.damaged) << name(n) << ": " << reg.damageSummary;
     }
 }
+
+TEST(RegistrationAccuracy, DenseRefinementFitsTheRegionsInsideTheTissue) {
+    // Sections deformed three times more than the benchmark's (4.5% of the tissue width), so
+    // that the geometric stages leave the inside misfit: the refinement, driven by the section's
+    // own region contrast, must bring the landmarks (all inside the tissue) clearly closer.
+    if (!fs::exists(kAtlasDir / "annotation_25_quicknii.nrrd"))
+        GTEST_SKIP() << "../shared/atlas is absent: real-atlas accuracy not tested";
+    struct Case {
+        int ap;
+        bool warp; // the Laplace warp before the refinement, or the affine alone
+        double ratio;
+    };
+    for (const Case c : {Case{140, false, 0.8}, Case{300, false, 0.8}, Case{140, true, 0.85}}) {
+        const cv::Mat plane = realPlane(c.ap);
+        ASSERT_FALSE(plane.empty());
+        sim::GeneratorOptions o;
+        o.seed = 500 + static_cast<std::uint64_t>(c.ap);
+        o.warpAmplitudeFrac = 0.045;
+        pipeline::RegistrationOptions geometric;
+        geometric.nonLinear = c.warp;
+        geometric.denseRefine = false;
+        pipeline::RegistrationOptions refined = geometric;
+        refined.denseRefine = true;
+        const Score before = registerAndScore(plane, o, geometric);
+        const Score after = registerAndScore(plane, o, refined);
+        EXPECT_LT(after.rmse, c.ratio * before.rmse)
+            << "AP " << c.ap << " warp " << c.warp << ": " << before.rmse << " -> " << after.rmse;
+        EXPECT_LT(after.max, before.max) << "AP " << c.ap << " warp " << c.warp;
+
+        auto gen = sim::generateSection(plane, o);
+        ASSERT_TRUE(gen.ok());
+        auto reg = pipeline::registerSection(gen->image, plane, refined);
+        ASSERT_TRUE(reg.ok()) << reg.error().message;
+        EXPECT_TRUE(reg->quality.refined);
+        EXPECT_GT(reg->quality.explainedAfterRefine, reg->quality.explainedBeforeRefine);
+        EXPECT_GT(reg->quality.minJacobian, 0.0) << "the map folds";
+        ASSERT_EQ(reg->confidence.size(), reg->workingGrey.size());
+        ASSERT_FALSE(reg->regionConfidence.empty());
+        for (const auto& [id, conf] : reg->regionConfidence) {
+            EXPECT_GE(conf, 0.0) << id;
+            EXPECT_LE(conf, 1.0) << id;
+        }
+    }
+}
+
+TEST(RegistrationAccuracy, ConfidenceIsLowWhereTheSectionDisagreesWithTheAtlas) {
+    // A blot of foreign stain painted into intact tissue: no atlas region explains it, so the
+    // confidence there must fall well under the confidence of the rest of the tissue.
+    if (!fs::exists(kAtlasDir / "annotation_25_quicknii.nrrd"))
+        GTEST_SKIP() << "../shared/atlas is absent: real-atlas accuracy not tested";
+    const cv::Mat plane = realPlane(260);
+    ASSERT_FALSE(plane.empty());
+    sim::GeneratorOptions o;
+    o.seed = 77;
+    auto gen = sim::generateSection(plane, o);
+    ASSERT_TRUE(gen.ok());
+    // Centre the blot on a landmark (intact tissue), far from the outline.
+    cv::Mat inner;
+    cv::erode(gen->truth.tissueMask, inner, cv::Mat(), cv::Point(-1, -1), 120);
+    cv::Point centre(-1, -1);
+    for (const auto& l : gen->truth.landmarks)
+        if (inner.at<uchar>(cvRound(l.image.y), cvRound(l.image.x))) {
+            centre = cv::Point(cvRound(l.image.x), cvRound(l.image.y));
+            break;
+        }
+    ASSERT_GE(centre.x, 0);
+    cv::Mat image = gen->image.clone();
+    double lo = 0, hi = 0;
+    cv::minMaxLoc(image, &lo, &hi, nullptr, nullptr, gen->truth.tissueMask);
+    cv::circle(image, centre, 45, cv::Scalar(hi), cv::FILLED);
+    auto reg = pipeline::registerSection(image, plane);
+    ASSERT_TRUE(reg.ok()) << reg.error().message;
+    ASSERT_FALSE(reg->confidence.empty());
+    const cv::Point2d w = reg->workingFromImage(centre);
+    const float atBlot = reg->confidence.at<float>(cvRound(w.y), cvRound(w.x));
+    cv::Mat tissue;
+    cv::resize(gen->truth.tissueMask, tissue, reg->confidence.size(), 0, 0, cv::INTER_NEAREST);
+    cv::erode(tissue, tissue, cv::Mat(), cv::Point(-1, -1), 5);
+    cv::circle(tissue, cv::Point(cvRound(w.x), cvRound(w.y)), cvRound(45 * reg->workingScale * 3), 0,
+               cv::FILLED);
+    const double elsewhere = cv::mean(reg->confidence, tissue)[0];
+    EXPECT_LT(atBlot, 0.5 * elsewhere) << "blot " << atBlot << ", elsewhere " << elsewhere;
+    EXPECT_GT(elsewhere, 0.5);
+}

@@ -4,6 +4,7 @@
 
 #include "slicestation/core/result.hpp"
 #include "slicestation/pipeline/damage.hpp"
+#include "slicestation/pipeline/dense_refine.hpp"
 #include "slicestation/pipeline/edge_points.hpp"
 #include "slicestation/pipeline/edges.hpp"
 #include "slicestation/pipeline/laplace_warp.hpp"
@@ -34,6 +35,13 @@ struct RegistrationOptions {
     /// outline up to outlinePullReach x the atlas height away.
     double outlinePullBelowOverlap = 0.87;
     double outlinePullReach = 1.0 / 6;
+    /// After the geometric stages, refine the map densely so that the atlas regions fit the
+    /// section's own contrast inside the tissue (dense_refine.hpp, docs/registration.md).
+    bool denseRefine = true;
+    DenseRefineOptions dense;
+    /// Optional atlas intensity plane (CV_32F, the size of the atlas labels, e.g. a plane of the
+    /// Allen average template): a second term of the dense refinement. Empty = none.
+    cv::Mat atlasIntensity;
     bool detectDamage = true;    ///< find damage and keep its edges out of the matching
     DamageParams damage;
     /// Atlas ids that are ventricles (empty like glass in a section): the major-region id 73.
@@ -57,6 +65,14 @@ struct RegistrationQuality {
     double sectionEdgesMatched = 0;  ///< share of section edge points with an atlas edge nearby
     double tissueOverlap = 0;        ///< IoU of the section's tissue and the mapped atlas brain
     double scaleAtlasPxPerImagePx = 0;
+    /// Smallest Jacobian determinant of the final map (affine + warp) relative to the affine's,
+    /// over the working domain: 1 = no local change of area, <= 0 = the map folds.
+    double minJacobian = 1;
+    /// Share of the section's intensity variance (tissue and a glass band, damage left out)
+    /// that the atlas regions, each painted at one fitted level, explain before and after the
+    /// dense refinement (0 when it did not run).
+    double explainedBeforeRefine = 0, explainedAfterRefine = 0;
+    bool refined = false; ///< the dense refinement ran and was kept
 };
 
 /// The result: maps full-resolution section pixels to atlas pixels (pixel centres at integers,
@@ -76,6 +92,13 @@ struct Registration {
     /// The affine (working px -> atlas px) after each stage: "obb", "outline", "icp"; for
     /// diagnosis and tests.
     std::vector<std::pair<std::string, cv::Matx23d>> stageAffines;
+    /// How far the atlas can be trusted locally: CV_32F in [0,1] at working resolution, 0 off
+    /// the measured tissue (see docs/registration.md, "Confidence"). Empty when the dense
+    /// refinement is off.
+    cv::Mat confidence;
+    /// The mean confidence of each atlas region seen in the tissue (atlas id, confidence),
+    /// largest region first.
+    std::vector<std::pair<std::int32_t, double>> regionConfidence;
 
     bool damaged = false;              ///< the decision of isDamaged()
     std::vector<DamageRegion> damage;  ///< full-resolution pixels, largest first
