@@ -5,21 +5,89 @@
 #include "slicestation/pipeline/atlas.hpp"
 #include "slicestation/sim/builtin_atlas.hpp"
 
+#include <opencv2/imgproc.hpp>
+
 #include <algorithm>
 #include <cmath>
 #include <sstream>
 
 namespace slicestation::bench {
 
+const char* familyName(Family family) {
+    switch (family) {
+    case Family::First: return "1";
+    case Family::Second: return "2";
+    case Family::Template: return "template";
+    }
+    return "?";
+}
+
 std::string BenchCase::describe() const {
     std::ostringstream s;
-    s << "case " << index << " seed " << seed << " plane " << plane
-      << (options.stain == sim::Stain::Brightfield ? " brightfield" : " fluorescence");
-    if (options.damage.tear) s << " tear";
-    if (options.damage.missing) s << " missing";
-    if (options.damage.fragment) s << " fragment";
+    if (family == Family::First) {
+        s << "case " << index << " seed " << seed << " plane " << plane
+          << (options.stain == sim::Stain::Brightfield ? " brightfield" : " fluorescence");
+        if (options.damage.tear) s << " tear";
+        if (options.damage.missing) s << " missing";
+        if (options.damage.fragment) s << " fragment";
+        return s.str();
+    }
+    s << "f" << familyName(family) << " case " << index << " seed " << seed << " plane " << plane
+      << " " << sim::toString(optionsB.stain) << (optionsB.brightfield ? " brightfield" : "");
+    if (optionsB.damage.crack) s << " crack";
+    if (optionsB.damage.bite) s << " bite";
+    if (optionsB.damage.fragment) s << " fragment";
+    if (optionsB.damage.fold) s << " fold";
     return s.str();
 }
+
+namespace {
+
+/// Which way round the Allen template's left-right axis runs relative to the QuickNII volume:
+/// decided from the data by comparing the two annotation volumes (full ids), not assumed.
+bool mirroredAgainst(const core::Volume& ann100, const cv::Mat& qnPlane25, int ap25) {
+    const int ap100 = std::clamp(int(std::lround((ap25 - 1.5) / 4)), 0, ann100.sizes[0] - 1);
+    auto p = pipeline::coronalPlane(ann100, pipeline::VolumeAxes::Allen, ap100);
+    if (!p) return false;
+    long same = 0, mirrored = 0;
+    for (int r = 0; r < p->rows; ++r)
+        for (int c = 0; c < p->cols; ++c) {
+            const int a = p->at<int>(r, c);
+            if (a == 0) continue;
+            const int rr = std::min(qnPlane25.rows - 1, r * 4 + 1);
+            same += a == qnPlane25.at<int>(rr, std::min(qnPlane25.cols - 1, c * 4 + 1));
+            mirrored +=
+                a == qnPlane25.at<int>(rr, std::min(qnPlane25.cols - 1, (p->cols - 1 - c) * 4 + 1));
+        }
+    return mirrored > same;
+}
+
+/// The 100 um template on the 25 um plane `ap25`'s grid: the centre of 100 um voxel i is 25 um
+/// pixel 4 i + 1.5, along every axis.
+cv::Mat templateOnGrid(const core::Volume& templ, int ap25, bool mirror, cv::Size size) {
+    const double apf = std::clamp((ap25 - 1.5) / 4, 0.0, templ.sizes[0] - 1.001);
+    const int a0 = int(apf);
+    const int a1 = std::min(a0 + 1, templ.sizes[0] - 1);
+    const double wa = apf - a0;
+    const int rows = templ.sizes[1], cols = templ.sizes[2];
+    cv::Mat t100(rows, cols, CV_32F);
+    for (int r = 0; r < rows; ++r)
+        for (int c = 0; c < cols; ++c) {
+            const int cc = mirror ? cols - 1 - c : c;
+            t100.at<float>(r, c) =
+                float((1 - wa) * templ.at(a0, r, cc) + wa * templ.at(a1, r, cc));
+        }
+    cv::Mat mapX(size, CV_32F), mapY(size, CV_32F), out;
+    for (int r = 0; r < size.height; ++r)
+        for (int c = 0; c < size.width; ++c) {
+            mapX.at<float>(r, c) = float((c - 1.5) / 4);
+            mapY.at<float>(r, c) = float((r - 1.5) / 4);
+        }
+    cv::remap(t100, out, mapX, mapY, cv::INTER_LINEAR, cv::BORDER_REPLICATE);
+    return out;
+}
+
+} // namespace
 
 core::Result<AtlasSource> loadAtlasPlanes(const std::filesystem::path& sharedDir, int count) {
     AtlasSource src;
@@ -28,6 +96,7 @@ core::Result<AtlasSource> loadAtlasPlanes(const std::filesystem::path& sharedDir
         src.name = "builtin";
         for (int i = 0; i < count; ++i) {
             src.planes.push_back(sim::builtinAtlasPlane(0.15 + 0.7 * i / std::max(1, count - 1)));
+            src.fullPlanes.push_back(src.planes.back());
             src.apIndices.push_back(-1);
         }
         return src;
@@ -46,7 +115,29 @@ core::Result<AtlasSource> loadAtlasPlanes(const std::filesystem::path& sharedDir
         if (!plane) return plane.error();
         src.planes.push_back(
             pipeline::collapseLabels(*plane, *onto, pipeline::majorRegionIds(), 8));
+        src.fullPlanes.push_back(*plane);
         src.apIndices.push_back(ap);
+    }
+    src.ontology = std::move(*onto);
+    auto templ = core::readNrrd(dir / "average_template_100.nrrd");
+    auto ann100 = core::readNrrd(dir / "annotation_100.nrrd");
+    if (templ && ann100) {
+        // Decided once, on a mid plane, for all.
+        const size_t mid = src.fullPlanes.size() / 2;
+        src.templateMirrored = mirroredAgainst(*ann100, src.fullPlanes[mid], src.apIndices[mid]);
+        for (size_t i = 0; i < src.fullPlanes.size(); ++i) {
+            src.templatePlanes.push_back(templateOnGrid(*templ, src.apIndices[i],
+                                                        src.templateMirrored,
+                                                        src.fullPlanes[i].size()));
+            const int ap100 = std::clamp(static_cast<int>(std::lround((src.apIndices[i] + 0.5) / 4 - 0.5)),
+                                         0, templ->sizes[0] - 1);
+            cv::Mat moving(templ->sizes[1], templ->sizes[2], CV_32F);
+            for (int r = 0; r < moving.rows; ++r)
+                for (int col = 0; col < moving.cols; ++col)
+                    moving.at<float>(r, col) = float(templ->at(
+                        ap100, r, src.templateMirrored ? moving.cols - 1 - col : col));
+            src.templatePlanes100.push_back(moving);
+        }
     }
     return src;
 }
@@ -74,6 +165,84 @@ std::vector<BenchCase> makeCases(int count, int planes, cv::Size size) {
         cases.push_back(c);
     }
     return cases;
+}
+
+cv::Mat templatePlane100(const AtlasSource& atlas, int plane) {
+    if (plane < 0 || size_t(plane) >= atlas.templatePlanes100.size()) return {};
+    return atlas.templatePlanes100[size_t(plane)];
+}
+
+std::vector<BenchCase> makeCasesB(int count, int planes, cv::Size size) {
+    std::vector<BenchCase> cases;
+    const sim::StainB stains[] = {sim::StainB::Immuno, sim::StainB::Nissl,
+                                  sim::StainB::Autofluorescence, sim::StainB::Immuno};
+    for (int i = 0; i < count; ++i) {
+        BenchCase c;
+        c.family = Family::Second;
+        c.index = i;
+        c.seed = 5000 + static_cast<std::uint64_t>(i);
+        c.plane = (i / 2 * 5 + 3) % std::max(1, planes);
+        c.optionsB.seed = c.seed;
+        c.optionsB.imageSize = size;
+        c.optionsB.stain = stains[(i / 2) % 4];
+        c.optionsB.brightfield = i % 8 == 4 || i % 8 == 5;
+        if (i % 2 == 1) {
+            auto& d = c.optionsB.damage;
+            switch ((i / 2) % 5) {
+            case 0: d.crack = true; break;
+            case 1: d.bite = true; break;
+            case 2: d.fragment = true; break;
+            case 3: d.fold = true; break;
+            default: d.crack = d.bite = true; break;
+            }
+        }
+        cases.push_back(c);
+    }
+    return cases;
+}
+
+std::vector<BenchCase> makeCasesTemplate(int count, int planes, cv::Size size) {
+    std::vector<BenchCase> cases;
+    for (int i = 0; i < count; ++i) {
+        BenchCase c;
+        c.family = Family::Template;
+        c.index = i;
+        c.seed = 9000 + static_cast<std::uint64_t>(i);
+        c.plane = (i / 2 * 3 + 1) % std::max(1, planes);
+        c.optionsB.seed = c.seed;
+        c.optionsB.imageSize = size;
+        c.optionsB.stain = sim::StainB::Template;
+        if (i % 2 == 1) {
+            auto& d = c.optionsB.damage;
+            switch ((i / 2) % 4) {
+            case 0: d.crack = true; break;
+            case 1: d.bite = true; break;
+            case 2: d.fragment = true; break;
+            default: d.fold = true; break;
+            }
+        }
+        cases.push_back(c);
+    }
+    return cases;
+}
+
+core::Result<Section> generate(const BenchCase& c, const AtlasSource& atlas) {
+    if (c.family == Family::First) {
+        auto g = sim::generateSection(atlas.planes[size_t(c.plane)], c.options);
+        if (!g) return g.error();
+        return Section{g->image, std::move(g->truth)};
+    }
+    sim::GeneratorOptionsB o = c.optionsB;
+    o.atlasUmPerPx = atlas.umPerPx;
+    if (c.family == Family::Template) {
+        if (atlas.templatePlanes.empty())
+            return core::makeError(core::ErrorCode::NotFound,
+                                   "the template family needs average_template_100.nrrd");
+        o.templatePlane = atlas.templatePlanes[size_t(c.plane)];
+    }
+    auto g = sim::generateSectionB(atlas.fullPlanes[size_t(c.plane)], atlas.ontology, o);
+    if (!g) return g.error();
+    return Section{g->image, std::move(g->truth)};
 }
 
 Errors landmarkErrors(const std::vector<sim::Landmark>& truth,

@@ -59,10 +59,8 @@ bool elastixAvailable() {
     return std::system("command -v elastix >/dev/null 2>&1 && command -v transformix >/dev/null 2>&1") == 0;
 }
 
-ElastixOutput runElastix(const ElastixInput& in, const std::filesystem::path& dir) {
-    ElastixOutput out;
+void writeElastixInputs(const ElastixInput& in, const std::filesystem::path& dir) {
     std::filesystem::create_directories(dir);
-    const auto t0 = std::chrono::steady_clock::now();
     writeMha(dir / "fixed.mha", in.fixed, in.fixedSpacingUm, 0.0);
     writeMha(dir / "moving.mha", in.moving, in.movingSpacingUm, in.movingOriginUm);
     {
@@ -89,6 +87,12 @@ ElastixOutput runElastix(const ElastixInput& in, const std::filesystem::path& di
         for (const auto& q : in.points)
             p << q.x * in.fixedSpacingUm << " " << q.y * in.fixedSpacingUm << "\n";
     }
+}
+
+ElastixOutput runElastix(const ElastixInput& in, const std::filesystem::path& dir) {
+    ElastixOutput out;
+    const auto t0 = std::chrono::steady_clock::now();
+    writeElastixInputs(in, dir);
     const std::string d = dir.string();
     if (!run("elastix -f " + d + "/fixed.mha -m " + d + "/moving.mha -p " + d + "/affine.txt -p " +
                  d + "/bspline.txt -out " + d + " -threads 1 > " + d + "/elastix.out 2>&1",

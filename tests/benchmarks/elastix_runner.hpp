@@ -30,6 +30,12 @@ struct ElastixOutput {
     double seconds = 0;
 };
 
+/// Writes the inputs runElastix uses into `workDir` (fixed.mha, moving.mha, affine.txt,
+/// bspline.txt, points.txt), so elastix and transformix can also be timed as whole processes:
+///   elastix -f fixed.mha -m moving.mha -p affine.txt -p bspline.txt -out DIR -threads 1
+///   transformix -def points.txt -tp DIR/TransformParameters.1.txt -out DIR -threads 1
+void writeElastixInputs(const ElastixInput& input, const std::filesystem::path& workDir);
+
 ElastixOutput runElastix(const ElastixInput& input, const std::filesystem::path& workDir);
 
 } // namespace slicestation::bench

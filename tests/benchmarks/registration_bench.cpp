@@ -39,7 +39,28 @@ struct DamageRow {
     std::string kinds;
 };
 
+/// RMS distance (atlas px) of the true landmark positions from the best affine fit to them: how
+/// much of the true map no affine can explain.
+double nonAffineRms(const std::vector<sim::Landmark>& lms) {
+    if (lms.size() < 3) return 0;
+    cv::Mat A(int(lms.size()), 3, CV_64F), bx(int(lms.size()), 1, CV_64F), by(int(lms.size()), 1, CV_64F);
+    for (int i = 0; i < A.rows; ++i) {
+        A.at<double>(i, 0) = lms[size_t(i)].image.x;
+        A.at<double>(i, 1) = lms[size_t(i)].image.y;
+        A.at<double>(i, 2) = 1;
+        bx.at<double>(i) = lms[size_t(i)].atlas.x;
+        by.at<double>(i) = lms[size_t(i)].atlas.y;
+    }
+    cv::Mat cx, cy;
+    cv::solve(A, bx, cx, cv::DECOMP_SVD);
+    cv::solve(A, by, cy, cv::DECOMP_SVD);
+    const cv::Mat rx = A * cx - bx, ry = A * cy - by;
+    return std::sqrt((rx.dot(rx) + ry.dot(ry)) / double(A.rows));
+}
+
 struct Row {
+    double truthNonAffine = 0; ///< nonAffineRms of the case's truth
+    std::string family;
     std::string method;
     bool damaged = false;
     bool failed = false; ///< the method returned no result at all
@@ -53,29 +74,66 @@ double median(std::vector<double> v) {
     return v[v.size() / 2];
 }
 
-void printTable(const std::vector<Row>& rows) {
-    std::printf("\n%-10s %-8s %5s %9s %10s %9s %9s %6s %9s\n", "method", "sections", "n",
-                "avg RMSE", "avg median", "avg max", "worst max", "gross", "median s");
-    std::map<std::pair<std::string, bool>, std::vector<const Row*>> groups;
-    for (const auto& r : rows) groups[{r.method, r.damaged}].push_back(&r);
-    for (const auto& [key, g] : groups) {
-        double rmse = 0, med = 0, mx = 0, worst = 0;
-        int gross = 0;
-        std::vector<double> secs;
-        for (const Row* r : g) {
-            rmse += r->err.rmse;
-            med += r->err.median;
-            mx += r->err.max;
-            worst = std::max(worst, r->err.max);
-            if (r->failed || r->err.max > 25) ++gross;
-            secs.push_back(r->seconds);
-        }
-        const double n = double(g.size());
-        std::printf("%-10s %-8s %5zu %9.2f %10.2f %9.2f %9.2f %6d %9.3f\n", key.first.c_str(),
-                    key.second ? "damaged" : "clean", g.size(), rmse / n, med / n, mx / n, worst,
-                    gross, median(secs));
+struct Summary {
+    int n = 0, gross = 0;
+    double rmse = 0, med = 0, mx = 0, worst = 0, seconds = 0;
+};
+
+Summary summarise(const std::vector<const Row*>& g) {
+    Summary s;
+    std::vector<double> secs;
+    for (const Row* r : g) {
+        s.rmse += r->err.rmse;
+        s.med += r->err.median;
+        s.mx += r->err.max;
+        s.worst = std::max(s.worst, r->err.max);
+        if (r->failed || r->err.max > 25) ++s.gross;
+        secs.push_back(r->seconds);
     }
-    std::printf("(errors in atlas pixels; gross = max landmark error over 25 px or no result)\n");
+    s.n = int(g.size());
+    if (s.n) {
+        s.rmse /= s.n;
+        s.med /= s.n;
+        s.mx /= s.n;
+    }
+    s.seconds = median(secs);
+    return s;
+}
+
+/// One line per family and clean/damaged: slicestation and elastix side by side.
+void printTable(const std::vector<Row>& rows) {
+    std::map<std::tuple<std::string, bool, std::string>, std::vector<const Row*>> groups;
+    std::vector<std::string> families;
+    for (const auto& r : rows) {
+        groups[{r.family, r.damaged, r.method}].push_back(&r);
+        if (std::find(families.begin(), families.end(), r.family) == families.end())
+            families.push_back(r.family);
+    }
+    std::printf("\n%-8s %-8s | %-56s | %-56s\n", "", "", "slicestation", "elastix");
+    std::printf("%-8s %-8s |%4s %6s %6s %6s %6s %5s %8s |%4s %6s %6s %6s %6s %5s %8s\n",
+                "family", "sections", "n", "RMSE", "median", "max", "worst", "gross", "med s",
+                "n", "RMSE", "median", "max", "worst", "gross", "med s");
+    for (const auto& f : families)
+        for (bool damaged : {false, true}) {
+            const auto ours = groups.find({f, damaged, "ours"});
+            if (ours == groups.end()) continue;
+            const Summary a = summarise(ours->second);
+            std::printf("%-8s %-8s |%4d %6.2f %6.2f %6.2f %6.2f %5d %8.3f |", f.c_str(),
+                        damaged ? "damaged" : "clean", a.n, a.rmse, a.med, a.mx, a.worst, a.gross,
+                        a.seconds);
+            const auto el = groups.find({f, damaged, "elastix"});
+            if (el == groups.end()) {
+                std::printf("%4s\n", "-");
+                continue;
+            }
+            const Summary b = summarise(el->second);
+            std::printf("%4d %6.2f %6.2f %6.2f %6.2f %5d %8.3f\n", b.n, b.rmse, b.med, b.mx,
+                        b.worst, b.gross, b.seconds);
+        }
+    std::printf("(errors in atlas pixels, averages over sections of each section's RMSE, median "
+                "and max landmark error; worst = largest max; gross = max over 25 px or no "
+                "result; med s = median seconds per section, ours in process, elastix as "
+                "processes)\n");
 }
 
 /// Fills `polygon` (pixel coordinates, rounded) into `mask` with 255.
@@ -159,24 +217,6 @@ void printDamage(const std::vector<DamageRow>& d, const std::vector<Row>& rows) 
                 ms.empty() ? 0.0 : *std::max_element(ms.begin(), ms.end()));
 }
 
-/// Which way round the Allen template's left-right axis runs relative to the QuickNII volume:
-/// decided from the data by comparing the two annotation volumes, not assumed.
-bool templateMirrored(const core::Volume& ann100, const cv::Mat& qnPlane25, int ap100) {
-    auto p = pipeline::coronalPlane(ann100, pipeline::VolumeAxes::Allen, ap100);
-    if (!p) return false;
-    long same = 0, mirrored = 0;
-    for (int r = 0; r < p->rows; ++r)
-        for (int c = 0; c < p->cols; ++c) {
-            const int rr = std::min(qnPlane25.rows - 1, r * 4 + 1);
-            const int a = p->at<int>(r, c);
-            if (a == 0) continue;
-            if (a == qnPlane25.at<int>(rr, std::min(qnPlane25.cols - 1, c * 4 + 1))) ++same;
-            if (a == qnPlane25.at<int>(rr, std::min(qnPlane25.cols - 1, (p->cols - 1 - c) * 4 + 1)))
-                ++mirrored;
-        }
-    return mirrored > same;
-}
-
 } // namespace
 
 int main(int argc, char** argv) {
@@ -198,6 +238,15 @@ int main(int argc, char** argv) {
     app.add_option("--refine", refineMode, "Dense refinement of ours: on | off")
         ->check(CLI::IsMember({"on", "off"}));
     app.add_option("--overlays", overlayDir, "Write each case's overlay (ours, damage in red) here");
+    std::string familyText = "all", labelsText = "major";
+    app.add_option("--family", familyText,
+                   "Generator family: 1 (first), 2 (second, written apart), template (second "
+                   "family rendered from the Allen average template) or all")
+        ->check(CLI::IsMember({"1", "2", "template", "all"}));
+    app.add_option("--labels", labelsText,
+                   "Atlas the registration gets: major (the 20 collapsed regions, as always) or "
+                   "all (every Allen id)")
+        ->check(CLI::IsMember({"major", "all"}));
     CLI11_PARSE(app, argc, argv);
     int w = 0, h = 0;
     if (std::sscanf(sizeText.c_str(), "%dx%d", &w, &h) != 2 || w < 300 || h < 300) {
@@ -215,35 +264,65 @@ int main(int argc, char** argv) {
         std::cerr << "--elastix on, but elastix/transformix are not installed\n";
         return 1;
     }
-    core::Volume templ, ann100;
-    bool mirrored = false;
-    if (useElastix) {
-        const auto dir = std::filesystem::path(shared) / "atlas" / "allen-ccf-2017";
-        auto t = core::readNrrd(dir / "average_template_100.nrrd");
-        auto a = core::readNrrd(dir / "annotation_100.nrrd");
-        if (!t || !a || atlas->name != "allen-ccf-25um") {
-            std::cerr << "elastix needs the real atlas template; skipping elastix\n";
-            useElastix = false;
-        } else {
-            templ = std::move(*t);
-            ann100 = std::move(*a);
+    if (useElastix && atlas->templatePlanes100.empty()) {
+        std::cerr << "elastix needs the real atlas template; skipping elastix\n";
+        useElastix = false;
+    }
+    const bool allLabels = labelsText == "all";
+    if (allLabels && atlas->name != "allen-ccf-25um") {
+        std::cerr << "--labels all needs the Allen atlas under --shared\n";
+        return 1;
+    }
+    // With every Allen id the registration is told which ids are ventricles and which belong to
+    // the separate parts, as the major-region defaults do for the collapsed ids: atlas
+    // knowledge, nothing the generators know.
+    pipeline::RegistrationOptions regOptions;
+    if (allLabels) {
+        const pipeline::RegistrationOptions defaults;
+        regOptions.ventricleIds.clear();
+        for (auto& part : regOptions.separateParts) part.clear();
+        for (const auto& st : atlas->ontology.structures()) {
+            const auto id = static_cast<std::int32_t>(st.id);
+            if (atlas->ontology.isDescendantOf(st.id, 73)) regOptions.ventricleIds.push_back(id);
+            for (size_t p = 0; p < defaults.separateParts.size(); ++p)
+                for (std::int32_t top : defaults.separateParts[p])
+                    if (atlas->ontology.isDescendantOf(st.id, std::uint32_t(top)))
+                        regOptions.separateParts[p].push_back(id);
         }
     }
-    std::printf("atlas: %s, %zu planes; %d cases of %dx%d px; elastix: %s\n", atlas->name.c_str(),
-                atlas->planes.size(), cases, w, h, useElastix ? "yes" : "no");
+    std::vector<bench::BenchCase> all;
+    const int planeCount = static_cast<int>(atlas->planes.size());
+    if (familyText == "1" || familyText == "all")
+        for (auto& c : bench::makeCases(cases, planeCount, {w, h})) all.push_back(c);
+    if (familyText == "2" || familyText == "all")
+        for (auto& c : bench::makeCasesB(cases, planeCount, {w, h})) all.push_back(c);
+    if ((familyText == "template" || familyText == "all")) {
+        if (atlas->templatePlanes.empty()) {
+            std::cerr << "the template family needs average_template_100.nrrd under --shared\n";
+            if (familyText == "template") return 1;
+        } else {
+            for (auto& c : bench::makeCasesTemplate(cases, planeCount, {w, h})) all.push_back(c);
+        }
+    }
+    std::printf("atlas: %s, %zu planes; %d cases per family of %dx%d px; families: %s; labels "
+                "given: %s; elastix: %s; template mirrored against QuickNII: %s\n",
+                atlas->name.c_str(), atlas->planes.size(), cases, w, h, familyText.c_str(),
+                labelsText.c_str(), useElastix ? "yes" : "no",
+                atlas->templateMirrored ? "yes" : "no");
 
     std::ofstream csv;
     if (!csvPath.empty()) {
         csv.open(csvPath);
-        csv << "case,method,damaged,stain,rmse,median,max,seconds,failed\n";
+        csv << "family,case,method,damaged,stain,rmse,median,max,seconds,failed\n";
     }
     std::vector<Row> rows;
-    std::vector<DamageRow> damageRows;
-    const auto all = bench::makeCases(cases, static_cast<int>(atlas->planes.size()), {w, h});
+    std::map<std::string, std::vector<DamageRow>> damageRows;
     for (const auto& c : all) {
         if (!only.empty() && std::find(only.begin(), only.end(), c.index) == only.end()) continue;
-        const cv::Mat& plane = atlas->planes[c.plane];
-        auto gen = sim::generateSection(plane, c.options);
+        const std::string family = bench::familyName(c.family);
+        const cv::Mat& plane = allLabels ? atlas->fullPlanes[size_t(c.plane)]
+                                         : atlas->planes[size_t(c.plane)];
+        auto gen = bench::generate(c, *atlas);
         if (!gen) {
             std::cerr << c.describe() << ": generator failed: " << gen.error().message << "\n";
             return 1;
@@ -252,10 +331,12 @@ int main(int argc, char** argv) {
         for (const auto& l : gen->truth.landmarks) pts.push_back(l.image);
 
         Row ours;
+        ours.truthNonAffine = nonAffineRms(gen->truth.landmarks);
+        ours.family = family;
         ours.method = "ours";
         ours.damaged = c.damaged();
         const auto t0 = std::chrono::steady_clock::now();
-        pipeline::RegistrationOptions ro;
+        pipeline::RegistrationOptions ro = regOptions;
         ro.denseRefine = refineMode == "on";
         auto reg = pipeline::registerSection(gen->image, plane, ro);
         ours.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
@@ -293,12 +374,12 @@ int main(int argc, char** argv) {
                 ++d.trueRegions;
                 if (cv::countNonZero(truthMask & reported) >= 0.1 * area) ++d.overlapped;
             }
-            damageRows.push_back(d);
+            damageRows[family].push_back(d);
             if (!overlayDir.empty()) {
                 const cv::Mat tile = pipeline::renderOverlay(*reg, plane);
                 std::filesystem::create_directories(overlayDir);
                 const auto path = std::filesystem::path(overlayDir) /
-                                  ("case-" + std::to_string(c.index) + ".png");
+                                  ("f" + family + "-case-" + std::to_string(c.index) + ".png");
                 if (auto written = core::writeImage(path, tile); !written)
                     std::cerr << path << ": " << written.error().message << "\n";
             }
@@ -314,16 +395,7 @@ int main(int argc, char** argv) {
                      steps.c_str());
 
         if (useElastix && (elastixCases < 0 || c.index < elastixCases)) {
-            const int ap25 = atlas->apIndices[c.plane];
-            const int ap100 = std::clamp(static_cast<int>(std::lround((ap25 + 0.5) / 4 - 0.5)), 0,
-                                         templ.sizes[0] - 1);
-            static const bool mirror = templateMirrored(ann100, plane, ap100);
-            mirrored = mirror;
-            cv::Mat moving(templ.sizes[1], templ.sizes[2], CV_32F);
-            for (int r = 0; r < moving.rows; ++r)
-                for (int col = 0; col < moving.cols; ++col)
-                    moving.at<float>(r, col) = float(
-                        templ.at(ap100, r, mirror ? moving.cols - 1 - col : col));
+            const cv::Mat moving = bench::templatePlane100(*atlas, c.plane);
             bench::ElastixInput in;
             in.fixed = *pipeline::toGreyFloat(gen->image);
             // The calibration a user would enter: the true mean pixel size of this section.
@@ -335,8 +407,9 @@ int main(int argc, char** argv) {
             in.movingOriginUm = 37.5; // centre of 100-um voxel 0 is 25-um pixel 1.5
             in.points = pts;
             const auto out = bench::runElastix(in, std::filesystem::path(workDir) /
-                                                       ("case" + std::to_string(c.index)));
+                                                       ("f" + family + "case" + std::to_string(c.index)));
             Row el;
+            el.family = family;
             el.method = "elastix";
             el.damaged = c.damaged();
             el.seconds = out.seconds;
@@ -354,14 +427,29 @@ int main(int argc, char** argv) {
         }
         if (csv) {
             for (auto it = rows.end() - (rows.back().method == "elastix" ? 2 : 1); it != rows.end(); ++it)
-                csv << c.index << ',' << it->method << ',' << it->damaged << ','
-                    << (c.options.stain == sim::Stain::Brightfield ? "brightfield" : "fluorescence")
+                csv << family << ',' << c.index << ',' << it->method << ',' << it->damaged << ','
+                    << (c.brightfield() ? "brightfield" : "fluorescence")
                     << ',' << it->err.rmse << ',' << it->err.median << ',' << it->err.max << ','
                     << it->seconds << ',' << it->failed << '\n';
         }
     }
-    if (useElastix) std::printf("template left-right mirrored against QuickNII: %s\n", mirrored ? "yes" : "no");
     printTable(rows);
-    printDamage(damageRows, rows);
+    std::map<std::string, std::pair<double, int>> nonAffine;
+    for (const auto& r : rows)
+        if (r.method == "ours") {
+            nonAffine[r.family].first += r.truthNonAffine;
+            ++nonAffine[r.family].second;
+        }
+    std::printf("non-linear part of the true maps (RMS distance of the true landmark positions "
+                "from their best affine fit, atlas px), average per family:");
+    for (const auto& [f, v] : nonAffine) std::printf(" %s %.2f", f.c_str(), v.first / v.second);
+    std::printf("\n");
+    for (const auto& [family, d] : damageRows) {
+        std::vector<Row> familyRows;
+        for (const auto& r : rows)
+            if (r.family == family) familyRows.push_back(r);
+        std::printf("\n-- family %s --", family.c_str());
+        printDamage(d, familyRows);
+    }
     return 0;
 }

@@ -1,0 +1,67 @@
+#!/usr/bin/env bash
+# Whole-process timing of the registration (issue 17, "Speed"): `slicectl register` as a process
+# against elastix + transformix as processes, on the same generated 1500x1100 sections, each on
+# one core (taskset -c 0); then one 8000x5000 section through `slicectl register` under
+# /usr/bin/time -v (wall time and peak memory). Prints a table.
+#
+# Usage: scripts/bench-registration.sh [build-dir] [sections]   (default build/, 4 sections,
+# each timed twice; sections alternate the first and the second generator family)
+set -euo pipefail
+here=$(cd "$(dirname "$0")/.." && pwd)
+build=$(realpath -m "${1:-$here/build}")
+sections=${2:-4}
+slicectl="$build/daemon/slicectl"
+make="$build/tests/benchmarks/slst_make_section"
+for b in "$slicectl" "$make"; do
+    [ -x "$b" ] || { echo "missing $b: build slicectl and slst_make_section first" >&2; exit 2; }
+done
+command -v elastix >/dev/null && command -v transformix >/dev/null ||
+    { echo "elastix/transformix not installed" >&2; exit 2; }
+work=$(mktemp -d /tmp/slst-bench-reg.XXXXXX)
+trap 'rm -rf "$work"' EXIT
+
+now() { date +%s.%N; }
+ours=() theirs=()
+for ((i = 0; i < sections; i++)); do
+    fam=$(( i % 2 == 0 ? 1 : 2 ))
+    d="$work/s$i"
+    "$make" --family "$fam" --seed $((300 + i)) --plane $(( (i * 11) % 48 )) --size 1500x1100 \
+        --output-dir "$d" --elastix-dir "$d/elastix" >/dev/null
+    for rep in 1 2; do
+        t0=$(now)
+        taskset -c 0 "$slicectl" register --atlas "$d/atlas.tif" --image "$d/section.tif" \
+            --points "$d/points.csv" --output "$d/out.json" >/dev/null
+        t1=$(now)
+        ours+=("$(echo "$t1 - $t0" | bc -l)")
+        e="$d/elastix"
+        t0=$(now)
+        taskset -c 0 elastix -f "$e/fixed.mha" -m "$e/moving.mha" -p "$e/affine.txt" \
+            -p "$e/bspline.txt" -out "$e" -threads 1 >"$e/elastix.out" 2>&1
+        taskset -c 0 transformix -def "$e/points.txt" -tp "$e/TransformParameters.1.txt" \
+            -out "$e" -threads 1 >"$e/transformix.out" 2>&1
+        t1=$(now)
+        theirs+=("$(echo "$t1 - $t0" | bc -l)")
+    done
+done
+median() { printf '%s\n' "$@" | sort -g | awk '{v[NR]=$1} END {print (NR%2 ? v[(NR+1)/2] : (v[NR/2]+v[NR/2+1])/2)}'; }
+mo=$(median "${ours[@]}")
+me=$(median "${theirs[@]}")
+printf '\nwhole processes on one core (taskset -c 0), %d sections of 1500x1100 px, twice each\n' "$sections"
+printf '%-28s %10s %10s %10s\n' "tool" "median s" "min s" "max s"
+printf '%-28s %10.3f %10.3f %10.3f\n' "slicectl register" "$mo" \
+    "$(printf '%s\n' "${ours[@]}" | sort -g | head -1)" "$(printf '%s\n' "${ours[@]}" | sort -g | tail -1)"
+printf '%-28s %10.3f %10.3f %10.3f\n' "elastix + transformix" "$me" \
+    "$(printf '%s\n' "${theirs[@]}" | sort -g | head -1)" "$(printf '%s\n' "${theirs[@]}" | sort -g | tail -1)"
+printf 'elastix / slicectl: %.1fx\n' "$(echo "$me / $mo" | bc -l)"
+
+d="$work/big"
+"$make" --family 1 --seed 77 --plane 20 --size 8000x5000 --output-dir "$d" >/dev/null
+/usr/bin/time -v "$slicectl" register --atlas "$d/atlas.tif" --image "$d/section.tif" \
+    --points "$d/points.csv" --output "$d/out.json" >/dev/null 2>"$d/time.txt"
+wall=$(grep 'Elapsed (wall clock)' "$d/time.txt" | awk '{print $NF}')
+rss=$(grep 'Maximum resident set size' "$d/time.txt" | awk '{print $NF}')
+/usr/bin/time -v taskset -c 0 "$slicectl" register --atlas "$d/atlas.tif" --image "$d/section.tif" \
+    --points "$d/points.csv" --output "$d/out.json" >/dev/null 2>"$d/time1.txt"
+wall1=$(grep 'Elapsed (wall clock)' "$d/time1.txt" | awk '{print $NF}')
+printf '\n8000x5000 section, slicectl register as a process: wall %s (2 cores), %s (taskset -c 0); peak RSS %.0f MB\n' \
+    "$wall" "$wall1" "$(echo "$rss / 1024" | bc -l)"

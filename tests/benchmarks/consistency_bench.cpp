@@ -1,0 +1,389 @@
+// Real-tissue consistency (issue 17, item 3): each real section, warped by known random affine
+// plus smooth deformations, must register to the same atlas mapping as the original. For every
+// warp W (new image px q -> original px W(q)) and tissue point q, the difference
+// |new(q) - original(W(q))| in atlas px; per (section, warp) its RMS over a dense grid of tissue
+// points; per section the RMS over its warps; per series the median, mean and worst section.
+//
+// Atlas planes: abba-mouse-series by series matching without hints, as atlas_series.cpp does
+// (100 um stack of the 50 um annotation, collapsed to the major regions, 25 um/px);
+// abba-gerbi-series from its curated position and tilt (sections.csv, README), sliced from the
+// 25 um annotation and collapsed the same way.
+#include "slicestation/core/image_file.hpp"
+#include "slicestation/core/nrrd.hpp"
+#include "slicestation/core/ontology.hpp"
+#include "slicestation/pipeline/atlas.hpp"
+#include "slicestation/pipeline/atlas_matching.hpp"
+#include "slicestation/pipeline/atlas_slicing.hpp"
+#include "slicestation/pipeline/registration.hpp"
+
+#include <CLI/CLI.hpp>
+#include <opencv2/imgproc.hpp>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <random>
+#include <sstream>
+
+using namespace slicestation;
+namespace fs = std::filesystem;
+
+namespace {
+
+constexpr double kPi = 3.14159265358979323846;
+
+struct RealSection {
+    std::string series, name;
+    cv::Mat image;
+    cv::Mat atlas; ///< collapsed labels, 25 um/px
+    double umPerPx = 0;
+};
+
+/// A known warp: new px q -> original px p = A q + s(q), s smooth (coarse grid, bilinear).
+struct Warp {
+    cv::Matx23d affine;
+    cv::Mat sx, sy; ///< coarse displacement, original px, at q = (i, j) * step
+    int step = 16;
+    cv::Size size; ///< new image size
+
+    cv::Point2d operator()(cv::Point2d q) const {
+        const double fx = std::clamp(q.x / step, 0.0, sx.cols - 1.001);
+        const double fy = std::clamp(q.y / step, 0.0, sx.rows - 1.001);
+        const int x0 = int(fx), y0 = int(fy);
+        const double wx = fx - x0, wy = fy - y0;
+        auto at = [&](const cv::Mat& m) {
+            return (1 - wy) * ((1 - wx) * m.at<float>(y0, x0) + wx * m.at<float>(y0, x0 + 1)) +
+                   wy * ((1 - wx) * m.at<float>(y0 + 1, x0) + wx * m.at<float>(y0 + 1, x0 + 1));
+        };
+        return {affine(0, 0) * q.x + affine(0, 1) * q.y + affine(0, 2) + at(sx),
+                affine(1, 0) * q.x + affine(1, 1) * q.y + affine(1, 2) + at(sy)};
+    }
+};
+
+/// Random warp of an image of `size`: rotation within +/-15 degrees, per-axis scale within
+/// +/-8%, shear within +/-0.05, shift within 3% of the size, and a smooth field of about 1% of
+/// the longer side (s.d.) with features a quarter of the image across. The new image is 15%
+/// larger so the turned section stays inside.
+/// With `shiftOnly`, a whole-pixel shift into the larger image and nothing else: a check of the
+/// benchmark itself (the registration should then agree with itself almost exactly).
+Warp randomWarp(std::mt19937_64& rng, cv::Size size, bool shiftOnly) {
+    auto U = [&](double a, double b) { return std::uniform_real_distribution<double>(a, b)(rng); };
+    Warp w;
+    w.size = cv::Size(int(size.width * 1.15), int(size.height * 1.15));
+    if (shiftOnly) {
+        w.affine = cv::Matx23d(1, 0, -std::floor(U(0, 0.15) * size.width), 0, 1,
+                               -std::floor(U(0, 0.15) * size.height));
+        w.sx = cv::Mat::zeros(w.size.height / w.step + 2, w.size.width / w.step + 2, CV_32F);
+        w.sy = w.sx.clone();
+        return w;
+    }
+    const double rot = U(-15, 15) * kPi / 180, sx = 1 + U(-0.08, 0.08), sy = 1 + U(-0.08, 0.08),
+                 sh = U(-0.05, 0.05);
+    const cv::Matx22d R(std::cos(rot), -std::sin(rot), std::sin(rot), std::cos(rot));
+    const cv::Matx22d L = R * cv::Matx22d(sx, sh, 0, sy);
+    const cv::Vec2d cNew(w.size.width / 2.0, w.size.height / 2.0);
+    const cv::Vec2d cOld(size.width / 2.0 + U(-0.03, 0.03) * size.width,
+                         size.height / 2.0 + U(-0.03, 0.03) * size.height);
+    const cv::Vec2d t = cOld - L * cNew;
+    w.affine = cv::Matx23d(L(0, 0), L(0, 1), t[0], L(1, 0), L(1, 1), t[1]);
+    const int side = std::max(size.width, size.height);
+    w.step = std::max(4, side / 64);
+    const int cols = w.size.width / w.step + 2, rows = w.size.height / w.step + 2;
+    w.sx.create(rows, cols, CV_32F);
+    w.sy.create(rows, cols, CV_32F);
+    std::normal_distribution<float> n(0, 1);
+    for (cv::Mat* m : {&w.sx, &w.sy}) {
+        for (int r = 0; r < rows; ++r)
+            for (int c = 0; c < cols; ++c) m->at<float>(r, c) = n(rng);
+        const double sigma = 0.25 * side / w.step / 2;
+        cv::GaussianBlur(*m, *m, cv::Size(), sigma, sigma, cv::BORDER_REFLECT);
+        cv::Scalar mean, sd;
+        cv::meanStdDev(*m, mean, sd);
+        *m = (*m - mean[0]) * (0.01 * side / std::max(1e-9, sd[0]));
+    }
+    return w;
+}
+
+/// The glass colour: per-channel median of the image's outer ring.
+cv::Scalar glassOf(const cv::Mat& image) {
+    cv::Scalar out;
+    std::vector<cv::Mat> ch;
+    cv::split(image, ch);
+    for (size_t c = 0; c < ch.size() && c < 4; ++c) {
+        std::vector<float> v;
+        const cv::Mat& m = ch[c];
+        cv::Mat f;
+        m.convertTo(f, CV_32F);
+        const int b = std::max(2, std::min(f.rows, f.cols) / 50);
+        for (int r = 0; r < f.rows; ++r)
+            for (int x = 0; x < f.cols; ++x)
+                if (r < b || x < b || r >= f.rows - b || x >= f.cols - b) v.push_back(f.at<float>(r, x));
+        std::nth_element(v.begin(), v.begin() + std::ptrdiff_t(v.size() / 2), v.end());
+        out[int(c)] = v[v.size() / 2];
+    }
+    return out;
+}
+
+cv::Mat applyWarp(const cv::Mat& image, const Warp& w) {
+    cv::Mat mx(w.size, CV_32F), my(w.size, CV_32F), out;
+    for (int y = 0; y < w.size.height; ++y)
+        for (int x = 0; x < w.size.width; ++x) {
+            const cv::Point2d p = w(cv::Point2d(x, y));
+            mx.at<float>(y, x) = float(p.x);
+            my.at<float>(y, x) = float(p.y);
+        }
+    cv::remap(image, out, mx, my, cv::INTER_LINEAR, cv::BORDER_CONSTANT, glassOf(image));
+    return out;
+}
+
+double median(std::vector<double> v) {
+    if (v.empty()) return 0;
+    std::sort(v.begin(), v.end());
+    return v.size() % 2 ? v[v.size() / 2] : 0.5 * (v[v.size() / 2 - 1] + v[v.size() / 2]);
+}
+
+core::Result<std::vector<RealSection>> mouseSeries(const fs::path& shared) {
+    const fs::path atlasDir = shared / "atlas" / "allen-ccf-2017";
+    const fs::path dir = shared / "sections" / "abba-mouse-series";
+    auto volume = core::readNrrd(atlasDir / "annotation_50.nrrd");
+    if (!volume) return volume.error();
+    auto onto = core::readOntologyCsv(atlasDir / "structure_tree_safe_2017.csv");
+    if (!onto) return onto.error();
+    const double stackUm = 25, sectionUm = 20;
+    auto stack = pipeline::sliceVolume(*volume, pipeline::VolumeAxes::Allen,
+                                       {pipeline::PlaneOrientation::Coronal, 0, 100, 0, 0, stackUm});
+    if (!stack) return stack.error();
+    std::vector<cv::Mat> labels;
+    for (auto& s : *stack)
+        labels.push_back(pipeline::collapseLabels(s.labels, *onto, pipeline::majorRegionIds(), 8));
+    const double workUm = pipeline::matchWorkUmPerPx(labels, stackUm);
+    std::vector<pipeline::SliceFeatures> features;
+    for (size_t i = 0; i < labels.size(); ++i)
+        features.push_back(
+            pipeline::sliceFeatures(labels[i], stackUm, (*stack)[i].geometry.positionUm, workUm));
+    std::vector<RealSection> out;
+    std::vector<pipeline::SectionFeatures> sections;
+    for (int n = 1; n <= 20; ++n) {
+        char name[32];
+        std::snprintf(name, sizeof name, "Section-%02d.tif", n);
+        auto image = core::readImage(dir / name);
+        if (!image) return image.error();
+        auto f = pipeline::sectionFeatures(*image, sectionUm, workUm);
+        if (!f) return f.error();
+        sections.push_back(std::move(*f));
+        out.push_back({"mouse", name, *image, {}, sectionUm});
+    }
+    auto match = pipeline::matchSeries(sections, features);
+    if (!match) return match.error();
+    for (size_t i = 0; i < out.size(); ++i) out[i].atlas = labels[size_t((*match)[i].index)];
+    return out;
+}
+
+core::Result<std::vector<RealSection>> gerbiSeries(const fs::path& shared) {
+    const fs::path atlasDir = shared / "atlas" / "allen-ccf-2017";
+    const fs::path dir = shared / "sections" / "abba-gerbi-series";
+    auto volume = core::readNrrd(atlasDir / "annotation_25_quicknii.nrrd");
+    if (!volume) return volume.error();
+    auto onto = core::readOntologyCsv(atlasDir / "structure_tree_safe_2017.csv");
+    if (!onto) return onto.error();
+    std::ifstream csv(dir / "sections.csv");
+    if (!csv)
+        return core::makeError(core::ErrorCode::NotFound, (dir / "sections.csv").string());
+    std::string line;
+    std::getline(csv, line); // header
+    std::vector<RealSection> out;
+    while (std::getline(csv, line)) {
+        std::vector<std::string> f;
+        std::stringstream ss(line);
+        std::string cell;
+        while (std::getline(ss, cell, ',')) f.push_back(cell);
+        if (f.size() < 6) continue;
+        auto image = core::readImage(dir / f[1]);
+        if (!image) return image.error();
+        // ABBA's position is along AP from the front of the 10 um volume (voxel centres at
+        // 5 + 10 i um from the front face); the atlas frame here starts at the 25 um volume's
+        // first voxel centre, 12.5 um from the front face. ABBA's slicing angles (README):
+        // rotationX 0.042 rad about the left-right axis leans the normal toward dorso-ventral
+        // (rows), rotationY 0.0015 rad toward left-right (columns).
+        pipeline::CuttingPlane plane;
+        plane.orientation = pipeline::PlaneOrientation::Coronal;
+        plane.positionUm = std::stod(f[5]) * 1000 - 7.5;
+        plane.tiltRowsDeg = 0.042 * 180 / kPi;
+        plane.tiltColumnsDeg = 0.0015 * 180 / kPi;
+        plane.umPerPx = 25;
+        auto geo = pipeline::planeGeometry(*volume, pipeline::VolumeAxes::QuickNii, plane);
+        if (!geo) return geo.error();
+        auto labels = pipeline::sampleLabels(*volume, pipeline::VolumeAxes::QuickNii, *geo);
+        if (!labels) return labels.error();
+        out.push_back({"gerbi", f[1], *image,
+                       pipeline::collapseLabels(*labels, *onto, pipeline::majorRegionIds(), 8),
+                       std::stod(f[4])});
+    }
+    return out;
+}
+
+} // namespace
+
+int main(int argc, char** argv) {
+    CLI::App app{"Real-tissue consistency of the registration under known warps"};
+    std::string shared = SLST_SHARED_DIR, seriesText = "all", csvPath;
+    int warps = 10, sectionsPerSeries = 1000;
+    std::uint64_t seed = 17;
+    std::vector<int> only;
+    bool shiftOnly = false;
+    app.add_flag("--shift-only", shiftOnly,
+                 "Warps are whole-pixel shifts only (checks the benchmark: RMS near 0 expected)");
+    app.add_option("--shared", shared, "Path of ../shared");
+    app.add_option("--series", seriesText, "mouse | gerbi | all")
+        ->check(CLI::IsMember({"mouse", "gerbi", "all"}));
+    app.add_option("--warps", warps, "Known warps per section")->check(CLI::Range(1, 100));
+    app.add_option("--sections", sectionsPerSeries, "First N sections of each series")
+        ->check(CLI::Range(1, 1000));
+    app.add_option("--only", only, "Only these section numbers (1-based) of each series");
+    app.add_option("--seed", seed, "Seed of the warps");
+    app.add_option("--csv", csvPath, "Per (section, warp) rows here");
+    CLI11_PARSE(app, argc, argv);
+    const fs::path sh(shared);
+    if (!fs::exists(sh / "sections" / "abba-mouse-series") ||
+        !fs::exists(sh / "atlas" / "allen-ccf-2017" / "annotation_25_quicknii.nrrd")) {
+        std::fprintf(stderr, "the real series or the Allen atlas are missing under %s\n",
+                     shared.c_str());
+        return 1;
+    }
+    std::ofstream csv;
+    if (!csvPath.empty()) {
+        csv.open(csvPath);
+        csv << "series,section,warp,rms,max,points,seconds_original,seconds_warped\n";
+    }
+    std::printf("%-6s %-16s %5s %8s %8s %8s %8s\n", "series", "section", "warps", "RMS", "worst",
+                "max", "overlap");
+    struct SeriesResult {
+        std::string name;
+        std::vector<double> sectionRms;
+        std::vector<std::string> sectionNames;
+        double allSq = 0;
+        long allN = 0;
+        int failed = 0;
+        int warpsDone = 0, grossWarps = 0; ///< gross: a warp's RMS over 25 px (a flip or jump)
+        std::vector<double> warpRms;         ///< every (section, warp) RMS that is not gross
+    };
+    std::vector<SeriesResult> results;
+    for (const std::string series : {"mouse", "gerbi"}) {
+        if (seriesText != "all" && seriesText != series) continue;
+        auto secs = series == "mouse" ? mouseSeries(sh) : gerbiSeries(sh);
+        if (!secs) {
+            std::fprintf(stderr, "%s series: %s\n", series.c_str(), secs.error().message.c_str());
+            return 1;
+        }
+        SeriesResult res;
+        res.name = series;
+        std::mt19937_64 rng(seed);
+        for (size_t si = 0; si < secs->size() && int(si) < sectionsPerSeries; ++si) {
+            if (!only.empty() && std::find(only.begin(), only.end(), int(si) + 1) == only.end())
+                continue;
+            const RealSection& s = (*secs)[si];
+            pipeline::RegistrationOptions ro;
+            ro.imageUmPerPx = s.umPerPx;
+            ro.atlasUmPerPx = 25;
+            const auto t0 = std::chrono::steady_clock::now();
+            auto reg0 = pipeline::registerSection(s.image, s.atlas, ro);
+            const double sec0 =
+                std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+            if (!reg0) {
+                std::fprintf(stderr, "%s %s: original failed: %s\n", series.c_str(), s.name.c_str(),
+                             reg0.error().message.c_str());
+                ++res.failed;
+                continue;
+            }
+            // The original's tissue at full resolution.
+            cv::Mat tissue;
+            cv::resize(reg0->workingTissueMask, tissue, s.image.size(), 0, 0, cv::INTER_NEAREST);
+            double sq = 0, worstWarp = 0, worstPoint = 0;
+            long n = 0;
+            for (int k = 0; k < warps; ++k) {
+                const Warp w = randomWarp(rng, s.image.size(), shiftOnly);
+                const cv::Mat warped = applyWarp(s.image, w);
+                const auto t1 = std::chrono::steady_clock::now();
+                auto reg1 = pipeline::registerSection(warped, s.atlas, ro);
+                const double sec1 =
+                    std::chrono::duration<double>(std::chrono::steady_clock::now() - t1).count();
+                if (!reg1) {
+                    std::fprintf(stderr, "%s %s warp %d: failed: %s\n", series.c_str(),
+                                 s.name.c_str(), k, reg1.error().message.c_str());
+                    ++res.failed;
+                    continue;
+                }
+                // A dense grid of tissue points of the warped image (about 150 per side).
+                const int step = std::max(2, std::max(w.size.width, w.size.height) / 150);
+                double wsq = 0, wmax = 0;
+                long wn = 0;
+                for (int y = 0; y < w.size.height; y += step)
+                    for (int x = 0; x < w.size.width; x += step) {
+                        const cv::Point2d p = w(cv::Point2d(x, y));
+                        const int px = int(std::lround(p.x)), py = int(std::lround(p.y));
+                        if (px < 0 || py < 0 || px >= tissue.cols || py >= tissue.rows) continue;
+                        if (!tissue.at<std::uint8_t>(py, px)) continue;
+                        const double d =
+                            cv::norm(reg1->atlasFromImage({double(x), double(y)}) - reg0->atlasFromImage(p));
+                        wsq += d * d;
+                        wmax = std::max(wmax, d);
+                        ++wn;
+                    }
+                if (wn == 0) continue;
+                const double rms = std::sqrt(wsq / double(wn));
+                ++res.warpsDone;
+                if (rms > 25)
+                    ++res.grossWarps;
+                else
+                    res.warpRms.push_back(rms);
+                sq += wsq;
+                n += wn;
+                worstWarp = std::max(worstWarp, rms);
+                worstPoint = std::max(worstPoint, wmax);
+                if (csv)
+                    csv << series << ',' << s.name << ',' << k << ',' << rms << ',' << wmax << ','
+                        << wn << ',' << sec0 << ',' << sec1 << '\n';
+            }
+            if (n == 0) continue;
+            const double rms = std::sqrt(sq / double(n));
+            res.sectionRms.push_back(rms);
+            res.sectionNames.push_back(s.name);
+            res.allSq += sq;
+            res.allN += n;
+            std::printf("%-6s %-16s %5d %8.2f %8.2f %8.2f %8.2f\n", series.c_str(), s.name.c_str(),
+                        warps, rms, worstWarp, worstPoint, reg0->quality.tissueOverlap);
+            std::fflush(stdout);
+        }
+        results.push_back(res);
+    }
+    std::printf("\n%-6s %8s %8s %8s %8s %-22s %7s %12s %14s\n", "series", "sections", "median",
+                "mean", "pooled", "worst section", "failed", "gross warps", "median w/o gross");
+    for (const auto& r : results) {
+        if (r.sectionRms.empty()) {
+            std::printf("%-6s no section registered\n", r.name.c_str());
+            continue;
+        }
+        const auto worst = std::max_element(r.sectionRms.begin(), r.sectionRms.end());
+        double mean = 0;
+        for (double v : r.sectionRms) mean += v;
+        mean /= double(r.sectionRms.size());
+        char w[64];
+        std::snprintf(w, sizeof w, "%.2f (%s)", *worst,
+                      r.sectionNames[size_t(worst - r.sectionRms.begin())].c_str());
+        char g[32];
+        std::snprintf(g, sizeof g, "%d of %d", r.grossWarps, r.warpsDone);
+        std::printf("%-6s %8zu %8.2f %8.2f %8.2f %-22s %7d %12s %14.2f\n", r.name.c_str(),
+                    r.sectionRms.size(), median(r.sectionRms), mean,
+                    std::sqrt(r.allSq / double(std::max(1L, r.allN))), w, r.failed, g,
+                    median(r.warpRms));
+    }
+    std::printf("(RMS difference in atlas px of 25 um between the warped section's registration "
+                "and the original's composed with the known warp, over a grid of the original's "
+                "tissue; per section over its warps; pooled = over all points of the series; gross "
+                "warps = (section, warp) pairs whose RMS exceeds 25 px, a flipped or jumped "
+                "placement; the last column is the median (section, warp) RMS of the others)\n");
+    return 0;
+}
