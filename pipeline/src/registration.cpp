@@ -463,7 +463,7 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
             if (!apart) continue;
             picked.push_back(deg);
             inits.push_back(rotatedPlacement(imgBox, atlBox, deg, scaleGuess));
-            if (picked.size() == 2) break;
+            if (picked.size() == 3) break;
         }
     }
     for (const cv::Matx23d& init : inits) {
