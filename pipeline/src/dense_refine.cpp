@@ -31,7 +31,8 @@ LabelIndex indexLabels(const cv::Mat& labels) {
         for (int x = 0; x < labels.cols; ++x) {
             if (in[x] != last) {
                 auto [it, added] = lookup.try_emplace(in[x], static_cast<int>(li.ids.size()));
-                if (added) li.ids.push_back(in[x]);
+                if (added)
+                    li.ids.push_back(in[x]);
                 last = in[x];
                 lastIndex = it->second;
             }
@@ -76,13 +77,14 @@ public:
                 out[x] = c0[k] + cx[k] * float(x) + cy[k] * float(y);
             }
         }
-        if (!intensity_.empty() && b != 0) cv::scaleAdd(intensity_, b, img, img);
+        if (!intensity_.empty() && b != 0)
+            cv::scaleAdd(intensity_, b, img, img);
         Painted p;
         p.k = k_;
         if (k_ > 1) {
             // Pad to a multiple of k so that the reduction is exactly k on both axes.
-            cv::copyMakeBorder(img, img, 0, (k_ - img.rows % k_) % k_, 0,
-                               (k_ - img.cols % k_) % k_, cv::BORDER_REPLICATE);
+            cv::copyMakeBorder(img, img, 0, (k_ - img.rows % k_) % k_, 0, (k_ - img.cols % k_) % k_,
+                               cv::BORDER_REPLICATE);
             cv::resize(img, img, cv::Size(img.cols / k_, img.rows / k_), 0, 0, cv::INTER_AREA);
         }
         const double s = sigmaAtlasPx / k_;
@@ -137,7 +139,8 @@ StainFit fitStain(const cv::Mat& grey, const cv::Mat& idx, const cv::Mat& ax, co
             const float* py = ay.ptr<float>(y);
             const float* tt = t.empty() ? nullptr : t.ptr<float>(y);
             for (int x = 0; x < grey.cols; ++x) {
-                if (ww[x] <= 0) continue;
+                if (ww[x] <= 0)
+                    continue;
                 const auto k = static_cast<size_t>(l[x]);
                 const double v = g[x] - (tt ? f.b * tt[x] : 0.0f);
                 const double u = (px[x] - origin.x) / kUnit, q = (py[x] - origin.y) / kUnit;
@@ -145,9 +148,11 @@ StainFit fitStain(const cv::Mat& grey, const cv::Mat& idx, const cv::Mat& ax, co
                 cv::Matx33d& n = normal[k];
                 for (int r = 0; r < 3; ++r) {
                     rhs[k][r] += ww[x] * v * a[r];
-                    for (int c = r; c < 3; ++c) n(r, c) += ww[x] * a[r] * a[c];
+                    for (int c = r; c < 3; ++c)
+                        n(r, c) += ww[x] * a[r] * a[c];
                 }
-                if (tt) swt[k] += ww[x] * tt[x];
+                if (tt)
+                    swt[k] += ww[x] * tt[x];
                 gw += ww[x];
                 gwv += ww[x] * v;
             }
@@ -156,7 +161,8 @@ StainFit fitStain(const cv::Mat& grey, const cv::Mat& idx, const cv::Mat& ax, co
         for (size_t k = 0; k < regions; ++k) {
             cv::Matx33d& n = normal[k];
             for (int r = 0; r < 3; ++r)
-                for (int c = 0; c < r; ++c) n(r, c) = n(c, r);
+                for (int c = 0; c < r; ++c)
+                    n(r, c) = n(c, r);
             const double sw = n(0, 0);
             double c0 = global, cx = 0, cy = 0;
             if (gradients && sw >= kMinGradientWeight) {
@@ -190,7 +196,8 @@ StainFit fitStain(const cv::Mat& grey, const cv::Mat& idx, const cv::Mat& ax, co
                 const float* py = ay.ptr<float>(y);
                 const float* tt = t.ptr<float>(y);
                 for (int x = 0; x < grey.cols; ++x) {
-                    if (ww[x] <= 0) continue;
+                    if (ww[x] <= 0)
+                        continue;
                     const auto k = static_cast<size_t>(l[x]);
                     const double sw = std::max(normal[k](0, 0), 1e-6);
                     const double tc = tt[x] - swt[k] / sw;
@@ -222,7 +229,8 @@ double minRelative(const cv::Mat& det, double ref) {
 /// Removes a smooth additive bias (uneven illumination, stain gradients across the section) from
 /// the residual `r`: its weighted local mean at `sigma` grid px.
 void removeBias(cv::Mat& r, const cv::Mat& w, double sigma) {
-    if (sigma <= 0) return;
+    if (sigma <= 0)
+        return;
     // The bias is smooth: estimate it on a copy reduced 4 times, which keeps the wide blur cheap.
     const int f = sigma >= 8 ? 4 : 1;
     const cv::Size small((r.cols + f - 1) / f, (r.rows + f - 1) / f);
@@ -258,14 +266,16 @@ DenseRefinement refineDense(const cv::Mat& grey, const cv::Mat& weight, const cv
     cv::Mat w;
     weight.convertTo(w, CV_32F, 1.0 / 255);
     cv::threshold(w, w, 0, 1, cv::THRESH_BINARY);
-    if (cv::countNonZero(weight) < 64) return out;
+    if (cv::countNonZero(weight) < 64)
+        return out;
 
     const LabelIndex li = indexLabels(atlasLabels);
     // A mirrored map (a section mounted face down) has negative determinants throughout: the
     // reference then carries the sign, so that relative values stay positive.
     const cv::Mat det0 = jacobianDet(mapX, mapY);
     const double refDet = percentile(det0, 0.5, weight);
-    if (!(std::abs(refDet) > 1e-9)) return out;
+    if (!(std::abs(refDet) > 1e-9))
+        return out;
     const double s = std::sqrt(std::abs(refDet)); // atlas px per grid px
     const int k = std::max(1, static_cast<int>(std::floor(s)));
     const Painter painter(li, atlasIntensity, k);
@@ -285,8 +295,10 @@ DenseRefinement refineDense(const cv::Mat& grey, const cv::Mat& weight, const cv
     };
     auto predicted = [&](const Painted& p, cv::Mat& jw, cv::Mat* gx, cv::Mat* gy) {
         cv::remap(p.j, jw, rx, ry, cv::INTER_LINEAR, cv::BORDER_REPLICATE);
-        if (gx) cv::remap(p.jx, *gx, rx, ry, cv::INTER_LINEAR, cv::BORDER_REPLICATE);
-        if (gy) cv::remap(p.jy, *gy, rx, ry, cv::INTER_LINEAR, cv::BORDER_REPLICATE);
+        if (gx)
+            cv::remap(p.jx, *gx, rx, ry, cv::INTER_LINEAR, cv::BORDER_REPLICATE);
+        if (gy)
+            cv::remap(p.jy, *gy, rx, ry, cv::INTER_LINEAR, cv::BORDER_REPLICATE);
     };
     // Explained share of the variance of the smoothed section (weights `w`) for a field.
     const DenseLevel& finest = o.levels.back();
@@ -309,7 +321,8 @@ DenseRefinement refineDense(const cv::Mat& grey, const cv::Mat& weight, const cv
     const double totalVar = std::max(1e-12, weightedMean(centred.mul(centred), w));
     auto residualSq = [&](const cv::Mat& ux, const cv::Mat& uy) {
         sampleAt(ux, uy);
-        const StainFit f = fitStain(grey, idx, ax, ay, w, tGrid, li.ids.size(), o.regionGradients, origin);
+        const StainFit f =
+            fitStain(grey, idx, ax, ay, w, tGrid, li.ids.size(), o.regionGradients, origin);
         const Painted p = painter.paint(f.c0, f.cx, f.cy, f.b, finest.imageSigma * s);
         cv::Mat jw;
         predicted(p, jw, nullptr, nullptr);
@@ -325,7 +338,8 @@ DenseRefinement refineDense(const cv::Mat& grey, const cv::Mat& weight, const cv
         std::vector<char> present(li.ids.size(), 0);
         for (int y = 0; y < idx.rows; ++y)
             for (int x = 0; x < idx.cols; ++x)
-                if (const float v = idx.at<float>(y, x); v > 0) present[size_t(v)] = 1;
+                if (const float v = idx.at<float>(y, x); v > 0)
+                    present[size_t(v)] = 1;
         out.regions = static_cast<int>(std::count(present.begin(), present.end(), 1));
     }
 
@@ -374,7 +388,11 @@ DenseRefinement refineDense(const cv::Mat& grey, const cv::Mat& weight, const cv
                     cv::resize(*m, *m, solveSize, 0, 0, cv::INTER_AREA);
                     cv::GaussianBlur(*m, *m, cv::Size(3, 3), 0.8, 0.8, cv::BORDER_REPLICATE);
                 }
-                pxx = sxx; pxy = sxy; pyy = syy; bx = sbx; by = sby;
+                pxx = sxx;
+                pxy = sxy;
+                pyy = syy;
+                bx = sbx;
+                by = sby;
             } else {
                 cv::blur(sxx, pxx, win, cv::Point(-1, -1), cv::BORDER_REPLICATE);
                 cv::blur(sxy, pxy, win, cv::Point(-1, -1), cv::BORDER_REPLICATE);
@@ -382,17 +400,17 @@ DenseRefinement refineDense(const cv::Mat& grey, const cv::Mat& weight, const cv
                 cv::blur(sbx, bx, win, cv::Point(-1, -1), cv::BORDER_REPLICATE);
                 cv::blur(sby, by, win, cv::Point(-1, -1), cv::BORDER_REPLICATE);
             }
-            const double energy = cv::mean(pxx + pyy)[0] / 2 * cv::sum(w)[0] /
-                                  std::max(1.0, cv::sum(wTrain)[0]);
+            const double energy =
+                cv::mean(pxx + pyy)[0] / 2 * cv::sum(w)[0] / std::max(1.0, cv::sum(wTrain)[0]);
             // The damping is the prior of a MAP step: noise of variance sigma^2 (the robust
             // residual), correlated over 4 pi s^2 px by the smoothing, averaged over a window
             // (or control cell) of n px, against a prior of priorAtlasPx on the displacement.
             // Weak evidence (low contrast, heavy texture) then moves little.
-            const double n = o.nodeGrid ? 2.0 * (2.0 * level.window) * (2.0 * level.window)
-                                        : double(win.area());
+            const double n =
+                o.nodeGrid ? 2.0 * (2.0 * level.window) * (2.0 * level.window) : double(win.area());
             const double corr = std::max(1.0, 4 * CV_PI * level.imageSigma * level.imageSigma);
-            const double prior = corr * robustSigma * robustSigma /
-                                 (n * o.priorAtlasPx * o.priorAtlasPx);
+            const double prior =
+                corr * robustSigma * robustSigma / (n * o.priorAtlasPx * o.priorAtlasPx);
             const float lambda = float(std::max({1e-12, o.damping * energy, prior}));
             dux.create(solveSize, CV_32F);
             duy.create(solveSize, CV_32F);
@@ -505,7 +523,8 @@ DenseRefinement refineDense(const cv::Mat& grey, const cv::Mat& weight, const cv
         const float* vy = out.uy.ptr<float>(y);
         float* c = out.confidence.ptr<float>(y);
         for (int x = 0; x < gs.width; ++x) {
-            if (ww[x] <= 0 || n[x] <= 0) continue;
+            if (ww[x] <= 0 || n[x] <= 0)
+                continue;
             const float after = ra[x] / n[x], before = rb[x] / n[x];
             const float fit = std::clamp(1.0f - after / float(totalVar), 0.0f, 1.0f);
             const float shrink = after <= before || after <= 0 ? 1.0f : before / after;
@@ -516,9 +535,8 @@ DenseRefinement refineDense(const cv::Mat& grey, const cv::Mat& weight, const cv
     return out;
 }
 
-std::vector<std::pair<std::int32_t, double>> meanByLabel(const cv::Mat& confidence,
-                                                         const cv::Mat& labels,
-                                                         const cv::Mat& valid) {
+std::vector<std::pair<std::int32_t, double>>
+meanByLabel(const cv::Mat& confidence, const cv::Mat& labels, const cv::Mat& valid) {
     CV_Assert(confidence.type() == CV_32F && labels.type() == CV_32S && valid.type() == CV_8U);
     CV_Assert(labels.size() == confidence.size() && valid.size() == confidence.size());
     std::unordered_map<std::int32_t, std::pair<double, double>> acc;
@@ -527,18 +545,21 @@ std::vector<std::pair<std::int32_t, double>> meanByLabel(const cv::Mat& confiden
         const float* c = confidence.ptr<float>(y);
         const uchar* v = valid.ptr<uchar>(y);
         for (int x = 0; x < labels.cols; ++x) {
-            if (!v[x] || l[x] == 0) continue;
+            if (!v[x] || l[x] == 0)
+                continue;
             auto& a = acc[l[x]];
             a.first += c[x];
             a.second += 1;
         }
     }
     std::vector<std::pair<std::int32_t, double>> byArea;
-    for (const auto& [id, a] : acc) byArea.emplace_back(id, a.second);
+    for (const auto& [id, a] : acc)
+        byArea.emplace_back(id, a.second);
     std::sort(byArea.begin(), byArea.end(), [](const auto& p, const auto& q) {
         return p.second != q.second ? p.second > q.second : p.first < q.first;
     });
-    for (auto& [id, value] : byArea) value = acc[id].first / acc[id].second;
+    for (auto& [id, value] : byArea)
+        value = acc[id].first / acc[id].second;
     return byArea;
 }
 

@@ -11,6 +11,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <limits>
 
 namespace slicestation::pipeline {
 namespace {
@@ -462,7 +463,7 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
             if (!apart) continue;
             picked.push_back(deg);
             inits.push_back(rotatedPlacement(imgBox, atlBox, deg, scaleGuess));
-            if (picked.size() == 2) break;
+            if (picked.size() == 3) break;
         }
     }
     for (const cv::Matx23d& init : inits) {
@@ -518,16 +519,57 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         for (const auto& p : reg.sectionEdges.points) mapped.emplace_back(apply(t, p));
         return shareMatched(mapped, atlasGrid, atlasH / 80);
     };
+    // A near tie of the edge agreement (within 0.02) is settled by how well the atlas regions,
+    // each painted at one fitted level, explain the section's own contrast under each affine
+    // (the dense measure, on a 128 px copy): a tie that floating-point differences between
+    // compilers could flip is decided by a second, independent measure instead.
+    constexpr double kTieMargin = 0.02;
+    cv::Mat tieGrey, tieWeight;
+    auto regionFit = [&](const cv::Matx23d& t) {
+        const cv::Size ws = reg.workingGrey.size();
+        const double f = std::min(1.0, 128.0 / std::max(ws.width, ws.height));
+        const cv::Size gs(std::max(8, static_cast<int>(std::lround(ws.width * f))),
+                          std::max(8, static_cast<int>(std::lround(ws.height * f))));
+        if (tieGrey.empty()) {
+            cv::resize(reg.workingGrey, tieGrey, gs, 0, 0, cv::INTER_AREA);
+            cv::resize(tissueFilled, tieWeight, gs, 0, 0, cv::INTER_AREA);
+            tieWeight = tieWeight > 127;
+            cv::dilate(tieWeight, tieWeight, cv::Mat());
+        }
+        const double sx = double(ws.width) / gs.width, sy = double(ws.height) / gs.height;
+        const cv::Matx23d m = compose(t, cv::Matx23d(sx, 0, 0.5 * sx - 0.5, 0, sy, 0.5 * sy - 0.5));
+        cv::Mat mx(gs, CV_32F), my(gs, CV_32F);
+        for (int y = 0; y < gs.height; ++y)
+            for (int x = 0; x < gs.width; ++x) {
+                mx.at<float>(y, x) = float(m(0, 0) * x + m(0, 1) * y + m(0, 2));
+                my.at<float>(y, x) = float(m(1, 0) * x + m(1, 1) * y + m(1, 2));
+            }
+        DenseRefineOptions measureOnly;
+        measureOnly.levels = {{1.0, 4, 0}};
+        measureOnly.holdOutBlockPx = 0;
+        measureOnly.biasSigma = 0;
+        return refineDense(tieGrey, tieWeight, mx, my, atlasLabels, cv::Mat(), measureOnly)
+            .explainedBefore;
+    };
     double agreement = edgeAgreement(affine.targetFromSource);
+    double fitOfBest = std::numeric_limits<double>::quiet_NaN();
     for (size_t k = 1; k < placed.size(); ++k) {
         if (placed[k].overlap < placed.front().overlap - 0.05) break;
         IcpResult other =
             multiLevelIcp(reg.sectionEdges, reg.atlasEdges, placed[k].t, fine, 8, scaleGuess);
         const double a = edgeAgreement(other.targetFromSource);
-        if (a > agreement) {
+        bool better = a > agreement + kTieMargin;
+        double fit = std::numeric_limits<double>::quiet_NaN();
+        if (!better && a > agreement - kTieMargin) {
+            if (std::isnan(fitOfBest)) fitOfBest = regionFit(affine.targetFromSource);
+            fit = regionFit(other.targetFromSource);
+            better = fit > fitOfBest;
+        }
+        if (better) {
             agreement = a;
             affine = std::move(other);
             best = placed[k].t;
+            fitOfBest = fit;
         }
     }
     reg.atlasFromWorking = affine.targetFromSource;

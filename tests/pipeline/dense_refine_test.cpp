@@ -1,5 +1,6 @@
 // The dense refinement's measure and steps on toy images with a known answer.
 #include "slicestation/pipeline/dense_refine.hpp"
+#include "slicestation/pipeline/registration.hpp"
 
 #include <gtest/gtest.h>
 #include <opencv2/imgproc.hpp>
@@ -68,7 +69,8 @@ TEST(DenseRefine, AShiftedSquareFindsItsShift) {
         EXPECT_NEAR(r.uy.at<float>(q), 2.0, 0.5) << q;
     // Without the refinement's steps the map stays where it was (the test fails when broken).
     DenseRefineOptions none = toy;
-    for (auto& l : none.levels) l.iterations = 0;
+    for (auto& l : none.levels)
+        l.iterations = 0;
     const DenseRefinement idle = refineDense(grey, weight, mx, my, labels, cv::Mat(), none);
     EXPECT_FALSE(idle.accepted);
     EXPECT_EQ(cv::countNonZero(idle.ux), 0);
@@ -129,4 +131,29 @@ TEST(DenseRefine, ConfidenceIsLowWhereTheSectionContradictsTheAtlas) {
     ASSERT_EQ(byRegion.size(), 2u);
     EXPECT_EQ(byRegion[0].first, 1); // the larger region first
     EXPECT_GT(byRegion[1].second, byRegion[0].second);
+}
+
+TEST(DenseRefine, BadRefinementOptionsAreRefusedByRegisterSection) {
+    const cv::Mat labels = squareAtlas({96, 96}, cv::Rect(30, 30, 30, 30));
+    cv::Mat section(200, 200, CV_8U, cv::Scalar(10));
+    cv::rectangle(section, cv::Rect(40, 40, 120, 120), cv::Scalar(200), cv::FILLED);
+    RegistrationOptions wrongPlane;
+    wrongPlane.atlasIntensity = cv::Mat(50, 50, CV_32F, cv::Scalar(0));
+    auto r = registerSection(section, labels, wrongPlane);
+    ASSERT_FALSE(r.ok());
+    EXPECT_EQ(r.error().code, slicestation::core::ErrorCode::InvalidArgument);
+    EXPECT_NE(r.error().message.find("atlas intensity"), std::string::npos);
+    RegistrationOptions wrongType;
+    wrongType.atlasIntensity = cv::Mat(96, 96, CV_8U, cv::Scalar(0));
+    EXPECT_EQ(registerSection(section, labels, wrongType).error().code,
+              slicestation::core::ErrorCode::InvalidArgument);
+    RegistrationOptions noLevels;
+    noLevels.dense.levels.clear();
+    r = registerSection(section, labels, noLevels);
+    ASSERT_FALSE(r.ok());
+    EXPECT_NE(r.error().message.find("dense refinement"), std::string::npos);
+    RegistrationOptions tinyGrid;
+    tinyGrid.dense.gridMaxSide = 8;
+    EXPECT_EQ(registerSection(section, labels, tinyGrid).error().code,
+              slicestation::core::ErrorCode::InvalidArgument);
 }

@@ -35,7 +35,7 @@ struct DenseLevel {
 struct DenseRefineOptions {
     int gridMaxSide = 256; ///< the refinement grid's longer side (the section is reduced to it)
     std::vector<DenseLevel> levels{{3.0, 18, 8}};
-    double fieldSigma = 2.0;   ///< grid px: smoothing of each step (fluid-like regularisation)
+    double fieldSigma = 2.0; ///< grid px: smoothing of each step (fluid-like regularisation)
     /// grid px: the residual's weighted local mean at this scale is taken as an additive bias
     /// (uneven illumination, stain gradients) and removed; 0 = none.
     double biasSigma = 15.0;
@@ -46,7 +46,7 @@ struct DenseRefineOptions {
     /// Solve each step on a control grid of spacing 2 x the level's window (few degrees of
     /// freedom, interpolated bilinearly) rather than in a window round every grid pixel.
     bool nodeGrid = true;
-    double damping = 0.1;      ///< Levenberg damping, relative to the mean local gradient energy
+    double damping = 0.1; ///< Levenberg damping, relative to the mean local gradient energy
     /// Prior on each step's displacement (atlas px): with the residual's noise it sets the
     /// damping, so that a step needs evidence above the texture and noise.
     double priorAtlasPx = 2.0;
@@ -69,7 +69,7 @@ struct DenseRefineOptions {
 };
 
 struct DenseRefinement {
-    cv::Mat ux, uy;      ///< CV_32F, grid size: atlas px to add to the map; zero if not accepted
+    cv::Mat ux, uy; ///< CV_32F, grid size: atlas px to add to the map; zero if not accepted
     /// CV_32F in [0,1], grid size: how far the atlas can be trusted locally (see registration.md);
     /// 0 outside the measured area.
     cv::Mat confidence;
@@ -95,8 +95,7 @@ DenseRefinement refineDense(const cv::Mat& grey, const cv::Mat& weight, const cv
 
 /// Mean of `confidence` (CV_32F) over each label of `labels` (CV_32S, same size) where `valid`
 /// (CV_8U) is set, largest area first; label 0 left out.
-std::vector<std::pair<std::int32_t, double>> meanByLabel(const cv::Mat& confidence,
-                                                         const cv::Mat& labels,
-                                                         const cv::Mat& valid);
+std::vector<std::pair<std::int32_t, double>>
+meanByLabel(const cv::Mat& confidence, const cv::Mat& labels, const cv::Mat& valid);
 
 } // namespace slicestation::pipeline
