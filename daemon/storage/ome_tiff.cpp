@@ -784,6 +784,10 @@ core::Result<OmeXmlContent> parseOmeXml(std::string_view xml) {
     for (const char* key : {"SizeX", "SizeY"}) {
         auto v = number(*pixels, key);
         if (!v) return v.error();
+        // A pixel count: a whole number that an int holds (found by fuzz_small_formats:
+        // SizeX="1.6e55" was cast to int, which is undefined).
+        if (!(*v >= 1 && *v <= 2147483647.0 && *v == std::floor(*v)))
+            return bad(std::string(key) + "=\"" + *pixels->attribute(key) + "\" is not a pixel count");
         (std::string_view(key) == "SizeX" ? out.sizeX : out.sizeY) = static_cast<int>(*v);
     }
     auto sizeUm = length(*pixels, "PhysicalSizeX");
