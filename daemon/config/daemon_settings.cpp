@@ -40,31 +40,32 @@ Result<void> checkObjective(const nlohmann::json& o, const FieldReader& rd, cons
 // The [scan] table; also the run snapshot, which is the same shape with "objective" expanded.
 // The station file (`snapshot` false) is strict: unknown keys refused; a snapshot is this
 // program's own record and is read as it was written, so that a stored run always resumes.
-Result<ScanSettings> readScan(const nlohmann::json& scan, const FieldReader& rd, const std::string& p,
-                              bool snapshot) {
-    ScanSettings s;
-    const nlohmann::json empty = nlohmann::json::object();
-    const nlohmann::json& t = scan.is_object() ? scan : empty;
-    if (!snapshot) {
-        if (auto k = rd.onlyKeys(t, p,
-                                 {"objective", "objectives", "um_per_px", "format", "width", "height",
-                                  "exposure_us", "gain", "red_gain", "blue_gain", "autofocus", "focus_range_um",
-                                  "focus_coarse_step_um", "focus_fine_step_um", "min_tissue_fraction",
-                                  "start_z_um", "tile_overlap", "move_retries", "capture_retries",
-                                  "move_timeout_s", "capture_timeout_s", "min_free_mb", "register",
-                                  "check_atlas_match", "atlas_mismatch_tolerance"});
-            !k)
-            return k.error();
-        if (t.contains("objectives")) {
-            const auto& all = t["objectives"];
-            const std::string op = FieldReader::join(p, "objectives");
-            if (!all.is_object()) return rd.bad(op, "expected a table of objectives ([scan.objectives.NAME])");
-            for (const auto& [name, o] : all.items())
-                if (auto c = checkObjective(o, rd, op + "." + name); !c) return c.error();
-        }
-        if (t.contains("objective") && !t["objective"].is_string())
-            return rd.bad(FieldReader::join(p, "objective"), "expected the name of a [scan.objectives.NAME] table");
+/// A station file's [scan]: only known keys, objectives well formed.
+Result<void> checkScanTable(const nlohmann::json& t, const FieldReader& rd, const std::string& p) {
+    if (auto k = rd.onlyKeys(t, p,
+                             {"objective", "objectives", "um_per_px", "format", "width", "height",
+                              "exposure_us", "gain", "red_gain", "blue_gain", "autofocus", "focus_range_um",
+                              "focus_coarse_step_um", "focus_fine_step_um", "min_tissue_fraction",
+                              "start_z_um", "tile_overlap", "move_retries", "capture_retries",
+                              "move_timeout_s", "capture_timeout_s", "min_free_mb", "register",
+                              "check_atlas_match", "atlas_mismatch_tolerance"});
+        !k)
+        return k.error();
+    if (t.contains("objectives")) {
+        const auto& all = t["objectives"];
+        const std::string op = FieldReader::join(p, "objectives");
+        if (!all.is_object()) return rd.bad(op, "expected a table of objectives ([scan.objectives.NAME])");
+        for (const auto& [name, o] : all.items())
+            if (auto c = checkObjective(o, rd, op + "." + name); !c) return c.error();
     }
+    if (t.contains("objective") && !t["objective"].is_string())
+        return rd.bad(FieldReader::join(p, "objective"), "expected the name of a [scan.objectives.NAME] table");
+    return {};
+}
+
+/// The objective: a name picked from [scan.objectives] or (snapshot) an expanded table; its
+/// camera-to-stage mapping a signed permutation.
+Result<void> readObjective(const nlohmann::json& t, const FieldReader& rd, const std::string& p, ScanSettings& s) {
     // Objective: either a name picked from [scan.objectives] or (snapshot) an expanded table.
     if (t.contains("objective") && t["objective"].is_object()) {
         const auto& o = t["objective"];
@@ -121,6 +122,12 @@ Result<ScanSettings> readScan(const nlohmann::json& scan, const FieldReader& rd,
                       "must map the camera axes onto the stage axes: entries 0 or +-1, one per row "
                       "and column (e.g. [1, 0, 0, -1] for a flipped Y)");
 
+    return {};
+}
+
+/// The camera settings of a run: format, size, exposure, gains.
+Result<void> readCameraSettings(const nlohmann::json& t, const FieldReader& rd, const std::string& p,
+                                ScanSettings& s) {
     auto fmt = rd.string(t, p, "format", std::string("mono16"));
     if (!fmt) return fmt.error();
     auto pf = pixelFormat(*fmt, rd, FieldReader::join(p, "format"));
@@ -145,6 +152,12 @@ Result<ScanSettings> readScan(const nlohmann::json& scan, const FieldReader& rd,
     if (!bg) return bg.error();
     s.camera.blueGain = *bg;
 
+    return {};
+}
+
+/// Focus, tiling, retries, timeouts, disk threshold and atlas matching.
+Result<void> readRunSettings(const nlohmann::json& t, const FieldReader& rd, const std::string& p, bool snapshot,
+                             ScanSettings& s) {
     auto af = rd.boolean(t, p, "autofocus", true);
     if (!af) return af.error();
     s.autofocus = *af;
@@ -189,13 +202,25 @@ Result<ScanSettings> readScan(const nlohmann::json& scan, const FieldReader& rd,
     if (!*reg && !snapshot)
         return rd.bad(FieldReader::join(p, "register"),
                       "false is not supported: every captured section is registered; remove the key");
-    s.registerSections = *reg;
     auto cm = rd.boolean(t, p, "check_atlas_match", true);
     if (!cm) return cm.error();
     s.checkAtlasMatch = *cm;
     auto tol = rd.integer(t, p, "atlas_mismatch_tolerance", 2, 0, 1000);
     if (!tol) return tol.error();
     s.mismatchToleranceSlices = static_cast<int>(*tol);
+    return {};
+}
+
+Result<ScanSettings> readScan(const nlohmann::json& scan, const FieldReader& rd, const std::string& p,
+                              bool snapshot) {
+    ScanSettings s;
+    const nlohmann::json empty = nlohmann::json::object();
+    const nlohmann::json& t = scan.is_object() ? scan : empty;
+    if (!snapshot)
+        if (auto r = checkScanTable(t, rd, p); !r) return r.error();
+    if (auto r = readObjective(t, rd, p, s); !r) return r.error();
+    if (auto r = readCameraSettings(t, rd, p, s); !r) return r.error();
+    if (auto r = readRunSettings(t, rd, p, snapshot, s); !r) return r.error();
     return s;
 }
 
@@ -287,7 +312,6 @@ nlohmann::json toJson(const ScanSettings& s) {
             {"move_timeout_s", s.moveTimeout.count() / 1000.0},
             {"capture_timeout_s", s.captureTimeout.count() / 1000.0},
             {"min_free_mb", static_cast<double>(s.minFreeBytes) / (1024.0 * 1024.0)},
-            {"register", s.registerSections},
             {"check_atlas_match", s.checkAtlasMatch},
             {"atlas_mismatch_tolerance", s.mismatchToleranceSlices}};
 }

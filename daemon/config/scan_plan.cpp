@@ -113,12 +113,6 @@ Result<ScanPlan> parseScanPlan(const nlohmann::json& doc, const std::string& ori
     return plan;
 }
 
-Result<ScanPlan> loadScanPlan(const std::filesystem::path& file) {
-    auto doc = readDocument(file);
-    if (!doc) return doc.error();
-    return parseScanPlan(*doc, file.string());
-}
-
 Result<void> resolveScanPlan(ScanPlan& plan, const hw::StageLimits& limits,
                              const std::vector<double>& slicePositionsUm, const std::string& origin) {
     FieldReader rd(origin);

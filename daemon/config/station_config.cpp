@@ -91,15 +91,10 @@ core::Result<int> integer(const Reader& rd, const Json& t, const std::string& pr
     return static_cast<int>(*v);
 }
 
-core::Result<StageConfig> parseStage(const Json& st, const Reader& rd) {
-    StageConfig c;
+/// [stage]: the keys of its driver and transport only (a key of another names it).
+core::Result<void> checkStageKeys(const Json& st, const Reader& rd, const std::string& driver) {
     const std::string p = "stage.";
-    auto driver = rd.string(st, p, "driver", std::nullopt);
-    if (!driver) return driver.error();
-    c.driver = *driver;
-    if (c.driver != "modbus" && c.driver != "sim")
-        return rd.bad("stage.driver", "expected \"modbus\" or \"sim\", got \"" + c.driver + "\"");
-    if (c.driver == "sim") {
+    if (driver == "sim") {
         if (auto k = rd.keys(st, p,
                              {"driver", "move_timeout_s", "home_timeout_s", "axes", "speed_um_per_s",
                               "accel_um_per_s2", "position_window_um", "settle_ms"},
@@ -121,14 +116,12 @@ core::Result<StageConfig> parseStage(const Json& st, const Reader& rd) {
         if (st.contains("map") && st.contains("preset"))
             return rd.bad("stage.map", "give map or preset, not both");
     }
-    auto ms = [](double s) { return std::chrono::milliseconds(std::llround(s * 1000)); };
-    auto mt = rd.number(st, p, "move_timeout_s", 10.0, 0.001, 3600);
-    if (!mt) return mt.error();
-    c.moveTimeout = ms(*mt);
-    auto ht = rd.number(st, p, "home_timeout_s", 60.0, 0.001, 3600);
-    if (!ht) return ht.error();
-    c.homeTimeout = ms(*ht);
+    return {};
+}
 
+/// [stage.axes.x], [stage.axes.y] and an optional [stage.axes.z].
+core::Result<std::vector<drivers::ModbusAxisConfig>> readAxes(const Json& st, const Reader& rd,
+                                                              const std::string& driver) {
     // Axes: [stage.axes.x], [stage.axes.y], optional [stage.axes.z].
     const Json* axes = table(st, "axes");
     if (!axes) return rd.bad("stage.axes", "missing table (needs [stage.axes.x] and [stage.axes.y])");
@@ -141,7 +134,7 @@ core::Result<StageConfig> parseStage(const Json& st, const Reader& rd) {
             if (std::string(name) == "z" && !axes->contains("z")) continue;
             return rd.bad("stage.axes." + std::string(name), "missing table");
         }
-        if (auto k = c.driver == "modbus"
+        if (auto k = driver == "modbus"
                          ? rd.keys(*a, ap, {"min_um", "max_um", "slave", "steps_per_um"})
                          : rd.keys(*a, ap, {"min_um", "max_um"}, {"slave", "steps_per_um"}, "driver = \"modbus\"");
             !k)
@@ -155,7 +148,7 @@ core::Result<StageConfig> parseStage(const Json& st, const Reader& rd) {
         if (!(*mn < *mx)) return rd.bad(ap + "max_um", "must be greater than min_um");
         ax.minUm = *mn;
         ax.maxUm = *mx;
-        if (c.driver == "modbus") {
+        if (driver == "modbus") {
             auto slave = rd.number(*a, ap, "slave", std::nullopt, 1, 247);
             if (!slave) return slave.error();
             if (*slave > 247 || std::floor(*slave) != *slave) return rd.bad(ap + "slave", "must be an integer 1..247");
@@ -166,38 +159,12 @@ core::Result<StageConfig> parseStage(const Json& st, const Reader& rd) {
         }
         list.push_back(ax);
     }
-    auto speed = rd.number(st, p, "speed_um_per_s", 10'000.0, 1e-6, 1e7);
-    if (!speed) return speed.error();
-    auto accel = rd.number(st, p, "accel_um_per_s2", 50'000.0, 1e-6, 1e9);
-    if (!accel) return accel.error();
-    auto window = rd.number(st, p, "position_window_um", 1.0, 1e-6, 1e5);
-    if (!window) return window.error();
-    auto settle = rd.number(st, p, "settle_ms", 50.0, 0, 60'000);
-    if (!settle) return settle.error();
+    return list;
+}
 
-    if (c.driver == "sim") {
-        c.sim.limits.x = {list[0].minUm, list[0].maxUm};
-        c.sim.limits.y = {list[1].minUm, list[1].maxUm};
-        c.sim.limits.z = list.size() > 2 ? std::optional<hw::AxisRange>({list[2].minUm, list[2].maxUm}) : std::nullopt;
-        c.sim.speedUmPerS = *speed;
-        c.sim.accelUmPerS2 = *accel;
-        c.sim.positionWindowUm = *window;
-        c.sim.settle = std::chrono::milliseconds(std::llround(*settle));
-        return c;
-    }
-    auto& m = c.modbus;
-    m.axes = list;
-    m.speedUmPerS = *speed;
-    m.accelUmPerS2 = *accel;
-    m.positionWindowUm = *window;
-    m.settle = std::chrono::milliseconds(std::llround(*settle));
-    auto rto = rd.number(st, p, "response_timeout_ms", 200.0, 1, 60'000);
-    if (!rto) return rto.error();
-    m.responseTimeout = std::chrono::milliseconds(std::llround(*rto));
-    auto retries = integer(rd, st, p, "retries", 2, 0, 100);
-    if (!retries) return retries.error();
-    m.retries = *retries;
-
+/// The Modbus link: TCP or RTU settings, and the register map (a file or a preset).
+core::Result<void> readModbusLink(const Json& st, const Reader& rd, drivers::ModbusStageConfig& m) {
+    const std::string p = "stage.";
     auto transport = rd.string(st, p, "transport", std::nullopt);
     if (!transport) return transport.error();
     if (*transport == "tcp") {
@@ -245,7 +212,133 @@ core::Result<StageConfig> parseStage(const Json& st, const Reader& rd) {
         if (!map) return rd.bad("stage.preset", map.error().message);
         m.map = std::move(*map);
     }
+    return {};
+}
+
+core::Result<StageConfig> parseStage(const Json& st, const Reader& rd) {
+    StageConfig c;
+    const std::string p = "stage.";
+    auto driver = rd.string(st, p, "driver", std::nullopt);
+    if (!driver) return driver.error();
+    c.driver = *driver;
+    if (c.driver != "modbus" && c.driver != "sim")
+        return rd.bad("stage.driver", "expected \"modbus\" or \"sim\", got \"" + c.driver + "\"");
+    if (auto k = checkStageKeys(st, rd, c.driver); !k) return k.error();
+    auto ms = [](double s) { return std::chrono::milliseconds(std::llround(s * 1000)); };
+    auto mt = rd.number(st, p, "move_timeout_s", 10.0, 0.001, 3600);
+    if (!mt) return mt.error();
+    c.moveTimeout = ms(*mt);
+    auto ht = rd.number(st, p, "home_timeout_s", 60.0, 0.001, 3600);
+    if (!ht) return ht.error();
+    c.homeTimeout = ms(*ht);
+
+    auto axes = readAxes(st, rd, c.driver);
+    if (!axes) return axes.error();
+    const std::vector<drivers::ModbusAxisConfig>& list = *axes;
+    auto speed = rd.number(st, p, "speed_um_per_s", 10'000.0, 1e-6, 1e7);
+    if (!speed) return speed.error();
+    auto accel = rd.number(st, p, "accel_um_per_s2", 50'000.0, 1e-6, 1e9);
+    if (!accel) return accel.error();
+    auto window = rd.number(st, p, "position_window_um", 1.0, 1e-6, 1e5);
+    if (!window) return window.error();
+    auto settle = rd.number(st, p, "settle_ms", 50.0, 0, 60'000);
+    if (!settle) return settle.error();
+
+    if (c.driver == "sim") {
+        c.sim.limits.x = {list[0].minUm, list[0].maxUm};
+        c.sim.limits.y = {list[1].minUm, list[1].maxUm};
+        c.sim.limits.z = list.size() > 2 ? std::optional<hw::AxisRange>({list[2].minUm, list[2].maxUm}) : std::nullopt;
+        c.sim.speedUmPerS = *speed;
+        c.sim.accelUmPerS2 = *accel;
+        c.sim.positionWindowUm = *window;
+        c.sim.settle = std::chrono::milliseconds(std::llround(*settle));
+        return c;
+    }
+    auto& m = c.modbus;
+    m.axes = list;
+    m.speedUmPerS = *speed;
+    m.accelUmPerS2 = *accel;
+    m.positionWindowUm = *window;
+    m.settle = std::chrono::milliseconds(std::llround(*settle));
+    auto rto = rd.number(st, p, "response_timeout_ms", 200.0, 1, 60'000);
+    if (!rto) return rto.error();
+    m.responseTimeout = std::chrono::milliseconds(std::llround(*rto));
+    auto retries = integer(rd, st, p, "retries", 2, 0, 100);
+    if (!retries) return retries.error();
+    m.retries = *retries;
+
+    if (auto l = readModbusLink(st, rd, m); !l) return l.error();
     return c;
+}
+
+/// [camera.sim]: the sections on the virtual slide, real images or generated sections (default:
+/// four, front to back, one torn).
+core::Result<void> readSimSlideContent(const Json& t, const Reader& rd, const std::string& p, SimCameraSection& c) {
+    auto& sl = c.slide;
+    if (t.contains("images")) {
+        const Json* a = &t["images"];
+        if (!a->is_array() || a->empty()) return rd.bad(p + "images", "expected a non-empty array of file names");
+        if (a->size() > kMaxSimSections)
+            return rd.bad(p + "images", "at most " + std::to_string(kMaxSimSections) + " images");
+        for (std::size_t i = 0; i < a->size(); ++i) {
+            if (!(*a)[i].is_string()) return rd.bad(p + "images[" + std::to_string(i) + "]", "expected a file name");
+            std::filesystem::path f = (*a)[i].get<std::string>();
+            if (f.is_relative()) f = std::filesystem::path(rd.origin).parent_path() / f;
+            c.images.push_back(f);
+        }
+        if (t.contains("sections")) return rd.bad(p + "sections", "give either images or sections, not both");
+    } else if (t.contains("sections")) {
+        const Json* a = &t["sections"];
+        if (!a->is_array() || a->empty() ||
+            !std::all_of(a->begin(), a->end(), [](const Json& e) { return e.is_object(); }))
+            return rd.bad(p + "sections", "expected [[camera.sim.sections]] tables");
+        if (a->size() > kMaxSimSections)
+            return rd.bad(p + "sections", "at most " + std::to_string(kMaxSimSections) + " sections");
+        for (std::size_t i = 0; i < a->size(); ++i) {
+            const Json& st = (*a)[i];
+            const std::string sp = p + "sections[" + std::to_string(i) + "].";
+            if (auto k = rd.keys(st, sp, {"ap_fraction", "damage", "seed"}); !k) return k.error();
+            sim::SlideSectionSpec spec;
+            auto ap = rd.number(st, sp, "ap_fraction", std::nullopt, 0);
+            if (!ap) return ap.error();
+            if (*ap > 1) return rd.bad(sp + "ap_fraction", "must be in [0, 1]");
+            spec.apFraction = *ap;
+            auto dmg = rd.string(st, sp, "damage", std::string());
+            if (!dmg) return dmg.error();
+            if (*dmg != "" && *dmg != "tear" && *dmg != "missing" && *dmg != "fragment")
+                return rd.bad(sp + "damage", "expected \"\", \"tear\", \"missing\" or \"fragment\", got \"" + *dmg + "\"");
+            spec.damage = *dmg;
+            auto seed = integer(rd, st, sp, "seed", static_cast<int>(i + 1), 0, 2'147'483'647);
+            if (!seed) return seed.error();
+            spec.seed = static_cast<std::uint64_t>(*seed);
+            sl.sections.push_back(spec);
+        }
+    } else { // a default slide: four sections front to back, one torn
+        sl.sections = {{0.2, "", 1}, {0.4, "tear", 2}, {0.6, "", 3}, {0.8, "missing", 4}};
+    }
+    return {};
+}
+
+/// The slide is one image in memory: bounded before it is allocated.
+core::Result<void> checkSimSlideSize(const SimCameraSection& c, const Reader& rd, const std::string& p) {
+    const auto& sl = c.slide;
+    // The slide is one image in memory: bounded before it is allocated (generated slides carry
+    // a margin; loaded ones are a grid of pitch-sized cells).
+    const double n = static_cast<double>(c.images.empty() ? sl.sections.size() : c.images.size());
+    const double gridCols = std::min<double>(sl.columns, n), gridRows = std::ceil(n / sl.columns);
+    const double pxUm = c.images.empty() ? sl.umPerPx : c.imagesUmPerPx;
+    const double margin = c.images.empty() ? 2 * sl.marginUm : 0;
+    const double wPx = (gridCols * sl.sectionPitchUm + margin) / pxUm;
+    const double hPx = (gridRows * sl.sectionPitchUm + margin) / pxUm;
+    if (wPx > kMaxSimSlideSidePx || hPx > kMaxSimSlideSidePx || wPx * hPx > kMaxSimSlidePixels) {
+        std::ostringstream os;
+        os << "the virtual slide would be " << std::llround(wPx) << " x " << std::llround(hPx)
+           << " px (at most " << kMaxSimSlideSidePx << " a side and " << kMaxSimSlidePixels
+           << " in all): raise " << (c.images.empty() ? "slide_um_per_px" : "images_um_per_px")
+           << " or lower section_pitch_um, margin_um or the number of sections";
+        return rd.bad(p + "section_pitch_um", os.str());
+    }
+    return {};
 }
 
 core::Result<SimCameraSection> parseSimCamera(const Json& t, const Reader& rd) {
@@ -291,63 +384,8 @@ core::Result<SimCameraSection> parseSimCamera(const Json& t, const Reader& rd) {
     if (!dc) return dc.error();
     c.disconnectAfterFrames = *dc;
 
-    if (t.contains("images")) {
-        const Json* a = &t["images"];
-        if (!a->is_array() || a->empty()) return rd.bad(p + "images", "expected a non-empty array of file names");
-        if (a->size() > kMaxSimSections)
-            return rd.bad(p + "images", "at most " + std::to_string(kMaxSimSections) + " images");
-        for (std::size_t i = 0; i < a->size(); ++i) {
-            if (!(*a)[i].is_string()) return rd.bad(p + "images[" + std::to_string(i) + "]", "expected a file name");
-            std::filesystem::path f = (*a)[i].get<std::string>();
-            if (f.is_relative()) f = std::filesystem::path(rd.origin).parent_path() / f;
-            c.images.push_back(f);
-        }
-        if (t.contains("sections")) return rd.bad(p + "sections", "give either images or sections, not both");
-    } else if (t.contains("sections")) {
-        const Json* a = &t["sections"];
-        if (!a->is_array() || a->empty() ||
-            !std::all_of(a->begin(), a->end(), [](const Json& e) { return e.is_object(); }))
-            return rd.bad(p + "sections", "expected [[camera.sim.sections]] tables");
-        if (a->size() > kMaxSimSections)
-            return rd.bad(p + "sections", "at most " + std::to_string(kMaxSimSections) + " sections");
-        for (std::size_t i = 0; i < a->size(); ++i) {
-            const Json& st = (*a)[i];
-            const std::string sp = p + "sections[" + std::to_string(i) + "].";
-            if (auto k = rd.keys(st, sp, {"ap_fraction", "damage", "seed"}); !k) return k.error();
-            sim::SlideSectionSpec spec;
-            auto ap = rd.number(st, sp, "ap_fraction", std::nullopt, 0);
-            if (!ap) return ap.error();
-            if (*ap > 1) return rd.bad(sp + "ap_fraction", "must be in [0, 1]");
-            spec.apFraction = *ap;
-            auto dmg = rd.string(st, sp, "damage", std::string());
-            if (!dmg) return dmg.error();
-            if (*dmg != "" && *dmg != "tear" && *dmg != "missing" && *dmg != "fragment")
-                return rd.bad(sp + "damage", "expected \"\", \"tear\", \"missing\" or \"fragment\", got \"" + *dmg + "\"");
-            spec.damage = *dmg;
-            auto seed = integer(rd, st, sp, "seed", static_cast<int>(i + 1), 0, 2'147'483'647);
-            if (!seed) return seed.error();
-            spec.seed = static_cast<std::uint64_t>(*seed);
-            sl.sections.push_back(spec);
-        }
-    } else { // a default slide: four sections front to back, one torn
-        sl.sections = {{0.2, "", 1}, {0.4, "tear", 2}, {0.6, "", 3}, {0.8, "missing", 4}};
-    }
-    // The slide is one image in memory: bounded before it is allocated (generated slides carry
-    // a margin; loaded ones are a grid of pitch-sized cells).
-    const double n = static_cast<double>(c.images.empty() ? sl.sections.size() : c.images.size());
-    const double gridCols = std::min<double>(sl.columns, n), gridRows = std::ceil(n / sl.columns);
-    const double pxUm = c.images.empty() ? sl.umPerPx : c.imagesUmPerPx;
-    const double margin = c.images.empty() ? 2 * sl.marginUm : 0;
-    const double wPx = (gridCols * sl.sectionPitchUm + margin) / pxUm;
-    const double hPx = (gridRows * sl.sectionPitchUm + margin) / pxUm;
-    if (wPx > kMaxSimSlideSidePx || hPx > kMaxSimSlideSidePx || wPx * hPx > kMaxSimSlidePixels) {
-        std::ostringstream os;
-        os << "the virtual slide would be " << std::llround(wPx) << " x " << std::llround(hPx)
-           << " px (at most " << kMaxSimSlideSidePx << " a side and " << kMaxSimSlidePixels
-           << " in all): raise " << (c.images.empty() ? "slide_um_per_px" : "images_um_per_px")
-           << " or lower section_pitch_um, margin_um or the number of sections";
-        return rd.bad(p + "section_pitch_um", os.str());
-    }
+    if (auto r = readSimSlideContent(t, rd, p, c); !r) return r.error();
+    if (auto r = checkSimSlideSize(c, rd, p); !r) return r.error();
     return c;
 }
 

@@ -2,7 +2,7 @@
 #include "routes.hpp"
 
 #include "slicestation/daemon/http/web_page.hpp"
-#include "slicestation/daemon/station/autofocus.hpp"
+#include "slicestation/pipeline/frame_image.hpp"
 
 namespace slicestation::daemon::http {
 
@@ -24,7 +24,7 @@ void addPageRoutes(httplib::Server& srv, StationApi& st) {
         if (!width) return;
         auto frame = st.liveFrame();
         if (!frame) return sendError(res, 404, "no frame yet");
-        sendImage(res, frameToMat(*frame), *width, ".jpg");
+        sendImage(res, pipeline::frameToMat(*frame), *width, ".jpg");
     });
 }
 

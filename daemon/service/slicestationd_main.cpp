@@ -30,6 +30,91 @@ int fail(const std::string& what, const core::Error& e) {
     return e.code == core::ErrorCode::InvalidArgument || e.code == core::ErrorCode::NotFound ? 2 : 1;
 }
 
+/// The camera looks where the stage last settled: the simulated camera renders from that.
+struct LastStage {
+    std::mutex mutex;
+    hw::StagePosition position;
+    void store(const hw::StagePosition& p) {
+        std::lock_guard lock(mutex);
+        position = p;
+    }
+    hw::StagePosition load() {
+        std::lock_guard lock(mutex);
+        return position;
+    }
+};
+
+/// Opens the configured stage and camera into `parts`, saying loudly when one is simulated.
+/// \return an exit code when one cannot be opened.
+std::optional<int> openDevices(const StationConfig& station, StationParts& parts,
+                               const std::shared_ptr<LastStage>& lastStage) {
+    auto stage = openStage(station.stage, parts.simulatedStage);
+    if (!stage) return fail("stage", stage.error());
+    parts.stage = std::move(*stage);
+    if (auto p = parts.stage->position(std::chrono::milliseconds(2000))) lastStage->store(*p);
+    auto camera = openCamera(station.camera, [lastStage] { return lastStage->load(); }, parts.simulatedCamera);
+    if (!camera) return fail("camera", camera.error());
+    parts.camera = std::move(*camera);
+    if (parts.simulatedStage) std::cerr << "<4>slicestationd: SIMULATED stage (stage.driver = \"sim\")" << std::endl;
+    if (parts.simulatedCamera) std::cerr << "<4>slicestationd: SIMULATED camera (camera.driver = \"sim\")" << std::endl;
+    parts.stageMoved = [lastStage](const hw::StagePosition& p) { lastStage->store(p); };
+    return std::nullopt;
+}
+
+std::unique_ptr<AlertDispatcher> startAlertDelivery(const AlertSettings& settings,
+                                                    std::vector<std::unique_ptr<AlertChannelSink>> sinks) {
+    // Outward alert delivery ([alerts]), set up before the station so that it also carries the
+    // "restarted" alert raised while the station opens its journal, and declared before it so
+    // that it outlives the station's threads. A channel that gives up is logged here; the alert
+    // itself stays open in the journal. Without journald (a container) the journal channel
+    // fails for every alert: that is said once.
+    auto journalFailureLogged = std::make_shared<std::atomic<bool>>(false);
+    auto alerts = std::make_unique<AlertDispatcher>(
+        settings, std::move(sinks),
+        [journalFailureLogged](const std::string& channel, const AlertRecord& a, const core::Error& e) {
+            if (channel == "journal" && journalFailureLogged->exchange(true)) return;
+            // The message names the channel.
+            std::cerr << "<4>slicestationd: alert " << a.id << " (" << a.kind << ") not delivered: " << e.message
+                      << (channel == "journal" ? " (not repeated)" : "") << std::endl;
+        });
+    {
+        std::string names;
+        for (const auto& n : alerts->channelNames()) names += (names.empty() ? "" : ", ") + n;
+        std::cerr << "<6>slicestationd: alert channels: " << (names.empty() ? "none (journal disabled)" : names)
+                  << " (min severity " << settings.minSeverity << ", " << settings.retries
+                  << " retries, " << settings.maxPerWindow << "/min per channel)" << std::endl;
+    }
+    return alerts;
+}
+
+/// Signals are taken synchronously by the main thread; every other thread has them blocked.
+/// \return SIGTERM and SIGINT, for waitForStop.
+sigset_t blockStopSignals() {
+    sigset_t signals;
+    sigemptyset(&signals);
+    sigaddset(&signals, SIGTERM);
+    sigaddset(&signals, SIGINT);
+    pthread_sigmask(SIG_BLOCK, &signals, nullptr);
+    std::signal(SIGPIPE, SIG_IGN);
+    return signals;
+}
+
+/// Until SIGTERM or SIGINT, or (exitWhenIdle) until no run is left to scan.
+void waitForStop(const sigset_t& signals, Station& s, bool exitWhenIdle) {
+    for (;;) {
+        const timespec wait{0, 200'000'000};
+        const int sig = sigtimedwait(&signals, nullptr, &wait);
+        if (sig == SIGTERM || sig == SIGINT) {
+            std::cerr << "<5>slicestationd: " << (sig == SIGTERM ? "SIGTERM" : "SIGINT") << ": stopping" << std::endl;
+            return;
+        }
+        if (exitWhenIdle && s.idle()) {
+            auto next = s.journal().nextRun();
+            if (next && !*next) return;
+        }
+    }
+}
+
 } // namespace
 
 int main(int argc, char** argv) {
@@ -49,13 +134,7 @@ int main(int argc, char** argv) {
         return app.exit(e);
     }
 
-    // Signals are taken synchronously by the main thread; every other thread has them blocked.
-    sigset_t signals;
-    sigemptyset(&signals);
-    sigaddset(&signals, SIGTERM);
-    sigaddset(&signals, SIGINT);
-    pthread_sigmask(SIG_BLOCK, &signals, nullptr);
-    std::signal(SIGPIPE, SIG_IGN);
+    const sigset_t signals = blockStopSignals();
 
     auto station = loadStationConfig(configFile);
     if (!station) return fail("station file", station.error());
@@ -80,27 +159,11 @@ int main(int argc, char** argv) {
     SystemdNotifier notifier = SystemdNotifier::fromEnvironment();
     notifier.status("opening devices");
 
-    // The camera looks where the stage last settled: the simulated camera renders from that.
-    struct LastStage {
-        std::mutex mutex;
-        hw::StagePosition position;
-        void store(const hw::StagePosition& p) { std::lock_guard lock(mutex); position = p; }
-        hw::StagePosition load() { std::lock_guard lock(mutex); return position; }
-    };
     auto lastStage = std::make_shared<LastStage>();
     StationParts parts;
-    auto stage = openStage(station->stage, parts.simulatedStage);
-    if (!stage) return fail("stage", stage.error());
-    parts.stage = std::move(*stage);
-    if (auto p = parts.stage->position(std::chrono::milliseconds(2000))) lastStage->store(*p);
-    auto camera = openCamera(station->camera, [lastStage] { return lastStage->load(); }, parts.simulatedCamera);
-    if (!camera) return fail("camera", camera.error());
-    parts.camera = std::move(*camera);
-    if (parts.simulatedStage) std::cerr << "<4>slicestationd: SIMULATED stage (stage.driver = \"sim\")" << std::endl;
-    if (parts.simulatedCamera) std::cerr << "<4>slicestationd: SIMULATED camera (camera.driver = \"sim\")" << std::endl;
+    if (auto rc = openDevices(*station, parts, lastStage)) return *rc;
     parts.settings = *settings;
     parts.stateDir = stateDir;
-    parts.stageMoved = [lastStage](const hw::StagePosition& p) { lastStage->store(p); };
 
     std::unique_ptr<ProgressWatchdog> watchdog;
     core::SteadyClock clock;
@@ -109,27 +172,7 @@ int main(int argc, char** argv) {
     parts.watchdog = watchdog.get();
     parts.status = [&notifier](const std::string& s) { notifier.status(s); };
 
-    // Outward alert delivery ([alerts]), set up before the station so that it also carries the
-    // "restarted" alert raised while the station opens its journal, and declared before it so
-    // that it outlives the station's threads. A channel that gives up is logged here; the alert
-    // itself stays open in the journal. Without journald (a container) the journal channel
-    // fails for every alert: that is said once.
-    auto journalFailureLogged = std::make_shared<std::atomic<bool>>(false);
-    auto alerts = std::make_unique<AlertDispatcher>(
-        *alertSettings, std::move(*alertSinks),
-        [journalFailureLogged](const std::string& channel, const AlertRecord& a, const core::Error& e) {
-            if (channel == "journal" && journalFailureLogged->exchange(true)) return;
-            // The message names the channel.
-            std::cerr << "<4>slicestationd: alert " << a.id << " (" << a.kind << ") not delivered: " << e.message
-                      << (channel == "journal" ? " (not repeated)" : "") << std::endl;
-        });
-    {
-        std::string names;
-        for (const auto& n : alerts->channelNames()) names += (names.empty() ? "" : ", ") + n;
-        std::cerr << "<6>slicestationd: alert channels: " << (names.empty() ? "none (journal disabled)" : names)
-                  << " (min severity " << alertSettings->minSeverity << ", " << alertSettings->retries
-                  << " retries, " << alertSettings->maxPerWindow << "/min per channel)" << std::endl;
-    }
+    auto alerts = startAlertDelivery(*alertSettings, std::move(*alertSinks));
     parts.alertChannels.push_back([d = alerts.get()](const AlertRecord& a) { d->post(a); });
     auto st = Station::create(std::move(parts));
     if (!st) {
@@ -139,7 +182,6 @@ int main(int argc, char** argv) {
     Station& s = **st;
     auto api = HttpApi::start(s, settings->httpBind, settings->httpPort, settings->token);
     if (!api) return fail("HTTP API", api.error());
-    (void)core::writeFileAtomically(stateDir / "http.port", std::to_string((*api)->port()) + "\n");
     std::cerr << "<6>slicestationd: state " << stateDir << ", atlas " << s.atlas().dir << " ("
               << s.atlas().slices.size() << " slices), HTTP on " << settings->httpBind << ":" << (*api)->port()
               << std::endl;
@@ -151,23 +193,14 @@ int main(int argc, char** argv) {
         if (!id) return fail("plan", id.error());
         std::cerr << "<6>slicestationd: plan " << plan << " queued as run " << *id << std::endl;
     }
+    // The port file says "ready": written once the plans given at start are queued, so that a
+    // client that reads it finds them.
+    (void)core::writeFileAtomically(stateDir / "http.port", std::to_string((*api)->port()) + "\n");
 
     s.start();
     notifier.ready();
 
-    int rc = 0;
-    for (;;) {
-        const timespec wait{0, 200'000'000};
-        const int sig = sigtimedwait(&signals, nullptr, &wait);
-        if (sig == SIGTERM || sig == SIGINT) {
-            std::cerr << "<5>slicestationd: " << (sig == SIGTERM ? "SIGTERM" : "SIGINT") << ": stopping" << std::endl;
-            break;
-        }
-        if (exitWhenIdle && s.idle()) {
-            auto next = s.journal().nextRun();
-            if (next && !*next) break;
-        }
-    }
+    waitForStop(signals, s, exitWhenIdle);
     notifier.stopping();
     notifier.status("stopping: stage halted, finishing the current transaction");
     if (watchdog) watchdog->stop();
@@ -176,5 +209,5 @@ int main(int argc, char** argv) {
     // After the station: its last alerts (a paused run) still get out, within 5 s.
     alerts->stop(std::chrono::seconds(5));
     std::cerr << "<6>slicestationd: stopped" << std::endl;
-    return rc;
+    return 0;
 }

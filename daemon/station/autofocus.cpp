@@ -1,6 +1,8 @@
 #include "slicestation/daemon/station/autofocus.hpp"
 
 #include "slicestation/daemon/station/retry_policy.hpp"
+#include "slicestation/pipeline/focus_measures.hpp"
+#include "slicestation/pipeline/frame_image.hpp"
 
 #include <opencv2/core.hpp>
 #include <opencv2/imgproc.hpp>
@@ -15,44 +17,6 @@ namespace {
 
 using core::ErrorCode;
 using core::makeError;
-
-/// Grey float image scaled so that full scale is 1, downscaled (area average) to at most
-/// `maxSide` pixels per side.
-cv::Mat normalisedGrey(const cv::Mat& image, int maxSide) {
-    cv::Mat grey;
-    if (image.channels() == 3) {
-        cv::cvtColor(image, grey, cv::COLOR_BGR2GRAY);
-    } else if (image.channels() == 4) {
-        cv::cvtColor(image, grey, cv::COLOR_BGRA2GRAY);
-    } else {
-        grey = image;
-    }
-    const double fullScale = grey.depth() == CV_16U ? 65535.0 : grey.depth() == CV_8U ? 255.0 : 1.0;
-    cv::Mat f;
-    grey.convertTo(f, CV_32F, 1.0 / fullScale);
-    const int longest = std::max(f.cols, f.rows);
-    if (longest > maxSide) {
-        const double k = static_cast<double>(maxSide) / longest;
-        cv::resize(f, f, cv::Size(), k, k, cv::INTER_AREA);
-    }
-    return f;
-}
-
-float percentile(std::vector<float>& values, double p) {
-    const auto k = static_cast<std::size_t>(p * static_cast<double>(values.size() - 1));
-    std::nth_element(values.begin(), values.begin() + static_cast<std::ptrdiff_t>(k), values.end());
-    return values[k];
-}
-
-std::vector<float> toVector(const cv::Mat& f) {
-    std::vector<float> v;
-    v.reserve(f.total());
-    for (int y = 0; y < f.rows; ++y) {
-        const float* row = f.ptr<float>(y);
-        v.insert(v.end(), row, row + f.cols);
-    }
-    return v;
-}
 
 struct Sample {
     double zUm = 0;
@@ -83,7 +47,7 @@ public:
             return frame.error();
         }
         ++captures_;
-        return frameToMat(*frame);
+        return pipeline::frameToMat(*frame);
     }
     /// Samples z values low to high, each approached from below.
     core::Result<std::vector<Sample>> sweep(const std::vector<double>& zs, double zMin) {
@@ -98,7 +62,7 @@ public:
         for (const double z : zs) {
             auto image = frameAt(z);
             if (!image) return image.error();
-            out.push_back({z, focusMeasure(*image)});
+            out.push_back({z, pipeline::focusMeasure(*image)});
         }
         return out;
     }
@@ -169,8 +133,8 @@ core::Result<FocusResult> run(hw::Stage& stage, hw::Camera& camera, const hw::St
     auto first = search.frameAt(at.zUm);
     if (!first) return first.error();
     result.captures = search.captures();
-    result.score = focusMeasure(*first);
-    result.tissueFraction = tissueFraction(*first);
+    result.score = pipeline::focusMeasure(*first);
+    result.tissueFraction = pipeline::tissueFraction(*first);
     if (result.tissueFraction < s.minTissueFraction) {
         return result; // blank glass: nothing to focus on (uScope KB NSC1077)
     }
@@ -216,60 +180,6 @@ core::Result<FocusResult> run(hw::Stage& stage, hw::Camera& camera, const hw::St
 }
 
 } // namespace
-
-cv::Mat frameToMat(const hw::Frame& frame) {
-    if (frame.empty() || frame.width() <= 0 || frame.height() <= 0) return {};
-    const int type = frame.format() == hw::PixelFormat::Mono16  ? CV_16UC1
-                     : frame.format() == hw::PixelFormat::Rgb8 ? CV_8UC3
-                                                                : CV_8UC1;
-    cv::Mat out(frame.height(), frame.width(), type);
-    for (int y = 0; y < frame.height(); ++y) {
-        std::memcpy(out.ptr(y), frame.row(y), frame.stride());
-    }
-    if (type == CV_8UC3) cv::cvtColor(out, out, cv::COLOR_RGB2BGR);
-    return out;
-}
-
-double focusMeasure(const cv::Mat& image) {
-    if (image.empty()) return 0;
-    try {
-        const cv::Mat f = normalisedGrey(image, 512);
-        const double mean = cv::mean(f)[0];
-        if (!(mean > 1e-6)) return 0;
-        cv::Mat gx;
-        cv::Mat gy;
-        cv::Sobel(f, gx, CV_32F, 1, 0, 3);
-        cv::Sobel(f, gy, CV_32F, 0, 1, 3);
-        // Tenengrad (Tenenbaum 1970; among the most robust measures in the comparisons of
-        // Groen, Young & Ligthart 1985 and Krotkov 1987), normalised by the squared mean.
-        const double tenengrad = cv::mean(gx.mul(gx) + gy.mul(gy))[0];
-        return tenengrad / (mean * mean);
-    } catch (const cv::Exception&) {
-        return 0;
-    }
-}
-
-double tissueFraction(const cv::Mat& image) {
-    if (image.empty()) return 0;
-    try {
-        const cv::Mat f = normalisedGrey(image, 256);
-        std::vector<float> values = toVector(f);
-        if (values.size() < 4) return 0;
-        const float median = percentile(values, 0.5);
-        const bool brightField = median > 0.5F;
-        const float glass = percentile(values, brightField ? 0.98 : 0.02);
-        // Noise from horizontal neighbour differences: for white noise d = n1 - n2 has
-        // sigma * sqrt(2); the median absolute value of a normal is 0.6745 sigma.
-        cv::Mat d = cv::abs(f.colRange(1, f.cols) - f.colRange(0, f.cols - 1));
-        std::vector<float> diffs = toVector(d);
-        const double noise = diffs.empty() ? 0 : percentile(diffs, 0.5) / 0.6745 / std::sqrt(2.0);
-        const double threshold = std::max(5 * noise, 0.02);
-        cv::Mat tissue = brightField ? (f < glass - threshold) : (f > glass + threshold);
-        return static_cast<double>(cv::countNonZero(tissue)) / static_cast<double>(f.total());
-    } catch (const cv::Exception&) {
-        return 0;
-    }
-}
 
 core::Result<FocusResult> autofocus(hw::Stage& stage, hw::Camera& camera,
                                     const hw::StagePosition& at, const AutofocusSettings& s,

@@ -2,8 +2,9 @@
 
 #include "slicestation/daemon/service/systemd_notifier.hpp"
 #include "slicestation/daemon/station/retry_policy.hpp"
-#include "slicestation/daemon/station/tile_stitcher.hpp"
 #include "slicestation/daemon/storage/ome_tiff.hpp"
+#include "slicestation/pipeline/frame_image.hpp"
+#include "slicestation/pipeline/tile_stitching.hpp"
 
 #include <opencv2/core.hpp>
 
@@ -126,11 +127,11 @@ Step<SectionSteps::Focus> SectionSteps::focus(double xUm, double yUm, double zUm
 Step<SectionSteps::Capture> SectionSteps::capture(const SectionRecord& sec, double z,
                                                   const std::function<void(const std::string&)>& activity) {
     const Orientation o = orientation(s_.objective.cameraToStage);
-    const TilePlan plan =
-        planTiles({sec.xUm, sec.yUm, z}, sec.widthUm, sec.heightUm, fieldWUm_, fieldHUm_, s_.tileOverlap);
+    const pipeline::TilePlan plan =
+        pipeline::planTiles({sec.xUm, sec.yUm, z}, sec.widthUm, sec.heightUm, fieldWUm_, fieldHUm_, s_.tileOverlap);
     Capture out;
     out.stage = {sec.xUm, sec.yUm, z};
-    std::vector<Tile> tiles;
+    std::vector<pipeline::Tile> tiles;
     for (const auto& c : plan.centres) {
         auto at = move({c.xUm, c.yUm, z});
         if (!at) return at.fault();
@@ -140,7 +141,7 @@ Step<SectionSteps::Capture> SectionSteps::capture(const SectionRecord& sec, doub
         if (d_.watchdog) d_.watchdog->progress();
         out.meta = frame->metadata;
         if (plan.centres.size() == 1) out.stage = *at;
-        tiles.push_back({orient(frameToMat(*frame), o), *at});
+        tiles.push_back({orient(pipeline::frameToMat(*frame), o), *at});
     }
     out.tiles = static_cast<int>(tiles.size());
     if (tiles.size() == 1) {
@@ -149,7 +150,7 @@ Step<SectionSteps::Capture> SectionSteps::capture(const SectionRecord& sec, doub
     }
     if (activity) activity("stitching " + std::to_string(tiles.size()) + " tiles");
     PhaseTimer t(d_.stats, "stitch");
-    auto stitched = stitchTiles(tiles, s_.objective.umPerPx);
+    auto stitched = pipeline::stitchTiles(tiles, s_.objective.umPerPx);
     if (!stitched) return Fault{"camera_fault", stitched.error()};
     out.image = *stitched;
     return out;

@@ -66,7 +66,6 @@ struct ScanSettings {
     std::chrono::milliseconds moveTimeout{10'000};
     std::chrono::milliseconds captureTimeout{5'000};
     std::uint64_t minFreeBytes = 500ull << 20;
-    bool registerSections = true;
     bool checkAtlasMatch = true;
     int mismatchToleranceSlices = 2;
 };

@@ -49,7 +49,6 @@ struct ScanPlan {
 };
 
 [[nodiscard]] core::Result<ScanPlan> parseScanPlan(const nlohmann::json& document, const std::string& origin);
-[[nodiscard]] core::Result<ScanPlan> loadScanPlan(const std::filesystem::path& file);
 
 /// Checks the plan against the station: every section's whole extent (centre +- width/2 and
 /// height/2) inside the stage's soft limits, every

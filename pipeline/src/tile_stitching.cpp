@@ -1,4 +1,4 @@
-#include "slicestation/daemon/station/tile_stitcher.hpp"
+#include "slicestation/pipeline/tile_stitching.hpp"
 
 #include <opencv2/core.hpp>
 #include <opencv2/imgproc.hpp>
@@ -8,7 +8,7 @@
 #include <optional>
 #include <string>
 
-namespace slicestation::daemon {
+namespace slicestation::pipeline {
 namespace {
 
 using core::ErrorCode;
@@ -310,4 +310,4 @@ core::Result<cv::Mat> stitchTiles(const std::vector<Tile>& tiles, double umPerPx
     }
 }
 
-} // namespace slicestation::daemon
+} // namespace slicestation::pipeline
