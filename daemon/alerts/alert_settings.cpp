@@ -26,9 +26,9 @@
 #include <cstdio>
 #include <cstring>
 #include <deque>
+#include <initializer_list>
 #include <map>
 #include <optional>
-#include <initializer_list>
 #include <string_view>
 #include <thread>
 
@@ -43,12 +43,12 @@ using Clock = std::chrono::steady_clock;
 
 namespace {
 
-
 /// Walks the [[alerts.<name>]] tables (absent: none): each must be a table with only `known`
 /// keys, and `each(table, path)` reads it.
 template <class Each>
 Result<void> forEachTable(const nlohmann::json& alerts, const std::string& name,
-                          std::initializer_list<std::string_view> known, const FieldReader& rd, Each each) {
+                          std::initializer_list<std::string_view> known, const FieldReader& rd,
+                          Each each) {
     if (!alerts.contains(name))
         return {};
     const auto& list = alerts[name];
@@ -69,8 +69,8 @@ Result<void> forEachTable(const nlohmann::json& alerts, const std::string& name,
 }
 
 /// `timeout_s` of a channel table, in milliseconds.
-Result<std::chrono::milliseconds> timeoutOf(const nlohmann::json& e, const std::string& p, double fallback,
-                                            const FieldReader& rd) {
+Result<std::chrono::milliseconds> timeoutOf(const nlohmann::json& e, const std::string& p,
+                                            double fallback, const FieldReader& rd) {
     auto v = rd.number(e, p, "timeout_s", fallback, 0.01, 3600);
     if (!v)
         return v.error();
@@ -78,7 +78,8 @@ Result<std::chrono::milliseconds> timeoutOf(const nlohmann::json& e, const std::
 }
 
 /// One `[[alerts.webhook]]` table.
-Result<WebhookSettings> readWebhook(const nlohmann::json& e, const std::string& p, const FieldReader& rd) {
+Result<WebhookSettings> readWebhook(const nlohmann::json& e, const std::string& p,
+                                    const FieldReader& rd) {
     WebhookSettings w;
     auto url = rd.string(e, p, "url", std::nullopt);
     if (!url)
@@ -88,7 +89,8 @@ Result<WebhookSettings> readWebhook(const nlohmann::json& e, const std::string& 
         return rd.bad(p + ".url", parsed.error().message);
 #ifndef CPPHTTPLIB_OPENSSL_SUPPORT
     if (parsed->scheme == "https")
-        return rd.bad(p + ".url", "https is not available: cpp-httplib was built without TLS; use http://");
+        return rd.bad(p + ".url",
+                      "https is not available: cpp-httplib was built without TLS; use http://");
 #endif
     w.url = *url;
     auto format = rd.string(e, p, "format", std::string("json"));
@@ -108,12 +110,14 @@ Result<WebhookSettings> readWebhook(const nlohmann::json& e, const std::string& 
 }
 
 /// One `[[alerts.command]]` table.
-Result<CommandSettings> readCommand(const nlohmann::json& e, const std::string& p, const FieldReader& rd) {
+Result<CommandSettings> readCommand(const nlohmann::json& e, const std::string& p,
+                                    const FieldReader& rd) {
     CommandSettings c;
     if (!e.contains("argv"))
         return rd.bad(p + ".argv", "missing");
     const auto& argv = e["argv"];
-    if (!argv.is_array() || !std::all_of(argv.begin(), argv.end(), [](const auto& a) { return a.is_string(); }))
+    if (!argv.is_array() ||
+        !std::all_of(argv.begin(), argv.end(), [](const auto& a) { return a.is_string(); }))
         return rd.bad(p + ".argv", "expected an array of strings, got " + argv.dump());
     if (argv.empty())
         return rd.bad(p + ".argv", "empty: name the program to run");
@@ -149,8 +153,8 @@ Result<AlertSettings> parseAlertSettings(const nlohmann::json& station, const st
     if (!t.is_object())
         return rd.bad("alerts", "expected a table [alerts]");
     if (auto keys = rd.onlyKeys(t, "alerts",
-                              {"journal", "retries", "backoff_initial_ms", "backoff_max_ms",
-                               "max_per_minute", "min_severity", "webhook", "command"});
+                                {"journal", "retries", "backoff_initial_ms", "backoff_max_ms",
+                                 "max_per_minute", "min_severity", "webhook", "command"});
         !keys)
         return keys.error();
 
@@ -185,22 +189,26 @@ Result<AlertSettings> parseAlertSettings(const nlohmann::json& station, const st
                       "expected \"info\", \"warning\" or \"critical\", got \"" + *sev + "\"");
     s.minSeverity = *sev;
 
-    auto webhooks = forEachTable(t, "webhook", {"url", "format", "timeout_s"}, rd,
-                                 [&](const nlohmann::json& e, const std::string& p) -> Result<void> {
-                                     auto w = readWebhook(e, p, rd);
-                                     if (!w) return w.error();
-                                     s.webhooks.push_back(std::move(*w));
-                                     return {};
-                                 });
+    auto webhooks =
+        forEachTable(t, "webhook", {"url", "format", "timeout_s"}, rd,
+                     [&](const nlohmann::json& e, const std::string& p) -> Result<void> {
+                         auto w = readWebhook(e, p, rd);
+                         if (!w)
+                             return w.error();
+                         s.webhooks.push_back(std::move(*w));
+                         return {};
+                     });
     if (!webhooks)
         return webhooks.error();
-    auto commands = forEachTable(t, "command", {"argv", "timeout_s"}, rd,
-                                 [&](const nlohmann::json& e, const std::string& p) -> Result<void> {
-                                     auto c = readCommand(e, p, rd);
-                                     if (!c) return c.error();
-                                     s.commands.push_back(std::move(*c));
-                                     return {};
-                                 });
+    auto commands =
+        forEachTable(t, "command", {"argv", "timeout_s"}, rd,
+                     [&](const nlohmann::json& e, const std::string& p) -> Result<void> {
+                         auto c = readCommand(e, p, rd);
+                         if (!c)
+                             return c.error();
+                         s.commands.push_back(std::move(*c));
+                         return {};
+                     });
     if (!commands)
         return commands.error();
     return s;

@@ -26,9 +26,9 @@
 #include <cstdio>
 #include <cstring>
 #include <deque>
+#include <initializer_list>
 #include <map>
 #include <optional>
-#include <initializer_list>
 #include <string_view>
 #include <thread>
 
@@ -134,7 +134,6 @@ Result<pid_t> spawnWithEnvironment(std::vector<std::string> argv, std::vector<st
         return makeError(rc == ENOENT ? ErrorCode::NotFound : ErrorCode::IoError,
                          std::string("cannot start: ") + std::strerror(rc), rc);
     return pid;
-
 }
 
 } // namespace
@@ -146,7 +145,8 @@ Result<void> CommandSink::deliver(const AlertRecord& alert) {
 
     auto spawned = spawnWithEnvironment(impl_->settings.argv, alertEnvironment(alert));
     if (!spawned)
-        return makeError(spawned.error().code, what + ": " + spawned.error().message, spawned.error().sysErrno);
+        return makeError(spawned.error().code, what + ": " + spawned.error().message,
+                         spawned.error().sysErrno);
     const pid_t pid = *spawned;
 
     // glibc 2.36's <sys/pidfd.h> lacks extern "C", so the system call is made directly.

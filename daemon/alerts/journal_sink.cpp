@@ -26,9 +26,9 @@
 #include <cstdio>
 #include <cstring>
 #include <deque>
+#include <initializer_list>
 #include <map>
 #include <optional>
-#include <initializer_list>
 #include <string_view>
 #include <thread>
 

@@ -30,7 +30,8 @@ public:
         : stage_(stage), camera_(camera), at_(at), s_(s) {}
 
     core::Result<void> moveZ(double zUm) {
-        auto moved = moveWithRetries(stage_, {at_.xUm, at_.yUm, zUm}, s_.moveTimeout, s_.moveRetries);
+        auto moved =
+            moveWithRetries(stage_, {at_.xUm, at_.yUm, zUm}, s_.moveTimeout, s_.moveRetries);
         if (!moved) {
             failed_ = FocusFailure::Stage;
             return moved.error();
@@ -40,7 +41,8 @@ public:
     }
     /// Moves to `zUm`, captures, and returns the frame as an image.
     core::Result<cv::Mat> frameAt(double zUm) {
-        if (auto moved = moveZ(zUm); !moved) return moved.error();
+        if (auto moved = moveZ(zUm); !moved)
+            return moved.error();
         auto frame = captureWithRetries(camera_, s_.captureTimeout, s_.captureRetries, s_.camera);
         if (!frame) {
             failed_ = FocusFailure::Camera;
@@ -52,7 +54,8 @@ public:
     /// Samples z values low to high, each approached from below.
     core::Result<std::vector<Sample>> sweep(const std::vector<double>& zs, double zMin) {
         std::vector<Sample> out;
-        if (zs.empty()) return out;
+        if (zs.empty())
+            return out;
         if (currentZ_ > zs.front()) {
             // Come from below, like every later step of the sweep (same backlash side).
             if (auto moved = moveZ(std::max(zMin, zs.front() - s_.coarseStepUm)); !moved) {
@@ -61,7 +64,8 @@ public:
         }
         for (const double z : zs) {
             auto image = frameAt(z);
-            if (!image) return image.error();
+            if (!image)
+                return image.error();
             out.push_back({z, pipeline::focusMeasure(*image)});
         }
         return out;
@@ -85,7 +89,8 @@ private:
 std::vector<double> steps(double lo, double hi, double step) {
     std::vector<double> zs;
     const int n = static_cast<int>(std::floor((hi - lo) / step + 1e-3)) + 1;
-    for (int i = 0; i < n; ++i) zs.push_back(lo + i * step);
+    for (int i = 0; i < n; ++i)
+        zs.push_back(lo + i * step);
     return zs;
 }
 
@@ -100,9 +105,12 @@ core::Result<void> validate(const AutofocusSettings& s) {
     const auto bad = [](const std::string& what) {
         return makeError(ErrorCode::InvalidArgument, "autofocus settings: " + what);
     };
-    if (!(s.coarseStepUm > 0) || !(s.fineStepUm > 0)) return bad("steps must be > 0");
-    if (s.fineStepUm > s.coarseStepUm) return bad("fineStepUm must not exceed coarseStepUm");
-    if (!(s.rangeUm >= s.coarseStepUm)) return bad("rangeUm must be at least coarseStepUm");
+    if (!(s.coarseStepUm > 0) || !(s.fineStepUm > 0))
+        return bad("steps must be > 0");
+    if (s.fineStepUm > s.coarseStepUm)
+        return bad("fineStepUm must not exceed coarseStepUm");
+    if (!(s.rangeUm >= s.coarseStepUm))
+        return bad("rangeUm must be at least coarseStepUm");
     if (!(s.minTissueFraction >= 0 && s.minTissueFraction <= 1)) {
         return bad("minTissueFraction must be within [0, 1]");
     }
@@ -114,7 +122,8 @@ core::Result<void> validate(const AutofocusSettings& s) {
 
 core::Result<FocusResult> run(hw::Stage& stage, hw::Camera& camera, const hw::StagePosition& at,
                               const AutofocusSettings& s, FocusFailure& failed) {
-    if (auto valid = validate(s); !valid) return valid.error();
+    if (auto valid = validate(s); !valid)
+        return valid.error();
     const hw::StageLimits limits = stage.limits();
     if (!limits.z) {
         return makeError(ErrorCode::InvalidArgument, "autofocus: the stage has no Z axis");
@@ -131,7 +140,8 @@ core::Result<FocusResult> run(hw::Stage& stage, hw::Camera& camera, const hw::St
     FocusResult result;
     result.zUm = at.zUm;
     auto first = search.frameAt(at.zUm);
-    if (!first) return first.error();
+    if (!first)
+        return first.error();
     result.captures = search.captures();
     result.score = pipeline::focusMeasure(*first);
     result.tissueFraction = pipeline::tissueFraction(*first);
@@ -143,7 +153,8 @@ core::Result<FocusResult> run(hw::Stage& stage, hw::Camera& camera, const hw::St
     const double lo = std::max(zMin, at.zUm - s.rangeUm / 2);
     const double hi = std::min(zMax, at.zUm + s.rangeUm / 2);
     auto coarse = search.sweep(steps(lo, hi, s.coarseStepUm), zMin);
-    if (!coarse) return coarse.error();
+    if (!coarse)
+        return coarse.error();
     const std::size_t b = best(*coarse);
     result.peakAtRangeEdge = coarse->size() > 1 && (b == 0 || b + 1 == coarse->size());
 
@@ -151,7 +162,8 @@ core::Result<FocusResult> run(hw::Stage& stage, hw::Camera& camera, const hw::St
     const double fineLo = std::max(zMin, zc - s.coarseStepUm);
     const double fineHi = std::min(zMax, zc + s.coarseStepUm);
     auto fine = search.sweep(steps(fineLo, fineHi, s.fineStepUm), zMin);
-    if (!fine) return fine.error();
+    if (!fine)
+        return fine.error();
     const std::size_t f = best(*fine);
     double zBest = (*fine)[f].zUm;
     if (f > 0 && f + 1 < fine->size()) {
@@ -171,7 +183,8 @@ core::Result<FocusResult> run(hw::Stage& stage, hw::Camera& camera, const hw::St
             return moved.error();
         }
     }
-    if (auto moved = search.moveZ(zBest); !moved) return moved.error();
+    if (auto moved = search.moveZ(zBest); !moved)
+        return moved.error();
 
     result.zUm = zBest;
     result.score = (*fine)[f].score;
@@ -203,7 +216,8 @@ void FocusSurface::add(double xUm, double yUm, double zUm) {
 }
 
 std::optional<double> FocusSurface::predict(double xUm, double yUm) const {
-    if (points_.empty()) return std::nullopt;
+    if (points_.empty())
+        return std::nullopt;
     const double n = static_cast<double>(points_.size());
     double mx = 0, my = 0, mz = 0;
     for (const auto& p : points_) {
@@ -214,7 +228,8 @@ std::optional<double> FocusSurface::predict(double xUm, double yUm) const {
     mx /= n;
     my /= n;
     mz /= n;
-    if (points_.size() < 3) return mz; // one or two points: their mean
+    if (points_.size() < 3)
+        return mz; // one or two points: their mean
     // Centred second moments of x/y, and their covariance with z.
     double sxx = 0, sxy = 0, syy = 0, sxz = 0, syz = 0;
     for (const auto& p : points_) {
@@ -232,7 +247,8 @@ std::optional<double> FocusSurface::predict(double xUm, double yUm) const {
     const double disc = std::sqrt(std::max(0.0, trace * trace / 4 - det));
     const double major = trace / 2 + disc;
     const double minor = trace / 2 - disc;
-    if (!(major > 1e-9)) return mz; // all at the same x/y
+    if (!(major > 1e-9))
+        return mz; // all at the same x/y
     if (minor < 1e-9 * major + 1e-12) {
         // Points on one line: least squares along the principal direction (ux, uy).
         double ux = sxy, uy = major - sxx;

@@ -106,18 +106,22 @@ static_assert(kMigrations.size() == Journal::kSchemaVersion);
 
 } // namespace
 
-const char* toString(RunState s) noexcept { return kRunStates[static_cast<std::size_t>(s)]; }
+const char* toString(RunState s) noexcept {
+    return kRunStates[static_cast<std::size_t>(s)];
+}
 const char* toString(SectionState s) noexcept {
     return kSectionStates[static_cast<std::size_t>(s)];
 }
 std::optional<RunState> runStateFromString(std::string_view s) noexcept {
     for (std::size_t i = 0; i < kRunStates.size(); ++i)
-        if (s == kRunStates[i]) return static_cast<RunState>(i);
+        if (s == kRunStates[i])
+            return static_cast<RunState>(i);
     return std::nullopt;
 }
 std::optional<SectionState> sectionStateFromString(std::string_view s) noexcept {
     for (std::size_t i = 0; i < kSectionStates.size(); ++i)
-        if (s == kSectionStates[i]) return static_cast<SectionState>(i);
+        if (s == kSectionStates[i])
+            return static_cast<SectionState>(i);
     return std::nullopt;
 }
 bool isTerminal(RunState s) noexcept {
@@ -127,7 +131,8 @@ bool isTerminal(RunState s) noexcept {
 std::string Journal::nowUtc() {
     const auto now = std::chrono::system_clock::now();
     const auto t = std::chrono::system_clock::to_time_t(now);
-    const auto ms = std::chrono::duration_cast<std::chrono::milliseconds>(now.time_since_epoch()) % 1000;
+    const auto ms =
+        std::chrono::duration_cast<std::chrono::milliseconds>(now.time_since_epoch()) % 1000;
     std::tm tm{};
     gmtime_r(&t, &tm);
     char buf[64];
@@ -139,9 +144,9 @@ std::string Journal::nowUtc() {
 
 Result<std::unique_ptr<Journal>> Journal::open(const std::filesystem::path& file) {
     sqlite3* db = nullptr;
-    const int rc = sqlite3_open_v2(file.c_str(), &db,
-                                   SQLITE_OPEN_READWRITE | SQLITE_OPEN_CREATE | SQLITE_OPEN_FULLMUTEX,
-                                   nullptr);
+    const int rc = sqlite3_open_v2(
+        file.c_str(), &db, SQLITE_OPEN_READWRITE | SQLITE_OPEN_CREATE | SQLITE_OPEN_FULLMUTEX,
+        nullptr);
     if (rc != SQLITE_OK) {
         std::string msg = db ? sqlite3_errmsg(db) : sqlite3_errstr(rc);
         sqlite3_close(db);
@@ -151,7 +156,8 @@ Result<std::unique_ptr<Journal>> Journal::open(const std::filesystem::path& file
     sqlite3_busy_timeout(db, 5000);
     // WAL keeps readers (the HTTP API) off the writer's back; FULL syncs every commit so a power
     // cut loses no committed transaction.
-    const char* pragmas = "PRAGMA journal_mode=WAL; PRAGMA synchronous=FULL; PRAGMA foreign_keys=ON;";
+    const char* pragmas =
+        "PRAGMA journal_mode=WAL; PRAGMA synchronous=FULL; PRAGMA foreign_keys=ON;";
     if (sqlite3_exec(db, pragmas, nullptr, nullptr, nullptr) != SQLITE_OK)
         return sqlError(db, file, "setting pragmas");
     {
@@ -159,29 +165,35 @@ Result<std::unique_ptr<Journal>> Journal::open(const std::filesystem::path& file
         if (!st.ok() || st.step() != SQLITE_ROW)
             return sqlError(db, file, "not a journal (is it an SQLite database?)");
     }
-    if (auto m = j->migrate(); !m) return m.error();
+    if (auto m = j->migrate(); !m)
+        return m.error();
     return j;
 }
 
-Journal::~Journal() { sqlite3_close(db_); }
+Journal::~Journal() {
+    sqlite3_close(db_);
+}
 
 Result<void> Journal::migrate() {
     std::lock_guard lock(mutex_);
     int version = 0;
     {
         Statement st(db_, "PRAGMA user_version");
-        if (!st.ok() || st.step() != SQLITE_ROW) return sqlError(db_, file_, "reading user_version");
+        if (!st.ok() || st.step() != SQLITE_ROW)
+            return sqlError(db_, file_, "reading user_version");
         version = st.i32(0);
     }
     if (version > kSchemaVersion)
         return makeError(ErrorCode::Unsupported,
-                         "journal " + file_.string() + ": schema version " + std::to_string(version) +
-                             " is newer than this slicestation (" + std::to_string(kSchemaVersion) +
-                             "); refusing to touch it");
+                         "journal " + file_.string() + ": schema version " +
+                             std::to_string(version) + " is newer than this slicestation (" +
+                             std::to_string(kSchemaVersion) + "); refusing to touch it");
     for (int v = version; v < kSchemaVersion; ++v) {
         Transaction tx(db_);
-        if (!tx.began()) return sqlError(db_, file_, "begin migration");
-        if (sqlite3_exec(db_, kMigrations[static_cast<std::size_t>(v)], nullptr, nullptr, nullptr) != SQLITE_OK)
+        if (!tx.began())
+            return sqlError(db_, file_, "begin migration");
+        if (sqlite3_exec(db_, kMigrations[static_cast<std::size_t>(v)], nullptr, nullptr,
+                         nullptr) != SQLITE_OK)
             return sqlError(db_, file_, ("migration to version " + std::to_string(v + 1)).c_str());
         const std::string setVersion = "PRAGMA user_version = " + std::to_string(v + 1);
         if (sqlite3_exec(db_, setVersion.c_str(), nullptr, nullptr, nullptr) != SQLITE_OK ||
@@ -196,11 +208,13 @@ Result<std::int64_t> Journal::createRun(const std::string& name, const nlohmann:
                                         const std::vector<PlannedSection>& sections) {
     std::lock_guard lock(mutex_);
     Transaction tx(db_);
-    if (!tx.began()) return sqlError(db_, file_, "begin");
+    if (!tx.began())
+        return sqlError(db_, file_, "begin");
     Statement ins(db_, "INSERT INTO runs (name, state, plan_json, settings_json, created_utc) "
                        "VALUES (?, 'queued', ?, ?, ?)");
     ins.bind(1, name).bind(2, plan.dump()).bind(3, settings.dump()).bind(4, nowUtc());
-    if (ins.step() != SQLITE_DONE) return sqlError(db_, file_, "insert run");
+    if (ins.step() != SQLITE_DONE)
+        return sqlError(db_, file_, "insert run");
     const std::int64_t runId = sqlite3_last_insert_rowid(db_);
     for (const auto& s : sections) {
         Statement st(db_, "INSERT INTO sections (run_id, slide_index, slide_name, idx, name, x_um, "
@@ -209,30 +223,37 @@ Result<std::int64_t> Journal::createRun(const std::string& name, const nlohmann:
         st.bind(1, runId).bind(2, s.slideIndex).bind(3, s.slideName).bind(4, s.index);
         st.bind(5, s.name).bind(6, s.xUm).bind(7, s.yUm).bind(8, s.widthUm).bind(9, s.heightUm);
         st.bind(10, s.expectedSlice);
-        if (st.step() != SQLITE_DONE) return sqlError(db_, file_, "insert section");
+        if (st.step() != SQLITE_DONE)
+            return sqlError(db_, file_, "insert section");
     }
-    if (!tx.commit()) return sqlError(db_, file_, "commit run");
+    if (!tx.commit())
+        return sqlError(db_, file_, "commit run");
     return runId;
 }
 
 Result<RunRecord> Journal::run(std::int64_t runId) {
     std::lock_guard lock(mutex_);
-    Statement st(db_, (std::string("SELECT ") + kRunColumns + " FROM runs r WHERE r.id = ?").c_str());
+    Statement st(db_,
+                 (std::string("SELECT ") + kRunColumns + " FROM runs r WHERE r.id = ?").c_str());
     st.bind(1, runId);
     const int rc = st.step();
     if (rc == SQLITE_DONE)
         return makeError(ErrorCode::NotFound, "no run " + std::to_string(runId));
-    if (rc != SQLITE_ROW) return sqlError(db_, file_, "read run");
+    if (rc != SQLITE_ROW)
+        return sqlError(db_, file_, "read run");
     return readRun(st);
 }
 
 Result<std::vector<RunRecord>> Journal::runs() {
     std::lock_guard lock(mutex_);
-    Statement st(db_, (std::string("SELECT ") + kRunColumns + " FROM runs r ORDER BY r.id").c_str());
+    Statement st(db_,
+                 (std::string("SELECT ") + kRunColumns + " FROM runs r ORDER BY r.id").c_str());
     std::vector<RunRecord> out;
     int rc;
-    while ((rc = st.step()) == SQLITE_ROW) out.push_back(readRun(st));
-    if (rc != SQLITE_DONE) return sqlError(db_, file_, "list runs");
+    while ((rc = st.step()) == SQLITE_ROW)
+        out.push_back(readRun(st));
+    if (rc != SQLITE_DONE)
+        return sqlError(db_, file_, "list runs");
     return out;
 }
 
@@ -240,26 +261,33 @@ Result<void> Journal::setRunState(std::int64_t runId, RunState state, const std:
                                   bool reopen) {
     std::lock_guard lock(mutex_);
     Transaction tx(db_);
-    if (!tx.began()) return sqlError(db_, file_, "begin");
+    if (!tx.began())
+        return sqlError(db_, file_, "begin");
     Statement cur(db_, "SELECT state FROM runs WHERE id = ?");
     cur.bind(1, runId);
     const int rc = cur.step();
-    if (rc == SQLITE_DONE) return makeError(ErrorCode::NotFound, "no run " + std::to_string(runId));
-    if (rc != SQLITE_ROW) return sqlError(db_, file_, "read run state");
+    if (rc == SQLITE_DONE)
+        return makeError(ErrorCode::NotFound, "no run " + std::to_string(runId));
+    if (rc != SQLITE_ROW)
+        return sqlError(db_, file_, "read run state");
     const auto from = runStateFromString(cur.text(0)).value_or(RunState::Failed);
     if (isTerminal(from) && !reopen && from != state)
         return makeError(ErrorCode::InvalidArgument, std::string("run ") + std::to_string(runId) +
                                                          " is " + toString(from) +
                                                          "; it cannot become " + toString(state));
     const std::string now = nowUtc();
-    Statement up(db_, "UPDATE runs SET state = ?, reason = ?, "
-                      "started_utc = CASE WHEN ? = 'running' AND started_utc = '' THEN ? ELSE started_utc END, "
-                      "ended_utc = CASE WHEN ? IN ('finished','failed','cancelled') THEN ? ELSE '' END "
-                      "WHERE id = ?");
+    Statement up(
+        db_,
+        "UPDATE runs SET state = ?, reason = ?, "
+        "started_utc = CASE WHEN ? = 'running' AND started_utc = '' THEN ? ELSE started_utc END, "
+        "ended_utc = CASE WHEN ? IN ('finished','failed','cancelled') THEN ? ELSE '' END "
+        "WHERE id = ?");
     up.bind(1, toString(state)).bind(2, reason).bind(3, toString(state)).bind(4, now);
     up.bind(5, toString(state)).bind(6, now).bind(7, runId);
-    if (up.step() != SQLITE_DONE) return sqlError(db_, file_, "update run state");
-    if (!tx.commit()) return sqlError(db_, file_, "commit run state");
+    if (up.step() != SQLITE_DONE)
+        return sqlError(db_, file_, "update run state");
+    if (!tx.commit())
+        return sqlError(db_, file_, "commit run state");
     return {};
 }
 
@@ -270,8 +298,10 @@ Result<std::optional<RunRecord>> Journal::nextRun() {
                        "ORDER BY r.state = 'running' DESC, r.id LIMIT 1")
                           .c_str());
     const int rc = st.step();
-    if (rc == SQLITE_DONE) return std::optional<RunRecord>();
-    if (rc != SQLITE_ROW) return sqlError(db_, file_, "next run");
+    if (rc == SQLITE_DONE)
+        return std::optional<RunRecord>();
+    if (rc != SQLITE_ROW)
+        return sqlError(db_, file_, "next run");
     return std::optional<RunRecord>(readRun(st));
 }
 
@@ -283,19 +313,24 @@ Result<std::vector<SectionRecord>> Journal::sections(std::int64_t runId) {
     st.bind(1, runId);
     std::vector<SectionRecord> out;
     int rc;
-    while ((rc = st.step()) == SQLITE_ROW) out.push_back(readSection(st));
-    if (rc != SQLITE_DONE) return sqlError(db_, file_, "list sections");
+    while ((rc = st.step()) == SQLITE_ROW)
+        out.push_back(readSection(st));
+    if (rc != SQLITE_DONE)
+        return sqlError(db_, file_, "list sections");
     return out;
 }
 
 Result<SectionRecord> Journal::section(std::int64_t sectionId) {
     std::lock_guard lock(mutex_);
-    Statement st(db_, (std::string("SELECT ") + kSectionColumns + " FROM sections s WHERE s.id = ?").c_str());
+    Statement st(
+        db_,
+        (std::string("SELECT ") + kSectionColumns + " FROM sections s WHERE s.id = ?").c_str());
     st.bind(1, sectionId);
     const int rc = st.step();
     if (rc == SQLITE_DONE)
         return makeError(ErrorCode::NotFound, "no section " + std::to_string(sectionId));
-    if (rc != SQLITE_ROW) return sqlError(db_, file_, "read section");
+    if (rc != SQLITE_ROW)
+        return sqlError(db_, file_, "read section");
     return readSection(st);
 }
 
@@ -307,42 +342,51 @@ Result<std::optional<SectionRecord>> Journal::nextSectionToCapture(std::int64_t 
                           .c_str());
     st.bind(1, runId);
     const int rc = st.step();
-    if (rc == SQLITE_DONE) return std::optional<SectionRecord>();
-    if (rc != SQLITE_ROW) return sqlError(db_, file_, "next section");
+    if (rc == SQLITE_DONE)
+        return std::optional<SectionRecord>();
+    if (rc != SQLITE_ROW)
+        return sqlError(db_, file_, "next section");
     return std::optional<SectionRecord>(readSection(st));
 }
 
 Result<std::int64_t> Journal::recordCapture(CaptureRecord c) {
     std::lock_guard lock(mutex_);
     Transaction tx(db_);
-    if (!tx.began()) return sqlError(db_, file_, "begin");
+    if (!tx.began())
+        return sqlError(db_, file_, "begin");
     Statement cur(db_, "SELECT state, (SELECT COALESCE(MAX(attempt), 0) FROM captures WHERE "
                        "section_id = sections.id) FROM sections WHERE id = ?");
     cur.bind(1, c.sectionId);
     const int rc = cur.step();
     if (rc == SQLITE_DONE)
         return makeError(ErrorCode::NotFound, "no section " + std::to_string(c.sectionId));
-    if (rc != SQLITE_ROW) return sqlError(db_, file_, "read section");
+    if (rc != SQLITE_ROW)
+        return sqlError(db_, file_, "read section");
     const auto state = sectionStateFromString(cur.text(0));
     if (state != SectionState::Pending && state != SectionState::Rescan)
         return makeError(ErrorCode::InvalidArgument, "section " + std::to_string(c.sectionId) +
                                                          " is " + cur.text(0) +
                                                          ", not waiting for a capture");
     c.attempt = cur.i32(1) + 1;
-    if (c.capturedUtc.empty()) c.capturedUtc = nowUtc();
-    Statement ins(db_, "INSERT INTO captures (section_id, attempt, image_path, um_per_px, stage_x_um, "
-                       "stage_y_um, stage_z_um, focus_score, focus_found, tiles, exposure_us, gain, "
-                       "captured_utc) VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?)");
+    if (c.capturedUtc.empty())
+        c.capturedUtc = nowUtc();
+    Statement ins(db_,
+                  "INSERT INTO captures (section_id, attempt, image_path, um_per_px, stage_x_um, "
+                  "stage_y_um, stage_z_um, focus_score, focus_found, tiles, exposure_us, gain, "
+                  "captured_utc) VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?)");
     ins.bind(1, c.sectionId).bind(2, c.attempt).bind(3, c.imagePath).bind(4, c.umPerPx);
     ins.bind(5, c.stage.xUm).bind(6, c.stage.yUm).bind(7, c.stage.zUm).bind(8, c.focusScore);
     ins.bind(9, c.focusFound ? 1 : 0).bind(10, c.tiles).bind(11, c.exposureUs).bind(12, c.gain);
     ins.bind(13, c.capturedUtc);
-    if (ins.step() != SQLITE_DONE) return sqlError(db_, file_, "insert capture");
+    if (ins.step() != SQLITE_DONE)
+        return sqlError(db_, file_, "insert capture");
     const std::int64_t id = sqlite3_last_insert_rowid(db_);
     Statement up(db_, "UPDATE sections SET state = 'captured', reason = '' WHERE id = ?");
     up.bind(1, c.sectionId);
-    if (up.step() != SQLITE_DONE) return sqlError(db_, file_, "update section");
-    if (!tx.commit()) return sqlError(db_, file_, "commit capture");
+    if (up.step() != SQLITE_DONE)
+        return sqlError(db_, file_, "update section");
+    if (!tx.commit())
+        return sqlError(db_, file_, "commit capture");
     return id;
 }
 
@@ -354,19 +398,23 @@ Result<std::vector<CaptureRecord>> Journal::captures(std::int64_t sectionId) {
     st.bind(1, sectionId);
     std::vector<CaptureRecord> out;
     int rc;
-    while ((rc = st.step()) == SQLITE_ROW) out.push_back(readCapture(st));
-    if (rc != SQLITE_DONE) return sqlError(db_, file_, "list captures");
+    while ((rc = st.step()) == SQLITE_ROW)
+        out.push_back(readCapture(st));
+    if (rc != SQLITE_DONE)
+        return sqlError(db_, file_, "list captures");
     return out;
 }
 
 Result<CaptureRecord> Journal::capture(std::int64_t captureId) {
     std::lock_guard lock(mutex_);
-    Statement st(db_, (std::string("SELECT ") + kCaptureColumns + " FROM captures WHERE id = ?").c_str());
+    Statement st(
+        db_, (std::string("SELECT ") + kCaptureColumns + " FROM captures WHERE id = ?").c_str());
     st.bind(1, captureId);
     const int rc = st.step();
     if (rc == SQLITE_DONE)
         return makeError(ErrorCode::NotFound, "no capture " + std::to_string(captureId));
-    if (rc != SQLITE_ROW) return sqlError(db_, file_, "read capture");
+    if (rc != SQLITE_ROW)
+        return sqlError(db_, file_, "read capture");
     return readCapture(st);
 }
 
@@ -375,8 +423,10 @@ Result<std::optional<std::int64_t>> Journal::captureWithImage(const std::string&
     Statement st(db_, "SELECT id FROM captures WHERE image_path = ? ORDER BY id LIMIT 1");
     st.bind(1, imagePath);
     const int rc = st.step();
-    if (rc == SQLITE_DONE) return std::optional<std::int64_t>();
-    if (rc != SQLITE_ROW) return sqlError(db_, file_, "find the capture of an image");
+    if (rc == SQLITE_DONE)
+        return std::optional<std::int64_t>();
+    if (rc != SQLITE_ROW)
+        return sqlError(db_, file_, "find the capture of an image");
     return std::optional<std::int64_t>(st.i64(0));
 }
 
@@ -389,39 +439,49 @@ Result<std::vector<std::int64_t>> Journal::capturesAwaitingRegistration() {
                       "registrations r WHERE r.capture_id = c.id) ORDER BY c.id");
     std::vector<std::int64_t> out;
     int rc;
-    while ((rc = st.step()) == SQLITE_ROW) out.push_back(st.i64(0));
-    if (rc != SQLITE_DONE) return sqlError(db_, file_, "captures awaiting registration");
+    while ((rc = st.step()) == SQLITE_ROW)
+        out.push_back(st.i64(0));
+    if (rc != SQLITE_DONE)
+        return sqlError(db_, file_, "captures awaiting registration");
     return out;
 }
 
 Result<std::int64_t> Journal::recordRegistration(RegistrationRecord r) {
     std::lock_guard lock(mutex_);
     Transaction tx(db_);
-    if (!tx.began()) return sqlError(db_, file_, "begin");
+    if (!tx.began())
+        return sqlError(db_, file_, "begin");
     Statement cur(db_, "SELECT c.section_id, s.state FROM captures c JOIN sections s ON "
                        "s.id = c.section_id WHERE c.id = ?");
     cur.bind(1, r.captureId);
     const int rc = cur.step();
     if (rc == SQLITE_DONE)
         return makeError(ErrorCode::NotFound, "no capture " + std::to_string(r.captureId));
-    if (rc != SQLITE_ROW) return sqlError(db_, file_, "read capture");
+    if (rc != SQLITE_ROW)
+        return sqlError(db_, file_, "read capture");
     const std::int64_t sectionId = cur.i64(0);
-    if (r.registeredUtc.empty()) r.registeredUtc = nowUtc();
-    Statement ins(db_, "INSERT INTO registrations (capture_id, atlas_slice, matched_slice, damaged, "
-                       "damage_fraction, summary, warning, quality, result_path, overlay_path, "
-                       "labels_path, result_json, registered_utc) VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?)");
+    if (r.registeredUtc.empty())
+        r.registeredUtc = nowUtc();
+    Statement ins(db_,
+                  "INSERT INTO registrations (capture_id, atlas_slice, matched_slice, damaged, "
+                  "damage_fraction, summary, warning, quality, result_path, overlay_path, "
+                  "labels_path, result_json, registered_utc) VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?)");
     ins.bind(1, r.captureId).bind(2, r.atlasSlice).bind(3, r.matchedSlice);
     ins.bind(4, r.damaged ? 1 : 0).bind(5, r.damageFraction).bind(6, r.summary).bind(7, r.warning);
     ins.bind(8, r.quality).bind(9, r.resultPath).bind(10, r.overlayPath).bind(11, r.labelsPath);
     ins.bind(12, r.result.dump()).bind(13, r.registeredUtc);
-    if (ins.step() != SQLITE_DONE) return sqlError(db_, file_, "insert registration");
+    if (ins.step() != SQLITE_DONE)
+        return sqlError(db_, file_, "insert registration");
     const std::int64_t id = sqlite3_last_insert_rowid(db_);
     // Only a section still waiting for this registration changes state: a rescan requested in
     // the meantime wins.
-    Statement up(db_, "UPDATE sections SET state = ?, reason = '' WHERE id = ? AND state = 'captured'");
+    Statement up(db_,
+                 "UPDATE sections SET state = ?, reason = '' WHERE id = ? AND state = 'captured'");
     up.bind(1, r.damaged ? "damaged" : "registered").bind(2, sectionId);
-    if (up.step() != SQLITE_DONE) return sqlError(db_, file_, "update section");
-    if (!tx.commit()) return sqlError(db_, file_, "commit registration");
+    if (up.step() != SQLITE_DONE)
+        return sqlError(db_, file_, "update section");
+    if (!tx.commit())
+        return sqlError(db_, file_, "commit registration");
     return id;
 }
 
@@ -434,118 +494,81 @@ Result<std::vector<RegistrationRecord>> Journal::registrations(std::int64_t sect
     st.bind(1, sectionId);
     std::vector<RegistrationRecord> out;
     int rc;
-    while ((rc = st.step()) == SQLITE_ROW) out.push_back(readRegistration(st));
-    if (rc != SQLITE_DONE) return sqlError(db_, file_, "list registrations");
+    while ((rc = st.step()) == SQLITE_ROW)
+        out.push_back(readRegistration(st));
+    if (rc != SQLITE_DONE)
+        return sqlError(db_, file_, "list registrations");
     return out;
 }
 
 Result<void> Journal::failSection(std::int64_t sectionId, const std::string& reason) {
     std::lock_guard lock(mutex_);
     Transaction tx(db_);
-    if (!tx.began()) return sqlError(db_, file_, "begin");
+    if (!tx.began())
+        return sqlError(db_, file_, "begin");
     Statement up(db_, "UPDATE sections SET state = 'failed', reason = ? WHERE id = ?");
     up.bind(1, reason).bind(2, sectionId);
-    if (up.step() != SQLITE_DONE) return sqlError(db_, file_, "fail section");
+    if (up.step() != SQLITE_DONE)
+        return sqlError(db_, file_, "fail section");
     if (sqlite3_changes(db_) == 0)
         return makeError(ErrorCode::NotFound, "no section " + std::to_string(sectionId));
-    if (!tx.commit()) return sqlError(db_, file_, "commit");
+    if (!tx.commit())
+        return sqlError(db_, file_, "commit");
     return {};
 }
 
 Result<void> Journal::requestRescan(std::int64_t sectionId) {
     std::lock_guard lock(mutex_);
     Transaction tx(db_);
-    if (!tx.began()) return sqlError(db_, file_, "begin");
+    if (!tx.began())
+        return sqlError(db_, file_, "begin");
     Statement cur(db_, "SELECT s.state, s.run_id, r.state FROM sections s JOIN runs r ON r.id = "
                        "s.run_id WHERE s.id = ?");
     cur.bind(1, sectionId);
     const int rc = cur.step();
     if (rc == SQLITE_DONE)
         return makeError(ErrorCode::NotFound, "no section " + std::to_string(sectionId));
-    if (rc != SQLITE_ROW) return sqlError(db_, file_, "read section");
+    if (rc != SQLITE_ROW)
+        return sqlError(db_, file_, "read section");
     const auto state = sectionStateFromString(cur.text(0));
     const std::int64_t runId = cur.i64(1);
     const auto runState = runStateFromString(cur.text(2));
-    if (state == SectionState::Pending || state == SectionState::Captured || state == SectionState::Rescan)
-        return makeError(ErrorCode::InvalidArgument, "section " + std::to_string(sectionId) + " is " +
-                                                         cur.text(0) + "; only a registered, damaged or "
+    if (state == SectionState::Pending || state == SectionState::Captured ||
+        state == SectionState::Rescan)
+        return makeError(ErrorCode::InvalidArgument, "section " + std::to_string(sectionId) +
+                                                         " is " + cur.text(0) +
+                                                         "; only a registered, damaged or "
                                                          "failed section can be rescanned");
     if (runState == RunState::Cancelled)
         return makeError(ErrorCode::InvalidArgument,
                          "run " + std::to_string(runId) + " was cancelled; submit a new plan");
-    Statement up(db_, "UPDATE sections SET state = 'rescan', reason = 're-mounted, rescan requested' "
-                      "WHERE id = ?");
+    Statement up(db_,
+                 "UPDATE sections SET state = 'rescan', reason = 're-mounted, rescan requested' "
+                 "WHERE id = ?");
     up.bind(1, sectionId);
-    if (up.step() != SQLITE_DONE) return sqlError(db_, file_, "request rescan");
+    if (up.step() != SQLITE_DONE)
+        return sqlError(db_, file_, "request rescan");
     if (runState == RunState::Finished || runState == RunState::Failed) {
         Statement reopen(db_, "UPDATE runs SET state = 'queued', reason = 'rescan requested', "
                               "ended_utc = '' WHERE id = ?");
         reopen.bind(1, runId);
-        if (reopen.step() != SQLITE_DONE) return sqlError(db_, file_, "reopen run");
+        if (reopen.step() != SQLITE_DONE)
+            return sqlError(db_, file_, "reopen run");
     }
-    if (!tx.commit()) return sqlError(db_, file_, "commit rescan");
+    if (!tx.commit())
+        return sqlError(db_, file_, "commit rescan");
     return {};
-}
-
-Result<std::int64_t> Journal::raiseAlert(AlertRecord a) {
-    std::lock_guard lock(mutex_);
-    if (a.raisedUtc.empty()) a.raisedUtc = nowUtc();
-    Statement ins(db_, "INSERT INTO alerts (run_id, section_id, kind, severity, message, raised_utc) "
-                       "VALUES (?,?,?,?,?,?)");
-    ins.bind(1, a.runId).bind(2, a.sectionId).bind(3, a.kind).bind(4, a.severity);
-    ins.bind(5, a.message).bind(6, a.raisedUtc);
-    if (ins.step() != SQLITE_DONE) return sqlError(db_, file_, "insert alert");
-    return static_cast<std::int64_t>(sqlite3_last_insert_rowid(db_));
-}
-
-Result<std::vector<AlertRecord>> Journal::alerts(bool openOnly) {
-    std::lock_guard lock(mutex_);
-    Statement st(db_, (std::string("SELECT ") + kAlertColumns + " FROM alerts" +
-                       (openOnly ? " WHERE acknowledged_utc IS NULL" : "") + " ORDER BY id")
-                          .c_str());
-    std::vector<AlertRecord> out;
-    int rc;
-    while ((rc = st.step()) == SQLITE_ROW) out.push_back(readAlert(st));
-    if (rc != SQLITE_DONE) return sqlError(db_, file_, "list alerts");
-    return out;
-}
-
-Result<AlertRecord> Journal::alert(std::int64_t alertId) {
-    std::lock_guard lock(mutex_);
-    Statement st(db_, (std::string("SELECT ") + kAlertColumns + " FROM alerts WHERE id = ?").c_str());
-    st.bind(1, alertId);
-    const int rc = st.step();
-    if (rc == SQLITE_DONE) return makeError(ErrorCode::NotFound, "no alert " + std::to_string(alertId));
-    if (rc != SQLITE_ROW) return sqlError(db_, file_, "read alert");
-    return readAlert(st);
-}
-
-Result<AlertRecord> Journal::acknowledgeAlert(std::int64_t alertId, const std::string& action) {
-    {
-        std::lock_guard lock(mutex_);
-        Statement up(db_, "UPDATE alerts SET acknowledged_utc = ?, ack_action = ? WHERE id = ? AND "
-                          "acknowledged_utc IS NULL");
-        up.bind(1, nowUtc()).bind(2, action).bind(3, alertId);
-        if (up.step() != SQLITE_DONE) return sqlError(db_, file_, "acknowledge alert");
-        if (sqlite3_changes(db_) == 0) {
-            Statement st(db_, "SELECT 1 FROM alerts WHERE id = ?");
-            st.bind(1, alertId);
-            if (st.step() != SQLITE_ROW)
-                return makeError(ErrorCode::NotFound, "no alert " + std::to_string(alertId));
-            return makeError(ErrorCode::InvalidArgument,
-                             "alert " + std::to_string(alertId) + " is already acknowledged");
-        }
-    }
-    return alert(alertId);
 }
 
 Result<void> Journal::checkIntegrity() {
     std::lock_guard lock(mutex_);
     {
         Statement st(db_, "PRAGMA integrity_check");
-        if (st.step() != SQLITE_ROW) return sqlError(db_, file_, "integrity_check");
+        if (st.step() != SQLITE_ROW)
+            return sqlError(db_, file_, "integrity_check");
         if (st.text(0) != "ok")
-            return makeError(ErrorCode::IoError, "journal " + file_.string() + ": integrity_check: " + st.text(0));
+            return makeError(ErrorCode::IoError,
+                             "journal " + file_.string() + ": integrity_check: " + st.text(0));
     }
     Statement fk(db_, "PRAGMA foreign_key_check");
     const int rc = fk.step();
@@ -553,7 +576,8 @@ Result<void> Journal::checkIntegrity() {
         return makeError(ErrorCode::IoError, "journal " + file_.string() +
                                                  ": foreign_key_check: a row of " + fk.text(0) +
                                                  " references a missing " + fk.text(2));
-    if (rc != SQLITE_DONE) return sqlError(db_, file_, "foreign_key_check");
+    if (rc != SQLITE_DONE)
+        return sqlError(db_, file_, "foreign_key_check");
     return {};
 }
 

@@ -4,9 +4,15 @@
 namespace slicestation::daemon {
 
 nlohmann::json toJson(const RunRecord& r) {
-    return {{"id", r.id},           {"name", r.name},         {"state", toString(r.state)},
-            {"reason", r.reason},   {"created_utc", r.createdUtc}, {"started_utc", r.startedUtc},
-            {"ended_utc", r.endedUtc}, {"sections", r.sectionCount}, {"done", r.doneCount},
+    return {{"id", r.id},
+            {"name", r.name},
+            {"state", toString(r.state)},
+            {"reason", r.reason},
+            {"created_utc", r.createdUtc},
+            {"started_utc", r.startedUtc},
+            {"ended_utc", r.endedUtc},
+            {"sections", r.sectionCount},
+            {"done", r.doneCount},
             {"settings", r.settings}};
 }
 
@@ -29,17 +35,18 @@ nlohmann::json toJson(const SectionRecord& s) {
 }
 
 nlohmann::json toJson(const CaptureRecord& c) {
-    nlohmann::json j{{"id", c.id},
-                     {"section_id", c.sectionId},
-                     {"attempt", c.attempt},
-                     {"image", c.imagePath},
-                     {"um_per_px", c.umPerPx},
-                     {"stage", {{"x_um", c.stage.xUm}, {"y_um", c.stage.yUm}, {"z_um", c.stage.zUm}}},
-                     {"focus_found", c.focusFound},
-                     {"tiles", c.tiles},
-                     {"exposure_us", c.exposureUs},
-                     {"gain", c.gain},
-                     {"captured_utc", c.capturedUtc}};
+    nlohmann::json j{
+        {"id", c.id},
+        {"section_id", c.sectionId},
+        {"attempt", c.attempt},
+        {"image", c.imagePath},
+        {"um_per_px", c.umPerPx},
+        {"stage", {{"x_um", c.stage.xUm}, {"y_um", c.stage.yUm}, {"z_um", c.stage.zUm}}},
+        {"focus_found", c.focusFound},
+        {"tiles", c.tiles},
+        {"exposure_us", c.exposureUs},
+        {"gain", c.gain},
+        {"captured_utc", c.capturedUtc}};
     j["focus_score"] = c.focusScore ? nlohmann::json(*c.focusScore) : nlohmann::json();
     return j;
 }
@@ -62,12 +69,16 @@ nlohmann::json toJson(const RegistrationRecord& r) {
 }
 
 nlohmann::json toJson(const AlertRecord& a) {
-    nlohmann::json j{{"id", a.id},           {"kind", a.kind},
-                     {"severity", a.severity}, {"message", a.message},
-                     {"raised_utc", a.raisedUtc}, {"ack_action", a.ackAction}};
+    nlohmann::json j{{"id", a.id},
+                     {"kind", a.kind},
+                     {"severity", a.severity},
+                     {"message", a.message},
+                     {"raised_utc", a.raisedUtc},
+                     {"ack_action", a.ackAction}};
     j["run_id"] = a.runId ? nlohmann::json(*a.runId) : nlohmann::json();
     j["section_id"] = a.sectionId ? nlohmann::json(*a.sectionId) : nlohmann::json();
-    j["acknowledged_utc"] = a.acknowledgedUtc ? nlohmann::json(*a.acknowledgedUtc) : nlohmann::json();
+    j["acknowledged_utc"] =
+        a.acknowledgedUtc ? nlohmann::json(*a.acknowledgedUtc) : nlohmann::json();
     j["open"] = !a.acknowledgedUtc.has_value();
     return j;
 }

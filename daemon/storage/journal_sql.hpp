@@ -19,32 +19,43 @@ using core::makeError;
 /// image write, so that callers treat both alike.
 inline core::Error sqlError(sqlite3* db, const std::filesystem::path& file, const char* what) {
     const int err = sqlite3_errcode(db) == SQLITE_FULL ? ENOSPC : 0;
-    return makeError(ErrorCode::IoError,
-                     std::string("journal ") + file.string() + ": " + what + ": " + sqlite3_errmsg(db),
-                     err);
+    return makeError(
+        ErrorCode::IoError,
+        std::string("journal ") + file.string() + ": " + what + ": " + sqlite3_errmsg(db), err);
 }
 
 /// A prepared statement; finalised on destruction. Bind indices start at 1.
 class Statement {
 public:
     Statement(sqlite3* db, const char* sql) : db_(db) {
-        if (sqlite3_prepare_v2(db, sql, -1, &stmt_, nullptr) != SQLITE_OK) stmt_ = nullptr;
+        if (sqlite3_prepare_v2(db, sql, -1, &stmt_, nullptr) != SQLITE_OK)
+            stmt_ = nullptr;
     }
     ~Statement() { sqlite3_finalize(stmt_); }
     Statement(const Statement&) = delete;
     Statement& operator=(const Statement&) = delete;
     bool ok() const { return stmt_ != nullptr; }
 
-    Statement& bind(int i, std::int64_t v) { sqlite3_bind_int64(stmt_, i, v); return *this; }
-    Statement& bind(int i, int v) { sqlite3_bind_int64(stmt_, i, v); return *this; }
-    Statement& bind(int i, double v) { sqlite3_bind_double(stmt_, i, v); return *this; }
+    Statement& bind(int i, std::int64_t v) {
+        sqlite3_bind_int64(stmt_, i, v);
+        return *this;
+    }
+    Statement& bind(int i, int v) {
+        sqlite3_bind_int64(stmt_, i, v);
+        return *this;
+    }
+    Statement& bind(int i, double v) {
+        sqlite3_bind_double(stmt_, i, v);
+        return *this;
+    }
     Statement& bind(int i, const std::string& v) {
         sqlite3_bind_text(stmt_, i, v.c_str(), static_cast<int>(v.size()), SQLITE_TRANSIENT);
         return *this;
     }
     Statement& bind(int i, const char* v) { return bind(i, std::string(v)); }
     template <class T> Statement& bind(int i, const std::optional<T>& v) {
-        if (v) return bind(i, *v);
+        if (v)
+            return bind(i, *v);
         sqlite3_bind_null(stmt_, i);
         return *this;
     }
@@ -72,7 +83,8 @@ public:
         began_ = sqlite3_exec(db_, "BEGIN IMMEDIATE", nullptr, nullptr, nullptr) == SQLITE_OK;
     }
     ~Transaction() {
-        if (began_ && !committed_) sqlite3_exec(db_, "ROLLBACK", nullptr, nullptr, nullptr);
+        if (began_ && !committed_)
+            sqlite3_exec(db_, "ROLLBACK", nullptr, nullptr, nullptr);
     }
     Transaction(const Transaction&) = delete;
     Transaction& operator=(const Transaction&) = delete;
@@ -132,7 +144,8 @@ inline SectionRecord readSection(const Statement& st) {
     s.yUm = st.f64(7);
     s.widthUm = st.f64(8);
     s.heightUm = st.f64(9);
-    if (!st.isNull(10)) s.expectedSlice = st.i32(10);
+    if (!st.isNull(10))
+        s.expectedSlice = st.i32(10);
     s.state = sectionStateFromString(st.text(11)).value_or(SectionState::Failed);
     s.reason = st.text(12);
     s.attempts = st.i32(13);
@@ -151,7 +164,8 @@ inline CaptureRecord readCapture(const Statement& st) {
     c.imagePath = st.text(3);
     c.umPerPx = st.f64(4);
     c.stage = {st.f64(5), st.f64(6), st.f64(7)};
-    if (!st.isNull(8)) c.focusScore = st.f64(8);
+    if (!st.isNull(8))
+        c.focusScore = st.f64(8);
     c.focusFound = st.i32(9) != 0;
     c.tiles = st.i32(10);
     c.exposureUs = st.i64(11);
@@ -169,7 +183,8 @@ inline RegistrationRecord readRegistration(const Statement& st) {
     r.id = st.i64(0);
     r.captureId = st.i64(1);
     r.atlasSlice = st.i32(2);
-    if (!st.isNull(3)) r.matchedSlice = st.i32(3);
+    if (!st.isNull(3))
+        r.matchedSlice = st.i32(3);
     r.damaged = st.i32(4) != 0;
     r.damageFraction = st.f64(5);
     r.summary = st.text(6);
@@ -189,13 +204,16 @@ constexpr const char* kAlertColumns =
 inline AlertRecord readAlert(const Statement& st) {
     AlertRecord a;
     a.id = st.i64(0);
-    if (!st.isNull(1)) a.runId = st.i64(1);
-    if (!st.isNull(2)) a.sectionId = st.i64(2);
+    if (!st.isNull(1))
+        a.runId = st.i64(1);
+    if (!st.isNull(2))
+        a.sectionId = st.i64(2);
     a.kind = st.text(3);
     a.severity = st.text(4);
     a.message = st.text(5);
     a.raisedUtc = st.text(6);
-    if (!st.isNull(7)) a.acknowledgedUtc = st.text(7);
+    if (!st.isNull(7))
+        a.acknowledgedUtc = st.text(7);
     a.ackAction = st.text(8);
     return a;
 }

@@ -9,7 +9,9 @@
 
 namespace slicestation::daemon::ome_text {
 
-inline std::string quoted(const std::filesystem::path& path) { return "'" + path.string() + "'"; }
+inline std::string quoted(const std::filesystem::path& path) {
+    return "'" + path.string() + "'";
+}
 
 inline std::string formatDouble(double v) {
     std::array<char, 64> buf{};

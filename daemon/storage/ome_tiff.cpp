@@ -82,14 +82,17 @@ tmsize_t tiffRead(thandle_t h, void* buf, tmsize_t size) {
     auto* io = static_cast<TiffIo*>(h);
     tmsize_t done = 0;
     while (done < size) {
-        const ssize_t n = ::read(io->fd, static_cast<char*>(buf) + done,
-                                 static_cast<std::size_t>(size - done));
-        if (n < 0 && errno == EINTR) continue;
+        const ssize_t n =
+            ::read(io->fd, static_cast<char*>(buf) + done, static_cast<std::size_t>(size - done));
+        if (n < 0 && errno == EINTR)
+            continue;
         if (n < 0) {
-            if (io->firstErrno == 0) io->firstErrno = errno;
+            if (io->firstErrno == 0)
+                io->firstErrno = errno;
             return -1;
         }
-        if (n == 0) break;
+        if (n == 0)
+            break;
         done += n;
     }
     return done;
@@ -100,14 +103,17 @@ tmsize_t tiffWrite(thandle_t h, void* buf, tmsize_t size) {
     tmsize_t done = 0;
     while (done < size) {
         if (const int fault = gWriteFault.load(); fault != 0) {
-            if (io->firstErrno == 0) io->firstErrno = fault;
+            if (io->firstErrno == 0)
+                io->firstErrno = fault;
             return -1;
         }
         const ssize_t n = ::write(io->fd, static_cast<const char*>(buf) + done,
                                   static_cast<std::size_t>(size - done));
-        if (n < 0 && errno == EINTR) continue;
+        if (n < 0 && errno == EINTR)
+            continue;
         if (n <= 0) {
-            if (io->firstErrno == 0) io->firstErrno = n < 0 ? errno : EIO;
+            if (io->firstErrno == 0)
+                io->firstErrno = n < 0 ? errno : EIO;
             return -1;
         }
         done += n;
@@ -119,7 +125,8 @@ toff_t tiffSeek(thandle_t h, toff_t offset, int whence) {
     auto* io = static_cast<TiffIo*>(h);
     const off_t at = ::lseek(io->fd, static_cast<off_t>(offset), whence);
     if (at < 0) {
-        if (io->firstErrno == 0) io->firstErrno = errno;
+        if (io->firstErrno == 0)
+            io->firstErrno = errno;
         return static_cast<toff_t>(-1);
     }
     return static_cast<toff_t>(at);
@@ -134,7 +141,9 @@ toff_t tiffSize(thandle_t h) {
     return ::fstat(static_cast<TiffIo*>(h)->fd, &st) == 0 ? static_cast<toff_t>(st.st_size) : 0;
 }
 
-int tiffMap(thandle_t, void**, toff_t*) { return 0; }
+int tiffMap(thandle_t, void**, toff_t*) {
+    return 0;
+}
 void tiffUnmap(thandle_t, void*, toff_t) {}
 
 int onTiffError(TIFF*, void* user, const char* module, const char* fmt, va_list ap) {
@@ -157,7 +166,8 @@ class TiffHandle {
 public:
     static std::unique_ptr<TiffHandle> open(TiffIo& io, const char* name, const char* mode) {
         TIFFOpenOptions* options = TIFFOpenOptionsAlloc();
-        if (options == nullptr) return nullptr;
+        if (options == nullptr)
+            return nullptr;
         TIFFOpenOptionsSetErrorHandlerExtR(options, onTiffError, &io);
         TIFFOpenOptionsSetWarningHandlerExtR(options, onTiffWarning, &io);
         TIFF* tif = TIFFClientOpenExt(name, mode, &io, tiffRead, tiffWrite, tiffSeek, tiffClose,
@@ -171,7 +181,8 @@ public:
     TIFF* get() const noexcept { return tif_; }
     /// Flushes (when writing) and closes. False when the flush failed.
     bool close() noexcept {
-        if (tif_ == nullptr) return true;
+        if (tif_ == nullptr)
+            return true;
         const bool flushed = TIFFGetMode(tif_) == O_RDONLY || TIFFFlush(tif_) == 1;
         TIFFClose(tif_);
         tif_ = nullptr;
@@ -186,7 +197,8 @@ private:
 core::Error ioError(const std::string& what, const fs::path& path, const TiffIo& io) {
     const int err = io.firstErrno != 0 ? io.firstErrno : EIO;
     std::string message = what + " " + quoted(path) + ": " + errnoText(err);
-    if (!io.errors.empty()) message += " (libtiff: " + io.errors + ")";
+    if (!io.errors.empty())
+        message += " (libtiff: " + io.errors + ")";
     return makeError(ErrorCode::IoError, message, err);
 }
 
@@ -195,22 +207,22 @@ core::Result<void> writeTiff(int fd, const fs::path& tmp, const cv::Mat& image,
     TiffIo io;
     io.fd = fd;
     auto handle = TiffHandle::open(io, tmp.c_str(), "wl");
-    if (!handle) return ioError("cannot start TIFF", tmp, io);
+    if (!handle)
+        return ioError("cannot start TIFF", tmp, io);
     TIFF* tif = handle->get();
     const int channels = image.channels();
     const auto bits = static_cast<std::uint16_t>(image.depth() == CV_16U ? 16 : 8);
     // Rows per strip: about 64 KiB of raw data per strip (the TIFF 6.0 recommendation is ~8 KiB;
     // larger strips compress better and Bio-Formats reads any size).
     const std::size_t rowBytes = static_cast<std::size_t>(image.cols) * image.elemSize();
-    const auto rowsPerStrip = static_cast<std::uint32_t>(
-        std::clamp<std::size_t>(65536 / std::max<std::size_t>(rowBytes, 1), 1,
-                                static_cast<std::size_t>(image.rows)));
+    const auto rowsPerStrip = static_cast<std::uint32_t>(std::clamp<std::size_t>(
+        65536 / std::max<std::size_t>(rowBytes, 1), 1, static_cast<std::size_t>(image.rows)));
     // Resolution tags for readers that ignore the OME-XML (ImageJ's plain TIFF reader).
     const auto pxPerCm = static_cast<float>(1e4 / umPerPx);
     bool ok = TIFFSetField(tif, TIFFTAG_IMAGEWIDTH, static_cast<std::uint32_t>(image.cols)) == 1;
     ok = ok && TIFFSetField(tif, TIFFTAG_IMAGELENGTH, static_cast<std::uint32_t>(image.rows)) == 1;
-    ok = ok &&
-         TIFFSetField(tif, TIFFTAG_SAMPLESPERPIXEL, static_cast<std::uint16_t>(channels)) == 1;
+    ok =
+        ok && TIFFSetField(tif, TIFFTAG_SAMPLESPERPIXEL, static_cast<std::uint16_t>(channels)) == 1;
     ok = ok && TIFFSetField(tif, TIFFTAG_BITSPERSAMPLE, bits) == 1;
     ok = ok && TIFFSetField(tif, TIFFTAG_SAMPLEFORMAT, SAMPLEFORMAT_UINT) == 1;
     ok = ok && TIFFSetField(tif, TIFFTAG_PLANARCONFIG, PLANARCONFIG_CONTIG) == 1;
@@ -224,7 +236,8 @@ core::Result<void> writeTiff(int fd, const fs::path& tmp, const cv::Mat& image,
     ok = ok && TIFFSetField(tif, TIFFTAG_XRESOLUTION, pxPerCm) == 1;
     ok = ok && TIFFSetField(tif, TIFFTAG_YRESOLUTION, pxPerCm) == 1;
     ok = ok && TIFFSetField(tif, TIFFTAG_RESOLUTIONUNIT, RESUNIT_CENTIMETER) == 1;
-    if (!ok) return ioError("cannot set TIFF tags of", tmp, io);
+    if (!ok)
+        return ioError("cannot set TIFF tags of", tmp, io);
     // A new Mat: converting into a shallow copy of `image` would swap the caller's pixels.
     cv::Mat rgb;
     if (channels == 3) {
@@ -254,7 +267,8 @@ core::Result<void> writeTiff(int fd, const fs::path& tmp, const cv::Mat& image,
 
 core::Result<void> validate(const fs::path& path, const cv::Mat& image, const OmeTiffInfo& info) {
     const std::string what = "cannot write OME-TIFF " + quoted(path) + ": ";
-    if (image.empty()) return makeError(ErrorCode::InvalidArgument, what + "empty image");
+    if (image.empty())
+        return makeError(ErrorCode::InvalidArgument, what + "empty image");
     const int t = image.type();
     if (t != CV_8UC1 && t != CV_16UC1 && t != CV_8UC3) {
         return makeError(ErrorCode::InvalidArgument,
@@ -262,8 +276,8 @@ core::Result<void> validate(const fs::path& path, const cv::Mat& image, const Om
                              " (supported: CV_8UC1, CV_16UC1, CV_8UC3)");
     }
     if (!(info.umPerPx > 0) || !std::isfinite(info.umPerPx)) {
-        return makeError(ErrorCode::InvalidArgument,
-                         what + "pixel size umPerPx must be > 0, not " + formatDouble(info.umPerPx));
+        return makeError(ErrorCode::InvalidArgument, what + "pixel size umPerPx must be > 0, not " +
+                                                         formatDouble(info.umPerPx));
     }
     if (!std::isfinite(info.stage.xUm) || !std::isfinite(info.stage.yUm) ||
         !std::isfinite(info.stage.zUm)) {
@@ -288,13 +302,16 @@ core::Result<void> validate(const fs::path& path, const cv::Mat& image, const Om
 }
 
 core::Result<void> writeAtomic(const fs::path& path, const cv::Mat& image, OmeTiffInfo info) {
-    if (auto valid = validate(path, image, info); !valid) return valid;
-    if (info.acquiredUtc.empty()) info.acquiredUtc = utcNowIso8601();
+    if (auto valid = validate(path, image, info); !valid)
+        return valid;
+    if (info.acquiredUtc.empty())
+        info.acquiredUtc = utcNowIso8601();
     const std::string xml = makeOmeXml(image.cols, image.rows, image.type(), info);
 
     // Never over an existing file: it may be an image the journal refers to (EEXIST instead).
     auto r = core::replaceAtomically(
-        path, [&](int fd, const fs::path& tmp) { return writeTiff(fd, tmp, image, xml, info.umPerPx); },
+        path,
+        [&](int fd, const fs::path& tmp) { return writeTiff(fd, tmp, image, xml, info.umPerPx); },
         core::Replace::Never);
     // This writer's contract: a missing directory is an IoError (with ENOENT) like any other.
     if (!r && r.error().code == ErrorCode::NotFound)
@@ -331,11 +348,13 @@ core::Result<OmeTiffImage> readImpl(const fs::path& path) {
         return makeError(ErrorCode::NotFound, "OME-TIFF " + quoted(path) + " does not exist");
     }
     auto description = readDescription(path);
-    if (!description) return description.error();
+    if (!description)
+        return description.error();
     auto pixels = core::readImage(path);
     if (!pixels) {
         core::Error e = pixels.error();
-        if (e.code == ErrorCode::NotFound) e.code = ErrorCode::IoError;
+        if (e.code == ErrorCode::NotFound)
+            e.code = ErrorCode::IoError;
         return e;
     }
     const int t = pixels->type();
@@ -370,15 +389,17 @@ core::Result<OmeTiffImage> readOmeTiff(const std::filesystem::path& path) {
     }
 }
 
-void setOmeTiffWriteFaultForTesting(int err) noexcept { gWriteFault.store(err); }
+void setOmeTiffWriteFaultForTesting(int err) noexcept {
+    gWriteFault.store(err);
+}
 
 core::Result<void> writeOmeTiffAtomic(const std::filesystem::path& path, const cv::Mat& image,
                                       const OmeTiffInfo& info) {
     try {
         return writeAtomic(path, image, info);
     } catch (const cv::Exception& e) {
-        return makeError(ErrorCode::Internal, "cannot write OME-TIFF " + quoted(path) +
-                                                  ": OpenCV: " + e.what());
+        return makeError(ErrorCode::Internal,
+                         "cannot write OME-TIFF " + quoted(path) + ": OpenCV: " + e.what());
     } catch (const std::exception& e) {
         return makeError(ErrorCode::Internal,
                          "cannot write OME-TIFF " + quoted(path) + ": " + e.what());

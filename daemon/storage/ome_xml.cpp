@@ -60,12 +60,23 @@ std::string xmlEscape(std::string_view text) {
     out.reserve(text.size());
     for (const char c : text) {
         switch (c) {
-        case '&': out += "&amp;"; break;
-        case '<': out += "&lt;"; break;
-        case '>': out += "&gt;"; break;
-        case '"': out += "&quot;"; break;
-        case '\'': out += "&apos;"; break;
-        default: out += c;
+        case '&':
+            out += "&amp;";
+            break;
+        case '<':
+            out += "&lt;";
+            break;
+        case '>':
+            out += "&gt;";
+            break;
+        case '"':
+            out += "&quot;";
+            break;
+        case '\'':
+            out += "&apos;";
+            break;
+        default:
+            out += c;
         }
     }
     return out;
@@ -348,23 +359,35 @@ std::optional<double> lengthToUm(std::string_view unit) {
         unit == "reference frame") {
         return 1.0;
     }
-    if (unit == "nm") return 1e-3;
-    if (unit == "pm") return 1e-6;
-    if (unit == "Å") return 1e-4;
-    if (unit == "mm") return 1e3;
-    if (unit == "cm") return 1e4;
-    if (unit == "m") return 1e6;
+    if (unit == "nm")
+        return 1e-3;
+    if (unit == "pm")
+        return 1e-6;
+    if (unit == "Å")
+        return 1e-4;
+    if (unit == "mm")
+        return 1e3;
+    if (unit == "cm")
+        return 1e4;
+    if (unit == "m")
+        return 1e6;
     return std::nullopt;
 }
 
 /// Factor to µs of an OME UnitsTime symbol (default: s).
 std::optional<double> timeToUs(std::string_view unit) {
-    if (unit.empty() || unit == "s") return 1e6;
-    if (unit == "ms") return 1e3;
-    if (unit == "µs" || unit == "\xce\xbcs" || unit == "us") return 1.0;
-    if (unit == "ns") return 1e-3;
-    if (unit == "min") return 6e7;
-    if (unit == "h") return 3.6e9;
+    if (unit.empty() || unit == "s")
+        return 1e6;
+    if (unit == "ms")
+        return 1e3;
+    if (unit == "µs" || unit == "\xce\xbcs" || unit == "us")
+        return 1.0;
+    if (unit == "ns")
+        return 1e-3;
+    if (unit == "min")
+        return 6e7;
+    if (unit == "h")
+        return 3.6e9;
     return std::nullopt;
 }
 
@@ -423,53 +446,68 @@ std::string makeOmeXml(int width, int height, int cvType, const OmeTiffInfo& inf
 
 core::Result<OmeXmlContent> parseOmeXml(std::string_view xml) {
     auto doc = XmlParser(xml).parseDocument();
-    if (!doc) return doc.error();
+    if (!doc)
+        return doc.error();
     const auto bad = [](const std::string& what) {
         return makeError(ErrorCode::IoError, "OME-XML: " + what);
     };
-    if (doc->name != "OME") return bad("root element is <" + doc->name + ">, not <OME>");
+    if (doc->name != "OME")
+        return bad("root element is <" + doc->name + ">, not <OME>");
     const XmlElement* image = doc->child("Image");
-    if (image == nullptr) return bad("no <Image>");
+    if (image == nullptr)
+        return bad("no <Image>");
     const XmlElement* pixels = image->child("Pixels");
-    if (pixels == nullptr) return bad("no <Pixels> in the first <Image>");
+    if (pixels == nullptr)
+        return bad("no <Pixels> in the first <Image>");
 
     OmeXmlContent out;
     auto& info = out.info;
-    if (const auto* n = image->attribute("Name")) info.name = *n;
-    if (const auto* d = image->child("AcquisitionDate")) info.acquiredUtc = d->text;
+    if (const auto* n = image->attribute("Name"))
+        info.name = *n;
+    if (const auto* d = image->child("AcquisitionDate"))
+        info.acquiredUtc = d->text;
 
     const auto number = [&](const XmlElement& e, std::string_view key) -> core::Result<double> {
         const std::string* text = e.attribute(key);
-        if (text == nullptr) return bad("no " + std::string(key) + " in <" + e.name + ">");
+        if (text == nullptr)
+            return bad("no " + std::string(key) + " in <" + e.name + ">");
         const auto v = parseDouble(*text);
-        if (!v) return bad(std::string(key) + "=\"" + *text + "\" is not a number");
+        if (!v)
+            return bad(std::string(key) + "=\"" + *text + "\" is not a number");
         return *v;
     };
     const auto length = [&](const XmlElement& e, std::string_view key) -> core::Result<double> {
         auto v = number(e, key);
-        if (!v) return v;
+        if (!v)
+            return v;
         const std::string* unit = e.attribute(std::string(key) + "Unit");
         const auto factor = lengthToUm(unit ? *unit : std::string_view());
-        if (!factor) return bad(std::string(key) + "Unit=\"" + *unit + "\" is not a known length");
+        if (!factor)
+            return bad(std::string(key) + "Unit=\"" + *unit + "\" is not a known length");
         return *v * *factor;
     };
 
     for (const char* key : {"SizeX", "SizeY"}) {
         auto v = number(*pixels, key);
-        if (!v) return v.error();
+        if (!v)
+            return v.error();
         (std::string_view(key) == "SizeX" ? out.sizeX : out.sizeY) = static_cast<int>(*v);
     }
     auto sizeUm = length(*pixels, "PhysicalSizeX");
-    if (!sizeUm) return sizeUm.error();
-    if (!(*sizeUm > 0)) return bad("PhysicalSizeX must be > 0");
+    if (!sizeUm)
+        return sizeUm.error();
+    if (!(*sizeUm > 0))
+        return bad("PhysicalSizeX must be > 0");
     info.umPerPx = *sizeUm;
 
     if (const XmlElement* channel = pixels->child("Channel")) {
-        if (const auto* n = channel->attribute("Name")) info.channel = *n;
+        if (const auto* n = channel->attribute("Name"))
+            info.channel = *n;
         if (const XmlElement* ds = channel->child("DetectorSettings");
             ds != nullptr && ds->attribute("Gain") != nullptr) {
             auto gain = number(*ds, "Gain");
-            if (!gain) return gain.error();
+            if (!gain)
+                return gain.error();
             info.gain = *gain;
         }
     }
@@ -477,17 +515,21 @@ core::Result<OmeXmlContent> parseOmeXml(std::string_view xml) {
         double* targets[] = {&info.stage.xUm, &info.stage.yUm, &info.stage.zUm};
         const char* keys[] = {"PositionX", "PositionY", "PositionZ"};
         for (int i = 0; i < 3; ++i) {
-            if (plane->attribute(keys[i]) == nullptr) continue;
+            if (plane->attribute(keys[i]) == nullptr)
+                continue;
             auto v = length(*plane, keys[i]);
-            if (!v) return v.error();
+            if (!v)
+                return v.error();
             *targets[i] = *v;
         }
         if (plane->attribute("ExposureTime") != nullptr) {
             auto v = number(*plane, "ExposureTime");
-            if (!v) return v.error();
+            if (!v)
+                return v.error();
             const std::string* unit = plane->attribute("ExposureTimeUnit");
             const auto factor = timeToUs(unit ? *unit : std::string_view());
-            if (!factor) return bad("ExposureTimeUnit=\"" + *unit + "\" is not a known time");
+            if (!factor)
+                return bad("ExposureTimeUnit=\"" + *unit + "\" is not a known time");
             info.exposureUs = std::llround(*v * *factor);
         }
     }

@@ -34,16 +34,20 @@ cv::Mat normalisedGrey(const cv::Mat& image, int maxSide) {
 
 /// The p-quantile of every pixel (mask_ops' percentile samples every pixel of images this
 /// small: at most 512 x 512).
-float quantile(const cv::Mat& f, double p) { return percentile(f, p, cv::Mat(f.size(), CV_8U, cv::Scalar(255))); }
+float quantile(const cv::Mat& f, double p) {
+    return percentile(f, p, cv::Mat(f.size(), CV_8U, cv::Scalar(255)));
+}
 
 } // namespace
 
 double focusMeasure(const cv::Mat& image) {
-    if (image.empty()) return 0;
+    if (image.empty())
+        return 0;
     try {
         const cv::Mat f = normalisedGrey(image, 512);
         const double mean = cv::mean(f)[0];
-        if (!(mean > 1e-6)) return 0;
+        if (!(mean > 1e-6))
+            return 0;
         cv::Mat gx;
         cv::Mat gy;
         cv::Sobel(f, gx, CV_32F, 1, 0, 3);
@@ -58,10 +62,12 @@ double focusMeasure(const cv::Mat& image) {
 }
 
 double tissueFraction(const cv::Mat& image) {
-    if (image.empty()) return 0;
+    if (image.empty())
+        return 0;
     try {
         const cv::Mat f = normalisedGrey(image, 256);
-        if (f.total() < 4) return 0;
+        if (f.total() < 4)
+            return 0;
         const float median = quantile(f, 0.5);
         const bool brightField = median > 0.5F;
         const float glass = quantile(f, brightField ? 0.98 : 0.02);

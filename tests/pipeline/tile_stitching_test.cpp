@@ -46,10 +46,9 @@ Cut cutTiles(const cv::Mat& image, cv::Size fieldPx, double overlap, double erro
              std::uint64_t seed) {
     const hw::StagePosition centre{image.cols * kUmPerPx / 2, image.rows * kUmPerPx / 2, 100};
     const double marginPx = 8; // keep every cut inside the image
-    const auto plan = pipeline::planTiles(centre, (image.cols - 2 * marginPx) * kUmPerPx,
-                                        (image.rows - 2 * marginPx) * kUmPerPx,
-                                        fieldPx.width * kUmPerPx, fieldPx.height * kUmPerPx,
-                                        overlap);
+    const auto plan = pipeline::planTiles(
+        centre, (image.cols - 2 * marginPx) * kUmPerPx, (image.rows - 2 * marginPx) * kUmPerPx,
+        fieldPx.width * kUmPerPx, fieldPx.height * kUmPerPx, overlap);
     cv::RNG rng(seed);
     Cut cut;
     cut.firstTopLeftPx = {INT32_MAX, INT32_MAX};
@@ -95,7 +94,8 @@ TEST(PlanTiles, RowMajorOverlappingCoverage) {
     EXPECT_DOUBLE_EQ(plan.centres.back().yUm + fh / 2, 5'000 + 500);
     EXPECT_LE(plan.centres[1].xUm - plan.centres[0].xUm, fw * (1 - overlap) + 1e-9);
     EXPECT_LE(plan.centres[3].yUm - plan.centres[0].yUm, fh * (1 - overlap) + 1e-9);
-    for (const auto& c : plan.centres) EXPECT_EQ(c.zUm, 7);
+    for (const auto& c : plan.centres)
+        EXPECT_EQ(c.zUm, 7);
 }
 
 TEST(PlanTiles, InvalidInputGivesAnEmptyPlan) {
@@ -147,8 +147,10 @@ TEST(Stitch, WithoutRefinementStageErrorsShowAsSeams) {
     const cv::Size common(std::min(placedOnly->cols, refined->cols),
                           std::min(placedOnly->rows, refined->rows));
     const cv::Rect r(cv::Point(16, 16), common - cv::Size(32, 32));
-    const double refinedError = cv::norm((*refined)(r), original(r + cut.firstTopLeftPx), cv::NORM_L1);
-    const double placedError = cv::norm((*placedOnly)(r), original(r + cut.firstTopLeftPx), cv::NORM_L1);
+    const double refinedError =
+        cv::norm((*refined)(r), original(r + cut.firstTopLeftPx), cv::NORM_L1);
+    const double placedError =
+        cv::norm((*placedOnly)(r), original(r + cut.firstTopLeftPx), cv::NORM_L1);
     EXPECT_GT(placedError, 20 * (refinedError + 1));
 }
 

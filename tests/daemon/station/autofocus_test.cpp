@@ -307,7 +307,8 @@ TEST(FocusSurface, RecoversAKnownPlane) {
     EXPECT_EQ(surface.size(), 0u);
     // All at one place: the mean.
     daemon::FocusSurface same;
-    for (double z : {10.0, 20.0, 30.0}) same.add(5, 5, z);
+    for (double z : {10.0, 20.0, 30.0})
+        same.add(5, 5, z);
     EXPECT_DOUBLE_EQ(*same.predict(100, 100), 20.0);
 }
 

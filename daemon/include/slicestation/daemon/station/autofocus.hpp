@@ -22,9 +22,8 @@ namespace slicestation::daemon {
 /// The focus and tissue measures are pipeline::focusMeasure and pipeline::tissueFraction
 /// (pipeline/focus_measures.hpp).
 
-
 struct AutofocusSettings {
-    double rangeUm = 150;       ///< full width of the search, centred on the start z
+    double rangeUm = 150; ///< full width of the search, centred on the start z
     double coarseStepUm = 25;
     double fineStepUm = 5;
     double minTissueFraction = 0.03; ///< below this at the start z: blank glass, no search
@@ -40,9 +39,9 @@ struct AutofocusSettings {
 };
 
 struct FocusResult {
-    double zUm = 0;          ///< best z found (the start z when no tissue)
-    double score = 0;        ///< focusMeasure at zUm
-    int captures = 0;        ///< frames taken
+    double zUm = 0;   ///< best z found (the start z when no tissue)
+    double score = 0; ///< focusMeasure at zUm
+    int captures = 0; ///< frames taken
     bool tissueFound = false;
     double tissueFraction = 0; ///< at the start z
     /// The best coarse z was at the edge of the range (clamped by the stage limits or the
