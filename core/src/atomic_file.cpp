@@ -18,13 +18,17 @@ namespace fs = std::filesystem;
 
 namespace {
 
-std::string quoted(const fs::path& p) { return "\"" + p.string() + "\""; }
+std::string quoted(const fs::path& p) {
+    return "\"" + p.string() + "\"";
+}
 
 /// Digits only, at least one.
 bool isNumber(std::string_view s) noexcept {
-    if (s.empty()) return false;
+    if (s.empty())
+        return false;
     for (char c : s)
-        if (c < '0' || c > '9') return false;
+        if (c < '0' || c > '9')
+            return false;
     return true;
 }
 
@@ -32,10 +36,12 @@ Result<void> writeAll(int fd, std::string_view bytes, const fs::path& path) {
     std::size_t done = 0;
     while (done < bytes.size()) {
         const ssize_t n = ::write(fd, bytes.data() + done, bytes.size() - done);
-        if (n < 0 && errno == EINTR) continue;
+        if (n < 0 && errno == EINTR)
+            continue;
         if (n <= 0) {
             const int err = errno;
-            return makeError(ErrorCode::IoError, "cannot write " + quoted(path) + ": " + std::strerror(err), err);
+            return makeError(ErrorCode::IoError,
+                             "cannot write " + quoted(path) + ": " + std::strerror(err), err);
         }
         done += static_cast<std::size_t>(n);
     }
@@ -50,7 +56,8 @@ UniqueFd createTemporary(const fs::path& dir, const fs::path& path, fs::path& tm
         tmp = dir / ("." + path.filename().string() + ".tmp." + std::to_string(::getpid()) + "." +
                      std::to_string(counter.fetch_add(1)) + "." + std::to_string(stamp % 100000));
         UniqueFd fd(::open(tmp.c_str(), O_RDWR | O_CREAT | O_EXCL | O_CLOEXEC, 0666));
-        if (fd || errno != EEXIST) return fd;
+        if (fd || errno != EEXIST)
+            return fd;
     }
     return UniqueFd();
 }
@@ -60,7 +67,8 @@ int renameNoReplace(const fs::path& from, const fs::path& to) {
     int r = ::renameat2(AT_FDCWD, from.c_str(), AT_FDCWD, to.c_str(), RENAME_NOREPLACE);
     if (r != 0 && (errno == EINVAL || errno == ENOSYS)) {
         r = ::link(from.c_str(), to.c_str());
-        if (r == 0) ::unlink(from.c_str());
+        if (r == 0)
+            ::unlink(from.c_str());
     }
     return r;
 }
@@ -73,10 +81,11 @@ Result<void> replaceAtomically(const fs::path& path, const FillTemporary& fill, 
     UniqueFd fd = createTemporary(dir, path, tmp);
     if (!fd) {
         const int err = errno;
-        const ErrorCode code = err == ENOENT || err == ENOTDIR ? ErrorCode::NotFound : ErrorCode::IoError;
+        const ErrorCode code =
+            err == ENOENT || err == ENOTDIR ? ErrorCode::NotFound : ErrorCode::IoError;
         return makeError(code,
-                         "cannot create a file in directory " + quoted(dir) + " to write " + quoted(path) + ": " +
-                             std::strerror(err),
+                         "cannot create a file in directory " + quoted(dir) + " to write " +
+                             quoted(path) + ": " + std::strerror(err),
                          err);
     }
     bool committed = false;
@@ -84,23 +93,27 @@ Result<void> replaceAtomically(const fs::path& path, const FillTemporary& fill, 
         const fs::path& file;
         const bool& keep;
         ~Remover() {
-            if (!keep) ::unlink(file.c_str());
+            if (!keep)
+                ::unlink(file.c_str());
         }
     } remover{tmp, committed};
 
-    if (auto filled = fill(fd.get(), tmp); !filled) return filled.error();
+    if (auto filled = fill(fd.get(), tmp); !filled)
+        return filled.error();
     // fsync flushes the file's data whichever descriptor wrote it (libtiff may use its own).
     if (::fsync(fd.get()) != 0 || ::close(fd.release()) != 0) {
         const int err = errno;
-        return makeError(ErrorCode::IoError, "cannot flush " + quoted(tmp) + " to disk: " + std::strerror(err), err);
+        return makeError(ErrorCode::IoError,
+                         "cannot flush " + quoted(tmp) + " to disk: " + std::strerror(err), err);
     }
-    const int renamed = mode == Replace::Never ? renameNoReplace(tmp, path) : ::rename(tmp.c_str(), path.c_str());
+    const int renamed =
+        mode == Replace::Never ? renameNoReplace(tmp, path) : ::rename(tmp.c_str(), path.c_str());
     if (renamed != 0) {
         const int err = errno;
         return makeError(ErrorCode::IoError,
                          err == EEXIST ? quoted(path) + " exists already; it is never replaced"
-                                       : "cannot rename " + quoted(tmp) + " to " + quoted(path) + ": " +
-                                             std::strerror(err),
+                                       : "cannot rename " + quoted(tmp) + " to " + quoted(path) +
+                                             ": " + std::strerror(err),
                          err);
     }
     committed = true;
@@ -109,8 +122,8 @@ Result<void> replaceAtomically(const fs::path& path, const FillTemporary& fill, 
     if (!dirFd || (::fsync(dirFd.get()) != 0 && errno != EINVAL)) {
         const int err = errno;
         return makeError(ErrorCode::IoError,
-                         "cannot fsync directory " + quoted(dir) + " after writing " + quoted(path) + ": " +
-                             std::strerror(err),
+                         "cannot fsync directory " + quoted(dir) + " after writing " +
+                             quoted(path) + ": " + std::strerror(err),
                          err);
     }
     return {};
@@ -123,11 +136,13 @@ Result<void> writeFileAtomically(const fs::path& path, std::string_view bytes, R
 
 bool isAtomicTemporaryName(std::string_view name) noexcept {
     // .NAME.tmp.PID.N.STAMP
-    if (name.size() < 2 || name[0] != '.') return false;
+    if (name.size() < 2 || name[0] != '.')
+        return false;
     std::string_view rest = name;
     for (int i = 0; i < 3; ++i) { // STAMP, N, PID from the end
         const auto dot = rest.rfind('.');
-        if (dot == std::string_view::npos || !isNumber(rest.substr(dot + 1))) return false;
+        if (dot == std::string_view::npos || !isNumber(rest.substr(dot + 1)))
+            return false;
         rest = rest.substr(0, dot);
     }
     return rest.size() > 5 && rest.substr(rest.size() - 4) == ".tmp";

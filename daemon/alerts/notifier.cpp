@@ -22,7 +22,8 @@ void Notifier::publish(const StationEvent& event) {
         std::lock_guard lock(mutex_);
         listeners = listeners_;
     }
-    for (const auto& l : listeners) l(event);
+    for (const auto& l : listeners)
+        l(event);
 }
 
 core::Result<std::int64_t> Notifier::raise(const std::string& kind, const std::string& severity,
@@ -51,48 +52,72 @@ core::Result<std::int64_t> Notifier::raise(const std::string& kind, const std::s
             logged = false; // said already, and held
         } else {
             if (held_.size() >= kMaxHeldAlerts) {
-                std::cerr << "<4>ALERT " << held_.front().kind << " raised at " << held_.front().raisedUtc
-                          << " is dropped: " << kMaxHeldAlerts << " alerts wait to be stored" << std::endl;
+                std::cerr << "<4>ALERT " << held_.front().kind << " raised at "
+                          << held_.front().raisedUtc << " is dropped: " << kMaxHeldAlerts
+                          << " alerts wait to be stored" << std::endl;
                 held_.erase(held_.begin());
             }
             a.id = nextHeldId_--;
             held_.push_back(a);
         }
     }
-    if (!logged) return id;
+    if (!logged)
+        return id;
     // sd-daemon priority prefixes: the systemd journal files the line at that level.
     const char* prefix = severity == "critical" ? "<2>" : severity == "warning" ? "<4>" : "<5>";
     std::cerr << prefix << "ALERT " << kind << ": " << message;
-    if (!id) std::cerr << " (not stored yet, held until the journal can store it: " << id.error().message << ")";
+    if (!id)
+        std::cerr << " (not stored yet, held until the journal can store it: " << id.error().message
+                  << ")";
     std::cerr << std::endl;
     std::vector<AlertChannel> channels;
     {
         std::lock_guard lock(mutex_);
         channels = channels_;
     }
-    for (const auto& c : channels) c(a);
+    for (const auto& c : channels)
+        c(a);
     publish({"alert_raised", toJson(a)});
     return id;
 }
 
-core::Result<void> Notifier::runStateChanged(std::int64_t runId, RunState state, const std::string& reason) {
+core::Result<void> Notifier::runStateChanged(std::int64_t runId, RunState state,
+                                             const std::string& reason) {
     auto set = journal_.setRunState(runId, state, reason);
     auto run = journal_.run(runId);
     const std::string name = run ? run->name : std::to_string(runId);
-    if (set) publish({"run_state", {{"run_id", runId}, {"state", toString(state)}, {"reason", reason}}});
+    if (set)
+        publish({"run_state", {{"run_id", runId}, {"state", toString(state)}, {"reason", reason}}});
     std::string kind, severity;
     switch (state) {
-    case RunState::Finished: kind = "run_finished"; severity = "info"; break;
-    case RunState::Paused: kind = "run_paused"; severity = "warning"; break;
-    case RunState::Failed: kind = "run_failed"; severity = "critical"; break;
-    case RunState::Cancelled: kind = "run_cancelled"; severity = "info"; break;
-    default: return set;
+    case RunState::Finished:
+        kind = "run_finished";
+        severity = "info";
+        break;
+    case RunState::Paused:
+        kind = "run_paused";
+        severity = "warning";
+        break;
+    case RunState::Failed:
+        kind = "run_failed";
+        severity = "critical";
+        break;
+    case RunState::Cancelled:
+        kind = "run_cancelled";
+        severity = "info";
+        break;
+    default:
+        return set;
     }
     std::string msg = "run " + std::to_string(runId) + " \"" + name + "\" " + toString(state);
-    if (run) msg += " (" + std::to_string(run->doneCount) + "/" + std::to_string(run->sectionCount) + " sections done)";
-    if (!reason.empty()) msg += ": " + reason;
+    if (run)
+        msg += " (" + std::to_string(run->doneCount) + "/" + std::to_string(run->sectionCount) +
+               " sections done)";
+    if (!reason.empty())
+        msg += ": " + reason;
     // Not stored (disk full): said all the same, and the caller learns it from the error.
-    if (!set) msg += " (the journal could not store the new state: " + set.error().message + ")";
+    if (!set)
+        msg += " (the journal could not store the new state: " + set.error().message + ")";
     (void)raise(kind, severity, msg, runId); // an alert the journal refuses is held, not lost
     return set;
 }
@@ -111,7 +136,8 @@ std::size_t Notifier::storeHeldAlerts() {
             AlertRecord a = held_.front();
             const std::int64_t heldId = a.id;
             auto id = journal_.raiseAlert(a);
-            if (!id) break;
+            if (!id)
+                break;
             a.id = *id;
             held_.erase(held_.begin());
             stored.emplace_back(heldId, a);
@@ -128,7 +154,8 @@ std::size_t Notifier::storeHeldAlerts() {
 
 core::Result<AlertRecord> Notifier::acknowledge(std::int64_t alertId, const std::string& action) {
     auto a = journal_.acknowledgeAlert(alertId, action);
-    if (a) publish({"alert_acknowledged", toJson(*a)});
+    if (a)
+        publish({"alert_acknowledged", toJson(*a)});
     return a;
 }
 

@@ -2,14 +2,14 @@
 
 #include "slicestation/core/atomic_file.hpp"
 
+#include "slicestation/core/image_file.hpp"
 #include "slicestation/core/nrrd.hpp"
 #include "slicestation/core/ontology.hpp"
+#include "slicestation/daemon/cli/register_command.hpp"
 #include "slicestation/daemon/storage/atlas_stack.hpp"
 #include "slicestation/pipeline/atlas.hpp"
 #include "slicestation/pipeline/atlas_matching.hpp"
 #include "slicestation/pipeline/atlas_slicing.hpp"
-#include "slicestation/core/image_file.hpp"
-#include "slicestation/daemon/cli/register_command.hpp"
 
 #include <algorithm>
 #include <chrono>
@@ -31,13 +31,85 @@ namespace {
 /// regions", so the brain keeps its outline where no major region claims a voxel.
 constexpr std::int32_t kOtherId = 8;
 
-
 /// InvalidArgument naming `option` unless `value` is finite and within [min, max].
 core::Result<void> checkRange(const char* option, double value, double min, double max) {
-    if (std::isfinite(value) && value >= min && value <= max) return {};
+    if (std::isfinite(value) && value >= min && value <= max)
+        return {};
     std::ostringstream os;
     os << option << " " << value << " is not a finite number in [" << min << ", " << max << "]";
     return makeError(ErrorCode::InvalidArgument, os.str());
+}
+
+/// runAtlasSlice from a volume file (NRRD) and its ontology: the slices, their regions and the
+/// source description of the manifest.
+core::Result<void> sliceVolumeFile(const AtlasSliceRequest& rq,
+                                   std::vector<pipeline::AtlasSlice>& slices,
+                                   std::vector<StackRegion>& regions, json& source) {
+    if (rq.volume.empty())
+        return makeError(ErrorCode::InvalidArgument, "--volume is required (or --builtin)");
+    pipeline::VolumeAxes axes;
+    if (rq.axes == "allen")
+        axes = pipeline::VolumeAxes::Allen;
+    else if (rq.axes == "quicknii")
+        axes = pipeline::VolumeAxes::QuickNii;
+    else
+        return makeError(ErrorCode::InvalidArgument,
+                         "--axes must be allen or quicknii, not '" + rq.axes + "'");
+    auto orientation = pipeline::parsePlaneOrientation(rq.plane);
+    if (!orientation)
+        return makeError(ErrorCode::InvalidArgument, "--plane: " + orientation.error().message);
+    if (rq.regions == "major" && rq.ontology.empty())
+        return makeError(ErrorCode::InvalidArgument,
+                         "--regions major needs --ontology (structure_id_path)");
+    auto volume = core::readNrrd(rq.volume);
+    if (!volume)
+        return volume.error();
+    core::Ontology ontology;
+    if (!rq.ontology.empty()) {
+        auto o = core::readOntologyCsv(rq.ontology);
+        if (!o)
+            return o.error();
+        ontology = std::move(*o);
+    }
+    const pipeline::CuttingPlan plan{*orientation, rq.firstUm,   rq.intervalUm,
+                                     rq.tiltLrDeg, rq.tiltDvDeg, rq.umPerPx};
+    auto cut = pipeline::sliceVolume(*volume, axes, plan);
+    if (!cut)
+        return makeError(cut.error().code, rq.volume.string() + ": " + cut.error().message);
+    slices = std::move(*cut);
+    std::set<std::uint32_t> ids;
+    if (rq.regions == "major") {
+        for (auto& s : slices)
+            s.labels =
+                pipeline::collapseLabels(s.labels, ontology, pipeline::majorRegionIds(), kOtherId);
+        ids.insert(pipeline::majorRegionIds().begin(), pipeline::majorRegionIds().end());
+        ids.insert(kOtherId);
+    } else {
+        for (const auto& s : slices)
+            for (auto it = s.labels.begin<int>(); it != s.labels.end<int>(); ++it)
+                if (*it != 0)
+                    ids.insert(std::uint32_t(*it));
+    }
+    for (std::uint32_t id : ids) {
+        const core::Structure* st = ontology.find(id);
+        regions.push_back(st ? StackRegion{id, st->name, st->acronym, st->colorRgb}
+                             : StackRegion{id, "", "", 0});
+    }
+    const cv::Vec3d extent = pipeline::volumeExtentUm(*volume, axes);
+    source = {{"kind", "volume"},
+              {"volume", rq.volume.string()},
+              {"ontology", rq.ontology.string()},
+              {"axes", rq.axes},
+              {"volume_sizes", volume->sizes},
+              {"volume_spacing_um", volume->spacingUm},
+              {"extent_um", {extent[0], extent[1], extent[2]}},
+              {"plane", rq.plane},
+              {"interval_um", rq.intervalUm},
+              {"first_um", rq.firstUm},
+              {"tilt_lr_deg", rq.tiltLrDeg},
+              {"tilt_dv_deg", rq.tiltDvDeg},
+              {"regions", rq.regions}};
+    return {};
 }
 
 } // namespace
@@ -49,11 +121,13 @@ core::Result<json> runAtlasSlice(const AtlasSliceRequest& rq) {
           std::tuple{"--tilt-lr-deg", rq.tiltLrDeg, -kMaxTiltDeg, kMaxTiltDeg},
           std::tuple{"--tilt-dv-deg", rq.tiltDvDeg, -kMaxTiltDeg, kMaxTiltDeg},
           std::tuple{"--um-per-px", rq.umPerPx, kMinSliceUmPerPx, kMaxUmPerPx}})
-        if (auto r = checkRange(option, value, min, max); !r) return r.error();
+        if (auto r = checkRange(option, value, min, max); !r)
+            return r.error();
     if (rq.regions != "major" && rq.regions != "all")
         return makeError(ErrorCode::InvalidArgument,
                          "--regions must be major or all, not '" + rq.regions + "'");
-    if (rq.output.empty()) return makeError(ErrorCode::InvalidArgument, "--output is required");
+    if (rq.output.empty())
+        return makeError(ErrorCode::InvalidArgument, "--output is required");
     json source;
     std::vector<pipeline::AtlasSlice> slices;
     std::vector<StackRegion> regions;
@@ -63,7 +137,8 @@ core::Result<json> runAtlasSlice(const AtlasSliceRequest& rq) {
             return makeError(ErrorCode::InvalidArgument,
                              "--plane: the built-in atlas has coronal planes only");
         auto s = builtinStackSlices(rq.intervalUm, rq.firstUm);
-        if (!s) return s.error();
+        if (!s)
+            return s.error();
         slices = std::move(*s);
         regions = builtinStackRegions();
         source = {{"kind", "builtin"},
@@ -71,72 +146,13 @@ core::Result<json> runAtlasSlice(const AtlasSliceRequest& rq) {
                   {"interval_um", rq.intervalUm},
                   {"first_um", rq.firstUm},
                   {"length_um", kBuiltinLengthUm}};
-    } else {
-        if (rq.volume.empty())
-            return makeError(ErrorCode::InvalidArgument, "--volume is required (or --builtin)");
-        pipeline::VolumeAxes axes;
-        if (rq.axes == "allen")
-            axes = pipeline::VolumeAxes::Allen;
-        else if (rq.axes == "quicknii")
-            axes = pipeline::VolumeAxes::QuickNii;
-        else
-            return makeError(ErrorCode::InvalidArgument,
-                             "--axes must be allen or quicknii, not '" + rq.axes + "'");
-        auto orientation = pipeline::parsePlaneOrientation(rq.plane);
-        if (!orientation)
-            return makeError(ErrorCode::InvalidArgument, "--plane: " + orientation.error().message);
-        if (rq.regions == "major" && rq.ontology.empty())
-            return makeError(ErrorCode::InvalidArgument,
-                             "--regions major needs --ontology (structure_id_path)");
-        auto volume = core::readNrrd(rq.volume);
-        if (!volume) return volume.error();
-        core::Ontology ontology;
-        if (!rq.ontology.empty()) {
-            auto o = core::readOntologyCsv(rq.ontology);
-            if (!o) return o.error();
-            ontology = std::move(*o);
-        }
-        const pipeline::CuttingPlan plan{*orientation,  rq.firstUm, rq.intervalUm,
-                                         rq.tiltLrDeg, rq.tiltDvDeg, rq.umPerPx};
-        auto cut = pipeline::sliceVolume(*volume, axes, plan);
-        if (!cut)
-            return makeError(cut.error().code, rq.volume.string() + ": " + cut.error().message);
-        slices = std::move(*cut);
-        std::set<std::uint32_t> ids;
-        if (rq.regions == "major") {
-            for (auto& s : slices)
-                s.labels = pipeline::collapseLabels(s.labels, ontology, pipeline::majorRegionIds(),
-                                                    kOtherId);
-            ids.insert(pipeline::majorRegionIds().begin(), pipeline::majorRegionIds().end());
-            ids.insert(kOtherId);
-        } else {
-            for (const auto& s : slices)
-                for (auto it = s.labels.begin<int>(); it != s.labels.end<int>(); ++it)
-                    if (*it != 0) ids.insert(std::uint32_t(*it));
-        }
-        for (std::uint32_t id : ids) {
-            const core::Structure* st = ontology.find(id);
-            regions.push_back(st ? StackRegion{id, st->name, st->acronym, st->colorRgb}
-                                 : StackRegion{id, "", "", 0});
-        }
-        const cv::Vec3d extent = pipeline::volumeExtentUm(*volume, axes);
-        source = {{"kind", "volume"},
-                  {"volume", rq.volume.string()},
-                  {"ontology", rq.ontology.string()},
-                  {"axes", rq.axes},
-                  {"volume_sizes", volume->sizes},
-                  {"volume_spacing_um", volume->spacingUm},
-                  {"extent_um", {extent[0], extent[1], extent[2]}},
-                  {"plane", rq.plane},
-                  {"interval_um", rq.intervalUm},
-                  {"first_um", rq.firstUm},
-                  {"tilt_lr_deg", rq.tiltLrDeg},
-                  {"tilt_dv_deg", rq.tiltDvDeg},
-                  {"regions", rq.regions}};
+    } else if (auto r = sliceVolumeFile(rq, slices, regions, source); !r) {
+        return r.error();
     }
     source["um_per_px"] = rq.builtin ? kBuiltinUmPerPx : rq.umPerPx;
     auto stack = writeStack(rq.output, slices, std::move(regions), source);
-    if (!stack) return stack.error();
+    if (!stack)
+        return stack.error();
     return json{{"slices", stack->slices.size()},
                 {"first_position_um", stack->slices.front().positionUm},
                 {"last_position_um", stack->slices.back().positionUm},
@@ -158,9 +174,11 @@ core::Result<void> useStackSlice(RegisterRequest& rq, int slice) {
         return makeError(ErrorCode::InvalidArgument,
                          "--atlas " + rq.atlas.string() + " is a stack: choose one with --slice N");
     auto stack = readStack(rq.atlas);
-    if (!stack) return stack.error();
+    if (!stack)
+        return stack.error();
     auto path = stackSlicePath(*stack, slice);
-    if (!path) return path.error();
+    if (!path)
+        return path.error();
     rq.atlas = *path;
     if (rq.imageUmPerPx > 0 && rq.atlasUmPerPx <= 0)
         rq.atlasUmPerPx = stack->slices[size_t(slice)].umPerPx;
@@ -170,22 +188,25 @@ core::Result<void> useStackSlice(RegisterRequest& rq, int slice) {
 core::Result<json> runAtlasMatch(const AtlasMatchRequest& rq) {
     using Clock = std::chrono::steady_clock;
     const auto t0 = Clock::now();
-    if (rq.window < 0) return makeError(ErrorCode::InvalidArgument, "--window must be >= 0");
+    if (rq.window < 0)
+        return makeError(ErrorCode::InvalidArgument, "--window must be >= 0");
     if (rq.imageUmPerPx != 0)
         if (auto r = checkRange("--image-um-per-px", rq.imageUmPerPx, kMinUmPerPx, kMaxUmPerPx); !r)
             return r.error();
     auto stack = readStack(rq.stack);
-    if (!stack) return stack.error();
+    if (!stack)
+        return stack.error();
     const int count = int(stack->slices.size());
     if (rq.expectedIndex && (*rq.expectedIndex < 0 || *rq.expectedIndex >= count))
-        return makeError(ErrorCode::OutOfRange, "--expected-index " +
-                                                    std::to_string(*rq.expectedIndex) +
-                                                    " is not in the stack (0.." +
-                                                    std::to_string(count - 1) + ")");
+        return makeError(ErrorCode::OutOfRange,
+                         "--expected-index " + std::to_string(*rq.expectedIndex) +
+                             " is not in the stack (0.." + std::to_string(count - 1) + ")");
     auto image = core::readImage(rq.image);
-    if (!image) return image.error();
+    if (!image)
+        return image.error();
     auto features = stackFeatures(*stack);
-    if (!features) return features.error();
+    if (!features)
+        return features.error();
     const auto tLoaded = Clock::now();
 
     pipeline::MatchOptions opt;
@@ -196,11 +217,13 @@ core::Result<json> runAtlasMatch(const AtlasMatchRequest& rq) {
         opt.first = std::max(0, *rq.expectedIndex - window);
         opt.last = std::min(count - 1, *rq.expectedIndex + window);
     }
-    auto section = pipeline::sectionFeatures(*image, rq.imageUmPerPx, features->front().workUmPerPx);
+    auto section =
+        pipeline::sectionFeatures(*image, rq.imageUmPerPx, features->front().workUmPerPx);
     if (!section)
         return makeError(section.error().code, rq.image.string() + ": " + section.error().message);
     auto m = pipeline::matchSection(*section, *features, opt);
-    if (!m) return makeError(m.error().code, rq.image.string() + ": " + m.error().message);
+    if (!m)
+        return makeError(m.error().code, rq.image.string() + ": " + m.error().message);
     const auto tMatched = Clock::now();
 
     json candidates = json::array();
@@ -209,7 +232,9 @@ core::Result<json> runAtlasMatch(const AtlasMatchRequest& rq) {
                               {"position_um", stack->slices[size_t(c.index)].positionUm},
                               {"score", c.score},
                               {"overlap", c.overlap}});
-    auto ms = [](auto a, auto b) { return std::chrono::duration<double, std::milli>(b - a).count(); };
+    auto ms = [](auto a, auto b) {
+        return std::chrono::duration<double, std::milli>(b - a).count();
+    };
     json out = {{"index", m->index},
                 {"position_um", m->positionUm},
                 {"slice_position_um", stack->slices[size_t(m->index)].positionUm},
@@ -220,15 +245,18 @@ core::Result<json> runAtlasMatch(const AtlasMatchRequest& rq) {
                 {"candidates", std::move(candidates)},
                 {"stack", stack->dir.string()},
                 {"image", rq.image.string()},
-                {"timings_ms", {{"load", ms(t0, tLoaded)}, {"match", ms(tLoaded, tMatched)},
-                                {"total", ms(t0, Clock::now())}}}};
+                {"timings_ms",
+                 {{"load", ms(t0, tLoaded)},
+                  {"match", ms(tLoaded, tMatched)},
+                  {"total", ms(t0, Clock::now())}}}};
     if (rq.expectedIndex) {
         out["expected_index"] = *rq.expectedIndex;
         // More than one slice off: the plan and the section disagree (sections mounted out of
         // order, skipped or tilted); the caller decides whether that is a warning.
         out["mismatch"] = std::abs(m->index - *rq.expectedIndex) > 1;
     }
-    if (auto w = core::writeFileAtomically(rq.output, out.dump(2) + "\n"); !w) return w.error();
+    if (auto w = core::writeFileAtomically(rq.output, out.dump(2) + "\n"); !w)
+        return w.error();
     return out;
 }
 

@@ -22,11 +22,13 @@ CommandRunner addAtlasCommands(CLI::App& app) {
         ->check(finiteRange(kMinIntervalUm, kMaxIntervalUm));
     slice->add_option("--first-um", sliceRq->firstUm, "Position of the first slice")
         ->check(finiteRange(-kMaxPositionUm, kMaxPositionUm));
-    slice->add_option("--tilt-lr-deg", sliceRq->tiltLrDeg,
-                      "Tilt of the normal toward the image columns (coronal: left-right)")
+    slice
+        ->add_option("--tilt-lr-deg", sliceRq->tiltLrDeg,
+                     "Tilt of the normal toward the image columns (coronal: left-right)")
         ->check(finiteRange(-kMaxTiltDeg, kMaxTiltDeg));
-    slice->add_option("--tilt-dv-deg", sliceRq->tiltDvDeg,
-                      "Tilt of the normal toward the image rows (coronal: dorsal-ventral)")
+    slice
+        ->add_option("--tilt-dv-deg", sliceRq->tiltDvDeg,
+                     "Tilt of the normal toward the image rows (coronal: dorsal-ventral)")
         ->check(finiteRange(-kMaxTiltDeg, kMaxTiltDeg));
     slice->add_option("--um-per-px", sliceRq->umPerPx, "Pixel size of the slices")
         ->check(finiteRange(kMinSliceUmPerPx, kMaxUmPerPx));
@@ -48,10 +50,12 @@ CommandRunner addAtlasCommands(CLI::App& app) {
     match->add_option("--output", matchRq->output, "MATCH.json")->required();
 
     return [=]() -> int {
-        if (!*atlas) return -1;
+        if (!*atlas)
+            return -1;
         if (*slice) {
             auto r = runAtlasSlice(*sliceRq);
-            if (!r) return reportError("atlas slice", r.error());
+            if (!r)
+                return reportError("atlas slice", r.error());
             std::cout << "wrote " << (*r)["slices"].get<int>() << " slices ("
                       << (*r)["first_position_um"].get<double>() << ".."
                       << (*r)["last_position_um"].get<double>() << " um) to "
@@ -59,13 +63,15 @@ CommandRunner addAtlasCommands(CLI::App& app) {
             return 0;
         }
         AtlasMatchRequest rq = *matchRq;
-        if (*expected >= 0) rq.expectedIndex = *expected;
+        if (*expected >= 0)
+            rq.expectedIndex = *expected;
         auto r = runAtlasMatch(rq);
-        if (!r) return reportError("atlas match", r.error());
+        if (!r)
+            return reportError("atlas match", r.error());
         std::cout << "matched " << rq.image.string() << ": slice " << (*r)["index"].get<int>()
                   << " at " << (*r)["position_um"].get<double>() << " um (score "
-                  << (*r)["score"].get<double>() << ", " << (*r)["timings_ms"]["total"].get<double>()
-                  << " ms)\n";
+                  << (*r)["score"].get<double>() << ", "
+                  << (*r)["timings_ms"]["total"].get<double>() << " ms)\n";
         return 0;
     };
 }

@@ -6,8 +6,8 @@
 
 #include <cmath>
 #include <iostream>
-#include <sstream>
 #include <memory>
+#include <sstream>
 
 namespace slicestation::daemon {
 
@@ -38,8 +38,9 @@ CommandRunner addRegisterCommand(CLI::App& app) {
     };
     auto o = std::make_shared<Opts>();
     auto* reg = app.add_subcommand("register", "Register one section image to one atlas slice");
-    reg->add_option("--atlas", o->rq.atlas,
-                    "Atlas label image (ids or colour-coded RGB), or a stack directory with --slice")
+    reg->add_option(
+           "--atlas", o->rq.atlas,
+           "Atlas label image (ids or colour-coded RGB), or a stack directory with --slice")
         ->required();
     reg->add_option("--slice", o->slice, "Slice index when --atlas is a stack directory")
         ->check(CLI::Range(0, pipeline::kMaxStackSlices - 1));
@@ -55,14 +56,20 @@ CommandRunner addRegisterCommand(CLI::App& app) {
     reg->add_option("--working-size", o->rq.workingMaxSide, "Longer side of the working image")
         ->check(CLI::Range(128, 8192));
     return [o, reg]() -> int {
-        if (!*reg) return -1;
+        if (!*reg)
+            return -1;
         RegisterRequest rq = o->rq;
-        if (!o->points.empty()) rq.points = o->points;
-        if (!o->overlay.empty()) rq.overlay = o->overlay;
-        if (!o->warped.empty()) rq.warpedLabels = o->warped;
-        if (auto s = useStackSlice(rq, o->slice); !s) return reportError("register", s.error());
+        if (!o->points.empty())
+            rq.points = o->points;
+        if (!o->overlay.empty())
+            rq.overlay = o->overlay;
+        if (!o->warped.empty())
+            rq.warpedLabels = o->warped;
+        if (auto s = useStackSlice(rq, o->slice); !s)
+            return reportError("register", s.error());
         auto r = runRegister(rq);
-        if (!r) return reportError("register", r.error());
+        if (!r)
+            return reportError("register", r.error());
         std::cout << "registered " << rq.image.string() << " -> " << rq.output.string()
                   << " (tissue overlap " << (*r)["quality"]["tissue_overlap"].get<double>() << ", "
                   << (*r)["quality"]["correspondences"].get<int>() << " correspondences, "
@@ -79,9 +86,11 @@ CommandRunner addDemoCommand(CLI::App& app) {
     dem->add_option("--seed", demo->seed, "Generator seed");
     dem->add_flag("--damaged", demo->damaged, "Tear the generated section");
     return [demo, dem]() -> int {
-        if (!*dem) return -1;
+        if (!*dem)
+            return -1;
         auto r = runDemo(*demo);
-        if (!r) return reportError("demo", r.error());
+        if (!r)
+            return reportError("demo", r.error());
         std::cout << r->dump(2) << "\n";
         return 0;
     };

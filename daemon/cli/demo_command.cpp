@@ -27,11 +27,14 @@ core::Result<json> runDemo(const DemoRequest& rq) {
     go.seed = rq.seed;
     go.damage.tear = rq.damaged;
     auto gen = sim::generateSection(atlas, go);
-    if (!gen) return gen.error();
+    if (!gen)
+        return gen.error();
 
     const auto dir = rq.outputDir;
-    if (auto w = core::writeImage(dir / "atlas-labels.tif", atlas); !w) return w.error();
-    if (auto w = core::writeImage(dir / "section.tif", gen->image); !w) return w.error();
+    if (auto w = core::writeImage(dir / "atlas-labels.tif", atlas); !w)
+        return w.error();
+    if (auto w = core::writeImage(dir / "section.tif", gen->image); !w)
+        return w.error();
     std::ostringstream pts, truth;
     pts << "x,y\n";
     truth << "x,y,atlas_x,atlas_y\n";
@@ -39,8 +42,10 @@ core::Result<json> runDemo(const DemoRequest& rq) {
         pts << l.image.x << ',' << l.image.y << '\n';
         truth << l.image.x << ',' << l.image.y << ',' << l.atlas.x << ',' << l.atlas.y << '\n';
     }
-    if (auto w = core::writeFileAtomically(dir / "landmarks.csv", pts.str()); !w) return w.error();
-    if (auto w = core::writeFileAtomically(dir / "truth.csv", truth.str()); !w) return w.error();
+    if (auto w = core::writeFileAtomically(dir / "landmarks.csv", pts.str()); !w)
+        return w.error();
+    if (auto w = core::writeFileAtomically(dir / "truth.csv", truth.str()); !w)
+        return w.error();
 
     RegisterRequest rr;
     rr.atlas = dir / "atlas-labels.tif";
@@ -49,7 +54,8 @@ core::Result<json> runDemo(const DemoRequest& rq) {
     rr.output = dir / "result.json";
     rr.overlay = dir / "overlay.png";
     auto result = runRegister(rr);
-    if (!result) return result.error();
+    if (!result)
+        return result.error();
 
     std::vector<double> err;
     const auto& mapped = (*result)["points"];
@@ -59,7 +65,8 @@ core::Result<json> runDemo(const DemoRequest& rq) {
                                  mapped[i]["atlas_y"].get<double>() - l.atlas.y));
     }
     double ss = 0;
-    for (double e : err) ss += e * e;
+    for (double e : err)
+        ss += e * e;
     std::vector<double> sorted = err;
     std::sort(sorted.begin(), sorted.end());
     json summary;
@@ -72,8 +79,8 @@ core::Result<json> runDemo(const DemoRequest& rq) {
     summary["damage_summary"] = (*result)["damage_summary"];
     summary["quality"] = (*result)["quality"];
     summary["timings_ms"] = (*result)["timings_ms"];
-    summary["files"] = {"section.tif", "atlas-labels.tif", "landmarks.csv", "truth.csv",
-                        "result.json", "overlay.png"};
+    summary["files"] = {"section.tif", "atlas-labels.tif", "landmarks.csv",
+                        "truth.csv",   "result.json",      "overlay.png"};
     return summary;
 }
 

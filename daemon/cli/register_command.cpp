@@ -5,8 +5,10 @@
 namespace slicestation::daemon {
 
 core::Result<nlohmann::json> runRegister(const RegisterRequest& rq) {
-    auto r = registerSectionFiles(rq, [](const std::filesystem::path& p) { return readPointsCsv(p); });
-    if (!r) return r.error();
+    auto r =
+        registerSectionFiles(rq, [](const std::filesystem::path& p) { return readPointsCsv(p); });
+    if (!r)
+        return r.error();
     return std::move(r->document);
 }
 

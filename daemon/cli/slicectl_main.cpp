@@ -24,6 +24,7 @@ int main(int argc, char** argv) {
         return app.exit(e) == 0 ? 0 : 2;
     }
     for (const auto& run : commands)
-        if (const int rc = run(); rc >= 0) return rc;
+        if (const int rc = run(); rc >= 0)
+            return rc;
     return 0;
 }

@@ -33,14 +33,19 @@ Result<void> checkJsonDepth(std::string_view text, const std::string& origin) {
     for (std::size_t i = 0; i < text.size(); ++i) {
         const char c = text[i];
         if (inString) {
-            if (c == '\\') ++i;
-            else if (c == '"') inString = false;
+            if (c == '\\')
+                ++i;
+            else if (c == '"')
+                inString = false;
             continue;
         }
-        if (c == '"') inString = true;
+        if (c == '"')
+            inString = true;
         else if (c == '[' || c == '{') {
-            if (++depth > kMaxDocumentDepth) return tooDeep(origin, i);
-        } else if (c == ']' || c == '}') --depth;
+            if (++depth > kMaxDocumentDepth)
+                return tooDeep(origin, i);
+        } else if (c == ']' || c == '}')
+            --depth;
     }
     return {};
 }
@@ -65,13 +70,16 @@ Result<void> checkTomlDepth(std::string_view text, const std::string& origin) {
                     continue;
                 }
                 if (text[j] != c) {
-                    if (!multi && text[j] == '\n') break; // unterminated: the parser says so
+                    if (!multi && text[j] == '\n')
+                        break; // unterminated: the parser says so
                     continue;
                 }
-                if (!multi) break;
+                if (!multi)
+                    break;
                 if (text.substr(j, 3) == std::string_view(c == '"' ? "\"\"\"" : "'''")) {
                     j += 2;
-                    while (j + 1 < text.size() && text[j + 1] == c) ++j; // """a"""" ends in a quote
+                    while (j + 1 < text.size() && text[j + 1] == c)
+                        ++j; // """a"""" ends in a quote
                     break;
                 }
             }
@@ -80,15 +88,18 @@ Result<void> checkTomlDepth(std::string_view text, const std::string& origin) {
         }
         switch (c) {
         case '#':
-            while (i < text.size() && text[i] != '\n') ++i;
+            while (i < text.size() && text[i] != '\n')
+                ++i;
             dots = 0;
             break;
         case '.':
-            if (++dots > kMaxDocumentDepth) return tooDeep(origin, i);
+            if (++dots > kMaxDocumentDepth)
+                return tooDeep(origin, i);
             break;
         case '[':
         case '{':
-            if (++depth > kMaxDocumentDepth) return tooDeep(origin, i);
+            if (++depth > kMaxDocumentDepth)
+                return tooDeep(origin, i);
             dots = 0;
             break;
         case ']':
@@ -115,7 +126,8 @@ Result<nlohmann::json> tomlToJson(const toml::node& n, const std::string& path, 
                                   const std::string& origin) {
     const auto bad = [&](const std::string& what) {
         return makeError(ErrorCode::InvalidArgument,
-                         origin + ": " + (path.empty() ? std::string("(document)") : path) + ": " + what);
+                         origin + ": " + (path.empty() ? std::string("(document)") : path) + ": " +
+                             what);
     };
     if (depth > kMaxDocumentDepth)
         return bad("nested deeper than " + std::to_string(kMaxDocumentDepth) + " levels");
@@ -124,7 +136,8 @@ Result<nlohmann::json> tomlToJson(const toml::node& n, const std::string& path, 
         for (const auto& [key, value] : *t) {
             const std::string k(key.str());
             auto v = tomlToJson(value, path.empty() ? k : path + "." + k, depth + 1, origin);
-            if (!v) return v.error();
+            if (!v)
+                return v.error();
             obj[k] = std::move(*v);
         }
         return obj;
@@ -133,22 +146,30 @@ Result<nlohmann::json> tomlToJson(const toml::node& n, const std::string& path, 
         nlohmann::json arr = nlohmann::json::array();
         for (std::size_t i = 0; i < a->size(); ++i) {
             auto v = tomlToJson((*a)[i], path + "[" + std::to_string(i) + "]", depth + 1, origin);
-            if (!v) return v.error();
+            if (!v)
+                return v.error();
             arr.push_back(std::move(*v));
         }
         return arr;
     }
-    if (const auto* s = n.as_string()) return nlohmann::json(s->get());
-    if (const auto* i = n.as_integer()) return nlohmann::json(i->get());
+    if (const auto* s = n.as_string())
+        return nlohmann::json(s->get());
+    if (const auto* i = n.as_integer())
+        return nlohmann::json(i->get());
     if (const auto* f = n.as_floating_point()) {
-        if (!std::isfinite(f->get())) return bad("expected a finite number");
+        if (!std::isfinite(f->get()))
+            return bad("expected a finite number");
         return nlohmann::json(f->get());
     }
-    if (const auto* b = n.as_boolean()) return nlohmann::json(b->get());
+    if (const auto* b = n.as_boolean())
+        return nlohmann::json(b->get());
     std::ostringstream os; // dates and times, as TOML writes them
-    if (const auto* d = n.as_date()) os << *d;
-    else if (const auto* t = n.as_time()) os << *t;
-    else if (const auto* dt = n.as_date_time()) os << *dt;
+    if (const auto* d = n.as_date())
+        os << *d;
+    else if (const auto* t = n.as_time())
+        os << *t;
+    else if (const auto* dt = n.as_date_time())
+        os << *dt;
     return nlohmann::json(os.str());
 }
 
@@ -161,26 +182,31 @@ Result<nlohmann::json> parseDocument(std::string_view text, DocumentFormat forma
                          origin + ": " + std::to_string(text.size()) + " bytes is more than the " +
                              std::to_string(kMaxDocumentBytes) + " a document may have");
     if (format == DocumentFormat::Json) {
-        if (auto d = checkJsonDepth(text, origin); !d) return d.error();
+        if (auto d = checkJsonDepth(text, origin); !d)
+            return d.error();
         try {
             return nlohmann::json::parse(text);
         } catch (const nlohmann::json::parse_error& e) {
-            return makeError(ErrorCode::InvalidArgument,
-                             origin + ": not valid JSON at byte " + std::to_string(e.byte) + ": " + e.what());
+            return makeError(ErrorCode::InvalidArgument, origin + ": not valid JSON at byte " +
+                                                             std::to_string(e.byte) + ": " +
+                                                             e.what());
         } catch (const nlohmann::json::exception& e) { // out_of_range 406: 1e400
             return makeError(ErrorCode::InvalidArgument, origin + ": not valid JSON: " + e.what());
         } catch (const std::exception& e) {
-            return makeError(ErrorCode::InvalidArgument, origin + ": cannot read JSON: " + e.what());
+            return makeError(ErrorCode::InvalidArgument,
+                             origin + ": cannot read JSON: " + e.what());
         }
     }
-    if (auto d = checkTomlDepth(text, origin); !d) return d.error();
+    if (auto d = checkTomlDepth(text, origin); !d)
+        return d.error();
     try {
         const toml::table table = toml::parse(text, origin);
         return tomlToJson(table, "", 0, origin);
     } catch (const toml::parse_error& e) {
         const auto& where = e.source().begin;
         return makeError(ErrorCode::InvalidArgument,
-                         origin + ":" + std::to_string(where.line) + ":" + std::to_string(where.column) +
+                         origin + ":" + std::to_string(where.line) + ":" +
+                             std::to_string(where.column) +
                              ": not valid TOML: " + std::string(e.description()));
     } catch (const std::exception& e) {
         return makeError(ErrorCode::InvalidArgument, origin + ": cannot read TOML: " + e.what());
@@ -192,30 +218,34 @@ Result<nlohmann::json> readDocument(const std::filesystem::path& file) {
     if (!std::filesystem::exists(file, ec))
         return makeError(ErrorCode::NotFound, file.string() + ": no such file");
     std::ifstream in(file, std::ios::binary);
-    if (!in) return makeError(ErrorCode::IoError, file.string() + ": cannot open", errno);
+    if (!in)
+        return makeError(ErrorCode::IoError, file.string() + ": cannot open", errno);
     // Read one byte past the limit: enough to refuse, without reading a huge file whole.
     std::string text(kMaxDocumentBytes + 1, '\0');
     in.read(text.data(), static_cast<std::streamsize>(text.size()));
-    if (in.bad()) return makeError(ErrorCode::IoError, file.string() + ": read failed", errno);
+    if (in.bad())
+        return makeError(ErrorCode::IoError, file.string() + ": read failed", errno);
     text.resize(static_cast<std::size_t>(in.gcount()));
     if (text.size() > kMaxDocumentBytes)
-        return makeError(ErrorCode::InvalidArgument,
-                         file.string() + ": larger than the " + std::to_string(kMaxDocumentBytes) +
-                             " bytes a document may have");
+        return makeError(ErrorCode::InvalidArgument, file.string() + ": larger than the " +
+                                                         std::to_string(kMaxDocumentBytes) +
+                                                         " bytes a document may have");
     DocumentFormat format = DocumentFormat::Toml;
     const auto ext = file.extension().string();
     if (ext == ".json") {
         format = DocumentFormat::Json;
     } else if (ext != ".toml") {
         const auto first = text.find_first_not_of(" \t\r\n");
-        if (first != std::string::npos && text[first] == '{') format = DocumentFormat::Json;
+        if (first != std::string::npos && text[first] == '{')
+            format = DocumentFormat::Json;
     }
     return parseDocument(text, format, file.string());
 }
 
 std::string preview(const nlohmann::json& v) {
     std::string s = v.dump(-1, ' ', false, nlohmann::json::error_handler_t::replace);
-    if (s.size() > 60) s = s.substr(0, 57) + "...";
+    if (s.size() > 60)
+        s = s.substr(0, 57) + "...";
     return s;
 }
 
@@ -224,8 +254,10 @@ namespace {
 // Optimal string alignment distance: a swap of two neighbours (slcie) counts one edit.
 std::size_t editDistance(std::string_view a, std::string_view b) {
     std::vector<std::vector<std::size_t>> d(a.size() + 1, std::vector<std::size_t>(b.size() + 1));
-    for (std::size_t i = 0; i <= a.size(); ++i) d[i][0] = i;
-    for (std::size_t j = 0; j <= b.size(); ++j) d[0][j] = j;
+    for (std::size_t i = 0; i <= a.size(); ++i)
+        d[i][0] = i;
+    for (std::size_t j = 0; j <= b.size(); ++j)
+        d[0][j] = j;
     for (std::size_t i = 1; i <= a.size(); ++i)
         for (std::size_t j = 1; j <= b.size(); ++j) {
             const std::size_t cost = a[i - 1] == b[j - 1] ? 0 : 1;
@@ -240,9 +272,11 @@ std::size_t editDistance(std::string_view a, std::string_view b) {
 
 Result<void> FieldReader::onlyKeys(const nlohmann::json& obj, const std::string& path,
                                    std::span<const std::string_view> known) const {
-    if (!obj.is_object()) return {};
+    if (!obj.is_object())
+        return {};
     for (const auto& [key, value] : obj.items()) {
-        if (std::find(known.begin(), known.end(), std::string_view(key)) != known.end()) continue;
+        if (std::find(known.begin(), known.end(), std::string_view(key)) != known.end())
+            continue;
         const std::string shown = key.size() > 60 ? key.substr(0, 57) + "..." : key;
         std::string_view nearest;
         std::size_t best = SIZE_MAX;
@@ -257,7 +291,8 @@ Result<void> FieldReader::onlyKeys(const nlohmann::json& obj, const std::string&
             what += "; did you mean \"" + std::string(nearest) + "\"?";
         } else {
             std::string list;
-            for (const auto k : known) list += (list.empty() ? "" : ", ") + std::string(k);
+            for (const auto k : known)
+                list += (list.empty() ? "" : ", ") + std::string(k);
             what += " (known: " + list + ")";
         }
         return bad(path, what);
@@ -266,24 +301,29 @@ Result<void> FieldReader::onlyKeys(const nlohmann::json& obj, const std::string&
 }
 
 core::Error FieldReader::bad(const std::string& field, const std::string& what) const {
-    return makeError(ErrorCode::InvalidArgument, origin_ + ": " + (field.empty() ? "" : field + ": ") + what);
+    return makeError(ErrorCode::InvalidArgument,
+                     origin_ + ": " + (field.empty() ? "" : field + ": ") + what);
 }
 
 std::string FieldReader::join(const std::string& path, const char* key) {
     return path.empty() ? std::string(key) : path + "." + key;
 }
 
-Result<double> FieldReader::number(const nlohmann::json& obj, const std::string& path, const char* key,
-                                   std::optional<double> fallback, double min, double max) const {
+Result<double> FieldReader::number(const nlohmann::json& obj, const std::string& path,
+                                   const char* key, std::optional<double> fallback, double min,
+                                   double max) const {
     const std::string field = join(path, key);
     if (!obj.is_object() || !obj.contains(key)) {
-        if (fallback) return *fallback;
+        if (fallback)
+            return *fallback;
         return bad(field, "missing");
     }
     const auto& v = obj[key];
-    if (!v.is_number()) return bad(field, "expected a number, got " + preview(v));
+    if (!v.is_number())
+        return bad(field, "expected a number, got " + preview(v));
     const double d = v.get<double>();
-    if (!std::isfinite(d)) return bad(field, "expected a finite number");
+    if (!std::isfinite(d))
+        return bad(field, "expected a finite number");
     if (d < min || d > max) {
         std::ostringstream os;
         os << d << " is outside [" << min << ", " << max << "]";
@@ -297,13 +337,16 @@ Result<std::int64_t> FieldReader::integer(const nlohmann::json& obj, const std::
                                           std::int64_t min, std::int64_t max) const {
     const std::string field = join(path, key);
     if (!obj.is_object() || !obj.contains(key)) {
-        if (fallback) return *fallback;
+        if (fallback)
+            return *fallback;
         return bad(field, "missing");
     }
     const auto& v = obj[key];
-    if (!v.is_number_integer()) return bad(field, "expected an integer, got " + preview(v));
+    if (!v.is_number_integer())
+        return bad(field, "expected an integer, got " + preview(v));
     if (v.is_number_unsigned() && v.get<std::uint64_t>() > static_cast<std::uint64_t>(INT64_MAX))
-        return bad(field, preview(v) + " is outside [" + std::to_string(min) + ", " + std::to_string(max) + "]");
+        return bad(field, preview(v) + " is outside [" + std::to_string(min) + ", " +
+                              std::to_string(max) + "]");
     const auto i = v.get<std::int64_t>();
     if (i < min || i > max)
         return bad(field, std::to_string(i) + " is outside [" + std::to_string(min) + ", " +
@@ -312,26 +355,31 @@ Result<std::int64_t> FieldReader::integer(const nlohmann::json& obj, const std::
 }
 
 Result<std::string> FieldReader::string(const nlohmann::json& obj, const std::string& path,
-                                        const char* key, std::optional<std::string> fallback) const {
+                                        const char* key,
+                                        std::optional<std::string> fallback) const {
     const std::string field = join(path, key);
     if (!obj.is_object() || !obj.contains(key)) {
-        if (fallback) return *fallback;
+        if (fallback)
+            return *fallback;
         return bad(field, "missing");
     }
     const auto& v = obj[key];
-    if (!v.is_string()) return bad(field, "expected a string, got " + preview(v));
+    if (!v.is_string())
+        return bad(field, "expected a string, got " + preview(v));
     return v.get<std::string>();
 }
 
-Result<bool> FieldReader::boolean(const nlohmann::json& obj, const std::string& path, const char* key,
-                                  std::optional<bool> fallback) const {
+Result<bool> FieldReader::boolean(const nlohmann::json& obj, const std::string& path,
+                                  const char* key, std::optional<bool> fallback) const {
     const std::string field = join(path, key);
     if (!obj.is_object() || !obj.contains(key)) {
-        if (fallback) return *fallback;
+        if (fallback)
+            return *fallback;
         return bad(field, "missing");
     }
     const auto& v = obj[key];
-    if (!v.is_boolean()) return bad(field, "expected true or false, got " + preview(v));
+    if (!v.is_boolean())
+        return bad(field, "expected true or false, got " + preview(v));
     return v.get<bool>();
 }
 

@@ -32,8 +32,10 @@ public:
 
     /// Waits up to `idle` for the next request to begin. False: closed, idle, or refused.
     bool awaitRequest(Clock::duration idle) {
-        if (mustClose_) return false;
-        if (pos_ < len_) return true;
+        if (mustClose_)
+            return false;
+        if (pos_ < len_)
+            return true;
         return waitFor(POLLIN, Clock::now() + idle) && fill() > 0;
     }
     /// A new request: its head may take kMaxHead bytes and kHeadDeadline.
@@ -68,7 +70,8 @@ public:
         while (discarded < (4u << 20) && waitFor(POLLIN, until)) {
             char tmp[16384];
             const ssize_t n = ::recv(fd_, tmp, sizeof tmp, 0);
-            if (n <= 0) break;
+            if (n <= 0)
+                break;
             discarded += static_cast<std::size_t>(n);
         }
     }
@@ -77,7 +80,8 @@ public:
     bool is_writable() const override { return waitFor(POLLOUT, Clock::now() + L::kWriteStall); }
     ssize_t read(char* ptr, std::size_t size) override {
         if (used_ >= limit_) {
-            if (eofAtLimit_) return 0;
+            if (eofAtLimit_)
+                return 0;
             mustClose_ = true; // over the limit: the request is cut off here
             return -1;
         }
@@ -102,33 +106,45 @@ public:
     ssize_t write(const char* ptr, std::size_t size) override {
         std::size_t done = 0;
         while (done < size) {
-            if (!waitFor(POLLOUT, Clock::now() + L::kWriteStall)) return -1;
+            if (!waitFor(POLLOUT, Clock::now() + L::kWriteStall))
+                return -1;
             const ssize_t n = ::send(fd_, ptr + done, size - done, MSG_NOSIGNAL | MSG_DONTWAIT);
-            if (n < 0 && (errno == EAGAIN || errno == EWOULDBLOCK || errno == EINTR)) continue;
-            if (n <= 0) return -1;
+            if (n < 0 && (errno == EAGAIN || errno == EWOULDBLOCK || errno == EINTR))
+                continue;
+            if (n <= 0)
+                return -1;
             done += static_cast<std::size_t>(n);
         }
         return static_cast<ssize_t>(size);
     }
-    void get_remote_ip_and_port(std::string& ip, int& port) const override { address(false, ip, port); }
-    void get_local_ip_and_port(std::string& ip, int& port) const override { address(true, ip, port); }
+    void get_remote_ip_and_port(std::string& ip, int& port) const override {
+        address(false, ip, port);
+    }
+    void get_local_ip_and_port(std::string& ip, int& port) const override {
+        address(true, ip, port);
+    }
     int socket() const override { return fd_; }
 
 private:
     bool waitFor(short events, Clock::time_point until) const {
         for (;;) {
-            const auto left = std::chrono::duration_cast<std::chrono::milliseconds>(until - Clock::now()).count();
-            if (left <= 0) return false;
+            const auto left =
+                std::chrono::duration_cast<std::chrono::milliseconds>(until - Clock::now()).count();
+            if (left <= 0)
+                return false;
             pollfd p{fd_, events, 0};
             const int r = ::poll(&p, 1, static_cast<int>(std::min<long long>(left, 1000 * 60)));
-            if (r > 0) return true; // ready, or an error the next call reports
-            if (r < 0 && errno != EINTR) return false;
+            if (r > 0)
+                return true; // ready, or an error the next call reports
+            if (r < 0 && errno != EINTR)
+                return false;
         }
     }
     ssize_t fill() {
         for (;;) {
             const ssize_t n = ::recv(fd_, buf_.data(), buf_.size(), 0);
-            if (n < 0 && errno == EINTR) continue;
+            if (n < 0 && errno == EINTR)
+                continue;
             pos_ = 0;
             len_ = n > 0 ? static_cast<std::size_t>(n) : 0;
             return n;
@@ -141,8 +157,8 @@ private:
                             : ::getpeername(fd_, reinterpret_cast<sockaddr*>(&a), &n);
         std::array<char, NI_MAXHOST> host{};
         std::array<char, NI_MAXSERV> serv{};
-        if (r != 0 || ::getnameinfo(reinterpret_cast<sockaddr*>(&a), n, host.data(), host.size(), serv.data(),
-                                    serv.size(), NI_NUMERICHOST | NI_NUMERICSERV) != 0)
+        if (r != 0 || ::getnameinfo(reinterpret_cast<sockaddr*>(&a), n, host.data(), host.size(),
+                                    serv.data(), serv.size(), NI_NUMERICHOST | NI_NUMERICSERV) != 0)
             return;
         ip = host.data();
         port = std::atoi(serv.data());

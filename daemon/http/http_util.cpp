@@ -16,12 +16,16 @@ using core::ErrorCode;
 
 int httpStatus(const core::Error& e, RequestKind kind) noexcept {
     switch (e.code) {
-    case ErrorCode::InvalidArgument: return kind == RequestKind::Control ? 409 : 400;
+    case ErrorCode::InvalidArgument:
+        return kind == RequestKind::Control ? 409 : 400;
     case ErrorCode::OutOfRange:
     case ErrorCode::Unsupported:
-    case ErrorCode::NoTissue: return 400;
-    case ErrorCode::NotFound: return 404;
-    default: return 500;
+    case ErrorCode::NoTissue:
+        return 400;
+    case ErrorCode::NotFound:
+        return 404;
+    default:
+        return 500;
     }
 }
 
@@ -42,7 +46,9 @@ void sendError(httplib::Response& res, const core::Error& e, RequestKind kind) {
     sendError(res, httpStatus(e, kind), e.message);
 }
 
-std::string echo(const std::string& s) { return "\"" + (s.size() > 40 ? s.substr(0, 40) + "..." : s) + "\""; }
+std::string echo(const std::string& s) {
+    return "\"" + (s.size() > 40 ? s.substr(0, 40) + "..." : s) + "\"";
+}
 
 std::optional<std::int64_t> idParam(const httplib::Request& req, httplib::Response& res) {
     const std::string s = req.matches.size() > 1 ? std::string(req.matches[1]) : std::string();
@@ -55,10 +61,11 @@ std::optional<std::int64_t> idParam(const httplib::Request& req, httplib::Respon
     return v;
 }
 
-std::optional<int> intQuery(const httplib::Request& req, httplib::Response& res, const char* name, int lo, int hi,
-                            std::optional<int> fallback) {
+std::optional<int> intQuery(const httplib::Request& req, httplib::Response& res, const char* name,
+                            int lo, int hi, std::optional<int> fallback) {
     if (!req.has_param(name)) {
-        if (!fallback) sendError(res, 400, std::string("missing query parameter ") + name);
+        if (!fallback)
+            sendError(res, 400, std::string("missing query parameter ") + name);
         return fallback;
     }
     const std::string s = req.get_param_value(name);
@@ -66,8 +73,8 @@ std::optional<int> intQuery(const httplib::Request& req, httplib::Response& res,
     const auto [p, ec] = std::from_chars(s.data(), s.data() + s.size(), v);
     if (ec != std::errc() || p != s.data() + s.size() || v < lo || v > hi) {
         sendError(res, 400,
-                  std::string(name) + ": expected an integer " + std::to_string(lo) + ".." + std::to_string(hi) +
-                      ", got " + echo(s));
+                  std::string(name) + ": expected an integer " + std::to_string(lo) + ".." +
+                      std::to_string(hi) + ", got " + echo(s));
         return std::nullopt;
     }
     return v;
@@ -75,19 +82,23 @@ std::optional<int> intQuery(const httplib::Request& req, httplib::Response& res,
 
 void sendImage(httplib::Response& res, const cv::Mat& image, int width, const std::string& ext) {
     cv::Mat m = pipeline::displayStretch(image);
-    if (m.empty()) return sendError(res, 500, "image cannot be shown");
+    if (m.empty())
+        return sendError(res, 500, "image cannot be shown");
     if (width < m.cols) {
         cv::Mat small;
-        const int height = std::max(1, static_cast<int>(std::lround(m.rows * double(width) / m.cols)));
+        const int height =
+            std::max(1, static_cast<int>(std::lround(m.rows * double(width) / m.cols)));
         cv::resize(m, small, cv::Size(width, height), 0, 0, cv::INTER_AREA);
         m = small;
     }
     std::vector<uchar> buf;
     const std::vector<int> params =
         ext == ".jpg" ? std::vector<int>{cv::IMWRITE_JPEG_QUALITY, 85} : std::vector<int>{};
-    if (!cv::imencode(ext, m, buf, params)) return sendError(res, 500, "cannot encode the image");
+    if (!cv::imencode(ext, m, buf, params))
+        return sendError(res, 500, "cannot encode the image");
     res.set_header("Cache-Control", "no-store");
-    res.set_content(std::string(buf.begin(), buf.end()), ext == ".jpg" ? "image/jpeg" : "image/png");
+    res.set_content(std::string(buf.begin(), buf.end()),
+                    ext == ".jpg" ? "image/jpeg" : "image/png");
 }
 
 Authoriser bearerAuthoriser(std::string token) {

@@ -44,8 +44,8 @@ std::string echo(const std::string& s);
 std::optional<std::int64_t> idParam(const httplib::Request& req, httplib::Response& res);
 /// An integer query parameter within [lo, hi]; `fallback` when absent; nullopt (400 sent) when
 /// bad, or absent without a fallback.
-std::optional<int> intQuery(const httplib::Request& req, httplib::Response& res, const char* name, int lo,
-                            int hi, std::optional<int> fallback);
+std::optional<int> intQuery(const httplib::Request& req, httplib::Response& res, const char* name,
+                            int lo, int hi, std::optional<int> fallback);
 
 /// Made 8-bit for display (pipeline::displayStretch), scaled to `width` (never up) and encoded;
 /// `ext` ".jpg" or ".png". 500 when it cannot be shown.

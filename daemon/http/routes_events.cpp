@@ -44,7 +44,8 @@ struct EventHub {
     std::shared_ptr<Client> subscribe() {
         std::lock_guard lock(mutex);
         std::erase_if(clients, [](const auto& w) { return w.expired(); });
-        if (clients.size() >= static_cast<std::size_t>(L::kMaxEventStreams)) return nullptr;
+        if (clients.size() >= static_cast<std::size_t>(L::kMaxEventStreams))
+            return nullptr;
         auto c = std::make_shared<Client>();
         c->closed = closed;
         clients.push_back(c);
@@ -61,7 +62,9 @@ struct EventHub {
             }
     }
 };
-void closeEventStreams(EventHub& hub) noexcept { hub.close(); }
+void closeEventStreams(EventHub& hub) noexcept {
+    hub.close();
+}
 
 namespace {
 
@@ -78,24 +81,29 @@ bool nextChunk(EventHub::Client& client, const Connection& conn, httplib::DataSi
         } else {
             // Up to 15 s for events; a client that has gone frees its place within 0.5 s.
             const auto keepalive = Clock::now() + std::chrono::seconds(15);
-            while (!client.cv.wait_for(lock, std::chrono::milliseconds(500),
-                                       [&] { return !client.queue.empty() || client.closed; }) &&
-                   Clock::now() < keepalive) {
+            while (!client.cv.wait_for(lock, std::chrono::milliseconds(500), [&] {
+                return !client.queue.empty() || client.closed;
+            }) && Clock::now() < keepalive) {
                 lock.unlock();
                 const bool gone = conn.peerGone();
                 lock.lock();
-                if (gone) return false;
+                if (gone)
+                    return false;
             }
-            if (client.closed) return false;
+            if (client.closed)
+                return false;
             if (client.dropped > 0) {
-                out += "event: events_dropped\ndata: {\"count\": " + std::to_string(client.dropped) + "}\n\n";
+                out +=
+                    "event: events_dropped\ndata: {\"count\": " + std::to_string(client.dropped) +
+                    "}\n\n";
                 client.dropped = 0;
             }
             while (!client.queue.empty()) {
                 out += client.queue.front();
                 client.queue.pop_front();
             }
-            if (out.empty()) out = ": keepalive\n\n";
+            if (out.empty())
+                out = ": keepalive\n\n";
         }
     }
     return sink.write(out.data(), out.size());
@@ -106,7 +114,8 @@ bool nextChunk(EventHub::Client& client, const Connection& conn, httplib::DataSi
 std::shared_ptr<EventHub> addEventRoutes(httplib::Server& srv, StationApi& station) {
     auto hub = std::make_shared<EventHub>();
     station.addListener([weak = std::weak_ptr<EventHub>(hub)](const StationEvent& e) {
-        if (auto h = weak.lock()) h->publish("event: " + e.type + "\ndata: " + dumpJson(e.data) + "\n\n");
+        if (auto h = weak.lock())
+            h->publish("event: " + e.type + "\ndata: " + dumpJson(e.data) + "\n\n");
     });
     srv.Get("/api/events", [hub](const httplib::Request&, httplib::Response& res) {
         auto client = hub->subscribe();
@@ -114,7 +123,8 @@ std::shared_ptr<EventHub> addEventRoutes(httplib::Server& srv, StationApi& stati
         if (!client || !conn) {
             res.set_header("Retry-After", "5");
             res.set_header("Connection", "close");
-            if (conn) conn->closeAfterResponse();
+            if (conn)
+                conn->closeAfterResponse();
             return sendError(res, 503,
                              "too many event streams: " + std::to_string(L::kMaxEventStreams) +
                                  " are open; try again later");
@@ -123,7 +133,9 @@ std::shared_ptr<EventHub> addEventRoutes(httplib::Server& srv, StationApi& stati
         res.set_header("X-Accel-Buffering", "no");
         res.set_chunked_content_provider(
             "text/event-stream",
-            [client, conn](std::size_t, httplib::DataSink& sink) { return nextChunk(*client, *conn, sink); },
+            [client, conn](std::size_t, httplib::DataSink& sink) {
+                return nextChunk(*client, *conn, sink);
+            },
             [client](bool) {
                 std::lock_guard lock(client->mutex);
                 client->closed = true;

@@ -2,7 +2,7 @@
 #include "routes.hpp"
 
 #include "slicestation/daemon/http/web_page.hpp"
-#include "slicestation/daemon/station/autofocus.hpp"
+#include "slicestation/pipeline/frame_image.hpp"
 
 namespace slicestation::daemon::http {
 
@@ -17,14 +17,17 @@ void addPageRoutes(httplib::Server& srv, StationApi& st) {
         const auto page = webPage();
         res.set_content(page.data(), page.size(), "text/html; charset=utf-8");
     });
-    srv.Get("/api/status", [&st](const httplib::Request&, httplib::Response& res) { sendJson(res, st.status()); });
+    srv.Get("/api/status",
+            [&st](const httplib::Request&, httplib::Response& res) { sendJson(res, st.status()); });
     // The latest camera frame, scaled to ?width= (16..4096).
     srv.Get("/api/live.jpg", [&st](const httplib::Request& req, httplib::Response& res) {
         auto width = intQuery(req, res, "width", 16, 4096, 1024);
-        if (!width) return;
+        if (!width)
+            return;
         auto frame = st.liveFrame();
-        if (!frame) return sendError(res, 404, "no frame yet");
-        sendImage(res, frameToMat(*frame), *width, ".jpg");
+        if (!frame)
+            return sendError(res, 404, "no frame yet");
+        sendImage(res, pipeline::frameToMat(*frame), *width, ".jpg");
     });
 }
 

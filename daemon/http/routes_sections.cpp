@@ -6,20 +6,25 @@ namespace slicestation::daemon::http {
 void addSectionRoutes(httplib::Server& srv, StationApi& st, const Authoriser& authorised) {
     srv.Get(R"(/api/sections/([^/]+))", [&st](const httplib::Request& req, httplib::Response& res) {
         auto id = idParam(req, res);
-        if (!id) return;
+        if (!id)
+            return;
         auto d = st.sectionDetail(*id);
-        if (!d) return sendError(res, d.error());
+        if (!d)
+            return sendError(res, d.error());
         sendJson(res, *d);
     });
     // A section's latest image, or its overlay once registered, scaled to ?width= (16..4096).
     auto imageRoute = [&srv, &st](const char* pattern, bool overlay) {
         srv.Get(pattern, [&st, overlay](const httplib::Request& req, httplib::Response& res) {
             auto id = idParam(req, res);
-            if (!id) return;
+            if (!id)
+                return;
             auto width = intQuery(req, res, "width", 16, 4096, 1024);
-            if (!width) return;
+            if (!width)
+                return;
             auto image = st.sectionImage(*id, overlay);
-            if (!image) return sendError(res, image.error());
+            if (!image)
+                return sendError(res, image.error());
             sendImage(res, *image, *width, overlay ? ".png" : ".jpg");
         });
     };
@@ -27,32 +32,42 @@ void addSectionRoutes(httplib::Server& srv, StationApi& st, const Authoriser& au
     imageRoute(R"(/api/sections/([^/]+)/overlay\.png)", true);
     // The atlas region at a pixel of the section's latest capture (full resolution), or with
     // ?of_width=W at a pixel of the image shown scaled to width W (the page's overlay).
-    srv.Get(R"(/api/sections/([^/]+)/region)", [&st](const httplib::Request& req, httplib::Response& res) {
-        auto id = idParam(req, res);
-        if (!id) return;
-        auto x = intQuery(req, res, "x", 0, 1 << 20, std::nullopt);
-        if (!x) return;
-        auto y = intQuery(req, res, "y", 0, 1 << 20, std::nullopt);
-        if (!y) return;
-        auto ofWidth = intQuery(req, res, "of_width", 1, 1 << 20, 0);
-        if (!ofWidth) return;
-        auto r = st.regionAt(*id, *x, *y, *ofWidth);
-        if (!r) return sendError(res, r.error());
-        nlohmann::json j{{"id", r->id}, {"x", r->x}, {"y", r->y}};
-        if (!r->name.empty()) {
-            j["name"] = r->name;
-            j["acronym"] = r->acronym;
-        }
-        sendJson(res, j);
-    });
-    srv.Post(R"(/api/sections/([^/]+)/rescan)", [&st, authorised](const httplib::Request& req, httplib::Response& res) {
-        if (!authorised(req, res)) return;
-        auto id = idParam(req, res);
-        if (!id) return;
-        auto r = st.requestRescan(*id);
-        if (!r) return sendError(res, r.error(), RequestKind::Control);
-        sendJson(res, {{"ok", true}});
-    });
+    srv.Get(R"(/api/sections/([^/]+)/region)",
+            [&st](const httplib::Request& req, httplib::Response& res) {
+                auto id = idParam(req, res);
+                if (!id)
+                    return;
+                auto x = intQuery(req, res, "x", 0, 1 << 20, std::nullopt);
+                if (!x)
+                    return;
+                auto y = intQuery(req, res, "y", 0, 1 << 20, std::nullopt);
+                if (!y)
+                    return;
+                auto ofWidth = intQuery(req, res, "of_width", 1, 1 << 20, 0);
+                if (!ofWidth)
+                    return;
+                auto r = st.regionAt(*id, *x, *y, *ofWidth);
+                if (!r)
+                    return sendError(res, r.error());
+                nlohmann::json j{{"id", r->id}, {"x", r->x}, {"y", r->y}};
+                if (!r->name.empty()) {
+                    j["name"] = r->name;
+                    j["acronym"] = r->acronym;
+                }
+                sendJson(res, j);
+            });
+    srv.Post(R"(/api/sections/([^/]+)/rescan)",
+             [&st, authorised](const httplib::Request& req, httplib::Response& res) {
+                 if (!authorised(req, res))
+                     return;
+                 auto id = idParam(req, res);
+                 if (!id)
+                     return;
+                 auto r = st.requestRescan(*id);
+                 if (!r)
+                     return sendError(res, r.error(), RequestKind::Control);
+                 sendJson(res, {{"ok", true}});
+             });
 }
 
 } // namespace slicestation::daemon::http

@@ -32,20 +32,27 @@ void SystemdNotifier::send(const std::string& message) {
     }
 }
 
-void SystemdNotifier::ready() { send("READY=1"); }
+void SystemdNotifier::ready() {
+    send("READY=1");
+}
 
 void SystemdNotifier::status(const std::string& text) {
     // One assignment per line in the protocol: a newline in the text would inject others.
     std::string line = text;
     for (char& c : line) {
-        if (c == '\n' || c == '\r') c = ' ';
+        if (c == '\n' || c == '\r')
+            c = ' ';
     }
     send("STATUS=" + line);
 }
 
-void SystemdNotifier::stopping() { send("STOPPING=1"); }
+void SystemdNotifier::stopping() {
+    send("STOPPING=1");
+}
 
-void SystemdNotifier::watchdogPing() { send("WATCHDOG=1"); }
+void SystemdNotifier::watchdogPing() {
+    send("WATCHDOG=1");
+}
 
 void SystemdNotifier::reloading() {
     // systemd >= 253 wants the CLOCK_MONOTONIC time of the reload request with RELOADING=1
@@ -57,7 +64,9 @@ void SystemdNotifier::reloading() {
     send("RELOADING=1\nMONOTONIC_USEC=" + std::to_string(usec));
 }
 
-void SystemdNotifier::errnoStatus(int err) { send("ERRNO=" + std::to_string(err)); }
+void SystemdNotifier::errnoStatus(int err) {
+    send("ERRNO=" + std::to_string(err));
+}
 
 // ---------------------------------------------------------------------------------------------
 
@@ -75,7 +84,9 @@ ProgressWatchdog::ProgressWatchdog(SystemdNotifier& notifier, std::chrono::milli
     thread_ = std::thread([this] { run(); });
 }
 
-ProgressWatchdog::~ProgressWatchdog() { stop(); }
+ProgressWatchdog::~ProgressWatchdog() {
+    stop();
+}
 
 void ProgressWatchdog::progress() noexcept {
     lastProgressNs_ = clock_.now().time_since_epoch().count();

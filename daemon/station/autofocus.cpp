@@ -1,6 +1,8 @@
 #include "slicestation/daemon/station/autofocus.hpp"
 
 #include "slicestation/daemon/station/retry_policy.hpp"
+#include "slicestation/pipeline/focus_measures.hpp"
+#include "slicestation/pipeline/frame_image.hpp"
 
 #include <opencv2/core.hpp>
 #include <opencv2/imgproc.hpp>
@@ -16,44 +18,6 @@ namespace {
 using core::ErrorCode;
 using core::makeError;
 
-/// Grey float image scaled so that full scale is 1, downscaled (area average) to at most
-/// `maxSide` pixels per side.
-cv::Mat normalisedGrey(const cv::Mat& image, int maxSide) {
-    cv::Mat grey;
-    if (image.channels() == 3) {
-        cv::cvtColor(image, grey, cv::COLOR_BGR2GRAY);
-    } else if (image.channels() == 4) {
-        cv::cvtColor(image, grey, cv::COLOR_BGRA2GRAY);
-    } else {
-        grey = image;
-    }
-    const double fullScale = grey.depth() == CV_16U ? 65535.0 : grey.depth() == CV_8U ? 255.0 : 1.0;
-    cv::Mat f;
-    grey.convertTo(f, CV_32F, 1.0 / fullScale);
-    const int longest = std::max(f.cols, f.rows);
-    if (longest > maxSide) {
-        const double k = static_cast<double>(maxSide) / longest;
-        cv::resize(f, f, cv::Size(), k, k, cv::INTER_AREA);
-    }
-    return f;
-}
-
-float percentile(std::vector<float>& values, double p) {
-    const auto k = static_cast<std::size_t>(p * static_cast<double>(values.size() - 1));
-    std::nth_element(values.begin(), values.begin() + static_cast<std::ptrdiff_t>(k), values.end());
-    return values[k];
-}
-
-std::vector<float> toVector(const cv::Mat& f) {
-    std::vector<float> v;
-    v.reserve(f.total());
-    for (int y = 0; y < f.rows; ++y) {
-        const float* row = f.ptr<float>(y);
-        v.insert(v.end(), row, row + f.cols);
-    }
-    return v;
-}
-
 struct Sample {
     double zUm = 0;
     double score = 0;
@@ -66,7 +30,8 @@ public:
         : stage_(stage), camera_(camera), at_(at), s_(s) {}
 
     core::Result<void> moveZ(double zUm) {
-        auto moved = moveWithRetries(stage_, {at_.xUm, at_.yUm, zUm}, s_.moveTimeout, s_.moveRetries);
+        auto moved =
+            moveWithRetries(stage_, {at_.xUm, at_.yUm, zUm}, s_.moveTimeout, s_.moveRetries);
         if (!moved) {
             failed_ = FocusFailure::Stage;
             return moved.error();
@@ -76,19 +41,21 @@ public:
     }
     /// Moves to `zUm`, captures, and returns the frame as an image.
     core::Result<cv::Mat> frameAt(double zUm) {
-        if (auto moved = moveZ(zUm); !moved) return moved.error();
+        if (auto moved = moveZ(zUm); !moved)
+            return moved.error();
         auto frame = captureWithRetries(camera_, s_.captureTimeout, s_.captureRetries, s_.camera);
         if (!frame) {
             failed_ = FocusFailure::Camera;
             return frame.error();
         }
         ++captures_;
-        return frameToMat(*frame);
+        return pipeline::frameToMat(*frame);
     }
     /// Samples z values low to high, each approached from below.
     core::Result<std::vector<Sample>> sweep(const std::vector<double>& zs, double zMin) {
         std::vector<Sample> out;
-        if (zs.empty()) return out;
+        if (zs.empty())
+            return out;
         if (currentZ_ > zs.front()) {
             // Come from below, like every later step of the sweep (same backlash side).
             if (auto moved = moveZ(std::max(zMin, zs.front() - s_.coarseStepUm)); !moved) {
@@ -97,8 +64,9 @@ public:
         }
         for (const double z : zs) {
             auto image = frameAt(z);
-            if (!image) return image.error();
-            out.push_back({z, focusMeasure(*image)});
+            if (!image)
+                return image.error();
+            out.push_back({z, pipeline::focusMeasure(*image)});
         }
         return out;
     }
@@ -121,7 +89,8 @@ private:
 std::vector<double> steps(double lo, double hi, double step) {
     std::vector<double> zs;
     const int n = static_cast<int>(std::floor((hi - lo) / step + 1e-3)) + 1;
-    for (int i = 0; i < n; ++i) zs.push_back(lo + i * step);
+    for (int i = 0; i < n; ++i)
+        zs.push_back(lo + i * step);
     return zs;
 }
 
@@ -136,9 +105,12 @@ core::Result<void> validate(const AutofocusSettings& s) {
     const auto bad = [](const std::string& what) {
         return makeError(ErrorCode::InvalidArgument, "autofocus settings: " + what);
     };
-    if (!(s.coarseStepUm > 0) || !(s.fineStepUm > 0)) return bad("steps must be > 0");
-    if (s.fineStepUm > s.coarseStepUm) return bad("fineStepUm must not exceed coarseStepUm");
-    if (!(s.rangeUm >= s.coarseStepUm)) return bad("rangeUm must be at least coarseStepUm");
+    if (!(s.coarseStepUm > 0) || !(s.fineStepUm > 0))
+        return bad("steps must be > 0");
+    if (s.fineStepUm > s.coarseStepUm)
+        return bad("fineStepUm must not exceed coarseStepUm");
+    if (!(s.rangeUm >= s.coarseStepUm))
+        return bad("rangeUm must be at least coarseStepUm");
     if (!(s.minTissueFraction >= 0 && s.minTissueFraction <= 1)) {
         return bad("minTissueFraction must be within [0, 1]");
     }
@@ -150,7 +122,8 @@ core::Result<void> validate(const AutofocusSettings& s) {
 
 core::Result<FocusResult> run(hw::Stage& stage, hw::Camera& camera, const hw::StagePosition& at,
                               const AutofocusSettings& s, FocusFailure& failed) {
-    if (auto valid = validate(s); !valid) return valid.error();
+    if (auto valid = validate(s); !valid)
+        return valid.error();
     const hw::StageLimits limits = stage.limits();
     if (!limits.z) {
         return makeError(ErrorCode::InvalidArgument, "autofocus: the stage has no Z axis");
@@ -167,10 +140,11 @@ core::Result<FocusResult> run(hw::Stage& stage, hw::Camera& camera, const hw::St
     FocusResult result;
     result.zUm = at.zUm;
     auto first = search.frameAt(at.zUm);
-    if (!first) return first.error();
+    if (!first)
+        return first.error();
     result.captures = search.captures();
-    result.score = focusMeasure(*first);
-    result.tissueFraction = tissueFraction(*first);
+    result.score = pipeline::focusMeasure(*first);
+    result.tissueFraction = pipeline::tissueFraction(*first);
     if (result.tissueFraction < s.minTissueFraction) {
         return result; // blank glass: nothing to focus on (uScope KB NSC1077)
     }
@@ -179,7 +153,8 @@ core::Result<FocusResult> run(hw::Stage& stage, hw::Camera& camera, const hw::St
     const double lo = std::max(zMin, at.zUm - s.rangeUm / 2);
     const double hi = std::min(zMax, at.zUm + s.rangeUm / 2);
     auto coarse = search.sweep(steps(lo, hi, s.coarseStepUm), zMin);
-    if (!coarse) return coarse.error();
+    if (!coarse)
+        return coarse.error();
     const std::size_t b = best(*coarse);
     result.peakAtRangeEdge = coarse->size() > 1 && (b == 0 || b + 1 == coarse->size());
 
@@ -187,7 +162,8 @@ core::Result<FocusResult> run(hw::Stage& stage, hw::Camera& camera, const hw::St
     const double fineLo = std::max(zMin, zc - s.coarseStepUm);
     const double fineHi = std::min(zMax, zc + s.coarseStepUm);
     auto fine = search.sweep(steps(fineLo, fineHi, s.fineStepUm), zMin);
-    if (!fine) return fine.error();
+    if (!fine)
+        return fine.error();
     const std::size_t f = best(*fine);
     double zBest = (*fine)[f].zUm;
     if (f > 0 && f + 1 < fine->size()) {
@@ -207,7 +183,8 @@ core::Result<FocusResult> run(hw::Stage& stage, hw::Camera& camera, const hw::St
             return moved.error();
         }
     }
-    if (auto moved = search.moveZ(zBest); !moved) return moved.error();
+    if (auto moved = search.moveZ(zBest); !moved)
+        return moved.error();
 
     result.zUm = zBest;
     result.score = (*fine)[f].score;
@@ -216,60 +193,6 @@ core::Result<FocusResult> run(hw::Stage& stage, hw::Camera& camera, const hw::St
 }
 
 } // namespace
-
-cv::Mat frameToMat(const hw::Frame& frame) {
-    if (frame.empty() || frame.width() <= 0 || frame.height() <= 0) return {};
-    const int type = frame.format() == hw::PixelFormat::Mono16  ? CV_16UC1
-                     : frame.format() == hw::PixelFormat::Rgb8 ? CV_8UC3
-                                                                : CV_8UC1;
-    cv::Mat out(frame.height(), frame.width(), type);
-    for (int y = 0; y < frame.height(); ++y) {
-        std::memcpy(out.ptr(y), frame.row(y), frame.stride());
-    }
-    if (type == CV_8UC3) cv::cvtColor(out, out, cv::COLOR_RGB2BGR);
-    return out;
-}
-
-double focusMeasure(const cv::Mat& image) {
-    if (image.empty()) return 0;
-    try {
-        const cv::Mat f = normalisedGrey(image, 512);
-        const double mean = cv::mean(f)[0];
-        if (!(mean > 1e-6)) return 0;
-        cv::Mat gx;
-        cv::Mat gy;
-        cv::Sobel(f, gx, CV_32F, 1, 0, 3);
-        cv::Sobel(f, gy, CV_32F, 0, 1, 3);
-        // Tenengrad (Tenenbaum 1970; among the most robust measures in the comparisons of
-        // Groen, Young & Ligthart 1985 and Krotkov 1987), normalised by the squared mean.
-        const double tenengrad = cv::mean(gx.mul(gx) + gy.mul(gy))[0];
-        return tenengrad / (mean * mean);
-    } catch (const cv::Exception&) {
-        return 0;
-    }
-}
-
-double tissueFraction(const cv::Mat& image) {
-    if (image.empty()) return 0;
-    try {
-        const cv::Mat f = normalisedGrey(image, 256);
-        std::vector<float> values = toVector(f);
-        if (values.size() < 4) return 0;
-        const float median = percentile(values, 0.5);
-        const bool brightField = median > 0.5F;
-        const float glass = percentile(values, brightField ? 0.98 : 0.02);
-        // Noise from horizontal neighbour differences: for white noise d = n1 - n2 has
-        // sigma * sqrt(2); the median absolute value of a normal is 0.6745 sigma.
-        cv::Mat d = cv::abs(f.colRange(1, f.cols) - f.colRange(0, f.cols - 1));
-        std::vector<float> diffs = toVector(d);
-        const double noise = diffs.empty() ? 0 : percentile(diffs, 0.5) / 0.6745 / std::sqrt(2.0);
-        const double threshold = std::max(5 * noise, 0.02);
-        cv::Mat tissue = brightField ? (f < glass - threshold) : (f > glass + threshold);
-        return static_cast<double>(cv::countNonZero(tissue)) / static_cast<double>(f.total());
-    } catch (const cv::Exception&) {
-        return 0;
-    }
-}
 
 core::Result<FocusResult> autofocus(hw::Stage& stage, hw::Camera& camera,
                                     const hw::StagePosition& at, const AutofocusSettings& s,
@@ -293,7 +216,8 @@ void FocusSurface::add(double xUm, double yUm, double zUm) {
 }
 
 std::optional<double> FocusSurface::predict(double xUm, double yUm) const {
-    if (points_.empty()) return std::nullopt;
+    if (points_.empty())
+        return std::nullopt;
     const double n = static_cast<double>(points_.size());
     double mx = 0, my = 0, mz = 0;
     for (const auto& p : points_) {
@@ -304,7 +228,8 @@ std::optional<double> FocusSurface::predict(double xUm, double yUm) const {
     mx /= n;
     my /= n;
     mz /= n;
-    if (points_.size() < 3) return mz; // one or two points: their mean
+    if (points_.size() < 3)
+        return mz; // one or two points: their mean
     // Centred second moments of x/y, and their covariance with z.
     double sxx = 0, sxy = 0, syy = 0, sxz = 0, syz = 0;
     for (const auto& p : points_) {
@@ -322,7 +247,8 @@ std::optional<double> FocusSurface::predict(double xUm, double yUm) const {
     const double disc = std::sqrt(std::max(0.0, trace * trace / 4 - det));
     const double major = trace / 2 + disc;
     const double minor = trace / 2 - disc;
-    if (!(major > 1e-9)) return mz; // all at the same x/y
+    if (!(major > 1e-9))
+        return mz; // all at the same x/y
     if (minor < 1e-9 * major + 1e-12) {
         // Points on one line: least squares along the principal direction (ux, uy).
         double ux = sxy, uy = major - sxx;

@@ -14,7 +14,8 @@ nlohmann::json PhaseStats::summary() const {
     std::lock_guard lock(mutex_);
     nlohmann::json out = nlohmann::json::object();
     for (const auto& [phase, values] : ms_) {
-        if (values.empty()) continue;
+        if (values.empty())
+            continue;
         std::vector<double> v = values;
         std::sort(v.begin(), v.end());
         const double total = std::accumulate(v.begin(), v.end(), 0.0);

@@ -22,23 +22,25 @@ using Clock = std::chrono::steady_clock;
 core::Error inFile(const core::Error& e, const std::filesystem::path& p, const char* what) {
     // Library errors may or may not name the path; make sure the user sees which input it was.
     std::string msg = e.message;
-    if (msg.find(p.string()) == std::string::npos) msg = std::string(what) + " " + p.string() + ": " + msg;
+    if (msg.find(p.string()) == std::string::npos)
+        msg = std::string(what) + " " + p.string() + ": " + msg;
     return makeError(e.code, msg, e.sysErrno);
 }
 
 core::Result<void> checkPixelSizes(const RegisterRequest& rq) {
-    for (const auto& [option, value] :
-         {std::pair{"--image-um-per-px", rq.imageUmPerPx}, std::pair{"--atlas-um-per-px", rq.atlasUmPerPx}}) {
+    for (const auto& [option, value] : {std::pair{"--image-um-per-px", rq.imageUmPerPx},
+                                        std::pair{"--atlas-um-per-px", rq.atlasUmPerPx}}) {
         // 0 is "unknown"; NaN fails every comparison, so the test is written to catch it.
         if (value != 0 && !(std::isfinite(value) && value >= kMinUmPerPx && value <= kMaxUmPerPx)) {
             std::ostringstream os;
-            os << option << " " << value << " is not a finite number in [" << kMinUmPerPx << ", " << kMaxUmPerPx
-               << "]";
+            os << option << " " << value << " is not a finite number in [" << kMinUmPerPx << ", "
+               << kMaxUmPerPx << "]";
             return makeError(ErrorCode::InvalidArgument, os.str());
         }
     }
     if ((rq.imageUmPerPx > 0) != (rq.atlasUmPerPx > 0))
-        return makeError(ErrorCode::InvalidArgument, "give both --image-um-per-px and --atlas-um-per-px, or neither");
+        return makeError(ErrorCode::InvalidArgument,
+                         "give both --image-um-per-px and --atlas-um-per-px, or neither");
     return {};
 }
 
@@ -46,28 +48,36 @@ core::Result<void> checkPixelSizes(const RegisterRequest& rq) {
 core::Result<void> checkAtlasLabels(const cv::Mat& labels) {
     double lo = 0, hi = 0;
     cv::minMaxLoc(labels, &lo, &hi);
-    if (hi <= 0) return makeError(ErrorCode::InvalidArgument, "atlas label image holds no brain (every pixel is 0)");
+    if (hi <= 0)
+        return makeError(ErrorCode::InvalidArgument,
+                         "atlas label image holds no brain (every pixel is 0)");
     const int outside = labels.rows * labels.cols - cv::countNonZero(labels);
     if (lo == hi || outside == 0)
-        return makeError(ErrorCode::InvalidArgument,
-                         "atlas label image has no outside (no pixel is 0)" +
-                             std::string(lo == hi ? ": one label, " + std::to_string(int(lo)) + ", everywhere" : "") +
-                             "; registration needs the brain's outline");
+        return makeError(
+            ErrorCode::InvalidArgument,
+            "atlas label image has no outside (no pixel is 0)" +
+                std::string(lo == hi ? ": one label, " + std::to_string(int(lo)) + ", everywhere"
+                                     : "") +
+                "; registration needs the brain's outline");
     return {};
 }
 
 core::Result<void> checkSectionSize(const cv::Mat& section) {
-    const auto inRange = [](int side) { return side >= kMinSectionSidePx && side <= kMaxSectionSidePx; };
+    const auto inRange = [](int side) {
+        return side >= kMinSectionSidePx && side <= kMaxSectionSidePx;
+    };
     if (!inRange(section.cols) || !inRange(section.rows))
         return makeError(ErrorCode::InvalidArgument,
-                         "section image is " + std::to_string(section.cols) + " x " + std::to_string(section.rows) +
-                             " px; sections must be " + std::to_string(kMinSectionSidePx) + " to " +
+                         "section image is " + std::to_string(section.cols) + " x " +
+                             std::to_string(section.rows) + " px; sections must be " +
+                             std::to_string(kMinSectionSidePx) + " to " +
                              std::to_string(kMaxSectionSidePx) + " px on each side");
     return {};
 }
 
 json affineJson(const cv::Matx23d& a) {
-    return json::array({json::array({a(0, 0), a(0, 1), a(0, 2)}), json::array({a(1, 0), a(1, 1), a(1, 2)})});
+    return json::array(
+        {json::array({a(0, 0), a(0, 1), a(0, 2)}), json::array({a(1, 0), a(1, 1), a(1, 2)})});
 }
 
 /// The result document (RESULT.json) of a registration; timings are added by the caller.
@@ -77,13 +87,15 @@ json resultDocument(const RegisterRequest& rq, const cv::Mat& section, const cv:
     out["image"] = {{"path", rq.image.string()},
                     {"width", section.cols},
                     {"height", section.rows},
-                    {"contrast", reg.contrast == pipeline::Contrast::Brightfield ? "brightfield" : "fluorescence"}};
+                    {"contrast", reg.contrast == pipeline::Contrast::Brightfield ? "brightfield"
+                                                                                 : "fluorescence"}};
     out["atlas"] = {{"path", rq.atlas.string()}, {"width", labels.cols}, {"height", labels.rows}};
     out["damaged"] = reg.damaged;
     json regions = json::array();
     for (const pipeline::DamageRegion& d : reg.damage) {
         json poly = json::array();
-        for (const cv::Point2f& p : d.polygon) poly.push_back({p.x, p.y});
+        for (const cv::Point2f& p : d.polygon)
+            poly.push_back({p.x, p.y});
         regions.push_back({{"kind", std::string(pipeline::toString(d.kind))},
                            {"polygon", std::move(poly)},
                            {"area_px", d.areaPx},
@@ -113,22 +125,32 @@ json resultDocument(const RegisterRequest& rq, const cv::Mat& section, const cv:
 
 } // namespace
 
-core::Result<RegisteredSection> registerSectionFiles(const RegisterRequest& rq, const PointsLoader& loadPoints) {
+core::Result<RegisteredSection> registerSectionFiles(const RegisterRequest& rq,
+                                                     const PointsLoader& loadPoints) {
     const auto t0 = Clock::now();
-    if (auto r = checkPixelSizes(rq); !r) return r.error();
+    if (auto r = checkPixelSizes(rq); !r)
+        return r.error();
     auto atlasImage = core::readImage(rq.atlas);
-    if (!atlasImage) return inFile(atlasImage.error(), rq.atlas, "atlas");
+    if (!atlasImage)
+        return inFile(atlasImage.error(), rq.atlas, "atlas");
     auto labels = pipeline::labelsFromImage(*atlasImage);
-    if (!labels) return inFile(labels.error(), rq.atlas, "atlas");
-    if (auto a = checkAtlasLabels(*labels); !a) return inFile(a.error(), rq.atlas, "atlas");
+    if (!labels)
+        return inFile(labels.error(), rq.atlas, "atlas");
+    if (auto a = checkAtlasLabels(*labels); !a)
+        return inFile(a.error(), rq.atlas, "atlas");
     auto section = core::readImage(rq.image);
-    if (!section) return inFile(section.error(), rq.image, "image");
-    if (auto s = checkSectionSize(*section); !s) return inFile(s.error(), rq.image, "image");
+    if (!section)
+        return inFile(section.error(), rq.image, "image");
+    if (auto s = checkSectionSize(*section); !s)
+        return inFile(s.error(), rq.image, "image");
     std::vector<cv::Point2d> points;
     if (rq.points) {
-        if (!loadPoints) return makeError(ErrorCode::InvalidArgument, "points: no reader for " + rq.points->string());
+        if (!loadPoints)
+            return makeError(ErrorCode::InvalidArgument,
+                             "points: no reader for " + rq.points->string());
         auto p = loadPoints(*rq.points);
-        if (!p) return p.error();
+        if (!p)
+            return p.error();
         points = std::move(*p);
     }
     const auto tLoaded = Clock::now();
@@ -138,28 +160,35 @@ core::Result<RegisteredSection> registerSectionFiles(const RegisterRequest& rq, 
     opt.atlasUmPerPx = rq.atlasUmPerPx;
     opt.workingMaxSide = rq.workingMaxSide;
     auto reg = pipeline::registerSection(*section, *labels, opt);
-    if (!reg) return inFile(reg.error(), rq.image, "image");
+    if (!reg)
+        return inFile(reg.error(), rq.image, "image");
     const auto tRegistered = Clock::now();
 
     RegisteredSection out{std::move(*reg), section->size(), cv::Mat(), json()};
     out.document = resultDocument(rq, *section, *labels, out.registration, points);
     if (rq.warpedLabels) {
         out.warpedLabels = out.registration.warpedLabels(*labels, section->size());
-        if (auto w = core::writeImage(*rq.warpedLabels, out.warpedLabels); !w) return w.error();
+        if (auto w = core::writeImage(*rq.warpedLabels, out.warpedLabels); !w)
+            return w.error();
     }
     if (rq.overlay) {
         const cv::Mat picture = pipeline::renderOverlay(out.registration, *labels);
-        if (auto w = core::writeImage(*rq.overlay, picture); !w) return w.error();
+        if (auto w = core::writeImage(*rq.overlay, picture); !w)
+            return w.error();
     }
     const auto tWritten = Clock::now();
-    auto ms = [](auto a, auto b) { return std::chrono::duration<double, std::milli>(b - a).count(); };
+    auto ms = [](auto a, auto b) {
+        return std::chrono::duration<double, std::milli>(b - a).count();
+    };
     json timings = {{"load", ms(t0, tLoaded)}};
-    for (const auto& [step, v] : out.registration.timingsMs) timings[step == "total" ? "register" : step] = v;
+    for (const auto& [step, v] : out.registration.timingsMs)
+        timings[step == "total" ? "register" : step] = v;
     timings["write"] = ms(tRegistered, tWritten);
     timings["total"] = ms(t0, Clock::now());
     out.document["timings_ms"] = std::move(timings);
 
-    if (auto w = core::writeFileAtomically(rq.output, out.document.dump(2) + "\n"); !w) return w.error();
+    if (auto w = core::writeFileAtomically(rq.output, out.document.dump(2) + "\n"); !w)
+        return w.error();
     return out;
 }
 

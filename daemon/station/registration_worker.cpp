@@ -1,26 +1,30 @@
 #include "slicestation/daemon/station/registration_worker.hpp"
 
+#include "slicestation/core/image_file.hpp"
 #include "slicestation/daemon/config/daemon_settings.hpp"
 #include "slicestation/daemon/station/registration_service.hpp"
-#include "slicestation/core/image_file.hpp"
 
 #include <algorithm>
 #include <cstdlib>
-#include <map>
 #include <exception>
+#include <map>
 
 namespace slicestation::daemon {
 
-RegistrationWorker::RegistrationWorker(Journal& journal, Notifier& notifier, const AtlasStack& stack,
-                                       std::filesystem::path stateDir, PhaseStats& stats)
+RegistrationWorker::RegistrationWorker(Journal& journal, Notifier& notifier,
+                                       const AtlasStack& stack, std::filesystem::path stateDir,
+                                       PhaseStats& stats)
     : journal_(journal), notifier_(notifier), stack_(stack), stateDir_(std::move(stateDir)),
       stats_(stats) {}
 
-RegistrationWorker::~RegistrationWorker() { stop(); }
+RegistrationWorker::~RegistrationWorker() {
+    stop();
+}
 
 void RegistrationWorker::start() {
     std::lock_guard lock(mutex_);
-    if (thread_.joinable()) return;
+    if (thread_.joinable())
+        return;
     stopping_ = false;
     thread_ = std::thread([this] { loop(); });
 }
@@ -50,7 +54,8 @@ void RegistrationWorker::stop() noexcept {
         queue_.clear();
     }
     cv_.notify_all();
-    if (thread_.joinable()) thread_.join();
+    if (thread_.joinable())
+        thread_.join();
 }
 
 void RegistrationWorker::loop() {
@@ -59,7 +64,8 @@ void RegistrationWorker::loop() {
         {
             std::unique_lock lock(mutex_);
             cv_.wait(lock, [this] { return stopping_ || !queue_.empty(); });
-            if (stopping_) return;
+            if (stopping_)
+                return;
             id = queue_.front();
             queue_.pop_front();
             busy_ = true;
@@ -69,10 +75,11 @@ void RegistrationWorker::loop() {
         } catch (const std::exception& e) {
             // Nothing may escape a thread entry; a library bug becomes a failed section.
             if (auto c = journal_.capture(id)) {
-                (void)journal_.failSection(c->sectionId, std::string("registration crashed: ") + e.what());
+                (void)journal_.failSection(c->sectionId,
+                                           std::string("registration crashed: ") + e.what());
                 (void)notifier_.raise("registration_failed", "warning",
-                                      std::string("registration crashed: ") + e.what(), std::nullopt,
-                                      c->sectionId);
+                                      std::string("registration crashed: ") + e.what(),
+                                      std::nullopt, c->sectionId);
             }
         }
         {
@@ -83,26 +90,32 @@ void RegistrationWorker::loop() {
     }
 }
 
-core::Result<int> RegistrationWorker::matchToStack(const std::filesystem::path& image, double umPerPx,
-                                                  std::optional<int> expected, int window) {
+core::Result<int> RegistrationWorker::matchToStack(const std::filesystem::path& image,
+                                                   double umPerPx, std::optional<int> expected,
+                                                   int window) {
     // The stack's matching features are computed once and kept: they do not change.
     if (features_.empty()) {
         auto f = stackFeatures(stack_);
-        if (!f) return f.error();
+        if (!f)
+            return f.error();
         features_ = std::move(*f);
-        if (features_.empty()) return core::makeError(core::ErrorCode::InvalidArgument, "empty atlas stack");
+        if (features_.empty())
+            return core::makeError(core::ErrorCode::InvalidArgument, "empty atlas stack");
     }
     auto img = core::readImage(image);
-    if (!img) return img.error();
+    if (!img)
+        return img.error();
     pipeline::MatchOptions opt;
     if (expected) {
         opt.first = std::max(0, *expected - window);
         opt.last = std::min(static_cast<int>(features_.size()) - 1, *expected + window);
     }
     auto section = pipeline::sectionFeatures(*img, umPerPx, features_.front().workUmPerPx);
-    if (!section) return section.error();
+    if (!section)
+        return section.error();
     auto m = pipeline::matchSection(*section, features_, opt);
-    if (!m) return m.error();
+    if (!m)
+        return m.error();
     return m->index;
 }
 
@@ -122,11 +135,13 @@ nlohmann::json regionsShown(const cv::Mat& labels, const AtlasStack& stack) {
             }
     }
     std::vector<std::pair<std::int64_t, std::int32_t>> order;
-    for (const auto& [regionId, n] : counts) order.push_back({n, regionId});
+    for (const auto& [regionId, n] : counts)
+        order.push_back({n, regionId});
     std::sort(order.rbegin(), order.rend());
     nlohmann::json regions = nlohmann::json::array();
     for (const auto& [n, regionId] : order) {
-        nlohmann::json r{{"id", regionId}, {"share", inside > 0 ? static_cast<double>(n) / inside : 0.0}};
+        nlohmann::json r{{"id", regionId},
+                         {"share", inside > 0 ? static_cast<double>(n) / inside : 0.0}};
         if (const StackRegion* sr = findRegion(stack, static_cast<std::uint32_t>(regionId))) {
             r["name"] = sr->name;
             r["acronym"] = sr->acronym;
@@ -139,27 +154,29 @@ nlohmann::json regionsShown(const cv::Mat& labels, const AtlasStack& stack) {
 
 } // namespace
 
-core::Result<RegistrationWorker::SliceChoice> RegistrationWorker::chooseSlice(const SectionRecord& section,
-                                                                           const CaptureRecord& capture,
-                                                                           const ScanSettings& settings) {
+core::Result<RegistrationWorker::SliceChoice>
+RegistrationWorker::chooseSlice(const SectionRecord& section, const CaptureRecord& capture,
+                                const ScanSettings& settings) {
     SliceChoice choice;
     choice.slice = section.expectedSlice;
-    if (!settings.checkAtlasMatch && choice.slice) return choice;
+    if (!settings.checkAtlasMatch && choice.slice)
+        return choice;
     PhaseTimer matchTimer(stats_, "atlas_match");
     // The whole stack is searched: a section mounted far out of order must show where it belongs.
     auto m = matchToStack(stateDir_ / capture.imagePath, capture.umPerPx, std::nullopt, 0);
     if (!m) {
         if (!choice.slice)
-            return core::makeError(m.error().code,
-                                   "no atlas slice planned and matching failed: " + m.error().message);
+            return core::makeError(m.error().code, "no atlas slice planned and matching failed: " +
+                                                       m.error().message);
         return choice;
     }
     choice.matched = *m;
     if (!choice.slice) {
         choice.slice = *m;
     } else if (std::abs(*m - *choice.slice) > settings.mismatchToleranceSlices) {
-        choice.warning = "the section matches atlas slice " + std::to_string(*m) + ", not the planned " +
-                         std::to_string(*choice.slice) + " (mounted out of order?); registered to the planned slice";
+        choice.warning = "the section matches atlas slice " + std::to_string(*m) +
+                         ", not the planned " + std::to_string(*choice.slice) +
+                         " (mounted out of order?); registered to the planned slice";
     }
     return choice;
 }
@@ -167,42 +184,55 @@ core::Result<RegistrationWorker::SliceChoice> RegistrationWorker::chooseSlice(co
 void RegistrationWorker::process(std::int64_t captureId) {
     PhaseTimer timer(stats_, "register");
     auto capture = journal_.capture(captureId);
-    if (!capture) return;
+    if (!capture)
+        return;
     auto section = journal_.section(capture->sectionId);
-    if (!section || section->state != SectionState::Captured) return; // a rescan overtook it
+    if (!section || section->state != SectionState::Captured)
+        return; // a rescan overtook it
     auto run = journal_.run(section->runId);
-    if (!run) return;
-    const std::string label =
-        "section " + section->name + " (" + section->slideName + ", run " + std::to_string(run->id) + ")";
+    if (!run)
+        return;
+    const std::string label = "section " + section->name + " (" + section->slideName + ", run " +
+                              std::to_string(run->id) + ")";
     auto fail = [&](const std::string& why) {
         (void)journal_.failSection(section->id, why);
-        (void)notifier_.raise("registration_failed", "warning", label + ": " + why, run->id, section->id);
+        (void)notifier_.raise("registration_failed", "warning", label + ": " + why, run->id,
+                              section->id);
         notifier_.publish({"section_failed", {{"section_id", section->id}, {"reason", why}}});
     };
-    auto settings = scanSettingsFromJson(run->settings, "run " + std::to_string(run->id) + " settings");
-    if (!settings) return fail(settings.error().message);
+    auto settings =
+        scanSettingsFromJson(run->settings, "run " + std::to_string(run->id) + " settings");
+    if (!settings)
+        return fail(settings.error().message);
     auto choice = chooseSlice(*section, *capture, *settings);
-    if (!choice) return fail(choice.error().message);
+    if (!choice)
+        return fail(choice.error().message);
     const int slice = *choice->slice;
     auto atlas = stackSlicePath(stack_, slice);
-    if (!atlas) return fail(atlas.error().message);
+    if (!atlas)
+        return fail(atlas.error().message);
 
     // Outputs beside the image: <section>-a<attempt>.result.json, .overlay.png, .labels.tif.
     const std::filesystem::path image = stateDir_ / capture->imagePath;
-    const std::string stem = image.filename().string().substr(0, image.filename().string().find('.'));
+    const std::string stem =
+        image.filename().string().substr(0, image.filename().string().find('.'));
     const std::filesystem::path base = image.parent_path() / stem;
     RegisterRequest rq;
     rq.atlas = *atlas;
     rq.image = image;
     rq.imageUmPerPx = capture->umPerPx;
-    if (rq.imageUmPerPx > 0) rq.atlasUmPerPx = stack_.slices[static_cast<std::size_t>(slice)].umPerPx;
+    if (rq.imageUmPerPx > 0)
+        rq.atlasUmPerPx = stack_.slices[static_cast<std::size_t>(slice)].umPerPx;
     rq.output = base.string() + ".result.json";
     rq.overlay = base.string() + ".overlay.png";
     rq.warpedLabels = base.string() + ".labels.tif";
     auto result = registerSectionFiles(rq);
-    if (!result) return fail("registration failed: " + result.error().message);
+    if (!result)
+        return fail("registration failed: " + result.error().message);
 
-    const auto rel = [&](const std::filesystem::path& p) { return std::filesystem::relative(p, stateDir_).string(); };
+    const auto rel = [&](const std::filesystem::path& p) {
+        return std::filesystem::relative(p, stateDir_).string();
+    };
     RegistrationRecord rec;
     rec.captureId = captureId;
     rec.atlasSlice = slice;
@@ -220,12 +250,13 @@ void RegistrationWorker::process(std::int64_t captureId) {
     record(rec, *run, *section, label);
 }
 
-void RegistrationWorker::record(RegistrationRecord& rec, const RunRecord& run, const SectionRecord& section,
-                                const std::string& label) {
+void RegistrationWorker::record(RegistrationRecord& rec, const RunRecord& run,
+                                const SectionRecord& section, const std::string& label) {
     auto id = journal_.recordRegistration(rec);
     if (!id) {
         (void)notifier_.raise("journal_error", "critical",
-                              label + ": cannot store registration: " + id.error().message, run.id, section.id);
+                              label + ": cannot store registration: " + id.error().message, run.id,
+                              section.id);
         return;
     }
     rec.id = *id;
@@ -234,7 +265,8 @@ void RegistrationWorker::record(RegistrationRecord& rec, const RunRecord& run, c
     ev["run_id"] = run.id;
     notifier_.publish({rec.damaged ? "section_damaged" : "section_registered", ev});
     if (!rec.warning.empty())
-        (void)notifier_.raise("atlas_mismatch", "warning", label + ": " + rec.warning, run.id, section.id);
+        (void)notifier_.raise("atlas_mismatch", "warning", label + ": " + rec.warning, run.id,
+                              section.id);
     if (rec.damaged)
         (void)notifier_.raise("damaged", "critical",
                               label + " is damaged (" + rec.summary +

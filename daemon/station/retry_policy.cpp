@@ -17,15 +17,18 @@ core::Result<hw::StagePosition> moveWithRetries(hw::Stage& stage, const hw::Stag
     return r;
 }
 
-core::Result<hw::CameraSettings> configureWithRetries(hw::Camera& camera, const hw::CameraSettings& settings,
-                                                      std::chrono::milliseconds timeout, int retries) {
+core::Result<hw::CameraSettings> configureWithRetries(hw::Camera& camera,
+                                                      const hw::CameraSettings& settings,
+                                                      std::chrono::milliseconds timeout,
+                                                      int retries) {
     core::Result<hw::CameraSettings> r = camera.configure(settings, timeout);
     for (int attempt = 0; !r && attempt < retries && worthRetrying(r.error()); ++attempt)
         r = camera.configure(settings, timeout);
     return r;
 }
 
-core::Result<hw::Frame> captureWithRetries(hw::Camera& camera, std::chrono::milliseconds timeout, int retries,
+core::Result<hw::Frame> captureWithRetries(hw::Camera& camera, std::chrono::milliseconds timeout,
+                                           int retries,
                                            const std::optional<hw::CameraSettings>& reinitialise) {
     core::Result<hw::Frame> r = camera.capture(timeout);
     for (int attempt = 0; !r && attempt < retries && worthRetrying(r.error()); ++attempt) {

@@ -15,11 +15,14 @@ using core::Result;
 
 Scanner::Scanner(ScannerDeps deps) : d_(std::move(deps)) {}
 
-Scanner::~Scanner() { shutdown(); }
+Scanner::~Scanner() {
+    shutdown();
+}
 
 void Scanner::start() {
     std::lock_guard lock(mutex_);
-    if (thread_.joinable()) return;
+    if (thread_.joinable())
+        return;
     thread_ = std::thread([this] { loop(); });
 }
 
@@ -32,7 +35,8 @@ void Scanner::shutdown() noexcept {
         wake_ = true;
     }
     cv_.notify_all();
-    if (thread_.joinable()) thread_.join();
+    if (thread_.joinable())
+        thread_.join();
 }
 
 void Scanner::wake() {
@@ -46,7 +50,8 @@ void Scanner::wake() {
 
 core::Result<void> Scanner::pause(std::int64_t runId) {
     auto run = d_.journal.run(runId);
-    if (!run) return run.error();
+    if (!run)
+        return run.error();
     std::unique_lock lock(mutex_);
     if (active_ == runId) {
         pauseRequested_.insert(runId);
@@ -58,52 +63,61 @@ core::Result<void> Scanner::pause(std::int64_t runId) {
                                                          " (not yet stored: the disk is full)");
     lock.unlock();
     if (run->state != RunState::Queued && run->state != RunState::Running)
-        return makeError(ErrorCode::InvalidArgument,
-                         "run " + std::to_string(runId) + " is " + toString(run->state) + "; it cannot be paused");
+        return makeError(ErrorCode::InvalidArgument, "run " + std::to_string(runId) + " is " +
+                                                         toString(run->state) +
+                                                         "; it cannot be paused");
     settle(runId, RunState::Paused, "paused by request");
     return {};
 }
 
 core::Result<void> Scanner::resume(std::int64_t runId, bool resetStageAlarm) {
     auto run = d_.journal.run(runId);
-    if (!run) return run.error();
+    if (!run)
+        return run.error();
     RunState state = run->state;
     {
         std::lock_guard lock(mutex_);
-        if (auto h = held_.find(runId); h != held_.end()) state = h->second.state; // paused in memory
+        if (auto h = held_.find(runId); h != held_.end())
+            state = h->second.state; // paused in memory
     }
     if (state != RunState::Paused)
-        return makeError(ErrorCode::InvalidArgument,
-                         "run " + std::to_string(runId) + " is " + toString(state) + ", not paused");
+        return makeError(ErrorCode::InvalidArgument, "run " + std::to_string(runId) + " is " +
+                                                         toString(state) + ", not paused");
     {
         std::lock_guard lock(mutex_);
         pauseRequested_.erase(runId);
-        if (resetStageAlarm) alarmResetRequested_.insert(runId);
+        if (resetStageAlarm)
+            alarmResetRequested_.insert(runId);
     }
-    auto r = d_.journal.setRunState(runId, RunState::Queued,
-                                    resetStageAlarm ? "resumed, stage alarm reset asked" : "resumed");
-    if (!r) return r; // a run paused in memory stays so
+    auto r = d_.journal.setRunState(
+        runId, RunState::Queued, resetStageAlarm ? "resumed, stage alarm reset asked" : "resumed");
+    if (!r)
+        return r; // a run paused in memory stays so
     {
         std::lock_guard lock(mutex_);
         held_.erase(runId);
     }
-    d_.notifier.publish({"run_state", {{"run_id", runId}, {"state", "queued"}, {"reason", "resumed"}}});
+    d_.notifier.publish(
+        {"run_state", {{"run_id", runId}, {"state", "queued"}, {"reason", "resumed"}}});
     wake();
     return {};
 }
 
 core::Result<void> Scanner::cancel(std::int64_t runId) {
     auto run = d_.journal.run(runId);
-    if (!run) return run.error();
+    if (!run)
+        return run.error();
     {
         std::lock_guard lock(mutex_);
-        if (auto h = held_.find(runId); h != held_.end()) run->state = h->second.state;
+        if (auto h = held_.find(runId); h != held_.end())
+            run->state = h->second.state;
     }
     if (isTerminal(run->state) && run->state != RunState::Finished)
         return makeError(ErrorCode::InvalidArgument,
                          "run " + std::to_string(runId) + " is already " + toString(run->state));
     if (run->state == RunState::Finished)
-        return makeError(ErrorCode::InvalidArgument, "run " + std::to_string(runId) + " has finished");
+        return makeError(ErrorCode::InvalidArgument,
+                         "run " + std::to_string(runId) + " has finished");
     std::unique_lock lock(mutex_);
     if (active_ == runId) {
         cancelRequested_.insert(runId);
@@ -141,12 +155,14 @@ bool Scanner::idle() const {
 std::map<std::int64_t, RunState> Scanner::heldRunStates() const {
     std::lock_guard lock(mutex_);
     std::map<std::int64_t, RunState> out;
-    for (const auto& [id, h] : held_) out.emplace(id, h.state);
+    for (const auto& [id, h] : held_)
+        out.emplace(id, h.state);
     return out;
 }
 
 void Scanner::settle(std::int64_t runId, RunState state, const std::string& reason) {
-    if (d_.notifier.runStateChanged(runId, state, reason)) return;
+    if (d_.notifier.runStateChanged(runId, state, reason))
+        return;
     // The alert went out (and is held until it can be stored); the state is kept here so the
     // loop does not take the run up again, and stored as soon as the journal can.
     std::lock_guard lock(mutex_);
@@ -159,12 +175,15 @@ bool Scanner::storeHeldState(std::int64_t runId) {
         // Locked across the write: once the journal shows the state, it is no longer held.
         std::lock_guard lock(mutex_);
         auto it = held_.find(runId);
-        if (it == held_.end()) return true;
+        if (it == held_.end())
+            return true;
         h = it->second;
-        if (!d_.journal.setRunState(runId, h.state, h.reason)) return false;
+        if (!d_.journal.setRunState(runId, h.state, h.reason))
+            return false;
         held_.erase(it);
     }
-    d_.notifier.publish({"run_state", {{"run_id", runId}, {"state", toString(h.state)}, {"reason", h.reason}}});
+    d_.notifier.publish(
+        {"run_state", {{"run_id", runId}, {"state", toString(h.state)}, {"reason", h.reason}}});
     return true;
 }
 
@@ -173,8 +192,10 @@ void Scanner::setActivity(const std::string& text) {
         std::lock_guard lock(mutex_);
         activity_ = text;
     }
-    if (d_.status) d_.status(text);
-    if (d_.watchdog) d_.watchdog->progress();
+    if (d_.status)
+        d_.status(text);
+    if (d_.watchdog)
+        d_.watchdog->progress();
 }
 
 void Scanner::loop() {
@@ -185,7 +206,8 @@ void Scanner::loop() {
             (void)d_.notifier.raise("journal_error", "critical",
                                     "cannot read the journal: " + next.error().message);
             std::unique_lock lock(mutex_);
-            cv_.wait_for(lock, std::chrono::seconds(5), [this] { return wake_ || shutdown_.load(); });
+            cv_.wait_for(lock, std::chrono::seconds(5),
+                         [this] { return wake_ || shutdown_.load(); });
             wake_ = false;
             continue;
         }
@@ -195,10 +217,13 @@ void Scanner::loop() {
                 idle_ = true;
                 activity_ = "idle";
             }
-            if (d_.status) d_.status("idle: no run queued");
-            if (d_.watchdog) d_.watchdog->setIdle(true);
+            if (d_.status)
+                d_.status("idle: no run queued");
+            if (d_.watchdog)
+                d_.watchdog->setIdle(true);
             std::unique_lock lock(mutex_);
-            cv_.wait_for(lock, std::chrono::seconds(1), [this] { return wake_ || shutdown_.load(); });
+            cv_.wait_for(lock, std::chrono::seconds(1),
+                         [this] { return wake_ || shutdown_.load(); });
             wake_ = false;
             continue;
         }
@@ -210,21 +235,26 @@ void Scanner::loop() {
         if (held) {
             // Paused (or ended) in memory: the journal could not store it. Never take it up
             // again; store the state once there is space.
-            if (storeHeldState((*next)->id)) continue;
+            if (storeHeldState((*next)->id))
+                continue;
             const std::string what = "run " + std::to_string((*next)->id) +
                                      " paused; the journal cannot store it yet (disk full?)";
             {
                 std::lock_guard lock(mutex_);
                 activity_ = what;
             }
-            if (d_.status) d_.status(what);
-            if (d_.watchdog) d_.watchdog->setIdle(true);
+            if (d_.status)
+                d_.status(what);
+            if (d_.watchdog)
+                d_.watchdog->setIdle(true);
             std::unique_lock lock(mutex_);
-            cv_.wait_for(lock, std::chrono::seconds(1), [this] { return wake_ || shutdown_.load(); });
+            cv_.wait_for(lock, std::chrono::seconds(1),
+                         [this] { return wake_ || shutdown_.load(); });
             wake_ = false;
             continue;
         }
-        if (d_.watchdog) d_.watchdog->setIdle(false);
+        if (d_.watchdog)
+            d_.watchdog->setIdle(false);
         {
             std::lock_guard lock(mutex_);
             idle_ = false;
@@ -257,18 +287,25 @@ Scanner::Outcome Scanner::executeRun(const RunRecord& run) {
         return Outcome::Failed;
     }
     RunContext ctx{run, label, *settings, {}, {}, 0};
-    SectionSteps steps({d_.stage, d_.camera, d_.stats, d_.stateDir, d_.freeSpace, d_.watchdog}, ctx.settings);
-    if (auto o = startRun(ctx, steps)) return *o;
+    SectionSteps steps({d_.stage, d_.camera, d_.stats, d_.stateDir, d_.freeSpace, d_.watchdog},
+                       ctx.settings);
+    if (auto o = startRun(ctx, steps))
+        return *o;
     for (;;) {
-        if (shutdown_) return Outcome::Shutdown;
-        if (auto o = takeRequest(run.id)) return *o;
+        if (shutdown_)
+            return Outcome::Shutdown;
+        if (auto o = takeRequest(run.id))
+            return *o;
         auto next = d_.journal.nextSectionToCapture(run.id);
-        if (!next) return pauseFor(ctx, {"journal_error", next.error()});
+        if (!next)
+            return pauseFor(ctx, {"journal_error", next.error()});
         if (!*next) {
-            if (auto o = finishOnceRegistered(ctx)) return *o;
+            if (auto o = finishOnceRegistered(ctx))
+                return *o;
             continue;
         }
-        if (auto o = scanSection(ctx, steps, **next)) return *o;
+        if (auto o = scanSection(ctx, steps, **next))
+            return *o;
     }
 }
 
@@ -283,7 +320,8 @@ Scanner::Outcome Scanner::pauseFor(const RunContext& ctx, const Fault& f) {
 Scanner::Outcome Scanner::onFault(const RunContext& ctx, const Fault& f) {
     if (f.error.code == ErrorCode::Cancelled) {
         // stop() preempted the device: a shutdown, or a cancel of this run.
-        if (shutdown_) return Outcome::Shutdown;
+        if (shutdown_)
+            return Outcome::Shutdown;
         std::unique_lock lock(mutex_);
         if (cancelRequested_.count(ctx.run.id)) {
             lock.unlock();
@@ -299,7 +337,8 @@ std::optional<Scanner::Outcome> Scanner::startRun(RunContext& ctx, SectionSteps&
     if (run.state == RunState::Queued) {
         if (auto r = d_.journal.setRunState(run.id, RunState::Running); !r)
             return pauseFor(ctx, {"journal_error", r.error()});
-        d_.notifier.publish({"run_state", {{"run_id", run.id}, {"state", "running"}, {"reason", ""}}});
+        d_.notifier.publish(
+            {"run_state", {{"run_id", run.id}, {"state", "running"}, {"reason", ""}}});
     }
     bool resetAlarm = false;
     {
@@ -309,7 +348,8 @@ std::optional<Scanner::Outcome> Scanner::startRun(RunContext& ctx, SectionSteps&
     if (resetAlarm) {
         setActivity(ctx.label + ": resetting the stage alarm");
         if (auto r = d_.stage.resetAlarm(ctx.settings.moveTimeout); !r) {
-            if (shutdown_) return Outcome::Shutdown;
+            if (shutdown_)
+                return Outcome::Shutdown;
             return pauseFor(ctx, {"stage_fault", r.error()});
         }
     }
@@ -317,7 +357,8 @@ std::optional<Scanner::Outcome> Scanner::startRun(RunContext& ctx, SectionSteps&
     setActivity(ctx.label + ": configuring the camera");
     auto used = steps.configureCamera();
     if (!used) {
-        if (shutdown_) return Outcome::Shutdown;
+        if (shutdown_)
+            return Outcome::Shutdown;
         return pauseFor(ctx, used.fault());
     }
     ctx.used = *used;
@@ -327,7 +368,8 @@ std::optional<Scanner::Outcome> Scanner::startRun(RunContext& ctx, SectionSteps&
         for (const auto& sec : *secs)
             if (auto caps = d_.journal.captures(sec.id))
                 for (const auto& c : *caps)
-                    if (c.focusFound) ctx.surfaces[sec.slideIndex].add(c.stage.xUm, c.stage.yUm, c.stage.zUm);
+                    if (c.focusFound)
+                        ctx.surfaces[sec.slideIndex].add(c.stage.xUm, c.stage.yUm, c.stage.zUm);
     }
     return std::nullopt;
 }
@@ -351,9 +393,11 @@ std::optional<Scanner::Outcome> Scanner::takeRequest(std::int64_t runId) {
 std::optional<Scanner::Outcome> Scanner::finishOnceRegistered(const RunContext& ctx) {
     // Everything captured: the run is finished once the worker has registered it all.
     auto secs = d_.journal.sections(ctx.run.id);
-    if (!secs) return pauseFor(ctx, {"journal_error", secs.error()});
-    const bool pending = std::any_of(secs->begin(), secs->end(),
-                                     [](const SectionRecord& x) { return x.state == SectionState::Captured; });
+    if (!secs)
+        return pauseFor(ctx, {"journal_error", secs.error()});
+    const bool pending = std::any_of(secs->begin(), secs->end(), [](const SectionRecord& x) {
+        return x.state == SectionState::Captured;
+    });
     if (!pending) {
         settle(ctx.run.id, RunState::Finished, "");
         return Outcome::Done;
@@ -363,43 +407,56 @@ std::optional<Scanner::Outcome> Scanner::finishOnceRegistered(const RunContext& 
     if (d_.worker.idle()) {
         // Idle but still 'captured' (e.g. after a restart): queue them again.
         if (auto waiting = d_.journal.capturesAwaitingRegistration())
-            for (auto id : *waiting) d_.worker.enqueue(id);
+            for (auto id : *waiting)
+                d_.worker.enqueue(id);
         d_.worker.waitIdle(std::chrono::milliseconds(200));
     }
     return std::nullopt;
 }
 
-std::optional<Scanner::Outcome> Scanner::scanSection(RunContext& ctx, SectionSteps& steps, const SectionRecord& sec) {
+std::optional<Scanner::Outcome> Scanner::scanSection(RunContext& ctx, SectionSteps& steps,
+                                                     const SectionRecord& sec) {
     const std::string where = ctx.label + " " + sec.slideName + " section " + sec.name + " (" +
-                              std::to_string(sec.slideIndex + 1) + "/" + std::to_string(sec.index + 1) + " of " +
-                              std::to_string(ctx.total) + ")";
-    if (auto f = steps.checkDisk()) return pauseFor(ctx, *f);
+                              std::to_string(sec.slideIndex + 1) + "/" +
+                              std::to_string(sec.index + 1) + " of " + std::to_string(ctx.total) +
+                              ")";
+    if (auto f = steps.checkDisk())
+        return pauseFor(ctx, *f);
 
     // Move to the section at the predicted focus.
     const ScanSettings& s = ctx.settings;
     const auto zLimits = d_.stage.limits().z;
     double z = s.startZUm;
-    if (auto p = ctx.surfaces[sec.slideIndex].predict(sec.xUm, sec.yUm)) z = *p;
-    if (zLimits) z = std::clamp(z, zLimits->minUm, zLimits->maxUm);
+    if (auto p = ctx.surfaces[sec.slideIndex].predict(sec.xUm, sec.yUm))
+        z = *p;
+    if (zLimits)
+        z = std::clamp(z, zLimits->minUm, zLimits->maxUm);
     setActivity(where + ": moving");
-    if (auto moved = steps.move({sec.xUm, sec.yUm, z}); !moved) return onFault(ctx, moved.fault());
+    if (auto moved = steps.move({sec.xUm, sec.yUm, z}); !moved)
+        return onFault(ctx, moved.fault());
 
     // Autofocus at the centre (a tissue check first: never focus on blank glass).
-    if (s.autofocus && zLimits) setActivity(where + ": focusing");
+    if (s.autofocus && zLimits)
+        setActivity(where + ": focusing");
     auto focus = steps.focus(sec.xUm, sec.yUm, z);
-    if (!focus) return onFault(ctx, focus.fault());
-    if (focus->found) ctx.surfaces[sec.slideIndex].add(sec.xUm, sec.yUm, focus->zUm);
+    if (!focus)
+        return onFault(ctx, focus.fault());
+    if (focus->found)
+        ctx.surfaces[sec.slideIndex].add(sec.xUm, sec.yUm, focus->zUm);
 
     // Capture: one field, or tiles stitched by stage position.
     setActivity(where + ": capturing");
-    auto captured = steps.capture(sec, focus->zUm, [&](const std::string& what) { setActivity(where + ": " + what); });
-    if (!captured) return onFault(ctx, captured.fault());
+    auto captured = steps.capture(
+        sec, focus->zUm, [&](const std::string& what) { setActivity(where + ": " + what); });
+    if (!captured)
+        return onFault(ctx, captured.fault());
 
     // Write the image atomically, then journal it, then hand it on.
     setActivity(where + ": writing");
     const int attempt = sec.attempts + 1;
     const std::filesystem::path rel = imagePathFor(ctx.run, sec, attempt);
-    if (auto f = steps.writeImage(rel, *captured, ctx.run.name + " / " + sec.slideName + " / " + sec.name, ctx.used,
+    if (auto f = steps.writeImage(rel, *captured,
+                                  ctx.run.name + " / " + sec.slideName + " / " + sec.name, ctx.used,
                                   d_.journal))
         return pauseFor(ctx, *f);
     CaptureRecord rec;
@@ -413,7 +470,8 @@ std::optional<Scanner::Outcome> Scanner::scanSection(RunContext& ctx, SectionSte
     rec.exposureUs = captured->meta.exposureUs;
     rec.gain = captured->meta.analogueGain;
     auto id = d_.journal.recordCapture(rec);
-    if (!id) return pauseFor(ctx, {"journal_error", id.error()});
+    if (!id)
+        return pauseFor(ctx, {"journal_error", id.error()});
     rec.id = *id;
     rec.attempt = attempt;
     nlohmann::json ev = toJson(rec);

@@ -2,8 +2,9 @@
 
 #include "slicestation/daemon/service/systemd_notifier.hpp"
 #include "slicestation/daemon/station/retry_policy.hpp"
-#include "slicestation/daemon/station/tile_stitcher.hpp"
 #include "slicestation/daemon/storage/ome_tiff.hpp"
+#include "slicestation/pipeline/frame_image.hpp"
+#include "slicestation/pipeline/tile_stitching.hpp"
 
 #include <opencv2/core.hpp>
 
@@ -26,7 +27,8 @@ constexpr std::size_t kMaxNamePart = 48;
 std::string safeName(const std::string& s) {
     std::string out;
     for (char c : s) {
-        if (out.size() == kMaxNamePart) break;
+        if (out.size() == kMaxNamePart)
+            break;
         const auto u = static_cast<unsigned char>(c);
         out += (u < 0x80 && (std::isalnum(u) || c == '-' || c == '_')) ? c : '_';
     }
@@ -52,10 +54,14 @@ Orientation orientation(const std::array<double, 4>& m) {
 }
 cv::Mat orient(const cv::Mat& m, const Orientation& o) {
     cv::Mat out = m;
-    if (o.transpose) cv::transpose(out, out);
-    if (o.flipX && o.flipY) cv::flip(out, out, -1);
-    else if (o.flipX) cv::flip(out, out, 1);
-    else if (o.flipY) cv::flip(out, out, 0);
+    if (o.transpose)
+        cv::transpose(out, out);
+    if (o.flipX && o.flipY)
+        cv::flip(out, out, -1);
+    else if (o.flipX)
+        cv::flip(out, out, 1);
+    else if (o.flipY)
+        cv::flip(out, out, 0);
     return out;
 }
 
@@ -66,12 +72,14 @@ std::filesystem::path imagePathFor(const RunRecord& run, const SectionRecord& se
     std::snprintf(slide, sizeof slide, "%02d", sec.slideIndex + 1);
     return std::filesystem::path("runs") / std::to_string(run.id) /
            (std::string(slide) + "-" + safeName(sec.slideName)) /
-           (std::to_string(sec.id) + "-" + safeName(sec.name) + "-a" + std::to_string(attempt) + ".ome.tif");
+           (std::to_string(sec.id) + "-" + safeName(sec.name) + "-a" + std::to_string(attempt) +
+            ".ome.tif");
 }
 
 Step<hw::CameraSettings> SectionSteps::configureCamera() {
     auto c = configureWithRetries(d_.camera, s_.camera, s_.captureTimeout, s_.captureRetries);
-    if (!c) return Fault{"camera_fault", c.error()};
+    if (!c)
+        return Fault{"camera_fault", c.error()};
     const bool transposed = orientation(s_.objective.cameraToStage).transpose;
     fieldWUm_ = (transposed ? c->height : c->width) * s_.objective.umPerPx;
     fieldHUm_ = (transposed ? c->width : c->height) * s_.objective.umPerPx;
@@ -79,26 +87,34 @@ Step<hw::CameraSettings> SectionSteps::configureCamera() {
 }
 
 std::optional<Fault> SectionSteps::checkDisk() const {
-    if (!d_.freeSpace) return std::nullopt;
+    if (!d_.freeSpace)
+        return std::nullopt;
     auto free = d_.freeSpace(d_.stateDir);
-    if (!free) return Fault{"storage_fault", free.error()};
-    if (*free >= s_.minFreeBytes) return std::nullopt;
-    return Fault{"low_disk", makeError(ErrorCode::IoError, "low disk: " + std::to_string(*free >> 20) + " MB free in " +
-                                                               d_.stateDir.string() + ", the threshold is " +
-                                                               std::to_string(s_.minFreeBytes >> 20) + " MB")};
+    if (!free)
+        return Fault{"storage_fault", free.error()};
+    if (*free >= s_.minFreeBytes)
+        return std::nullopt;
+    return Fault{"low_disk", makeError(ErrorCode::IoError,
+                                       "low disk: " + std::to_string(*free >> 20) + " MB free in " +
+                                           d_.stateDir.string() + ", the threshold is " +
+                                           std::to_string(s_.minFreeBytes >> 20) + " MB")};
 }
 
 Step<hw::StagePosition> SectionSteps::move(hw::StagePosition target) {
     PhaseTimer t(d_.stats, "move");
-    if (!d_.stage.limits().z) target.zUm = 0;
+    if (!d_.stage.limits().z)
+        target.zUm = 0;
     auto r = moveWithRetries(d_.stage, target, s_.moveTimeout, s_.moveRetries);
-    if (!r) return Fault{"stage_fault", r.error()};
-    if (d_.watchdog) d_.watchdog->progress();
+    if (!r)
+        return Fault{"stage_fault", r.error()};
+    if (d_.watchdog)
+        d_.watchdog->progress();
     return *r;
 }
 
 Step<SectionSteps::Focus> SectionSteps::focus(double xUm, double yUm, double zUm) {
-    if (!s_.autofocus || !d_.stage.limits().z) return Focus{zUm, false, std::nullopt};
+    if (!s_.autofocus || !d_.stage.limits().z)
+        return Focus{zUm, false, std::nullopt};
     PhaseTimer t(d_.stats, "focus");
     AutofocusSettings afs;
     afs.rangeUm = s_.focusRangeUm;
@@ -119,53 +135,62 @@ Step<SectionSteps::Focus> SectionSteps::focus(double xUm, double yUm, double zUm
                      : failed == FocusFailure::Camera ? "camera_fault"
                                                       : "focus_fault",
                      af.error()};
-    if (!af->tissueFound) return Focus{zUm, false, std::nullopt};
+    if (!af->tissueFound)
+        return Focus{zUm, false, std::nullopt};
     return Focus{af->zUm, true, af->score};
 }
 
-Step<SectionSteps::Capture> SectionSteps::capture(const SectionRecord& sec, double z,
-                                                  const std::function<void(const std::string&)>& activity) {
+Step<SectionSteps::Capture>
+SectionSteps::capture(const SectionRecord& sec, double z,
+                      const std::function<void(const std::string&)>& activity) {
     const Orientation o = orientation(s_.objective.cameraToStage);
-    const TilePlan plan =
-        planTiles({sec.xUm, sec.yUm, z}, sec.widthUm, sec.heightUm, fieldWUm_, fieldHUm_, s_.tileOverlap);
+    const pipeline::TilePlan plan = pipeline::planTiles(
+        {sec.xUm, sec.yUm, z}, sec.widthUm, sec.heightUm, fieldWUm_, fieldHUm_, s_.tileOverlap);
     Capture out;
     out.stage = {sec.xUm, sec.yUm, z};
-    std::vector<Tile> tiles;
+    std::vector<pipeline::Tile> tiles;
     for (const auto& c : plan.centres) {
         auto at = move({c.xUm, c.yUm, z});
-        if (!at) return at.fault();
+        if (!at)
+            return at.fault();
         PhaseTimer t(d_.stats, "capture");
         auto frame = captureWithRetries(d_.camera, s_.captureTimeout, s_.captureRetries, s_.camera);
-        if (!frame) return Fault{"camera_fault", frame.error()};
-        if (d_.watchdog) d_.watchdog->progress();
+        if (!frame)
+            return Fault{"camera_fault", frame.error()};
+        if (d_.watchdog)
+            d_.watchdog->progress();
         out.meta = frame->metadata;
-        if (plan.centres.size() == 1) out.stage = *at;
-        tiles.push_back({orient(frameToMat(*frame), o), *at});
+        if (plan.centres.size() == 1)
+            out.stage = *at;
+        tiles.push_back({orient(pipeline::frameToMat(*frame), o), *at});
     }
     out.tiles = static_cast<int>(tiles.size());
     if (tiles.size() == 1) {
         out.image = tiles.front().image;
         return out;
     }
-    if (activity) activity("stitching " + std::to_string(tiles.size()) + " tiles");
+    if (activity)
+        activity("stitching " + std::to_string(tiles.size()) + " tiles");
     PhaseTimer t(d_.stats, "stitch");
-    auto stitched = stitchTiles(tiles, s_.objective.umPerPx);
-    if (!stitched) return Fault{"camera_fault", stitched.error()};
+    auto stitched = pipeline::stitchTiles(tiles, s_.objective.umPerPx);
+    if (!stitched)
+        return Fault{"camera_fault", stitched.error()};
     out.image = *stitched;
     return out;
 }
 
-std::optional<Fault> SectionSteps::writeImage(const std::filesystem::path& rel, const Capture& capture,
-                                              const std::string& name, const hw::CameraSettings& used,
-                                              Journal& journal) {
+std::optional<Fault> SectionSteps::writeImage(const std::filesystem::path& rel,
+                                              const Capture& capture, const std::string& name,
+                                              const hw::CameraSettings& used, Journal& journal) {
     PhaseTimer t(d_.stats, "write");
     const std::filesystem::path full = d_.stateDir / rel;
     std::error_code ec;
     std::filesystem::create_directories(full.parent_path(), ec);
     if (ec)
-        return Fault{"storage_fault", makeError(ErrorCode::IoError,
-                                                "cannot create " + full.parent_path().string() + ": " + ec.message(),
-                                                ec.value())};
+        return Fault{"storage_fault",
+                     makeError(ErrorCode::IoError,
+                               "cannot create " + full.parent_path().string() + ": " + ec.message(),
+                               ec.value())};
     OmeTiffInfo info;
     info.umPerPx = s_.objective.umPerPx;
     info.stage = capture.stage;
@@ -180,17 +205,20 @@ std::optional<Fault> SectionSteps::writeImage(const std::filesystem::path& rel, 
         // crash interrupted before it was journaled: it may go. One a capture refers to is never
         // overwritten.
         auto owner = journal.captureWithImage(rel.string());
-        if (!owner) return Fault{"journal_error", owner.error()};
+        if (!owner)
+            return Fault{"journal_error", owner.error()};
         if (*owner)
-            return Fault{"storage_fault", makeError(ErrorCode::IoError,
-                                                    full.string() + " is the image of capture " +
-                                                        std::to_string(**owner) + "; it is not overwritten",
-                                                    EEXIST)};
+            return Fault{"storage_fault",
+                         makeError(ErrorCode::IoError,
+                                   full.string() + " is the image of capture " +
+                                       std::to_string(**owner) + "; it is not overwritten",
+                                   EEXIST)};
         std::error_code removeEc;
         std::filesystem::remove(full, removeEc);
         w = writeOmeTiffAtomic(full, capture.image, info);
     }
-    if (!w) return Fault{w.error().sysErrno == ENOSPC ? "low_disk" : "storage_fault", w.error()};
+    if (!w)
+        return Fault{w.error().sysErrno == ENOSPC ? "low_disk" : "storage_fault", w.error()};
     return std::nullopt;
 }
 

@@ -1,7 +1,7 @@
 #include "slicestation/daemon/station/station.hpp"
 
-#include "slicestation/daemon/storage/disk_space.hpp"
 #include "slicestation/daemon/config/scan_plan.hpp"
+#include "slicestation/daemon/storage/disk_space.hpp"
 #include "slicestation/daemon/storage/temporary_files.hpp"
 
 #include <iostream>
@@ -15,21 +15,32 @@ namespace {
 /// camera renders what lies under the objective. Forwards everything else unchanged.
 class ReportingStage final : public hw::Stage {
 public:
-    ReportingStage(std::unique_ptr<hw::Stage> inner, std::function<void(const hw::StagePosition&)> report)
+    ReportingStage(std::unique_ptr<hw::Stage> inner,
+                   std::function<void(const hw::StagePosition&)> report)
         : inner_(std::move(inner)), report_(std::move(report)) {}
     hw::StageLimits limits() const override { return inner_->limits(); }
-    core::Result<hw::StagePosition> position(std::chrono::milliseconds t) override { return inner_->position(t); }
-    core::Result<hw::StagePosition> moveTo(const hw::StagePosition& p, std::chrono::milliseconds t) override {
+    core::Result<hw::StagePosition> position(std::chrono::milliseconds t) override {
+        return inner_->position(t);
+    }
+    core::Result<hw::StagePosition> moveTo(const hw::StagePosition& p,
+                                           std::chrono::milliseconds t) override {
         return reported(inner_->moveTo(p, t));
     }
-    core::Result<hw::StagePosition> home(std::chrono::milliseconds t) override { return reported(inner_->home(t)); }
+    core::Result<hw::StagePosition> home(std::chrono::milliseconds t) override {
+        return reported(inner_->home(t));
+    }
     void stop() noexcept override { inner_->stop(); }
-    core::Result<hw::StageAlarm> alarm(std::chrono::milliseconds t) override { return inner_->alarm(t); }
-    core::Result<void> resetAlarm(std::chrono::milliseconds t) override { return inner_->resetAlarm(t); }
+    core::Result<hw::StageAlarm> alarm(std::chrono::milliseconds t) override {
+        return inner_->alarm(t);
+    }
+    core::Result<void> resetAlarm(std::chrono::milliseconds t) override {
+        return inner_->resetAlarm(t);
+    }
 
 private:
     core::Result<hw::StagePosition> reported(core::Result<hw::StagePosition> r) {
-        if (r) report_(*r);
+        if (r)
+            report_(*r);
         return r;
     }
     std::unique_ptr<hw::Stage> inner_;
@@ -41,12 +52,14 @@ class LiveCamera final : public hw::Camera {
 public:
     LiveCamera(std::unique_ptr<hw::Camera> inner, std::function<void(const hw::Frame&)> seen)
         : inner_(std::move(inner)), seen_(std::move(seen)) {}
-    core::Result<hw::CameraSettings> configure(const hw::CameraSettings& s, std::chrono::milliseconds t) override {
+    core::Result<hw::CameraSettings> configure(const hw::CameraSettings& s,
+                                               std::chrono::milliseconds t) override {
         return inner_->configure(s, t);
     }
     core::Result<hw::Frame> capture(std::chrono::milliseconds t) override {
         auto f = inner_->capture(t);
-        if (f) seen_(*f);
+        if (f)
+            seen_(*f);
         return f;
     }
     void stop() noexcept override { inner_->stop(); }
@@ -62,10 +75,12 @@ using core::ErrorCode;
 using core::makeError;
 using core::Result;
 
-Result<AtlasStack> openAtlasStack(const DaemonSettings& settings, const std::filesystem::path& stateDir) {
+Result<AtlasStack> openAtlasStack(const DaemonSettings& settings,
+                                  const std::filesystem::path& stateDir) {
     if (settings.atlas != "builtin") {
         auto s = readStack(settings.atlas);
-        if (!s) return makeError(s.error().code, "daemon.atlas: " + s.error().message);
+        if (!s)
+            return makeError(s.error().code, "daemon.atlas: " + s.error().message);
         return s;
     }
     std::ostringstream name;
@@ -73,15 +88,18 @@ Result<AtlasStack> openAtlasStack(const DaemonSettings& settings, const std::fil
     const auto dir = stateDir / name.str();
     if (std::filesystem::exists(dir / "manifest.json")) {
         auto s = readStack(dir);
-        if (s) return s;
+        if (s)
+            return s;
         // A damaged copy of the built-in stack is rebuilt: it holds nothing of the user's.
         std::cerr << "<4>built-in atlas at " << dir << " unreadable (" << s.error().message
                   << "); writing it again" << std::endl;
     }
     auto slices = builtinStackSlices(settings.builtinIntervalUm, 0);
-    if (!slices) return slices.error();
-    return writeStack(dir, *slices, builtinStackRegions(),
-                      {{"kind", "builtin"}, {"plane", "coronal"}, {"interval_um", settings.builtinIntervalUm}});
+    if (!slices)
+        return slices.error();
+    return writeStack(
+        dir, *slices, builtinStackRegions(),
+        {{"kind", "builtin"}, {"plane", "coronal"}, {"interval_um", settings.builtinIntervalUm}});
 }
 
 Result<std::unique_ptr<Station>> Station::create(StationParts parts) {
@@ -90,31 +108,38 @@ Result<std::unique_ptr<Station>> Station::create(StationParts parts) {
     std::error_code ec;
     std::filesystem::create_directories(parts.stateDir, ec);
     if (ec)
-        return makeError(ErrorCode::IoError, "state directory " + parts.stateDir.string() + ": " + ec.message(),
+        return makeError(ErrorCode::IoError,
+                         "state directory " + parts.stateDir.string() + ": " + ec.message(),
                          ec.value());
     if (parts.stageMoved) {
         parts.stage = std::make_unique<ReportingStage>(std::move(parts.stage), parts.stageMoved);
         parts.stageMoved = nullptr;
     }
-    if (!parts.freeSpace) parts.freeSpace = [](const std::filesystem::path& p) { return availableBytes(p); };
+    if (!parts.freeSpace)
+        parts.freeSpace = [](const std::filesystem::path& p) { return availableBytes(p); };
     std::unique_ptr<Station> st(new Station(std::move(parts)));
     {
         Station* self = st.get();
-        st->parts_.camera = std::make_unique<LiveCamera>(std::move(st->parts_.camera), [self](const hw::Frame& f) {
-            auto copy = std::make_shared<const hw::Frame>(f); // ~2.6 MB for 1280x1024x16 bit
-            std::lock_guard lock(self->liveMutex_);
-            self->live_ = std::move(copy);
-        });
+        st->parts_.camera =
+            std::make_unique<LiveCamera>(std::move(st->parts_.camera), [self](const hw::Frame& f) {
+                auto copy = std::make_shared<const hw::Frame>(f); // ~2.6 MB for 1280x1024x16 bit
+                std::lock_guard lock(self->liveMutex_);
+                self->live_ = std::move(copy);
+            });
     }
     auto journal = Journal::open(st->parts_.stateDir / "journal.sqlite");
-    if (!journal) return journal.error();
+    if (!journal)
+        return journal.error();
     st->journal_ = std::move(*journal);
     st->notifier_ = std::make_unique<Notifier>(*st->journal_);
-    for (auto& channel : st->parts_.alertChannels) st->notifier_->addChannel(std::move(channel));
+    for (auto& channel : st->parts_.alertChannels)
+        st->notifier_->addChannel(std::move(channel));
     auto stack = openAtlasStack(st->parts_.settings, st->parts_.stateDir);
-    if (!stack) return stack.error();
+    if (!stack)
+        return stack.error();
     st->stack_ = std::move(*stack);
-    for (const auto& s : st->stack_.slices) st->slicePositionsUm_.push_back(s.positionUm);
+    for (const auto& s : st->stack_.slices)
+        st->slicePositionsUm_.push_back(s.positionUm);
 
     // Temporary files of writes a crash interrupted are never referenced: remove them (every
     // writer's naming scheme, anywhere in the state directory; nothing writes yet).
@@ -123,58 +148,73 @@ Result<std::unique_ptr<Station>> Station::create(StationParts parts) {
     // A run left "running" means the daemon did not stop cleanly (crash, kill, watchdog).
     if (auto runs = st->journal_->runs()) {
         for (const auto& r : *runs)
-            if (r.state == RunState::Running && !std::filesystem::exists(st->parts_.stateDir / "clean-stop"))
-                (void)st->notifier_->raise("restarted", "warning",
-                                           "the daemon restarted while run " + std::to_string(r.id) + " \"" +
-                                               r.name + "\" was in progress (crash, power cut or watchdog); resuming it",
-                                           r.id);
+            if (r.state == RunState::Running &&
+                !std::filesystem::exists(st->parts_.stateDir / "clean-stop"))
+                (void)st->notifier_->raise(
+                    "restarted", "warning",
+                    "the daemon restarted while run " + std::to_string(r.id) + " \"" + r.name +
+                        "\" was in progress (crash, power cut or watchdog); resuming it",
+                    r.id);
     }
     std::filesystem::remove(st->parts_.stateDir / "clean-stop", ec);
 
     st->worker_ = std::make_unique<RegistrationWorker>(*st->journal_, *st->notifier_, st->stack_,
                                                        st->parts_.stateDir, st->stats_);
-    ScannerDeps deps{*st->parts_.stage, *st->parts_.camera, *st->journal_,     *st->notifier_,
-                     *st->worker_,      st->stats_,         st->parts_.stateDir, st->parts_.freeSpace,
-                     st->parts_.watchdog, st->parts_.status};
+    ScannerDeps deps{*st->parts_.stage,   *st->parts_.camera,   *st->journal_,
+                     *st->notifier_,      *st->worker_,         st->stats_,
+                     st->parts_.stateDir, st->parts_.freeSpace, st->parts_.watchdog,
+                     st->parts_.status};
     st->scanner_ = std::make_unique<Scanner>(std::move(deps));
     return st;
 }
 
-Station::~Station() { stop(); }
+Station::~Station() {
+    stop();
+}
 
 void Station::start() {
     worker_->start();
     if (auto waiting = journal_->capturesAwaitingRegistration())
-        for (auto id : *waiting) worker_->enqueue(id);
+        for (auto id : *waiting)
+            worker_->enqueue(id);
     scanner_->start();
 }
 
 void Station::stop() noexcept {
-    if (!scanner_) return;
+    if (!scanner_)
+        return;
     scanner_->shutdown();
     worker_->stop();
     // Marks the stop as clean, so the next start raises no "restarted" alert.
     std::error_code ec;
-    if (FILE* f = std::fopen((parts_.stateDir / "clean-stop").c_str(), "w")) std::fclose(f);
+    if (FILE* f = std::fopen((parts_.stateDir / "clean-stop").c_str(), "w"))
+        std::fclose(f);
     (void)ec;
 }
 
 Result<std::int64_t> Station::submitPlan(const nlohmann::json& doc, const std::string& origin) {
     auto plan = parseScanPlan(doc, origin);
-    if (!plan) return plan.error();
-    if (auto r = resolveScanPlan(*plan, parts_.stage->limits(), slicePositionsUm_, origin); !r) return r.error();
+    if (!plan)
+        return plan.error();
+    if (auto r = resolveScanPlan(*plan, parts_.stage->limits(), slicePositionsUm_, origin); !r)
+        return r.error();
     std::vector<PlannedSection> sections;
-    for (const auto& ps : plan->sections) sections.push_back(ps.section);
-    auto id = journal_->createRun(plan->name, plan->document, toJson(parts_.settings.scan), sections);
-    if (!id) return id;
-    notifier_->publish({"run_state", {{"run_id", *id}, {"state", "queued"}, {"reason", "submitted"}}});
+    for (const auto& ps : plan->sections)
+        sections.push_back(ps.section);
+    auto id =
+        journal_->createRun(plan->name, plan->document, toJson(parts_.settings.scan), sections);
+    if (!id)
+        return id;
+    notifier_->publish(
+        {"run_state", {{"run_id", *id}, {"state", "queued"}, {"reason", "submitted"}}});
     scanner_->wake();
     return id;
 }
 
 Result<void> Station::requestRescan(std::int64_t sectionId) {
     auto r = journal_->requestRescan(sectionId);
-    if (!r) return r;
+    if (!r)
+        return r;
     notifier_->publish({"section_rescan", {{"section_id", sectionId}}});
     scanner_->wake();
     return {};
@@ -182,11 +222,14 @@ Result<void> Station::requestRescan(std::int64_t sectionId) {
 
 Result<AlertRecord> Station::acknowledgeAlert(std::int64_t alertId, const std::string& action) {
     auto alert = journal_->alert(alertId);
-    if (!alert) return alert.error();
+    if (!alert)
+        return alert.error();
     if (action == "rescan") {
         if (!alert->sectionId)
-            return makeError(ErrorCode::InvalidArgument, "alert " + std::to_string(alertId) + " concerns no section");
-        if (auto r = requestRescan(*alert->sectionId); !r) return r.error();
+            return makeError(ErrorCode::InvalidArgument,
+                             "alert " + std::to_string(alertId) + " concerns no section");
+        if (auto r = requestRescan(*alert->sectionId); !r)
+            return r.error();
     }
     return notifier_->acknowledge(alertId, action);
 }

@@ -16,69 +16,89 @@ namespace {
 
 /// A file the journal refers to, resolved inside the state directory; IoError when it would
 /// leave it (a damaged journal must not make the API serve arbitrary files).
-Result<std::filesystem::path> storedFile(const std::filesystem::path& stateDir, const std::string& rel) {
+Result<std::filesystem::path> storedFile(const std::filesystem::path& stateDir,
+                                         const std::string& rel) {
     std::error_code ec;
     const auto root = std::filesystem::weakly_canonical(stateDir, ec);
     if (!ec && !rel.empty()) {
         const auto full = std::filesystem::weakly_canonical(stateDir / rel, ec);
         const auto r = full.lexically_relative(root);
-        if (!ec && !r.empty() && *r.begin() != "..") return full;
+        if (!ec && !r.empty() && *r.begin() != "..")
+            return full;
     }
-    return makeError(ErrorCode::IoError, "stored path \"" + rel + "\" is outside the state directory");
+    return makeError(ErrorCode::IoError,
+                     "stored path \"" + rel + "\" is outside the state directory");
 }
 
 /// The latest capture of a section and its registration, if any. NotFound: no such section, no
 /// capture yet, or (`registered`) not registered yet.
-Result<std::pair<CaptureRecord, std::optional<RegistrationRecord>>> latest(Journal& journal, std::int64_t sectionId,
-                                                                           bool registered) {
+Result<std::pair<CaptureRecord, std::optional<RegistrationRecord>>>
+latest(Journal& journal, std::int64_t sectionId, bool registered) {
     auto sec = journal.section(sectionId);
-    if (!sec) return sec.error();
+    if (!sec)
+        return sec.error();
     auto caps = journal.captures(sectionId);
     if (!caps || caps->empty())
-        return makeError(ErrorCode::NotFound, "section " + std::to_string(sectionId) + " has no capture yet");
+        return makeError(ErrorCode::NotFound,
+                         "section " + std::to_string(sectionId) + " has no capture yet");
     std::optional<RegistrationRecord> reg;
     if (auto regs = journal.registrations(sectionId))
         for (const auto& r : *regs)
-            if (r.captureId == caps->back().id) reg = r;
+            if (r.captureId == caps->back().id)
+                reg = r;
     if (registered && !reg)
-        return makeError(ErrorCode::NotFound, "section " + std::to_string(sectionId) + " is not registered yet");
+        return makeError(ErrorCode::NotFound,
+                         "section " + std::to_string(sectionId) + " is not registered yet");
     return std::make_pair(caps->back(), reg);
 }
 
 } // namespace
 
-Result<std::vector<RunRecord>> Station::runs() { return journal_->runs(); }
+Result<std::vector<RunRecord>> Station::runs() {
+    return journal_->runs();
+}
 
-Result<RunRecord> Station::run(std::int64_t runId) { return journal_->run(runId); }
+Result<RunRecord> Station::run(std::int64_t runId) {
+    return journal_->run(runId);
+}
 
 Result<std::vector<SectionRecord>> Station::sections(std::int64_t runId) {
-    if (auto r = journal_->run(runId); !r) return r.error();
+    if (auto r = journal_->run(runId); !r)
+        return r.error();
     return journal_->sections(runId);
 }
 
-Result<std::vector<AlertRecord>> Station::alerts(bool openOnly) { return journal_->alerts(openOnly); }
+Result<std::vector<AlertRecord>> Station::alerts(bool openOnly) {
+    return journal_->alerts(openOnly);
+}
 
 Result<cv::Mat> Station::sectionImage(std::int64_t sectionId, bool overlay) {
     auto l = latest(*journal_, sectionId, overlay);
-    if (!l) return l.error();
+    if (!l)
+        return l.error();
     auto file = storedFile(parts_.stateDir, overlay ? l->second->overlayPath : l->first.imagePath);
-    if (!file) return file.error();
+    if (!file)
+        return file.error();
     auto img = core::readImage(*file);
-    if (!img) return makeError(ErrorCode::IoError, img.error().message, img.error().sysErrno);
+    if (!img)
+        return makeError(ErrorCode::IoError, img.error().message, img.error().sysErrno);
     return img;
 }
 
 Result<RegionAtPixel> Station::regionAt(std::int64_t sectionId, int x, int y, int ofWidth) {
     auto l = latest(*journal_, sectionId, true);
-    if (!l) return l.error();
+    if (!l)
+        return l.error();
     auto file = storedFile(parts_.stateDir, l->second->labelsPath);
-    if (!file) return makeError(ErrorCode::IoError, "stored labels path is outside the state directory");
+    if (!file)
+        return makeError(ErrorCode::IoError, "stored labels path is outside the state directory");
     RegionAtPixel out;
     {
         std::lock_guard lock(labelsMutex_);
         if (labelsPath_ != file->string()) {
             auto img = core::readImage(*file);
-            if (!img || img->type() != CV_32SC1) return makeError(ErrorCode::IoError, "labels unreadable");
+            if (!img || img->type() != CV_32SC1)
+                return makeError(ErrorCode::IoError, "labels unreadable");
             labels_ = *img;
             labelsPath_ = file->string();
         }
@@ -90,8 +110,9 @@ Result<RegionAtPixel> Station::regionAt(std::int64_t sectionId, int x, int y, in
             fy = std::floor((fy + 0.5) * f);
         }
         if (!(fx >= 0 && fx < labels_.cols && fy >= 0 && fy < labels_.rows))
-            return makeError(ErrorCode::InvalidArgument, "x, y: outside the " + std::to_string(labels_.cols) + "x" +
-                                                             std::to_string(labels_.rows) + " image");
+            return makeError(ErrorCode::InvalidArgument,
+                             "x, y: outside the " + std::to_string(labels_.cols) + "x" +
+                                 std::to_string(labels_.rows) + " image");
         out.x = static_cast<int>(fx);
         out.y = static_cast<int>(fy);
         out.id = labels_.at<std::int32_t>(out.y, out.x);
@@ -113,30 +134,40 @@ nlohmann::json Station::status() {
     j["simulated"] = {{"stage", parts_.simulatedStage}, {"camera", parts_.simulatedCamera}};
     j["atlas"] = {{"dir", stack_.dir.string()}, {"slices", stack_.slices.size()}};
     j["state_dir"] = parts_.stateDir.string();
-    if (auto a = journal_->alerts(true)) j["open_alerts"] = a->size();
-    if (auto f = parts_.freeSpace(parts_.stateDir)) j["free_mb"] = static_cast<double>(*f) / (1 << 20);
+    if (auto a = journal_->alerts(true))
+        j["open_alerts"] = a->size();
+    if (auto f = parts_.freeSpace(parts_.stateDir))
+        j["free_mb"] = static_cast<double>(*f) / (1 << 20);
     j["phases"] = stats_.summary();
     if (active)
-        if (auto r = journal_->run(*active)) j["run"] = toJson(*r);
+        if (auto r = journal_->run(*active))
+            j["run"] = toJson(*r);
     return j;
 }
 
 Result<nlohmann::json> Station::sectionDetail(std::int64_t sectionId) {
     auto s = journal_->section(sectionId);
-    if (!s) return s.error();
+    if (!s)
+        return s.error();
     nlohmann::json j = toJson(*s);
     auto caps = journal_->captures(sectionId);
-    if (!caps) return caps.error();
+    if (!caps)
+        return caps.error();
     auto regs = journal_->registrations(sectionId);
-    if (!regs) return regs.error();
+    if (!regs)
+        return regs.error();
     j["captures"] = nlohmann::json::array();
-    for (const auto& c : *caps) j["captures"].push_back(toJson(c));
+    for (const auto& c : *caps)
+        j["captures"].push_back(toJson(c));
     j["registrations"] = nlohmann::json::array();
     for (const auto& r : *regs) {
         nlohmann::json rj = toJson(r);
-        if (r.result.contains("damage_regions")) rj["damage_regions"] = r.result["damage_regions"];
-        if (r.result.contains("regions")) rj["regions"] = r.result["regions"];
-        if (r.result.contains("quality")) rj["quality_detail"] = r.result["quality"];
+        if (r.result.contains("damage_regions"))
+            rj["damage_regions"] = r.result["damage_regions"];
+        if (r.result.contains("regions"))
+            rj["regions"] = r.result["regions"];
+        if (r.result.contains("quality"))
+            rj["quality_detail"] = r.result["quality"];
         j["registrations"].push_back(rj);
     }
     return j;
@@ -144,25 +175,32 @@ Result<nlohmann::json> Station::sectionDetail(std::int64_t sectionId) {
 
 namespace {
 std::string csvField(const std::string& s) {
-    if (s.find_first_of(",\"\n") == std::string::npos) return s;
+    if (s.find_first_of(",\"\n") == std::string::npos)
+        return s;
     std::string out = "\"";
-    for (char c : s) out += c == '"' ? std::string("\"\"") : std::string(1, c);
+    for (char c : s)
+        out += c == '"' ? std::string("\"\"") : std::string(1, c);
     return out + "\"";
 }
 } // namespace
 
 Result<std::string> Station::exportRun(std::int64_t runId, const std::string& format) {
     if (format != "json" && format != "csv")
-        return makeError(ErrorCode::InvalidArgument, "format: expected \"json\" or \"csv\", got \"" + format + "\"");
+        return makeError(ErrorCode::InvalidArgument,
+                         "format: expected \"json\" or \"csv\", got \"" + format + "\"");
     auto run = journal_->run(runId);
-    if (!run) return run.error();
+    if (!run)
+        return run.error();
     auto secs = journal_->sections(runId);
-    if (!secs) return secs.error();
+    if (!secs)
+        return secs.error();
     nlohmann::json rows = nlohmann::json::array();
     for (const auto& s : *secs) {
-        nlohmann::json row{{"run_id", runId}, {"slide", s.slideName}, {"section", s.name},
-                           {"section_id", s.id}, {"state", toString(s.state)}, {"attempts", s.attempts}};
-        row["expected_slice"] = s.expectedSlice ? nlohmann::json(*s.expectedSlice) : nlohmann::json();
+        nlohmann::json row{
+            {"run_id", runId},    {"slide", s.slideName},       {"section", s.name},
+            {"section_id", s.id}, {"state", toString(s.state)}, {"attempts", s.attempts}};
+        row["expected_slice"] =
+            s.expectedSlice ? nlohmann::json(*s.expectedSlice) : nlohmann::json();
         auto caps = journal_->captures(s.id);
         auto regs = journal_->registrations(s.id);
         if (caps && !caps->empty()) {
@@ -177,7 +215,8 @@ Result<std::string> Station::exportRun(std::int64_t runId, const std::string& fo
                 for (const auto& r : *regs)
                     if (r.captureId == c.id) {
                         row["atlas_slice"] = r.atlasSlice;
-                        row["matched_slice"] = r.matchedSlice ? nlohmann::json(*r.matchedSlice) : nlohmann::json();
+                        row["matched_slice"] =
+                            r.matchedSlice ? nlohmann::json(*r.matchedSlice) : nlohmann::json();
                         row["quality"] = r.quality;
                         row["damaged"] = r.damaged;
                         row["damage_fraction"] = r.damageFraction;
@@ -188,19 +227,24 @@ Result<std::string> Station::exportRun(std::int64_t runId, const std::string& fo
         }
         rows.push_back(row);
     }
-    if (format == "json") return nlohmann::json{{"run", toJson(*run)}, {"sections", rows}}.dump(2) + "\n";
-    static const char* cols[] = {"run_id", "slide", "section", "section_id", "state", "attempts",
-                                 "image", "stage_x_um", "stage_y_um", "stage_z_um", "um_per_px",
-                                 "focus_found", "expected_slice", "atlas_slice", "matched_slice",
-                                 "quality", "damaged", "damage_fraction", "damage_summary", "warning",
-                                 "overlay"};
+    if (format == "json")
+        return nlohmann::json{{"run", toJson(*run)}, {"sections", rows}}.dump(2) + "\n";
+    static const char* cols[] = {
+        "run_id",    "slide",       "section",         "section_id",     "state",
+        "attempts",  "image",       "stage_x_um",      "stage_y_um",     "stage_z_um",
+        "um_per_px", "focus_found", "expected_slice",  "atlas_slice",    "matched_slice",
+        "quality",   "damaged",     "damage_fraction", "damage_summary", "warning",
+        "overlay"};
     std::ostringstream os;
-    for (std::size_t i = 0; i < std::size(cols); ++i) os << (i ? "," : "") << cols[i];
+    for (std::size_t i = 0; i < std::size(cols); ++i)
+        os << (i ? "," : "") << cols[i];
     os << "\n";
     for (const auto& row : rows) {
         for (std::size_t i = 0; i < std::size(cols); ++i) {
-            if (i) os << ",";
-            if (!row.contains(cols[i]) || row[cols[i]].is_null()) continue;
+            if (i)
+                os << ",";
+            if (!row.contains(cols[i]) || row[cols[i]].is_null())
+                continue;
             const auto& v = row[cols[i]];
             os << csvField(v.is_string() ? v.get<std::string>() : v.dump());
         }

@@ -5,8 +5,8 @@
 #include "slicestation/core/atomic_file.hpp"
 
 #include "slicestation/core/image_file.hpp"
-#include "slicestation/daemon/config/config_document.hpp"
 #include "slicestation/daemon/cli/register_command.hpp"
+#include "slicestation/daemon/config/config_document.hpp"
 #include "slicestation/pipeline/atlas.hpp"
 #include "slicestation/sim/builtin_atlas.hpp"
 
@@ -16,8 +16,8 @@
 #include <cmath>
 #include <cstdint>
 #include <cstdio>
-#include <limits>
 #include <fstream>
+#include <limits>
 #include <sstream>
 
 namespace slicestation::daemon {
@@ -28,7 +28,9 @@ using core::makeError;
 using nlohmann::json;
 namespace fs = std::filesystem;
 
-json vec(const cv::Vec3d& v) { return json::array({v[0], v[1], v[2]}); }
+json vec(const cv::Vec3d& v) {
+    return json::array({v[0], v[1], v[2]});
+}
 
 /// Bounds of the manifest's fields: a hand-edited or damaged manifest must give a clear error,
 /// never an exception or a slice size nobody can allocate.
@@ -40,9 +42,11 @@ constexpr std::int64_t kMaxSliceSidePx = 1 << 16;
 core::Result<cv::Vec3d> vecField(const FieldReader& rd, const json& obj, const std::string& path,
                                  const char* key) {
     const std::string field = FieldReader::join(path, key);
-    if (!obj.contains(key)) return rd.bad(field, "missing");
+    if (!obj.contains(key))
+        return rd.bad(field, "missing");
     const json& a = obj[key];
-    if (!a.is_array() || a.size() != 3) return rd.bad(field, "expected an array of 3 numbers");
+    if (!a.is_array() || a.size() != 3)
+        return rd.bad(field, "expected an array of 3 numbers");
     cv::Vec3d v;
     for (int i = 0; i < 3; ++i) {
         // FieldReader reads object members; an array element is checked here alike.
@@ -60,7 +64,8 @@ core::Result<cv::Vec3d> vecField(const FieldReader& rd, const json& obj, const s
 core::Result<std::string> sliceFile(const FieldReader& rd, const json& obj,
                                     const std::string& path) {
     auto file = rd.string(obj, path, "file", std::nullopt);
-    if (!file) return file.error();
+    if (!file)
+        return file.error();
     const fs::path p(*file);
     const bool plain = !file->empty() && file->size() <= 255 && p.is_relative() &&
                        std::none_of(p.begin(), p.end(), [](const fs::path& part) {
@@ -75,22 +80,30 @@ core::Result<std::string> sliceFile(const FieldReader& rd, const json& obj,
 
 core::Result<StackSlice> sliceEntry(const FieldReader& rd, const json& e, size_t i) {
     const std::string where = "slices[" + std::to_string(i) + "]";
-    if (!e.is_object()) return rd.bad(where, "expected an object");
+    if (!e.is_object())
+        return rd.bad(where, "expected an object");
     auto index = rd.integer(e, where, "index", std::nullopt, std::int64_t(i), std::int64_t(i));
-    if (!index) return index.error();
+    if (!index)
+        return index.error();
     auto file = sliceFile(rd, e, where);
-    if (!file) return file.error();
-    auto pos = rd.number(e, where, "position_um", std::nullopt, -kMaxCoordinateUm,
-                         kMaxCoordinateUm);
-    if (!pos) return pos.error();
+    if (!file)
+        return file.error();
+    auto pos =
+        rd.number(e, where, "position_um", std::nullopt, -kMaxCoordinateUm, kMaxCoordinateUm);
+    if (!pos)
+        return pos.error();
     auto um = rd.number(e, where, "um_per_px", std::nullopt, kMinUmPerPx, kMaxUmPerPx);
-    if (!um) return um.error();
+    if (!um)
+        return um.error();
     auto normal = vecField(rd, e, where, "normal");
-    if (!normal) return normal.error();
+    if (!normal)
+        return normal.error();
     auto width = rd.integer(e, where, "width", 0, 0, kMaxSliceSidePx);
-    if (!width) return width.error();
+    if (!width)
+        return width.error();
     auto height = rd.integer(e, where, "height", 0, 0, kMaxSliceSidePx);
-    if (!height) return height.error();
+    if (!height)
+        return height.error();
     StackSlice s;
     s.index = int(*index);
     s.file = *file;
@@ -102,11 +115,14 @@ core::Result<StackSlice> sliceEntry(const FieldReader& rd, const json& e, size_t
     // The in-plane frame is optional (a hand-made stack may not know it).
     if (e.contains("origin_um")) {
         auto o = vecField(rd, e, where, "origin_um");
-        if (!o) return o.error();
+        if (!o)
+            return o.error();
         auto c = vecField(rd, e, where, "column_um");
-        if (!c) return c.error();
+        if (!c)
+            return c.error();
         auto r = vecField(rd, e, where, "row_um");
-        if (!r) return r.error();
+        if (!r)
+            return r.error();
         s.geometry.originUm = *o;
         s.geometry.columnUm = *c;
         s.geometry.rowUm = *r;
@@ -116,45 +132,57 @@ core::Result<StackSlice> sliceEntry(const FieldReader& rd, const json& e, size_t
 
 core::Result<StackRegion> regionEntry(const FieldReader& rd, const json& e, size_t i) {
     const std::string where = "regions[" + std::to_string(i) + "]";
-    if (!e.is_object()) return rd.bad(where, "expected an object");
-    auto id = rd.integer(e, where, "id", std::nullopt, 0, std::numeric_limits<std::uint32_t>::max());
-    if (!id) return id.error();
+    if (!e.is_object())
+        return rd.bad(where, "expected an object");
+    auto id =
+        rd.integer(e, where, "id", std::nullopt, 0, std::numeric_limits<std::uint32_t>::max());
+    if (!id)
+        return id.error();
     auto name = rd.string(e, where, "name", "");
-    if (!name) return name.error();
+    if (!name)
+        return name.error();
     auto acronym = rd.string(e, where, "acronym", "");
-    if (!acronym) return acronym.error();
+    if (!acronym)
+        return acronym.error();
     auto color = rd.string(e, where, "color", "#000000");
-    if (!color) return color.error();
+    if (!color)
+        return color.error();
     const bool hex = color->size() == 7 && (*color)[0] == '#' &&
                      std::all_of(color->begin() + 1, color->end(),
                                  [](unsigned char c) { return std::isxdigit(c) != 0; });
-    if (!hex) return rd.bad(where + ".color", "'" + color->substr(0, 20) + "' is not #RRGGBB");
+    if (!hex)
+        return rd.bad(where + ".color", "'" + color->substr(0, 20) + "' is not #RRGGBB");
     return StackRegion{std::uint32_t(*id), *name, *acronym,
                        std::uint32_t(std::stoul(color->substr(1), nullptr, 16))};
 }
 
 core::Result<AtlasStack> stackFromJson(const json& j, const fs::path& manifest) {
     const FieldReader rd(manifest.string());
-    if (!j.is_object()) return rd.bad("(top level)", "expected an object");
+    if (!j.is_object())
+        return rd.bad("(top level)", "expected an object");
     if (!j.contains("slices") || !j["slices"].is_array() || j["slices"].empty())
         return rd.bad("slices", "must be a non-empty array");
     const json& slices = j["slices"];
     if (slices.size() > size_t(pipeline::kMaxStackSlices))
         return rd.bad("slices", std::to_string(slices.size()) + " slices, more than the " +
-                                    std::to_string(pipeline::kMaxStackSlices) + " a stack may hold");
+                                    std::to_string(pipeline::kMaxStackSlices) +
+                                    " a stack may hold");
     AtlasStack stack;
     stack.dir = manifest.parent_path();
     for (size_t i = 0; i < slices.size(); ++i) {
         auto s = sliceEntry(rd, slices[i], i);
-        if (!s) return s.error();
+        if (!s)
+            return s.error();
         stack.slices.push_back(std::move(*s));
     }
     if (j.contains("regions")) {
         const json& regions = j["regions"];
-        if (!regions.is_array()) return rd.bad("regions", "expected an array");
+        if (!regions.is_array())
+            return rd.bad("regions", "expected an array");
         for (size_t i = 0; i < regions.size(); ++i) {
             auto r = regionEntry(rd, regions[i], i);
-            if (!r) return r.error();
+            if (!r)
+                return r.error();
             stack.regions.push_back(std::move(*r));
         }
     }
@@ -173,7 +201,8 @@ std::string colorHex(std::uint32_t rgb) {
 }
 
 const StackRegion* findRegion(const AtlasStack& stack, std::uint32_t id) noexcept {
-    if (id == 0) return nullptr;
+    if (id == 0)
+        return nullptr;
     const auto it = std::find_if(stack.regions.begin(), stack.regions.end(),
                                  [id](const StackRegion& r) { return r.id == id; });
     return it == stack.regions.end() ? nullptr : &*it;
@@ -182,17 +211,20 @@ const StackRegion* findRegion(const AtlasStack& stack, std::uint32_t id) noexcep
 core::Result<AtlasStack> writeStack(const fs::path& dir,
                                     const std::vector<pipeline::AtlasSlice>& slices,
                                     std::vector<StackRegion> regions, json source) {
-    if (slices.empty()) return makeError(ErrorCode::InvalidArgument, "the stack has no slices");
+    if (slices.empty())
+        return makeError(ErrorCode::InvalidArgument, "the stack has no slices");
     std::error_code ec;
     fs::create_directories(dir, ec);
-    if (ec) return makeError(ErrorCode::IoError, "cannot create " + dir.string(), ec.value());
+    if (ec)
+        return makeError(ErrorCode::IoError, "cannot create " + dir.string(), ec.value());
     AtlasStack stack;
     stack.dir = dir;
     json js = json::array();
     for (size_t i = 0; i < slices.size(); ++i) {
         char name[32];
         std::snprintf(name, sizeof name, "slice-%03zu.tif", i);
-        if (auto w = core::writeImage(dir / name, slices[i].labels); !w) return w.error();
+        if (auto w = core::writeImage(dir / name, slices[i].labels); !w)
+            return w.error();
         const pipeline::SliceGeometry& g = slices[i].geometry;
         StackSlice s{int(i), name, g.positionUm, cv::norm(g.columnUm), g};
         js.push_back({{"index", s.index},
@@ -209,7 +241,9 @@ core::Result<AtlasStack> writeStack(const fs::path& dir,
     }
     json jr = json::array();
     for (const StackRegion& r : regions)
-        jr.push_back({{"id", r.id}, {"name", r.name}, {"acronym", r.acronym},
+        jr.push_back({{"id", r.id},
+                      {"name", r.name},
+                      {"acronym", r.acronym},
                       {"color", colorHex(r.colorRgb)}});
     source["frame"] = "micrometres along (AP, DV, LR) from the centre of the first voxel";
     const json manifest = {{"slices", js}, {"regions", jr}, {"source", source}};
@@ -234,14 +268,17 @@ core::Result<AtlasStack> readStack(const fs::path& dirOrManifest) {
                              " bytes, more than a manifest may hold (" +
                              std::to_string(kMaxManifestBytes >> 20) + " MiB)");
     std::ifstream in(manifest, std::ios::binary);
-    if (!in) return makeError(ErrorCode::IoError, "cannot read " + manifest.string(), errno);
+    if (!in)
+        return makeError(ErrorCode::IoError, "cannot read " + manifest.string(), errno);
     std::ostringstream text;
     text << in.rdbuf();
-    if (in.bad()) return makeError(ErrorCode::IoError, "cannot read " + manifest.string(), errno);
+    if (in.bad())
+        return makeError(ErrorCode::IoError, "cannot read " + manifest.string(), errno);
     // The one place nlohmann is called on the manifest: no exception gets past it.
     try {
         auto j = parseDocument(text.str(), DocumentFormat::Json, manifest.string());
-        if (!j) return j.error();
+        if (!j)
+            return j.error();
         return stackFromJson(*j, manifest);
     } catch (const json::exception& e) {
         return makeError(ErrorCode::InvalidArgument, manifest.string() + ": " + e.what());
@@ -261,9 +298,11 @@ core::Result<fs::path> stackSlicePath(const AtlasStack& stack, int index) {
 
 core::Result<cv::Mat> readStackSlice(const AtlasStack& stack, int index) {
     auto path = stackSlicePath(stack, index);
-    if (!path) return path.error();
+    if (!path)
+        return path.error();
     auto image = core::readImage(*path);
-    if (!image) return image.error();
+    if (!image)
+        return image.error();
     // A plane beyond the brain's ends is all outside: a valid slice with no labels.
     if (image->channels() == 1 && image->depth() != CV_32F && cv::countNonZero(*image) == 0)
         return cv::Mat(cv::Mat::zeros(image->size(), CV_32S));
@@ -278,10 +317,9 @@ core::Result<std::vector<pipeline::AtlasSlice>> builtinStackSlices(double interv
     if (!(intervalUm > 0) || !std::isfinite(intervalUm))
         return makeError(ErrorCode::InvalidArgument, "interval_um must be a positive number");
     if (!(firstUm >= 0 && firstUm <= kBuiltinLengthUm))
-        return makeError(ErrorCode::OutOfRange,
-                         "first_um " + std::to_string(firstUm) +
-                             " is outside the built-in brain (0.." +
-                             std::to_string(int(kBuiltinLengthUm)) + " um)");
+        return makeError(ErrorCode::OutOfRange, "first_um " + std::to_string(firstUm) +
+                                                    " is outside the built-in brain (0.." +
+                                                    std::to_string(int(kBuiltinLengthUm)) + " um)");
     // Known before a plane is drawn: every built-in plane has the size of the first.
     const double planes = 1 + std::floor((kBuiltinLengthUm + 1e-6 - firstUm) / intervalUm);
     if (auto budget = pipeline::checkStackBudget(
@@ -291,7 +329,8 @@ core::Result<std::vector<pipeline::AtlasSlice>> builtinStackSlices(double interv
     std::vector<pipeline::AtlasSlice> slices;
     for (int i = 0;; ++i) {
         const double pos = firstUm + i * intervalUm;
-        if (pos > kBuiltinLengthUm + 1e-6) break;
+        if (pos > kBuiltinLengthUm + 1e-6)
+            break;
         pipeline::AtlasSlice s;
         s.labels = sim::builtinAtlasPlane(pos / kBuiltinLengthUm);
         // The built-in planes are coronal: rows DV, columns LR, centred on the brain's axis.
@@ -318,17 +357,19 @@ core::Result<std::vector<pipeline::SliceFeatures>> stackFeatures(const AtlasStac
     std::vector<cv::Mat> labels;
     for (const StackSlice& s : stack.slices) {
         auto l = readStackSlice(stack, s.index);
-        if (!l) return l.error();
+        if (!l)
+            return l.error();
         labels.push_back(std::move(*l));
     }
     // One working pixel size for the whole stack, from its largest brain and finest slices.
     double umPerPx = stack.slices.front().umPerPx;
-    for (const StackSlice& s : stack.slices) umPerPx = std::min(umPerPx, s.umPerPx);
+    for (const StackSlice& s : stack.slices)
+        umPerPx = std::min(umPerPx, s.umPerPx);
     const double workUm = pipeline::matchWorkUmPerPx(labels, umPerPx);
     std::vector<pipeline::SliceFeatures> features;
     for (size_t i = 0; i < labels.size(); ++i)
         features.push_back(pipeline::sliceFeatures(labels[i], stack.slices[i].umPerPx,
-                                                    stack.slices[i].positionUm, workUm));
+                                                   stack.slices[i].positionUm, workUm));
     return features;
 }
 

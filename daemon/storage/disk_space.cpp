@@ -12,12 +12,11 @@ core::Result<std::uint64_t> availableBytes(const std::filesystem::path& dir) {
     struct statvfs st {};
     if (::statvfs(dir.c_str(), &st) != 0) {
         const int err = errno;
-        const auto code = err == ENOENT || err == ENOTDIR ? core::ErrorCode::NotFound
-                                                          : core::ErrorCode::IoError;
+        const auto code =
+            err == ENOENT || err == ENOTDIR ? core::ErrorCode::NotFound : core::ErrorCode::IoError;
         return core::makeError(code,
-                               "cannot read the free space of '" + dir.string() +
-                                   "': " + std::strerror(err) + " (errno " +
-                                   std::to_string(err) + ")",
+                               "cannot read the free space of '" + dir.string() + "': " +
+                                   std::strerror(err) + " (errno " + std::to_string(err) + ")",
                                err);
     }
     // f_frsize is the unit of the block counts (f_bsize may differ on some file systems).

@@ -2,6 +2,8 @@
 // transaction (BEGIN IMMEDIATE .. COMMIT) so a kill at any point leaves a consistent file.
 #include "slicestation/daemon/storage/journal.hpp"
 
+#include "journal_sql.hpp"
+
 #include <sqlite3.h>
 
 #include <array>
@@ -16,6 +18,7 @@ namespace slicestation::daemon {
 using core::ErrorCode;
 using core::makeError;
 using core::Result;
+using namespace journal_sql;
 
 namespace {
 
@@ -101,205 +104,24 @@ CREATE INDEX alerts_open ON alerts(acknowledged_utc);
 constexpr std::array<const char*, 1> kMigrations = {kMigration1};
 static_assert(kMigrations.size() == Journal::kSchemaVersion);
 
-/// The last error of `db`. A full disk (SQLITE_FULL) carries sysErrno ENOSPC, like a failed
-/// image write, so that callers treat both alike.
-core::Error sqlError(sqlite3* db, const std::filesystem::path& file, const char* what) {
-    const int err = sqlite3_errcode(db) == SQLITE_FULL ? ENOSPC : 0;
-    return makeError(ErrorCode::IoError,
-                     std::string("journal ") + file.string() + ": " + what + ": " + sqlite3_errmsg(db),
-                     err);
-}
-
-/// A prepared statement; finalised on destruction. Bind indices start at 1.
-class Statement {
-public:
-    Statement(sqlite3* db, const char* sql) : db_(db) {
-        if (sqlite3_prepare_v2(db, sql, -1, &stmt_, nullptr) != SQLITE_OK) stmt_ = nullptr;
-    }
-    ~Statement() { sqlite3_finalize(stmt_); }
-    Statement(const Statement&) = delete;
-    Statement& operator=(const Statement&) = delete;
-    bool ok() const { return stmt_ != nullptr; }
-
-    Statement& bind(int i, std::int64_t v) { sqlite3_bind_int64(stmt_, i, v); return *this; }
-    Statement& bind(int i, int v) { sqlite3_bind_int64(stmt_, i, v); return *this; }
-    Statement& bind(int i, double v) { sqlite3_bind_double(stmt_, i, v); return *this; }
-    Statement& bind(int i, const std::string& v) {
-        sqlite3_bind_text(stmt_, i, v.c_str(), static_cast<int>(v.size()), SQLITE_TRANSIENT);
-        return *this;
-    }
-    Statement& bind(int i, const char* v) { return bind(i, std::string(v)); }
-    template <class T> Statement& bind(int i, const std::optional<T>& v) {
-        if (v) return bind(i, *v);
-        sqlite3_bind_null(stmt_, i);
-        return *this;
-    }
-    /// SQLITE_ROW, SQLITE_DONE or an error code.
-    int step() { return sqlite3_step(stmt_); }
-
-    std::int64_t i64(int c) const { return sqlite3_column_int64(stmt_, c); }
-    int i32(int c) const { return sqlite3_column_int(stmt_, c); }
-    double f64(int c) const { return sqlite3_column_double(stmt_, c); }
-    bool isNull(int c) const { return sqlite3_column_type(stmt_, c) == SQLITE_NULL; }
-    std::string text(int c) const {
-        const auto* p = sqlite3_column_text(stmt_, c);
-        return p ? std::string(reinterpret_cast<const char*>(p)) : std::string();
-    }
-
-private:
-    sqlite3* db_;
-    sqlite3_stmt* stmt_ = nullptr;
-};
-
-/// BEGIN IMMEDIATE on construction, ROLLBACK on destruction unless commit() succeeded.
-class Transaction {
-public:
-    explicit Transaction(sqlite3* db) : db_(db) {
-        began_ = sqlite3_exec(db_, "BEGIN IMMEDIATE", nullptr, nullptr, nullptr) == SQLITE_OK;
-    }
-    ~Transaction() {
-        if (began_ && !committed_) sqlite3_exec(db_, "ROLLBACK", nullptr, nullptr, nullptr);
-    }
-    Transaction(const Transaction&) = delete;
-    Transaction& operator=(const Transaction&) = delete;
-    bool began() const { return began_; }
-    bool commit() {
-        committed_ = sqlite3_exec(db_, "COMMIT", nullptr, nullptr, nullptr) == SQLITE_OK;
-        return committed_;
-    }
-
-private:
-    sqlite3* db_;
-    bool began_ = false;
-    bool committed_ = false;
-};
-
-nlohmann::json parseJsonColumn(const std::string& text) {
-    auto j = nlohmann::json::parse(text, nullptr, /*allow_exceptions=*/false);
-    return j.is_discarded() ? nlohmann::json() : j;
-}
-
-constexpr const char* kRunColumns =
-    "r.id, r.name, r.state, r.reason, r.plan_json, r.settings_json, r.created_utc, r.started_utc, "
-    "r.ended_utc, (SELECT COUNT(*) FROM sections s WHERE s.run_id = r.id), "
-    "(SELECT COUNT(*) FROM sections s WHERE s.run_id = r.id AND s.state IN "
-    "('registered','damaged','failed'))";
-
-RunRecord readRun(const Statement& st) {
-    RunRecord r;
-    r.id = st.i64(0);
-    r.name = st.text(1);
-    r.state = runStateFromString(st.text(2)).value_or(RunState::Failed);
-    r.reason = st.text(3);
-    r.plan = parseJsonColumn(st.text(4));
-    r.settings = parseJsonColumn(st.text(5));
-    r.createdUtc = st.text(6);
-    r.startedUtc = st.text(7);
-    r.endedUtc = st.text(8);
-    r.sectionCount = st.i32(9);
-    r.doneCount = st.i32(10);
-    return r;
-}
-
-constexpr const char* kSectionColumns =
-    "s.id, s.run_id, s.slide_index, s.slide_name, s.idx, s.name, s.x_um, s.y_um, s.width_um, "
-    "s.height_um, s.expected_slice, s.state, s.reason, "
-    "(SELECT COUNT(*) FROM captures c WHERE c.section_id = s.id)";
-
-SectionRecord readSection(const Statement& st) {
-    SectionRecord s;
-    s.id = st.i64(0);
-    s.runId = st.i64(1);
-    s.slideIndex = st.i32(2);
-    s.slideName = st.text(3);
-    s.index = st.i32(4);
-    s.name = st.text(5);
-    s.xUm = st.f64(6);
-    s.yUm = st.f64(7);
-    s.widthUm = st.f64(8);
-    s.heightUm = st.f64(9);
-    if (!st.isNull(10)) s.expectedSlice = st.i32(10);
-    s.state = sectionStateFromString(st.text(11)).value_or(SectionState::Failed);
-    s.reason = st.text(12);
-    s.attempts = st.i32(13);
-    return s;
-}
-
-constexpr const char* kCaptureColumns =
-    "id, section_id, attempt, image_path, um_per_px, stage_x_um, stage_y_um, stage_z_um, "
-    "focus_score, focus_found, tiles, exposure_us, gain, captured_utc";
-
-CaptureRecord readCapture(const Statement& st) {
-    CaptureRecord c;
-    c.id = st.i64(0);
-    c.sectionId = st.i64(1);
-    c.attempt = st.i32(2);
-    c.imagePath = st.text(3);
-    c.umPerPx = st.f64(4);
-    c.stage = {st.f64(5), st.f64(6), st.f64(7)};
-    if (!st.isNull(8)) c.focusScore = st.f64(8);
-    c.focusFound = st.i32(9) != 0;
-    c.tiles = st.i32(10);
-    c.exposureUs = st.i64(11);
-    c.gain = st.f64(12);
-    c.capturedUtc = st.text(13);
-    return c;
-}
-
-constexpr const char* kRegistrationColumns =
-    "id, capture_id, atlas_slice, matched_slice, damaged, damage_fraction, summary, warning, "
-    "quality, result_path, overlay_path, labels_path, result_json, registered_utc";
-
-RegistrationRecord readRegistration(const Statement& st) {
-    RegistrationRecord r;
-    r.id = st.i64(0);
-    r.captureId = st.i64(1);
-    r.atlasSlice = st.i32(2);
-    if (!st.isNull(3)) r.matchedSlice = st.i32(3);
-    r.damaged = st.i32(4) != 0;
-    r.damageFraction = st.f64(5);
-    r.summary = st.text(6);
-    r.warning = st.text(7);
-    r.quality = st.f64(8);
-    r.resultPath = st.text(9);
-    r.overlayPath = st.text(10);
-    r.labelsPath = st.text(11);
-    r.result = parseJsonColumn(st.text(12));
-    r.registeredUtc = st.text(13);
-    return r;
-}
-
-constexpr const char* kAlertColumns =
-    "id, run_id, section_id, kind, severity, message, raised_utc, acknowledged_utc, ack_action";
-
-AlertRecord readAlert(const Statement& st) {
-    AlertRecord a;
-    a.id = st.i64(0);
-    if (!st.isNull(1)) a.runId = st.i64(1);
-    if (!st.isNull(2)) a.sectionId = st.i64(2);
-    a.kind = st.text(3);
-    a.severity = st.text(4);
-    a.message = st.text(5);
-    a.raisedUtc = st.text(6);
-    if (!st.isNull(7)) a.acknowledgedUtc = st.text(7);
-    a.ackAction = st.text(8);
-    return a;
-}
-
 } // namespace
 
-const char* toString(RunState s) noexcept { return kRunStates[static_cast<std::size_t>(s)]; }
+const char* toString(RunState s) noexcept {
+    return kRunStates[static_cast<std::size_t>(s)];
+}
 const char* toString(SectionState s) noexcept {
     return kSectionStates[static_cast<std::size_t>(s)];
 }
 std::optional<RunState> runStateFromString(std::string_view s) noexcept {
     for (std::size_t i = 0; i < kRunStates.size(); ++i)
-        if (s == kRunStates[i]) return static_cast<RunState>(i);
+        if (s == kRunStates[i])
+            return static_cast<RunState>(i);
     return std::nullopt;
 }
 std::optional<SectionState> sectionStateFromString(std::string_view s) noexcept {
     for (std::size_t i = 0; i < kSectionStates.size(); ++i)
-        if (s == kSectionStates[i]) return static_cast<SectionState>(i);
+        if (s == kSectionStates[i])
+            return static_cast<SectionState>(i);
     return std::nullopt;
 }
 bool isTerminal(RunState s) noexcept {
@@ -309,7 +131,8 @@ bool isTerminal(RunState s) noexcept {
 std::string Journal::nowUtc() {
     const auto now = std::chrono::system_clock::now();
     const auto t = std::chrono::system_clock::to_time_t(now);
-    const auto ms = std::chrono::duration_cast<std::chrono::milliseconds>(now.time_since_epoch()) % 1000;
+    const auto ms =
+        std::chrono::duration_cast<std::chrono::milliseconds>(now.time_since_epoch()) % 1000;
     std::tm tm{};
     gmtime_r(&t, &tm);
     char buf[64];
@@ -321,9 +144,9 @@ std::string Journal::nowUtc() {
 
 Result<std::unique_ptr<Journal>> Journal::open(const std::filesystem::path& file) {
     sqlite3* db = nullptr;
-    const int rc = sqlite3_open_v2(file.c_str(), &db,
-                                   SQLITE_OPEN_READWRITE | SQLITE_OPEN_CREATE | SQLITE_OPEN_FULLMUTEX,
-                                   nullptr);
+    const int rc = sqlite3_open_v2(
+        file.c_str(), &db, SQLITE_OPEN_READWRITE | SQLITE_OPEN_CREATE | SQLITE_OPEN_FULLMUTEX,
+        nullptr);
     if (rc != SQLITE_OK) {
         std::string msg = db ? sqlite3_errmsg(db) : sqlite3_errstr(rc);
         sqlite3_close(db);
@@ -333,7 +156,8 @@ Result<std::unique_ptr<Journal>> Journal::open(const std::filesystem::path& file
     sqlite3_busy_timeout(db, 5000);
     // WAL keeps readers (the HTTP API) off the writer's back; FULL syncs every commit so a power
     // cut loses no committed transaction.
-    const char* pragmas = "PRAGMA journal_mode=WAL; PRAGMA synchronous=FULL; PRAGMA foreign_keys=ON;";
+    const char* pragmas =
+        "PRAGMA journal_mode=WAL; PRAGMA synchronous=FULL; PRAGMA foreign_keys=ON;";
     if (sqlite3_exec(db, pragmas, nullptr, nullptr, nullptr) != SQLITE_OK)
         return sqlError(db, file, "setting pragmas");
     {
@@ -341,29 +165,35 @@ Result<std::unique_ptr<Journal>> Journal::open(const std::filesystem::path& file
         if (!st.ok() || st.step() != SQLITE_ROW)
             return sqlError(db, file, "not a journal (is it an SQLite database?)");
     }
-    if (auto m = j->migrate(); !m) return m.error();
+    if (auto m = j->migrate(); !m)
+        return m.error();
     return j;
 }
 
-Journal::~Journal() { sqlite3_close(db_); }
+Journal::~Journal() {
+    sqlite3_close(db_);
+}
 
 Result<void> Journal::migrate() {
     std::lock_guard lock(mutex_);
     int version = 0;
     {
         Statement st(db_, "PRAGMA user_version");
-        if (!st.ok() || st.step() != SQLITE_ROW) return sqlError(db_, file_, "reading user_version");
+        if (!st.ok() || st.step() != SQLITE_ROW)
+            return sqlError(db_, file_, "reading user_version");
         version = st.i32(0);
     }
     if (version > kSchemaVersion)
         return makeError(ErrorCode::Unsupported,
-                         "journal " + file_.string() + ": schema version " + std::to_string(version) +
-                             " is newer than this slicestation (" + std::to_string(kSchemaVersion) +
-                             "); refusing to touch it");
+                         "journal " + file_.string() + ": schema version " +
+                             std::to_string(version) + " is newer than this slicestation (" +
+                             std::to_string(kSchemaVersion) + "); refusing to touch it");
     for (int v = version; v < kSchemaVersion; ++v) {
         Transaction tx(db_);
-        if (!tx.began()) return sqlError(db_, file_, "begin migration");
-        if (sqlite3_exec(db_, kMigrations[static_cast<std::size_t>(v)], nullptr, nullptr, nullptr) != SQLITE_OK)
+        if (!tx.began())
+            return sqlError(db_, file_, "begin migration");
+        if (sqlite3_exec(db_, kMigrations[static_cast<std::size_t>(v)], nullptr, nullptr,
+                         nullptr) != SQLITE_OK)
             return sqlError(db_, file_, ("migration to version " + std::to_string(v + 1)).c_str());
         const std::string setVersion = "PRAGMA user_version = " + std::to_string(v + 1);
         if (sqlite3_exec(db_, setVersion.c_str(), nullptr, nullptr, nullptr) != SQLITE_OK ||
@@ -378,11 +208,13 @@ Result<std::int64_t> Journal::createRun(const std::string& name, const nlohmann:
                                         const std::vector<PlannedSection>& sections) {
     std::lock_guard lock(mutex_);
     Transaction tx(db_);
-    if (!tx.began()) return sqlError(db_, file_, "begin");
+    if (!tx.began())
+        return sqlError(db_, file_, "begin");
     Statement ins(db_, "INSERT INTO runs (name, state, plan_json, settings_json, created_utc) "
                        "VALUES (?, 'queued', ?, ?, ?)");
     ins.bind(1, name).bind(2, plan.dump()).bind(3, settings.dump()).bind(4, nowUtc());
-    if (ins.step() != SQLITE_DONE) return sqlError(db_, file_, "insert run");
+    if (ins.step() != SQLITE_DONE)
+        return sqlError(db_, file_, "insert run");
     const std::int64_t runId = sqlite3_last_insert_rowid(db_);
     for (const auto& s : sections) {
         Statement st(db_, "INSERT INTO sections (run_id, slide_index, slide_name, idx, name, x_um, "
@@ -391,30 +223,37 @@ Result<std::int64_t> Journal::createRun(const std::string& name, const nlohmann:
         st.bind(1, runId).bind(2, s.slideIndex).bind(3, s.slideName).bind(4, s.index);
         st.bind(5, s.name).bind(6, s.xUm).bind(7, s.yUm).bind(8, s.widthUm).bind(9, s.heightUm);
         st.bind(10, s.expectedSlice);
-        if (st.step() != SQLITE_DONE) return sqlError(db_, file_, "insert section");
+        if (st.step() != SQLITE_DONE)
+            return sqlError(db_, file_, "insert section");
     }
-    if (!tx.commit()) return sqlError(db_, file_, "commit run");
+    if (!tx.commit())
+        return sqlError(db_, file_, "commit run");
     return runId;
 }
 
 Result<RunRecord> Journal::run(std::int64_t runId) {
     std::lock_guard lock(mutex_);
-    Statement st(db_, (std::string("SELECT ") + kRunColumns + " FROM runs r WHERE r.id = ?").c_str());
+    Statement st(db_,
+                 (std::string("SELECT ") + kRunColumns + " FROM runs r WHERE r.id = ?").c_str());
     st.bind(1, runId);
     const int rc = st.step();
     if (rc == SQLITE_DONE)
         return makeError(ErrorCode::NotFound, "no run " + std::to_string(runId));
-    if (rc != SQLITE_ROW) return sqlError(db_, file_, "read run");
+    if (rc != SQLITE_ROW)
+        return sqlError(db_, file_, "read run");
     return readRun(st);
 }
 
 Result<std::vector<RunRecord>> Journal::runs() {
     std::lock_guard lock(mutex_);
-    Statement st(db_, (std::string("SELECT ") + kRunColumns + " FROM runs r ORDER BY r.id").c_str());
+    Statement st(db_,
+                 (std::string("SELECT ") + kRunColumns + " FROM runs r ORDER BY r.id").c_str());
     std::vector<RunRecord> out;
     int rc;
-    while ((rc = st.step()) == SQLITE_ROW) out.push_back(readRun(st));
-    if (rc != SQLITE_DONE) return sqlError(db_, file_, "list runs");
+    while ((rc = st.step()) == SQLITE_ROW)
+        out.push_back(readRun(st));
+    if (rc != SQLITE_DONE)
+        return sqlError(db_, file_, "list runs");
     return out;
 }
 
@@ -422,26 +261,33 @@ Result<void> Journal::setRunState(std::int64_t runId, RunState state, const std:
                                   bool reopen) {
     std::lock_guard lock(mutex_);
     Transaction tx(db_);
-    if (!tx.began()) return sqlError(db_, file_, "begin");
+    if (!tx.began())
+        return sqlError(db_, file_, "begin");
     Statement cur(db_, "SELECT state FROM runs WHERE id = ?");
     cur.bind(1, runId);
     const int rc = cur.step();
-    if (rc == SQLITE_DONE) return makeError(ErrorCode::NotFound, "no run " + std::to_string(runId));
-    if (rc != SQLITE_ROW) return sqlError(db_, file_, "read run state");
+    if (rc == SQLITE_DONE)
+        return makeError(ErrorCode::NotFound, "no run " + std::to_string(runId));
+    if (rc != SQLITE_ROW)
+        return sqlError(db_, file_, "read run state");
     const auto from = runStateFromString(cur.text(0)).value_or(RunState::Failed);
     if (isTerminal(from) && !reopen && from != state)
         return makeError(ErrorCode::InvalidArgument, std::string("run ") + std::to_string(runId) +
                                                          " is " + toString(from) +
                                                          "; it cannot become " + toString(state));
     const std::string now = nowUtc();
-    Statement up(db_, "UPDATE runs SET state = ?, reason = ?, "
-                      "started_utc = CASE WHEN ? = 'running' AND started_utc = '' THEN ? ELSE started_utc END, "
-                      "ended_utc = CASE WHEN ? IN ('finished','failed','cancelled') THEN ? ELSE '' END "
-                      "WHERE id = ?");
+    Statement up(
+        db_,
+        "UPDATE runs SET state = ?, reason = ?, "
+        "started_utc = CASE WHEN ? = 'running' AND started_utc = '' THEN ? ELSE started_utc END, "
+        "ended_utc = CASE WHEN ? IN ('finished','failed','cancelled') THEN ? ELSE '' END "
+        "WHERE id = ?");
     up.bind(1, toString(state)).bind(2, reason).bind(3, toString(state)).bind(4, now);
     up.bind(5, toString(state)).bind(6, now).bind(7, runId);
-    if (up.step() != SQLITE_DONE) return sqlError(db_, file_, "update run state");
-    if (!tx.commit()) return sqlError(db_, file_, "commit run state");
+    if (up.step() != SQLITE_DONE)
+        return sqlError(db_, file_, "update run state");
+    if (!tx.commit())
+        return sqlError(db_, file_, "commit run state");
     return {};
 }
 
@@ -452,8 +298,10 @@ Result<std::optional<RunRecord>> Journal::nextRun() {
                        "ORDER BY r.state = 'running' DESC, r.id LIMIT 1")
                           .c_str());
     const int rc = st.step();
-    if (rc == SQLITE_DONE) return std::optional<RunRecord>();
-    if (rc != SQLITE_ROW) return sqlError(db_, file_, "next run");
+    if (rc == SQLITE_DONE)
+        return std::optional<RunRecord>();
+    if (rc != SQLITE_ROW)
+        return sqlError(db_, file_, "next run");
     return std::optional<RunRecord>(readRun(st));
 }
 
@@ -465,19 +313,24 @@ Result<std::vector<SectionRecord>> Journal::sections(std::int64_t runId) {
     st.bind(1, runId);
     std::vector<SectionRecord> out;
     int rc;
-    while ((rc = st.step()) == SQLITE_ROW) out.push_back(readSection(st));
-    if (rc != SQLITE_DONE) return sqlError(db_, file_, "list sections");
+    while ((rc = st.step()) == SQLITE_ROW)
+        out.push_back(readSection(st));
+    if (rc != SQLITE_DONE)
+        return sqlError(db_, file_, "list sections");
     return out;
 }
 
 Result<SectionRecord> Journal::section(std::int64_t sectionId) {
     std::lock_guard lock(mutex_);
-    Statement st(db_, (std::string("SELECT ") + kSectionColumns + " FROM sections s WHERE s.id = ?").c_str());
+    Statement st(
+        db_,
+        (std::string("SELECT ") + kSectionColumns + " FROM sections s WHERE s.id = ?").c_str());
     st.bind(1, sectionId);
     const int rc = st.step();
     if (rc == SQLITE_DONE)
         return makeError(ErrorCode::NotFound, "no section " + std::to_string(sectionId));
-    if (rc != SQLITE_ROW) return sqlError(db_, file_, "read section");
+    if (rc != SQLITE_ROW)
+        return sqlError(db_, file_, "read section");
     return readSection(st);
 }
 
@@ -489,42 +342,51 @@ Result<std::optional<SectionRecord>> Journal::nextSectionToCapture(std::int64_t 
                           .c_str());
     st.bind(1, runId);
     const int rc = st.step();
-    if (rc == SQLITE_DONE) return std::optional<SectionRecord>();
-    if (rc != SQLITE_ROW) return sqlError(db_, file_, "next section");
+    if (rc == SQLITE_DONE)
+        return std::optional<SectionRecord>();
+    if (rc != SQLITE_ROW)
+        return sqlError(db_, file_, "next section");
     return std::optional<SectionRecord>(readSection(st));
 }
 
 Result<std::int64_t> Journal::recordCapture(CaptureRecord c) {
     std::lock_guard lock(mutex_);
     Transaction tx(db_);
-    if (!tx.began()) return sqlError(db_, file_, "begin");
+    if (!tx.began())
+        return sqlError(db_, file_, "begin");
     Statement cur(db_, "SELECT state, (SELECT COALESCE(MAX(attempt), 0) FROM captures WHERE "
                        "section_id = sections.id) FROM sections WHERE id = ?");
     cur.bind(1, c.sectionId);
     const int rc = cur.step();
     if (rc == SQLITE_DONE)
         return makeError(ErrorCode::NotFound, "no section " + std::to_string(c.sectionId));
-    if (rc != SQLITE_ROW) return sqlError(db_, file_, "read section");
+    if (rc != SQLITE_ROW)
+        return sqlError(db_, file_, "read section");
     const auto state = sectionStateFromString(cur.text(0));
     if (state != SectionState::Pending && state != SectionState::Rescan)
         return makeError(ErrorCode::InvalidArgument, "section " + std::to_string(c.sectionId) +
                                                          " is " + cur.text(0) +
                                                          ", not waiting for a capture");
     c.attempt = cur.i32(1) + 1;
-    if (c.capturedUtc.empty()) c.capturedUtc = nowUtc();
-    Statement ins(db_, "INSERT INTO captures (section_id, attempt, image_path, um_per_px, stage_x_um, "
-                       "stage_y_um, stage_z_um, focus_score, focus_found, tiles, exposure_us, gain, "
-                       "captured_utc) VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?)");
+    if (c.capturedUtc.empty())
+        c.capturedUtc = nowUtc();
+    Statement ins(db_,
+                  "INSERT INTO captures (section_id, attempt, image_path, um_per_px, stage_x_um, "
+                  "stage_y_um, stage_z_um, focus_score, focus_found, tiles, exposure_us, gain, "
+                  "captured_utc) VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?)");
     ins.bind(1, c.sectionId).bind(2, c.attempt).bind(3, c.imagePath).bind(4, c.umPerPx);
     ins.bind(5, c.stage.xUm).bind(6, c.stage.yUm).bind(7, c.stage.zUm).bind(8, c.focusScore);
     ins.bind(9, c.focusFound ? 1 : 0).bind(10, c.tiles).bind(11, c.exposureUs).bind(12, c.gain);
     ins.bind(13, c.capturedUtc);
-    if (ins.step() != SQLITE_DONE) return sqlError(db_, file_, "insert capture");
+    if (ins.step() != SQLITE_DONE)
+        return sqlError(db_, file_, "insert capture");
     const std::int64_t id = sqlite3_last_insert_rowid(db_);
     Statement up(db_, "UPDATE sections SET state = 'captured', reason = '' WHERE id = ?");
     up.bind(1, c.sectionId);
-    if (up.step() != SQLITE_DONE) return sqlError(db_, file_, "update section");
-    if (!tx.commit()) return sqlError(db_, file_, "commit capture");
+    if (up.step() != SQLITE_DONE)
+        return sqlError(db_, file_, "update section");
+    if (!tx.commit())
+        return sqlError(db_, file_, "commit capture");
     return id;
 }
 
@@ -536,19 +398,23 @@ Result<std::vector<CaptureRecord>> Journal::captures(std::int64_t sectionId) {
     st.bind(1, sectionId);
     std::vector<CaptureRecord> out;
     int rc;
-    while ((rc = st.step()) == SQLITE_ROW) out.push_back(readCapture(st));
-    if (rc != SQLITE_DONE) return sqlError(db_, file_, "list captures");
+    while ((rc = st.step()) == SQLITE_ROW)
+        out.push_back(readCapture(st));
+    if (rc != SQLITE_DONE)
+        return sqlError(db_, file_, "list captures");
     return out;
 }
 
 Result<CaptureRecord> Journal::capture(std::int64_t captureId) {
     std::lock_guard lock(mutex_);
-    Statement st(db_, (std::string("SELECT ") + kCaptureColumns + " FROM captures WHERE id = ?").c_str());
+    Statement st(
+        db_, (std::string("SELECT ") + kCaptureColumns + " FROM captures WHERE id = ?").c_str());
     st.bind(1, captureId);
     const int rc = st.step();
     if (rc == SQLITE_DONE)
         return makeError(ErrorCode::NotFound, "no capture " + std::to_string(captureId));
-    if (rc != SQLITE_ROW) return sqlError(db_, file_, "read capture");
+    if (rc != SQLITE_ROW)
+        return sqlError(db_, file_, "read capture");
     return readCapture(st);
 }
 
@@ -557,8 +423,10 @@ Result<std::optional<std::int64_t>> Journal::captureWithImage(const std::string&
     Statement st(db_, "SELECT id FROM captures WHERE image_path = ? ORDER BY id LIMIT 1");
     st.bind(1, imagePath);
     const int rc = st.step();
-    if (rc == SQLITE_DONE) return std::optional<std::int64_t>();
-    if (rc != SQLITE_ROW) return sqlError(db_, file_, "find the capture of an image");
+    if (rc == SQLITE_DONE)
+        return std::optional<std::int64_t>();
+    if (rc != SQLITE_ROW)
+        return sqlError(db_, file_, "find the capture of an image");
     return std::optional<std::int64_t>(st.i64(0));
 }
 
@@ -571,39 +439,49 @@ Result<std::vector<std::int64_t>> Journal::capturesAwaitingRegistration() {
                       "registrations r WHERE r.capture_id = c.id) ORDER BY c.id");
     std::vector<std::int64_t> out;
     int rc;
-    while ((rc = st.step()) == SQLITE_ROW) out.push_back(st.i64(0));
-    if (rc != SQLITE_DONE) return sqlError(db_, file_, "captures awaiting registration");
+    while ((rc = st.step()) == SQLITE_ROW)
+        out.push_back(st.i64(0));
+    if (rc != SQLITE_DONE)
+        return sqlError(db_, file_, "captures awaiting registration");
     return out;
 }
 
 Result<std::int64_t> Journal::recordRegistration(RegistrationRecord r) {
     std::lock_guard lock(mutex_);
     Transaction tx(db_);
-    if (!tx.began()) return sqlError(db_, file_, "begin");
+    if (!tx.began())
+        return sqlError(db_, file_, "begin");
     Statement cur(db_, "SELECT c.section_id, s.state FROM captures c JOIN sections s ON "
                        "s.id = c.section_id WHERE c.id = ?");
     cur.bind(1, r.captureId);
     const int rc = cur.step();
     if (rc == SQLITE_DONE)
         return makeError(ErrorCode::NotFound, "no capture " + std::to_string(r.captureId));
-    if (rc != SQLITE_ROW) return sqlError(db_, file_, "read capture");
+    if (rc != SQLITE_ROW)
+        return sqlError(db_, file_, "read capture");
     const std::int64_t sectionId = cur.i64(0);
-    if (r.registeredUtc.empty()) r.registeredUtc = nowUtc();
-    Statement ins(db_, "INSERT INTO registrations (capture_id, atlas_slice, matched_slice, damaged, "
-                       "damage_fraction, summary, warning, quality, result_path, overlay_path, "
-                       "labels_path, result_json, registered_utc) VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?)");
+    if (r.registeredUtc.empty())
+        r.registeredUtc = nowUtc();
+    Statement ins(db_,
+                  "INSERT INTO registrations (capture_id, atlas_slice, matched_slice, damaged, "
+                  "damage_fraction, summary, warning, quality, result_path, overlay_path, "
+                  "labels_path, result_json, registered_utc) VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?)");
     ins.bind(1, r.captureId).bind(2, r.atlasSlice).bind(3, r.matchedSlice);
     ins.bind(4, r.damaged ? 1 : 0).bind(5, r.damageFraction).bind(6, r.summary).bind(7, r.warning);
     ins.bind(8, r.quality).bind(9, r.resultPath).bind(10, r.overlayPath).bind(11, r.labelsPath);
     ins.bind(12, r.result.dump()).bind(13, r.registeredUtc);
-    if (ins.step() != SQLITE_DONE) return sqlError(db_, file_, "insert registration");
+    if (ins.step() != SQLITE_DONE)
+        return sqlError(db_, file_, "insert registration");
     const std::int64_t id = sqlite3_last_insert_rowid(db_);
     // Only a section still waiting for this registration changes state: a rescan requested in
     // the meantime wins.
-    Statement up(db_, "UPDATE sections SET state = ?, reason = '' WHERE id = ? AND state = 'captured'");
+    Statement up(db_,
+                 "UPDATE sections SET state = ?, reason = '' WHERE id = ? AND state = 'captured'");
     up.bind(1, r.damaged ? "damaged" : "registered").bind(2, sectionId);
-    if (up.step() != SQLITE_DONE) return sqlError(db_, file_, "update section");
-    if (!tx.commit()) return sqlError(db_, file_, "commit registration");
+    if (up.step() != SQLITE_DONE)
+        return sqlError(db_, file_, "update section");
+    if (!tx.commit())
+        return sqlError(db_, file_, "commit registration");
     return id;
 }
 
@@ -616,118 +494,81 @@ Result<std::vector<RegistrationRecord>> Journal::registrations(std::int64_t sect
     st.bind(1, sectionId);
     std::vector<RegistrationRecord> out;
     int rc;
-    while ((rc = st.step()) == SQLITE_ROW) out.push_back(readRegistration(st));
-    if (rc != SQLITE_DONE) return sqlError(db_, file_, "list registrations");
+    while ((rc = st.step()) == SQLITE_ROW)
+        out.push_back(readRegistration(st));
+    if (rc != SQLITE_DONE)
+        return sqlError(db_, file_, "list registrations");
     return out;
 }
 
 Result<void> Journal::failSection(std::int64_t sectionId, const std::string& reason) {
     std::lock_guard lock(mutex_);
     Transaction tx(db_);
-    if (!tx.began()) return sqlError(db_, file_, "begin");
+    if (!tx.began())
+        return sqlError(db_, file_, "begin");
     Statement up(db_, "UPDATE sections SET state = 'failed', reason = ? WHERE id = ?");
     up.bind(1, reason).bind(2, sectionId);
-    if (up.step() != SQLITE_DONE) return sqlError(db_, file_, "fail section");
+    if (up.step() != SQLITE_DONE)
+        return sqlError(db_, file_, "fail section");
     if (sqlite3_changes(db_) == 0)
         return makeError(ErrorCode::NotFound, "no section " + std::to_string(sectionId));
-    if (!tx.commit()) return sqlError(db_, file_, "commit");
+    if (!tx.commit())
+        return sqlError(db_, file_, "commit");
     return {};
 }
 
 Result<void> Journal::requestRescan(std::int64_t sectionId) {
     std::lock_guard lock(mutex_);
     Transaction tx(db_);
-    if (!tx.began()) return sqlError(db_, file_, "begin");
+    if (!tx.began())
+        return sqlError(db_, file_, "begin");
     Statement cur(db_, "SELECT s.state, s.run_id, r.state FROM sections s JOIN runs r ON r.id = "
                        "s.run_id WHERE s.id = ?");
     cur.bind(1, sectionId);
     const int rc = cur.step();
     if (rc == SQLITE_DONE)
         return makeError(ErrorCode::NotFound, "no section " + std::to_string(sectionId));
-    if (rc != SQLITE_ROW) return sqlError(db_, file_, "read section");
+    if (rc != SQLITE_ROW)
+        return sqlError(db_, file_, "read section");
     const auto state = sectionStateFromString(cur.text(0));
     const std::int64_t runId = cur.i64(1);
     const auto runState = runStateFromString(cur.text(2));
-    if (state == SectionState::Pending || state == SectionState::Captured || state == SectionState::Rescan)
-        return makeError(ErrorCode::InvalidArgument, "section " + std::to_string(sectionId) + " is " +
-                                                         cur.text(0) + "; only a registered, damaged or "
+    if (state == SectionState::Pending || state == SectionState::Captured ||
+        state == SectionState::Rescan)
+        return makeError(ErrorCode::InvalidArgument, "section " + std::to_string(sectionId) +
+                                                         " is " + cur.text(0) +
+                                                         "; only a registered, damaged or "
                                                          "failed section can be rescanned");
     if (runState == RunState::Cancelled)
         return makeError(ErrorCode::InvalidArgument,
                          "run " + std::to_string(runId) + " was cancelled; submit a new plan");
-    Statement up(db_, "UPDATE sections SET state = 'rescan', reason = 're-mounted, rescan requested' "
-                      "WHERE id = ?");
+    Statement up(db_,
+                 "UPDATE sections SET state = 'rescan', reason = 're-mounted, rescan requested' "
+                 "WHERE id = ?");
     up.bind(1, sectionId);
-    if (up.step() != SQLITE_DONE) return sqlError(db_, file_, "request rescan");
+    if (up.step() != SQLITE_DONE)
+        return sqlError(db_, file_, "request rescan");
     if (runState == RunState::Finished || runState == RunState::Failed) {
         Statement reopen(db_, "UPDATE runs SET state = 'queued', reason = 'rescan requested', "
                               "ended_utc = '' WHERE id = ?");
         reopen.bind(1, runId);
-        if (reopen.step() != SQLITE_DONE) return sqlError(db_, file_, "reopen run");
+        if (reopen.step() != SQLITE_DONE)
+            return sqlError(db_, file_, "reopen run");
     }
-    if (!tx.commit()) return sqlError(db_, file_, "commit rescan");
+    if (!tx.commit())
+        return sqlError(db_, file_, "commit rescan");
     return {};
-}
-
-Result<std::int64_t> Journal::raiseAlert(AlertRecord a) {
-    std::lock_guard lock(mutex_);
-    if (a.raisedUtc.empty()) a.raisedUtc = nowUtc();
-    Statement ins(db_, "INSERT INTO alerts (run_id, section_id, kind, severity, message, raised_utc) "
-                       "VALUES (?,?,?,?,?,?)");
-    ins.bind(1, a.runId).bind(2, a.sectionId).bind(3, a.kind).bind(4, a.severity);
-    ins.bind(5, a.message).bind(6, a.raisedUtc);
-    if (ins.step() != SQLITE_DONE) return sqlError(db_, file_, "insert alert");
-    return static_cast<std::int64_t>(sqlite3_last_insert_rowid(db_));
-}
-
-Result<std::vector<AlertRecord>> Journal::alerts(bool openOnly) {
-    std::lock_guard lock(mutex_);
-    Statement st(db_, (std::string("SELECT ") + kAlertColumns + " FROM alerts" +
-                       (openOnly ? " WHERE acknowledged_utc IS NULL" : "") + " ORDER BY id")
-                          .c_str());
-    std::vector<AlertRecord> out;
-    int rc;
-    while ((rc = st.step()) == SQLITE_ROW) out.push_back(readAlert(st));
-    if (rc != SQLITE_DONE) return sqlError(db_, file_, "list alerts");
-    return out;
-}
-
-Result<AlertRecord> Journal::alert(std::int64_t alertId) {
-    std::lock_guard lock(mutex_);
-    Statement st(db_, (std::string("SELECT ") + kAlertColumns + " FROM alerts WHERE id = ?").c_str());
-    st.bind(1, alertId);
-    const int rc = st.step();
-    if (rc == SQLITE_DONE) return makeError(ErrorCode::NotFound, "no alert " + std::to_string(alertId));
-    if (rc != SQLITE_ROW) return sqlError(db_, file_, "read alert");
-    return readAlert(st);
-}
-
-Result<AlertRecord> Journal::acknowledgeAlert(std::int64_t alertId, const std::string& action) {
-    {
-        std::lock_guard lock(mutex_);
-        Statement up(db_, "UPDATE alerts SET acknowledged_utc = ?, ack_action = ? WHERE id = ? AND "
-                          "acknowledged_utc IS NULL");
-        up.bind(1, nowUtc()).bind(2, action).bind(3, alertId);
-        if (up.step() != SQLITE_DONE) return sqlError(db_, file_, "acknowledge alert");
-        if (sqlite3_changes(db_) == 0) {
-            Statement st(db_, "SELECT 1 FROM alerts WHERE id = ?");
-            st.bind(1, alertId);
-            if (st.step() != SQLITE_ROW)
-                return makeError(ErrorCode::NotFound, "no alert " + std::to_string(alertId));
-            return makeError(ErrorCode::InvalidArgument,
-                             "alert " + std::to_string(alertId) + " is already acknowledged");
-        }
-    }
-    return alert(alertId);
 }
 
 Result<void> Journal::checkIntegrity() {
     std::lock_guard lock(mutex_);
     {
         Statement st(db_, "PRAGMA integrity_check");
-        if (st.step() != SQLITE_ROW) return sqlError(db_, file_, "integrity_check");
+        if (st.step() != SQLITE_ROW)
+            return sqlError(db_, file_, "integrity_check");
         if (st.text(0) != "ok")
-            return makeError(ErrorCode::IoError, "journal " + file_.string() + ": integrity_check: " + st.text(0));
+            return makeError(ErrorCode::IoError,
+                             "journal " + file_.string() + ": integrity_check: " + st.text(0));
     }
     Statement fk(db_, "PRAGMA foreign_key_check");
     const int rc = fk.step();
@@ -735,77 +576,9 @@ Result<void> Journal::checkIntegrity() {
         return makeError(ErrorCode::IoError, "journal " + file_.string() +
                                                  ": foreign_key_check: a row of " + fk.text(0) +
                                                  " references a missing " + fk.text(2));
-    if (rc != SQLITE_DONE) return sqlError(db_, file_, "foreign_key_check");
+    if (rc != SQLITE_DONE)
+        return sqlError(db_, file_, "foreign_key_check");
     return {};
-}
-
-nlohmann::json toJson(const RunRecord& r) {
-    return {{"id", r.id},           {"name", r.name},         {"state", toString(r.state)},
-            {"reason", r.reason},   {"created_utc", r.createdUtc}, {"started_utc", r.startedUtc},
-            {"ended_utc", r.endedUtc}, {"sections", r.sectionCount}, {"done", r.doneCount},
-            {"settings", r.settings}};
-}
-
-nlohmann::json toJson(const SectionRecord& s) {
-    nlohmann::json j{{"id", s.id},
-                     {"run_id", s.runId},
-                     {"slide_index", s.slideIndex},
-                     {"slide", s.slideName},
-                     {"index", s.index},
-                     {"name", s.name},
-                     {"x_um", s.xUm},
-                     {"y_um", s.yUm},
-                     {"width_um", s.widthUm},
-                     {"height_um", s.heightUm},
-                     {"state", toString(s.state)},
-                     {"reason", s.reason},
-                     {"attempts", s.attempts}};
-    j["expected_slice"] = s.expectedSlice ? nlohmann::json(*s.expectedSlice) : nlohmann::json();
-    return j;
-}
-
-nlohmann::json toJson(const CaptureRecord& c) {
-    nlohmann::json j{{"id", c.id},
-                     {"section_id", c.sectionId},
-                     {"attempt", c.attempt},
-                     {"image", c.imagePath},
-                     {"um_per_px", c.umPerPx},
-                     {"stage", {{"x_um", c.stage.xUm}, {"y_um", c.stage.yUm}, {"z_um", c.stage.zUm}}},
-                     {"focus_found", c.focusFound},
-                     {"tiles", c.tiles},
-                     {"exposure_us", c.exposureUs},
-                     {"gain", c.gain},
-                     {"captured_utc", c.capturedUtc}};
-    j["focus_score"] = c.focusScore ? nlohmann::json(*c.focusScore) : nlohmann::json();
-    return j;
-}
-
-nlohmann::json toJson(const RegistrationRecord& r) {
-    nlohmann::json j{{"id", r.id},
-                     {"capture_id", r.captureId},
-                     {"atlas_slice", r.atlasSlice},
-                     {"damaged", r.damaged},
-                     {"damage_fraction", r.damageFraction},
-                     {"damage_summary", r.summary},
-                     {"warning", r.warning},
-                     {"quality", r.quality},
-                     {"result", r.resultPath},
-                     {"overlay", r.overlayPath},
-                     {"labels", r.labelsPath},
-                     {"registered_utc", r.registeredUtc}};
-    j["matched_slice"] = r.matchedSlice ? nlohmann::json(*r.matchedSlice) : nlohmann::json();
-    return j;
-}
-
-nlohmann::json toJson(const AlertRecord& a) {
-    nlohmann::json j{{"id", a.id},           {"kind", a.kind},
-                     {"severity", a.severity}, {"message", a.message},
-                     {"raised_utc", a.raisedUtc}, {"ack_action", a.ackAction}};
-    j["run_id"] = a.runId ? nlohmann::json(*a.runId) : nlohmann::json();
-    j["section_id"] = a.sectionId ? nlohmann::json(*a.sectionId) : nlohmann::json();
-    j["acknowledged_utc"] = a.acknowledgedUtc ? nlohmann::json(*a.acknowledgedUtc) : nlohmann::json();
-    j["open"] = !a.acknowledgedUtc.has_value();
-    return j;
 }
 
 } // namespace slicestation::daemon

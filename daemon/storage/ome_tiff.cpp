@@ -1,5 +1,7 @@
 #include "slicestation/daemon/storage/ome_tiff.hpp"
 
+#include "ome_text.hpp"
+
 #include "slicestation/core/atomic_file.hpp"
 
 #include "slicestation/core/image_file.hpp"
@@ -31,58 +33,17 @@
 #include <random>
 #include <regex>
 #include <vector>
-
 namespace slicestation::daemon {
 namespace {
 
 namespace fs = std::filesystem;
 using core::ErrorCode;
 using core::makeError;
-
-std::string quoted(const fs::path& path) {
-    return "'" + path.string() + "'";
-}
+using ome_text::formatDouble;
+using ome_text::quoted;
 
 std::string errnoText(int err) {
     return std::string(std::strerror(err)) + " (errno " + std::to_string(err) + ")";
-}
-
-// ---------------------------------------------------------------------------------------------
-// Numbers and text for XML
-
-std::string formatDouble(double v) {
-    std::array<char, 64> buf{};
-    // Shortest text that reads back to the same double.
-    const auto [end, ec] = std::to_chars(buf.data(), buf.data() + buf.size(), v);
-    return ec == std::errc() ? std::string(buf.data(), end) : std::string("0");
-}
-
-std::optional<double> parseDouble(std::string_view text) {
-    while (!text.empty() && (text.front() == ' ' || text.front() == '+')) {
-        text.remove_prefix(1);
-    }
-    double v = 0;
-    const auto [end, ec] = std::from_chars(text.data(), text.data() + text.size(), v);
-    if (ec != std::errc() || end != text.data() + text.size() || !std::isfinite(v)) {
-        return std::nullopt;
-    }
-    return v;
-}
-
-std::string xmlEscape(std::string_view text) {
-    std::string out;
-    out.reserve(text.size());
-    for (const char c : text) {
-        switch (c) {
-        case '&': out += "&amp;"; break;
-        case '<': out += "&lt;"; break;
-        case '>': out += "&gt;"; break;
-        case '"': out += "&quot;"; break;
-        case '\'': out += "&apos;"; break;
-        default: out += c;
-        }
-    }
-    return out;
 }
 
 bool hasControlCharacters(std::string_view text) {
@@ -105,307 +66,6 @@ std::string utcNowIso8601() {
     return buf.data();
 }
 
-std::string randomUuid() {
-    std::random_device rd;
-    std::array<std::uint8_t, 16> b{};
-    for (auto& byte : b) {
-        byte = static_cast<std::uint8_t>(rd());
-    }
-    b[6] = static_cast<std::uint8_t>((b[6] & 0x0f) | 0x40); // version 4 (RFC 4122 section 4.4)
-    b[8] = static_cast<std::uint8_t>((b[8] & 0x3f) | 0x80);
-    std::string out;
-    constexpr std::string_view hex = "0123456789abcdef";
-    for (std::size_t i = 0; i < b.size(); ++i) {
-        if (i == 4 || i == 6 || i == 8 || i == 10) {
-            out += '-';
-        }
-        out += hex[b[i] >> 4];
-        out += hex[b[i] & 0xf];
-    }
-    return out;
-}
-
-// ---------------------------------------------------------------------------------------------
-// A minimal XML reader: elements, attributes, text; enough for OME-XML, with namespace
-// prefixes dropped. Comments, processing instructions and DOCTYPE are skipped.
-
-struct XmlElement {
-    std::string name; ///< local name (prefix removed)
-    std::vector<std::pair<std::string, std::string>> attributes;
-    std::vector<XmlElement> children;
-    std::string text;
-
-    const std::string* attribute(std::string_view key) const {
-        for (const auto& [k, v] : attributes) {
-            if (k == key) {
-                return &v;
-            }
-        }
-        return nullptr;
-    }
-    const XmlElement* child(std::string_view key) const {
-        for (const auto& c : children) {
-            if (c.name == key) {
-                return &c;
-            }
-        }
-        return nullptr;
-    }
-};
-
-class XmlParser {
-public:
-    explicit XmlParser(std::string_view text) : s_(text) {}
-
-    core::Result<XmlElement> parseDocument() {
-        skipMisc();
-        if (!peek('<')) {
-            return fail("no root element");
-        }
-        auto root = parseElement(0);
-        if (!root) {
-            return root;
-        }
-        skipMisc();
-        if (pos_ != s_.size()) {
-            return fail("content after the root element");
-        }
-        return root;
-    }
-
-private:
-    static constexpr int kMaxDepth = 64;
-
-    core::Error fail(const std::string& what) const {
-        return makeError(ErrorCode::IoError,
-                         "malformed OME-XML at byte " + std::to_string(pos_) + ": " + what);
-    }
-    bool peek(char c) const { return pos_ < s_.size() && s_[pos_] == c; }
-    bool startsWith(std::string_view p) const { return s_.substr(pos_, p.size()) == p; }
-    void skipSpace() {
-        while (pos_ < s_.size() && std::strchr(" \t\r\n", s_[pos_]) != nullptr) {
-            ++pos_;
-        }
-    }
-    bool skipPast(std::string_view end) {
-        const auto at = s_.find(end, pos_);
-        if (at == std::string_view::npos) {
-            pos_ = s_.size();
-            return false;
-        }
-        pos_ = at + end.size();
-        return true;
-    }
-    /// Skips whitespace, comments, processing instructions and DOCTYPE.
-    void skipMisc() {
-        for (;;) {
-            skipSpace();
-            if (startsWith("<?")) {
-                skipPast("?>");
-            } else if (startsWith("<!--")) {
-                skipPast("-->");
-            } else if (startsWith("<!DOCTYPE")) {
-                skipPast(">");
-            } else {
-                return;
-            }
-        }
-    }
-    std::string_view parseName() {
-        const std::size_t start = pos_;
-        while (pos_ < s_.size() && std::strchr(" \t\r\n/>=", s_[pos_]) == nullptr) {
-            ++pos_;
-        }
-        return s_.substr(start, pos_ - start);
-    }
-    static std::string localName(std::string_view name) {
-        const auto colon = name.find(':');
-        return std::string(colon == std::string_view::npos ? name : name.substr(colon + 1));
-    }
-    std::optional<std::string> unescape(std::string_view raw) const {
-        std::string out;
-        out.reserve(raw.size());
-        for (std::size_t i = 0; i < raw.size(); ++i) {
-            if (raw[i] != '&') {
-                out += raw[i];
-                continue;
-            }
-            const auto semi = raw.find(';', i);
-            if (semi == std::string_view::npos) {
-                return std::nullopt;
-            }
-            const std::string_view entity = raw.substr(i + 1, semi - i - 1);
-            if (entity == "lt") {
-                out += '<';
-            } else if (entity == "gt") {
-                out += '>';
-            } else if (entity == "amp") {
-                out += '&';
-            } else if (entity == "quot") {
-                out += '"';
-            } else if (entity == "apos") {
-                out += '\'';
-            } else if (entity.size() > 1 && entity[0] == '#') {
-                const bool hex = entity[1] == 'x' || entity[1] == 'X';
-                const std::string_view digits = entity.substr(hex ? 2 : 1);
-                unsigned long code = 0;
-                const auto [end, ec] = std::from_chars(digits.data(), digits.data() + digits.size(),
-                                                       code, hex ? 16 : 10);
-                if (ec != std::errc() || end != digits.data() + digits.size() || code > 0x10FFFF) {
-                    return std::nullopt;
-                }
-                appendUtf8(out, static_cast<std::uint32_t>(code));
-            } else {
-                return std::nullopt;
-            }
-            i = semi;
-        }
-        return out;
-    }
-    static void appendUtf8(std::string& out, std::uint32_t cp) {
-        if (cp < 0x80) {
-            out += static_cast<char>(cp);
-        } else if (cp < 0x800) {
-            out += static_cast<char>(0xC0 | (cp >> 6));
-            out += static_cast<char>(0x80 | (cp & 0x3F));
-        } else if (cp < 0x10000) {
-            out += static_cast<char>(0xE0 | (cp >> 12));
-            out += static_cast<char>(0x80 | ((cp >> 6) & 0x3F));
-            out += static_cast<char>(0x80 | (cp & 0x3F));
-        } else {
-            out += static_cast<char>(0xF0 | (cp >> 18));
-            out += static_cast<char>(0x80 | ((cp >> 12) & 0x3F));
-            out += static_cast<char>(0x80 | ((cp >> 6) & 0x3F));
-            out += static_cast<char>(0x80 | (cp & 0x3F));
-        }
-    }
-
-    core::Result<XmlElement> parseElement(int depth) {
-        if (depth > kMaxDepth) {
-            return fail("elements nested too deeply");
-        }
-        ++pos_; // '<'
-        const std::string_view rawName = parseName();
-        if (rawName.empty()) {
-            return fail("element without a name");
-        }
-        XmlElement element;
-        element.name = localName(rawName);
-        for (;;) {
-            skipSpace();
-            if (startsWith("/>")) {
-                pos_ += 2;
-                return element;
-            }
-            if (peek('>')) {
-                ++pos_;
-                break;
-            }
-            const std::string_view key = parseName();
-            skipSpace();
-            if (key.empty() || !peek('=')) {
-                return fail("attribute without a value in <" + std::string(rawName) + ">");
-            }
-            ++pos_;
-            skipSpace();
-            if (!peek('"') && !peek('\'')) {
-                return fail("unquoted attribute value");
-            }
-            const char quote = s_[pos_++];
-            const auto end = s_.find(quote, pos_);
-            if (end == std::string_view::npos) {
-                return fail("unterminated attribute value");
-            }
-            auto value = unescape(s_.substr(pos_, end - pos_));
-            if (!value) {
-                return fail("bad entity in attribute " + std::string(key));
-            }
-            element.attributes.emplace_back(localName(key), std::move(*value));
-            pos_ = end + 1;
-        }
-        // Content: text, children, comments, CDATA, until the matching end tag.
-        for (;;) {
-            if (pos_ >= s_.size()) {
-                return fail("unterminated element <" + std::string(rawName) + ">");
-            }
-            if (startsWith("</")) {
-                pos_ += 2;
-                const std::string_view endName = parseName();
-                skipSpace();
-                if (endName != rawName || !peek('>')) {
-                    return fail("end tag does not match <" + std::string(rawName) + ">");
-                }
-                ++pos_;
-                return element;
-            }
-            if (startsWith("<!--")) {
-                if (!skipPast("-->")) {
-                    return fail("unterminated comment");
-                }
-            } else if (startsWith("<![CDATA[")) {
-                pos_ += 9;
-                const auto end = s_.find("]]>", pos_);
-                if (end == std::string_view::npos) {
-                    return fail("unterminated CDATA");
-                }
-                element.text += s_.substr(pos_, end - pos_);
-                pos_ = end + 3;
-            } else if (startsWith("<?")) {
-                skipPast("?>");
-            } else if (peek('<')) {
-                auto child = parseElement(depth + 1);
-                if (!child) {
-                    return child;
-                }
-                element.children.push_back(std::move(child.value()));
-            } else {
-                const auto end = s_.find('<', pos_);
-                const auto stop = end == std::string_view::npos ? s_.size() : end;
-                auto text = unescape(s_.substr(pos_, stop - pos_));
-                if (!text) {
-                    return fail("bad entity in text");
-                }
-                element.text += *text;
-                pos_ = stop;
-            }
-        }
-    }
-
-    std::string_view s_;
-    std::size_t pos_ = 0;
-};
-
-/// Factor to µm of an OME UnitsLength symbol; "reference frame" (the schema's default for stage
-/// positions) is taken as µm, the stage's own unit.
-std::optional<double> lengthToUm(std::string_view unit) {
-    if (unit.empty() || unit == "µm" || unit == "\xce\xbcm" || unit == "um" ||
-        unit == "reference frame") {
-        return 1.0;
-    }
-    if (unit == "nm") return 1e-3;
-    if (unit == "pm") return 1e-6;
-    if (unit == "Å") return 1e-4;
-    if (unit == "mm") return 1e3;
-    if (unit == "cm") return 1e4;
-    if (unit == "m") return 1e6;
-    return std::nullopt;
-}
-
-/// Factor to µs of an OME UnitsTime symbol (default: s).
-std::optional<double> timeToUs(std::string_view unit) {
-    if (unit.empty() || unit == "s") return 1e6;
-    if (unit == "ms") return 1e3;
-    if (unit == "µs" || unit == "\xce\xbcs" || unit == "us") return 1.0;
-    if (unit == "ns") return 1e-3;
-    if (unit == "min") return 6e7;
-    if (unit == "h") return 3.6e9;
-    return std::nullopt;
-}
-
-const char* pixelType(int cvType) {
-    return CV_MAT_DEPTH(cvType) == CV_16U ? "uint16" : "uint8";
-}
-
 // ---------------------------------------------------------------------------------------------
 // libtiff over a file descriptor we own, so that the errno of a failing write (ENOSPC) is kept.
 
@@ -422,14 +82,17 @@ tmsize_t tiffRead(thandle_t h, void* buf, tmsize_t size) {
     auto* io = static_cast<TiffIo*>(h);
     tmsize_t done = 0;
     while (done < size) {
-        const ssize_t n = ::read(io->fd, static_cast<char*>(buf) + done,
-                                 static_cast<std::size_t>(size - done));
-        if (n < 0 && errno == EINTR) continue;
+        const ssize_t n =
+            ::read(io->fd, static_cast<char*>(buf) + done, static_cast<std::size_t>(size - done));
+        if (n < 0 && errno == EINTR)
+            continue;
         if (n < 0) {
-            if (io->firstErrno == 0) io->firstErrno = errno;
+            if (io->firstErrno == 0)
+                io->firstErrno = errno;
             return -1;
         }
-        if (n == 0) break;
+        if (n == 0)
+            break;
         done += n;
     }
     return done;
@@ -440,14 +103,17 @@ tmsize_t tiffWrite(thandle_t h, void* buf, tmsize_t size) {
     tmsize_t done = 0;
     while (done < size) {
         if (const int fault = gWriteFault.load(); fault != 0) {
-            if (io->firstErrno == 0) io->firstErrno = fault;
+            if (io->firstErrno == 0)
+                io->firstErrno = fault;
             return -1;
         }
         const ssize_t n = ::write(io->fd, static_cast<const char*>(buf) + done,
                                   static_cast<std::size_t>(size - done));
-        if (n < 0 && errno == EINTR) continue;
+        if (n < 0 && errno == EINTR)
+            continue;
         if (n <= 0) {
-            if (io->firstErrno == 0) io->firstErrno = n < 0 ? errno : EIO;
+            if (io->firstErrno == 0)
+                io->firstErrno = n < 0 ? errno : EIO;
             return -1;
         }
         done += n;
@@ -459,7 +125,8 @@ toff_t tiffSeek(thandle_t h, toff_t offset, int whence) {
     auto* io = static_cast<TiffIo*>(h);
     const off_t at = ::lseek(io->fd, static_cast<off_t>(offset), whence);
     if (at < 0) {
-        if (io->firstErrno == 0) io->firstErrno = errno;
+        if (io->firstErrno == 0)
+            io->firstErrno = errno;
         return static_cast<toff_t>(-1);
     }
     return static_cast<toff_t>(at);
@@ -474,7 +141,9 @@ toff_t tiffSize(thandle_t h) {
     return ::fstat(static_cast<TiffIo*>(h)->fd, &st) == 0 ? static_cast<toff_t>(st.st_size) : 0;
 }
 
-int tiffMap(thandle_t, void**, toff_t*) { return 0; }
+int tiffMap(thandle_t, void**, toff_t*) {
+    return 0;
+}
 void tiffUnmap(thandle_t, void*, toff_t) {}
 
 int onTiffError(TIFF*, void* user, const char* module, const char* fmt, va_list ap) {
@@ -497,7 +166,8 @@ class TiffHandle {
 public:
     static std::unique_ptr<TiffHandle> open(TiffIo& io, const char* name, const char* mode) {
         TIFFOpenOptions* options = TIFFOpenOptionsAlloc();
-        if (options == nullptr) return nullptr;
+        if (options == nullptr)
+            return nullptr;
         TIFFOpenOptionsSetErrorHandlerExtR(options, onTiffError, &io);
         TIFFOpenOptionsSetWarningHandlerExtR(options, onTiffWarning, &io);
         TIFF* tif = TIFFClientOpenExt(name, mode, &io, tiffRead, tiffWrite, tiffSeek, tiffClose,
@@ -511,7 +181,8 @@ public:
     TIFF* get() const noexcept { return tif_; }
     /// Flushes (when writing) and closes. False when the flush failed.
     bool close() noexcept {
-        if (tif_ == nullptr) return true;
+        if (tif_ == nullptr)
+            return true;
         const bool flushed = TIFFGetMode(tif_) == O_RDONLY || TIFFFlush(tif_) == 1;
         TIFFClose(tif_);
         tif_ = nullptr;
@@ -526,7 +197,8 @@ private:
 core::Error ioError(const std::string& what, const fs::path& path, const TiffIo& io) {
     const int err = io.firstErrno != 0 ? io.firstErrno : EIO;
     std::string message = what + " " + quoted(path) + ": " + errnoText(err);
-    if (!io.errors.empty()) message += " (libtiff: " + io.errors + ")";
+    if (!io.errors.empty())
+        message += " (libtiff: " + io.errors + ")";
     return makeError(ErrorCode::IoError, message, err);
 }
 
@@ -535,22 +207,22 @@ core::Result<void> writeTiff(int fd, const fs::path& tmp, const cv::Mat& image,
     TiffIo io;
     io.fd = fd;
     auto handle = TiffHandle::open(io, tmp.c_str(), "wl");
-    if (!handle) return ioError("cannot start TIFF", tmp, io);
+    if (!handle)
+        return ioError("cannot start TIFF", tmp, io);
     TIFF* tif = handle->get();
     const int channels = image.channels();
     const auto bits = static_cast<std::uint16_t>(image.depth() == CV_16U ? 16 : 8);
     // Rows per strip: about 64 KiB of raw data per strip (the TIFF 6.0 recommendation is ~8 KiB;
     // larger strips compress better and Bio-Formats reads any size).
     const std::size_t rowBytes = static_cast<std::size_t>(image.cols) * image.elemSize();
-    const auto rowsPerStrip = static_cast<std::uint32_t>(
-        std::clamp<std::size_t>(65536 / std::max<std::size_t>(rowBytes, 1), 1,
-                                static_cast<std::size_t>(image.rows)));
+    const auto rowsPerStrip = static_cast<std::uint32_t>(std::clamp<std::size_t>(
+        65536 / std::max<std::size_t>(rowBytes, 1), 1, static_cast<std::size_t>(image.rows)));
     // Resolution tags for readers that ignore the OME-XML (ImageJ's plain TIFF reader).
     const auto pxPerCm = static_cast<float>(1e4 / umPerPx);
     bool ok = TIFFSetField(tif, TIFFTAG_IMAGEWIDTH, static_cast<std::uint32_t>(image.cols)) == 1;
     ok = ok && TIFFSetField(tif, TIFFTAG_IMAGELENGTH, static_cast<std::uint32_t>(image.rows)) == 1;
-    ok = ok &&
-         TIFFSetField(tif, TIFFTAG_SAMPLESPERPIXEL, static_cast<std::uint16_t>(channels)) == 1;
+    ok =
+        ok && TIFFSetField(tif, TIFFTAG_SAMPLESPERPIXEL, static_cast<std::uint16_t>(channels)) == 1;
     ok = ok && TIFFSetField(tif, TIFFTAG_BITSPERSAMPLE, bits) == 1;
     ok = ok && TIFFSetField(tif, TIFFTAG_SAMPLEFORMAT, SAMPLEFORMAT_UINT) == 1;
     ok = ok && TIFFSetField(tif, TIFFTAG_PLANARCONFIG, PLANARCONFIG_CONTIG) == 1;
@@ -564,7 +236,8 @@ core::Result<void> writeTiff(int fd, const fs::path& tmp, const cv::Mat& image,
     ok = ok && TIFFSetField(tif, TIFFTAG_XRESOLUTION, pxPerCm) == 1;
     ok = ok && TIFFSetField(tif, TIFFTAG_YRESOLUTION, pxPerCm) == 1;
     ok = ok && TIFFSetField(tif, TIFFTAG_RESOLUTIONUNIT, RESUNIT_CENTIMETER) == 1;
-    if (!ok) return ioError("cannot set TIFF tags of", tmp, io);
+    if (!ok)
+        return ioError("cannot set TIFF tags of", tmp, io);
     // A new Mat: converting into a shallow copy of `image` would swap the caller's pixels.
     cv::Mat rgb;
     if (channels == 3) {
@@ -594,7 +267,8 @@ core::Result<void> writeTiff(int fd, const fs::path& tmp, const cv::Mat& image,
 
 core::Result<void> validate(const fs::path& path, const cv::Mat& image, const OmeTiffInfo& info) {
     const std::string what = "cannot write OME-TIFF " + quoted(path) + ": ";
-    if (image.empty()) return makeError(ErrorCode::InvalidArgument, what + "empty image");
+    if (image.empty())
+        return makeError(ErrorCode::InvalidArgument, what + "empty image");
     const int t = image.type();
     if (t != CV_8UC1 && t != CV_16UC1 && t != CV_8UC3) {
         return makeError(ErrorCode::InvalidArgument,
@@ -602,8 +276,8 @@ core::Result<void> validate(const fs::path& path, const cv::Mat& image, const Om
                              " (supported: CV_8UC1, CV_16UC1, CV_8UC3)");
     }
     if (!(info.umPerPx > 0) || !std::isfinite(info.umPerPx)) {
-        return makeError(ErrorCode::InvalidArgument,
-                         what + "pixel size umPerPx must be > 0, not " + formatDouble(info.umPerPx));
+        return makeError(ErrorCode::InvalidArgument, what + "pixel size umPerPx must be > 0, not " +
+                                                         formatDouble(info.umPerPx));
     }
     if (!std::isfinite(info.stage.xUm) || !std::isfinite(info.stage.yUm) ||
         !std::isfinite(info.stage.zUm)) {
@@ -628,13 +302,16 @@ core::Result<void> validate(const fs::path& path, const cv::Mat& image, const Om
 }
 
 core::Result<void> writeAtomic(const fs::path& path, const cv::Mat& image, OmeTiffInfo info) {
-    if (auto valid = validate(path, image, info); !valid) return valid;
-    if (info.acquiredUtc.empty()) info.acquiredUtc = utcNowIso8601();
+    if (auto valid = validate(path, image, info); !valid)
+        return valid;
+    if (info.acquiredUtc.empty())
+        info.acquiredUtc = utcNowIso8601();
     const std::string xml = makeOmeXml(image.cols, image.rows, image.type(), info);
 
     // Never over an existing file: it may be an image the journal refers to (EEXIST instead).
     auto r = core::replaceAtomically(
-        path, [&](int fd, const fs::path& tmp) { return writeTiff(fd, tmp, image, xml, info.umPerPx); },
+        path,
+        [&](int fd, const fs::path& tmp) { return writeTiff(fd, tmp, image, xml, info.umPerPx); },
         core::Replace::Never);
     // This writer's contract: a missing directory is an IoError (with ENOENT) like any other.
     if (!r && r.error().code == ErrorCode::NotFound)
@@ -671,11 +348,13 @@ core::Result<OmeTiffImage> readImpl(const fs::path& path) {
         return makeError(ErrorCode::NotFound, "OME-TIFF " + quoted(path) + " does not exist");
     }
     auto description = readDescription(path);
-    if (!description) return description.error();
+    if (!description)
+        return description.error();
     auto pixels = core::readImage(path);
     if (!pixels) {
         core::Error e = pixels.error();
-        if (e.code == ErrorCode::NotFound) e.code = ErrorCode::IoError;
+        if (e.code == ErrorCode::NotFound)
+            e.code = ErrorCode::IoError;
         return e;
     }
     const int t = pixels->type();
@@ -701,151 +380,29 @@ core::Result<OmeTiffImage> readImpl(const fs::path& path) {
 
 } // namespace
 
-std::string makeOmeXml(int width, int height, int cvType, const OmeTiffInfo& info) {
-    const bool rgb = CV_MAT_CN(cvType) == 3;
-    const std::string um = "µm";
-    std::string x;
-    x += "<?xml version=\"1.0\" encoding=\"UTF-8\"?>\n";
-    x += "<OME xmlns=\"http://www.openmicroscopy.org/Schemas/OME/2016-06\" "
-         "xmlns:xsi=\"http://www.w3.org/2001/XMLSchema-instance\" "
-         "xsi:schemaLocation=\"http://www.openmicroscopy.org/Schemas/OME/2016-06 "
-         "http://www.openmicroscopy.org/Schemas/OME/2016-06/ome.xsd\" "
-         "Creator=\"slicestation\" UUID=\"urn:uuid:" +
-         randomUuid() + "\">\n";
-    // Element order follows the schema's sequences: Instrument before Image; in Image,
-    // AcquisitionDate, InstrumentRef, Pixels; in Pixels, Channel, TiffData, Plane.
-    x += "  <Instrument ID=\"Instrument:0\">\n";
-    x += "    <Detector ID=\"Detector:0:0\" Type=\"CMOS\"/>\n";
-    x += "  </Instrument>\n";
-    x += "  <Image ID=\"Image:0\" Name=\"" + xmlEscape(info.name) + "\">\n";
-    if (!info.acquiredUtc.empty()) {
-        x += "    <AcquisitionDate>" + xmlEscape(info.acquiredUtc) + "</AcquisitionDate>\n";
-    }
-    x += "    <InstrumentRef ID=\"Instrument:0\"/>\n";
-    x += "    <Pixels ID=\"Pixels:0\" DimensionOrder=\"XYCZT\" Type=\"" +
-         std::string(pixelType(cvType)) + "\" SignificantBits=\"" +
-         std::to_string(CV_MAT_DEPTH(cvType) == CV_16U ? 16 : 8) + "\" BigEndian=\"" +
-         (std::endian::native == std::endian::big ? "true" : "false") + "\" Interleaved=\"" +
-         (rgb ? "true" : "false") + "\" SizeX=\"" + std::to_string(width) + "\" SizeY=\"" +
-         std::to_string(height) + "\" SizeZ=\"1\" SizeC=\"" + (rgb ? "3" : "1") +
-         "\" SizeT=\"1\" PhysicalSizeX=\"" + formatDouble(info.umPerPx) +
-         "\" PhysicalSizeXUnit=\"" + um + "\" PhysicalSizeY=\"" + formatDouble(info.umPerPx) +
-         "\" PhysicalSizeYUnit=\"" + um + "\">\n";
-    x += "      <Channel ID=\"Channel:0:0\" Name=\"" + xmlEscape(info.channel) +
-         "\" SamplesPerPixel=\"" + (rgb ? "3" : "1") + "\">\n";
-    x += "        <DetectorSettings ID=\"Detector:0:0\" Gain=\"" + formatDouble(info.gain) +
-         "\"/>\n";
-    x += "      </Channel>\n";
-    x += "      <TiffData IFD=\"0\" PlaneCount=\"1\"/>\n";
-    x += "      <Plane TheZ=\"0\" TheC=\"0\" TheT=\"0\" ExposureTime=\"" +
-         std::to_string(info.exposureUs) + "\" ExposureTimeUnit=\"µs\" PositionX=\"" +
-         formatDouble(info.stage.xUm) + "\" PositionXUnit=\"" + um + "\" PositionY=\"" +
-         formatDouble(info.stage.yUm) + "\" PositionYUnit=\"" + um + "\" PositionZ=\"" +
-         formatDouble(info.stage.zUm) + "\" PositionZUnit=\"" + um + "\"/>\n";
-    x += "    </Pixels>\n";
-    x += "  </Image>\n";
-    x += "</OME>\n";
-    return x;
-}
-
-core::Result<OmeXmlContent> parseOmeXml(std::string_view xml) {
-    auto doc = XmlParser(xml).parseDocument();
-    if (!doc) return doc.error();
-    const auto bad = [](const std::string& what) {
-        return makeError(ErrorCode::IoError, "OME-XML: " + what);
-    };
-    if (doc->name != "OME") return bad("root element is <" + doc->name + ">, not <OME>");
-    const XmlElement* image = doc->child("Image");
-    if (image == nullptr) return bad("no <Image>");
-    const XmlElement* pixels = image->child("Pixels");
-    if (pixels == nullptr) return bad("no <Pixels> in the first <Image>");
-
-    OmeXmlContent out;
-    auto& info = out.info;
-    if (const auto* n = image->attribute("Name")) info.name = *n;
-    if (const auto* d = image->child("AcquisitionDate")) info.acquiredUtc = d->text;
-
-    const auto number = [&](const XmlElement& e, std::string_view key) -> core::Result<double> {
-        const std::string* text = e.attribute(key);
-        if (text == nullptr) return bad("no " + std::string(key) + " in <" + e.name + ">");
-        const auto v = parseDouble(*text);
-        if (!v) return bad(std::string(key) + "=\"" + *text + "\" is not a number");
-        return *v;
-    };
-    const auto length = [&](const XmlElement& e, std::string_view key) -> core::Result<double> {
-        auto v = number(e, key);
-        if (!v) return v;
-        const std::string* unit = e.attribute(std::string(key) + "Unit");
-        const auto factor = lengthToUm(unit ? *unit : std::string_view());
-        if (!factor) return bad(std::string(key) + "Unit=\"" + *unit + "\" is not a known length");
-        return *v * *factor;
-    };
-
-    for (const char* key : {"SizeX", "SizeY"}) {
-        auto v = number(*pixels, key);
-        if (!v) return v.error();
-        // A pixel count: a whole number that an int holds (found by fuzz_small_formats:
-        // SizeX="1.6e55" was cast to int, which is undefined).
-        if (!(*v >= 1 && *v <= 2147483647.0 && *v == std::floor(*v)))
-            return bad(std::string(key) + "=\"" + *pixels->attribute(key) + "\" is not a pixel count");
-        (std::string_view(key) == "SizeX" ? out.sizeX : out.sizeY) = static_cast<int>(*v);
-    }
-    auto sizeUm = length(*pixels, "PhysicalSizeX");
-    if (!sizeUm) return sizeUm.error();
-    if (!(*sizeUm > 0)) return bad("PhysicalSizeX must be > 0");
-    info.umPerPx = *sizeUm;
-
-    if (const XmlElement* channel = pixels->child("Channel")) {
-        if (const auto* n = channel->attribute("Name")) info.channel = *n;
-        if (const XmlElement* ds = channel->child("DetectorSettings");
-            ds != nullptr && ds->attribute("Gain") != nullptr) {
-            auto gain = number(*ds, "Gain");
-            if (!gain) return gain.error();
-            info.gain = *gain;
-        }
-    }
-    if (const XmlElement* plane = pixels->child("Plane")) {
-        double* targets[] = {&info.stage.xUm, &info.stage.yUm, &info.stage.zUm};
-        const char* keys[] = {"PositionX", "PositionY", "PositionZ"};
-        for (int i = 0; i < 3; ++i) {
-            if (plane->attribute(keys[i]) == nullptr) continue;
-            auto v = length(*plane, keys[i]);
-            if (!v) return v.error();
-            *targets[i] = *v;
-        }
-        if (plane->attribute("ExposureTime") != nullptr) {
-            auto v = number(*plane, "ExposureTime");
-            if (!v) return v.error();
-            const std::string* unit = plane->attribute("ExposureTimeUnit");
-            const auto factor = timeToUs(unit ? *unit : std::string_view());
-            if (!factor) return bad("ExposureTimeUnit=\"" + *unit + "\" is not a known time");
-            info.exposureUs = std::llround(*v * *factor);
-        }
-    }
-    return out;
-}
-
-void setOmeTiffWriteFaultForTesting(int err) noexcept { gWriteFault.store(err); }
-
-core::Result<void> writeOmeTiffAtomic(const std::filesystem::path& path, const cv::Mat& image,
-                                      const OmeTiffInfo& info) {
-    try {
-        return writeAtomic(path, image, info);
-    } catch (const cv::Exception& e) {
-        return makeError(ErrorCode::Internal, "cannot write OME-TIFF " + quoted(path) +
-                                                  ": OpenCV: " + e.what());
-    } catch (const std::exception& e) {
-        return makeError(ErrorCode::Internal,
-                         "cannot write OME-TIFF " + quoted(path) + ": " + e.what());
-    }
-}
-
 core::Result<OmeTiffImage> readOmeTiff(const std::filesystem::path& path) {
     try {
         return readImpl(path);
     } catch (const std::exception& e) {
         return makeError(ErrorCode::Internal,
                          "cannot read OME-TIFF " + quoted(path) + ": " + e.what());
+    }
+}
+
+void setOmeTiffWriteFaultForTesting(int err) noexcept {
+    gWriteFault.store(err);
+}
+
+core::Result<void> writeOmeTiffAtomic(const std::filesystem::path& path, const cv::Mat& image,
+                                      const OmeTiffInfo& info) {
+    try {
+        return writeAtomic(path, image, info);
+    } catch (const cv::Exception& e) {
+        return makeError(ErrorCode::Internal,
+                         "cannot write OME-TIFF " + quoted(path) + ": OpenCV: " + e.what());
+    } catch (const std::exception& e) {
+        return makeError(ErrorCode::Internal,
+                         "cannot write OME-TIFF " + quoted(path) + ": " + e.what());
     }
 }
 

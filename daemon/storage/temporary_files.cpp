@@ -13,9 +13,11 @@ using core::makeError;
 namespace {
 
 bool isDigits(std::string_view s) noexcept {
-    if (s.empty()) return false;
+    if (s.empty())
+        return false;
     for (char c : s)
-        if (c < '0' || c > '9') return false;
+        if (c < '0' || c > '9')
+            return false;
     return true;
 }
 
@@ -23,10 +25,12 @@ bool isDigits(std::string_view s) noexcept {
 
 bool isTemporaryFileName(std::string_view n) noexcept {
     // `.NAME.tmp.PID.N.STAMP`: core::replaceAtomically, every writer since issue 21.
-    if (core::isAtomicTemporaryName(n)) return true;
+    if (core::isAtomicTemporaryName(n))
+        return true;
     // Older versions' schemes: `.NAME.partial` (the OME-TIFF writer), `NAME.tmp-PID` (results).
     constexpr std::string_view partial = ".partial";
-    if (n.size() > partial.size() + 1 && n.front() == '.' && n.ends_with(partial)) return true;
+    if (n.size() > partial.size() + 1 && n.front() == '.' && n.ends_with(partial))
+        return true;
     const std::size_t dash = n.rfind(".tmp-");
     return dash != std::string_view::npos && dash > 0 && isDigits(n.substr(dash + 5));
 }
@@ -34,22 +38,28 @@ bool isTemporaryFileName(std::string_view n) noexcept {
 core::Result<std::size_t> removeTemporaryFiles(const std::filesystem::path& dir) {
     namespace fs = std::filesystem;
     std::error_code ec;
-    if (!fs::exists(dir, ec)) return std::size_t{0};
+    if (!fs::exists(dir, ec))
+        return std::size_t{0};
     std::size_t removed = 0;
     fs::recursive_directory_iterator it(dir, ec);
     for (; !ec && it != fs::recursive_directory_iterator(); it.increment(ec)) {
         const fs::path p = it->path();
-        if (!isTemporaryFileName(p.filename().string())) continue;
+        if (!isTemporaryFileName(p.filename().string()))
+            continue;
         std::error_code typeEc;
-        if (!it->is_regular_file(typeEc) || it->is_symlink(typeEc)) continue;
+        if (!it->is_regular_file(typeEc) || it->is_symlink(typeEc))
+            continue;
         if (!fs::remove(p, ec) && ec)
-            return makeError(ErrorCode::IoError, "cannot remove the temporary file " + p.string() + ": " +
-                                                     ec.message(), ec.value());
+            return makeError(ErrorCode::IoError,
+                             "cannot remove the temporary file " + p.string() + ": " + ec.message(),
+                             ec.value());
         ++removed;
     }
     if (ec)
-        return makeError(ErrorCode::IoError, "cannot list " + dir.string() + " to remove temporary files: " +
-                                                 ec.message(), ec.value());
+        return makeError(ErrorCode::IoError,
+                         "cannot list " + dir.string() +
+                             " to remove temporary files: " + ec.message(),
+                         ec.value());
     return removed;
 }
 

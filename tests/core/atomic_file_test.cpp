@@ -22,15 +22,17 @@ using core::ErrorCode;
 class AtomicFile : public ::testing::Test {
 protected:
     void SetUp() override {
-        dir_ = fs::temp_directory_path() / ("slst-atomic-" + std::to_string(::getpid()) + "-" +
-                                            ::testing::UnitTest::GetInstance()->current_test_info()->name());
+        dir_ = fs::temp_directory_path() /
+               ("slst-atomic-" + std::to_string(::getpid()) + "-" +
+                ::testing::UnitTest::GetInstance()->current_test_info()->name());
         fs::remove_all(dir_);
         fs::create_directories(dir_);
     }
     void TearDown() override { fs::remove_all(dir_); }
     std::vector<std::string> names() const {
         std::vector<std::string> out;
-        for (const auto& e : fs::directory_iterator(dir_)) out.push_back(e.path().filename().string());
+        for (const auto& e : fs::directory_iterator(dir_))
+            out.push_back(e.path().filename().string());
         return out;
     }
     static std::string read(const fs::path& p) {
@@ -83,15 +85,18 @@ TEST_F(AtomicFile, AFailedFillLeavesNothingAndAMissingDirectoryIsNotFound) {
 
 TEST_F(AtomicFile, TheCleanUpKnowsTheWritersTemporaryNames) {
     fs::path seen;
-    ASSERT_TRUE(core::replaceAtomically(dir_ / "slice-003.tif", [&](int fd, const fs::path& tmp) -> core::Result<void> {
-        seen = tmp;
-        return ::write(fd, "x", 1) == 1 ? core::Result<void>() : core::makeError(ErrorCode::IoError, "write");
-    }));
+    ASSERT_TRUE(core::replaceAtomically(
+        dir_ / "slice-003.tif", [&](int fd, const fs::path& tmp) -> core::Result<void> {
+            seen = tmp;
+            return ::write(fd, "x", 1) == 1 ? core::Result<void>()
+                                            : core::makeError(ErrorCode::IoError, "write");
+        }));
     EXPECT_TRUE(core::isAtomicTemporaryName(seen.filename().string())) << seen;
-    for (const char* yes : {".a.json.tmp.1.2.3", ".slice-003.tif.tmp.17.0.5", ".x.tmp.4242.3.81234"})
+    for (const char* yes :
+         {".a.json.tmp.1.2.3", ".slice-003.tif.tmp.17.0.5", ".x.tmp.4242.3.81234"})
         EXPECT_TRUE(core::isAtomicTemporaryName(yes)) << yes;
-    for (const char* no : {"a.json.tmp.1.2.3", ".a.tmp.1.2", ".a.tmp.1.2.x", ".tmp.1.2.3", "result.json",
-                           ".a.partial", "a.json.tmp-42", ""})
+    for (const char* no : {"a.json.tmp.1.2.3", ".a.tmp.1.2", ".a.tmp.1.2.x", ".tmp.1.2.3",
+                           "result.json", ".a.partial", "a.json.tmp-42", ""})
         EXPECT_FALSE(core::isAtomicTemporaryName(no)) << no;
 }
 

@@ -17,7 +17,8 @@
 
 namespace slicestation::test {
 
-inline constexpr std::chrono::seconds kEventDeadline{10}; // generous: only a broken build waits this long
+inline constexpr std::chrono::seconds kEventDeadline{
+    10}; // generous: only a broken build waits this long
 
 /// What systemd does: a unix datagram socket whose path goes into NOTIFY_SOCKET.
 class FakeNotifySocket {
@@ -43,10 +44,12 @@ public:
     /// The next datagram, waiting at most `timeout` (poll); nullopt when none came.
     std::optional<std::string> receive(std::chrono::milliseconds timeout = kEventDeadline) {
         pollfd p{fd_.get(), POLLIN, 0};
-        if (::poll(&p, 1, static_cast<int>(timeout.count())) != 1) return std::nullopt;
+        if (::poll(&p, 1, static_cast<int>(timeout.count())) != 1)
+            return std::nullopt;
         char buf[4096];
         const ssize_t n = ::recv(fd_.get(), buf, sizeof(buf), 0);
-        if (n < 0) return std::nullopt;
+        if (n < 0)
+            return std::nullopt;
         return std::string(buf, static_cast<std::size_t>(n));
     }
     /// A datagram already queued, without waiting.

@@ -42,9 +42,11 @@ inline const sim::VirtualSlide& slide() {
         spec.sectionPitchUm = 14'000;
         const double ap[] = {0.35, 0.45, 0.55, 0.65};
         for (int i = 0; i < 4; ++i)
-            spec.sections.push_back({ap[i], i == 2 ? "tear" : "", static_cast<std::uint64_t>(100 + i)});
+            spec.sections.push_back(
+                {ap[i], i == 2 ? "tear" : "", static_cast<std::uint64_t>(100 + i)});
         auto r = sim::makeVirtualSlide(spec);
-        if (!r) throw std::runtime_error(r.error().message);
+        if (!r)
+            throw std::runtime_error(r.error().message);
         return *r;
     }();
     return s;
@@ -72,7 +74,8 @@ struct Rig {
     std::shared_ptr<std::mutex> posMutex = std::make_shared<std::mutex>();
     std::shared_ptr<hw::StagePosition> pos = std::make_shared<hw::StagePosition>();
     std::uint64_t freeBytes = 100ull << 30;
-    std::shared_ptr<std::atomic<int>> moves = std::make_shared<std::atomic<int>>(0); ///< stage moves done
+    std::shared_ptr<std::atomic<int>> moves =
+        std::make_shared<std::atomic<int>>(0); ///< stage moves done
 };
 
 class StationTest : public ::testing::Test {
@@ -84,8 +87,10 @@ protected:
         std::filesystem::remove_all(rig_.dir);
     }
     void TearDown() override {
-        if (rig_.api) rig_.api->stop();
-        if (rig_.station) rig_.station->stop();
+        if (rig_.api)
+            rig_.api->stop();
+        if (rig_.station)
+            rig_.station->stop();
         rig_.station.reset();
         std::filesystem::remove_all(rig_.dir);
     }
@@ -110,12 +115,14 @@ protected:
         };
         auto simCamera = sim::SimCamera::create(slide(), cc);
         ASSERT_TRUE(simCamera) << simCamera.error().message;
-        auto camera = sim::FaultyCamera::create(std::move(*simCamera), std::make_shared<core::VirtualClock>());
+        auto camera = sim::FaultyCamera::create(std::move(*simCamera),
+                                                std::make_shared<core::VirtualClock>());
         ASSERT_TRUE(camera);
         rig_.camera = camera->get();
 
-        auto doc = parseDocument(std::string("[daemon]\ntoken = \"") + kToken + "\"\n[scan]\num_per_px = " +
-                                     std::to_string(kUmPerPx) + "\nwidth = 1280\nheight = 1024\n" + scanExtra,
+        auto doc = parseDocument(std::string("[daemon]\ntoken = \"") + kToken +
+                                     "\"\n[scan]\num_per_px = " + std::to_string(kUmPerPx) +
+                                     "\nwidth = 1280\nheight = 1024\n" + scanExtra,
                                  DocumentFormat::Toml, "station.toml");
         ASSERT_TRUE(doc) << doc.error().message;
         auto settings = parseDaemonSettings(*doc, "station.toml");
@@ -127,7 +134,9 @@ protected:
         parts.settings = *settings;
         parts.stateDir = rig_.dir;
         std::uint64_t* freeBytes = &rig_.freeBytes;
-        parts.freeSpace = [freeBytes](const std::filesystem::path&) -> core::Result<std::uint64_t> { return *freeBytes; };
+        parts.freeSpace = [freeBytes](const std::filesystem::path&) -> core::Result<std::uint64_t> {
+            return *freeBytes;
+        };
         auto moves = rig_.moves;
         parts.stageMoved = [pos, mu, moves](const hw::StagePosition& p) {
             ++*moves;
@@ -145,8 +154,10 @@ protected:
         for (;;) {
             auto r = rig_.station->journal().run(id);
             EXPECT_TRUE(r);
-            if (!r) return {};
-            if (r->state == state && (state != RunState::Finished || rig_.station->idle())) return *r;
+            if (!r)
+                return {};
+            if (r->state == state && (state != RunState::Finished || rig_.station->idle()))
+                return *r;
             if (std::chrono::steady_clock::now() > deadline) {
                 ADD_FAILURE() << "run " << id << " is " << toString(r->state) << " (" << r->reason
                               << "), expected " << toString(state);
@@ -160,14 +171,15 @@ protected:
         std::vector<AlertRecord> out;
         auto all = rig_.station->journal().alerts(false);
         EXPECT_TRUE(all);
-        if (!all) return out;
+        if (!all)
+            return out;
         for (const auto& a : *all)
-            if (a.kind == kind) out.push_back(a);
+            if (a.kind == kind)
+                out.push_back(a);
         return out;
     }
 
     Rig rig_;
 };
-
 
 } // namespace slicestation::testing_station

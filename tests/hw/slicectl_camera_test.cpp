@@ -1,6 +1,7 @@
 // [camera] station configuration, openCamera, and slicectl camera capture through the binary.
 #include "slicestation/core/image_file.hpp"
 #include "slicestation/daemon/config/station_config.hpp"
+#include "slicestation/daemon/devices/devices.hpp"
 
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>

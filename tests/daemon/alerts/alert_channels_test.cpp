@@ -305,7 +305,8 @@ TEST(AlertSettings, ErrorsNameTheKey) {
     expectError("[alerts]\n[[alerts.webhook]]\nformat = \"json\"\n",
                 "station.toml: alerts.webhook[0].url: missing");
     expectError("[alerts]\n[[alerts.webhook]]\nurl = \"http://h/\"\nurl_typo = 1\n",
-                "station.toml: alerts.webhook[0]: unknown key \"url_typo\" (known: url, format, timeout_s)");
+                "station.toml: alerts.webhook[0]: unknown key \"url_typo\" (known: url, format, "
+                "timeout_s)");
     expectError("[alerts]\n[[alerts.command]]\nargv = []\n",
                 "station.toml: alerts.command[0].argv: empty");
     expectError("[alerts]\n[[alerts.command]]\nargv = [\"\"]\n",

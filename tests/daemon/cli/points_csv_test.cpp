@@ -25,10 +25,10 @@ TEST(PointsCsv, MalformedInputNamesTheLine) {
         const char* text;
         const char* needle;
     };
-    for (const Case& c : {Case{"", "empty"}, Case{"a,b\n1,2\n", "line 1"},
-                          Case{"x,y\n1,2\n3\n", "line 3"}, Case{"x,y\n1,zz\n", "y is not a number"},
-                          Case{"x,y\n1,2\nnan,3\n", "line 3"}, Case{"x,y\n1e999,2\n", "line 2"},
-                          Case{"x,y\n,2\n", "x is not a number"}}) {
+    for (const Case& c :
+         {Case{"", "empty"}, Case{"a,b\n1,2\n", "line 1"}, Case{"x,y\n1,2\n3\n", "line 3"},
+          Case{"x,y\n1,zz\n", "y is not a number"}, Case{"x,y\n1,2\nnan,3\n", "line 3"},
+          Case{"x,y\n1e999,2\n", "line 2"}, Case{"x,y\n,2\n", "x is not a number"}}) {
         auto r = parsePointsCsv(c.text);
         ASSERT_FALSE(r.ok()) << c.text;
         EXPECT_EQ(r.error().code, core::ErrorCode::InvalidArgument);

@@ -4,18 +4,18 @@
 #include "slicestation/sim/section_generator.hpp"
 
 #include <gtest/gtest.h>
-#include <opencv2/core.hpp>
 #include <nlohmann/json.hpp>
+#include <opencv2/core.hpp>
 #include <tiffio.h>
 #include <zlib.h>
 
 #include <algorithm>
 #include <array>
 #include <cmath>
-#include <limits>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <limits>
 #include <sstream>
 #include <sys/wait.h>
 #include <unistd.h>
@@ -35,7 +35,8 @@ CommandResult slicectl(const std::string& args) {
     const std::string cmd = std::string(SLICECTL_PATH) + " " + args + " 2>&1";
     FILE* p = ::popen(cmd.c_str(), "r");
     std::array<char, 4096> buf{};
-    while (p && std::fgets(buf.data(), buf.size(), p)) r.output += buf.data();
+    while (p && std::fgets(buf.data(), buf.size(), p))
+        r.output += buf.data();
     const int status = p ? ::pclose(p) : -1;
     r.exitCode = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
     return r;
@@ -57,7 +58,8 @@ protected:
         ASSERT_TRUE(core::writeImage(dir_ / "section.tif", gen->image).ok());
         std::ofstream pts(dir_ / "points.csv");
         pts << "x,y\n";
-        for (const auto& l : truth_) pts << l.image.x << "," << l.image.y << "\n";
+        for (const auto& l : truth_)
+            pts << l.image.x << "," << l.image.y << "\n";
     }
     static void TearDownTestSuite() { fs::remove_all(dir_); }
     static std::string p(const std::string& name) { return (dir_ / name).string(); }
@@ -71,9 +73,10 @@ std::vector<sim::Landmark> SlicectlRegister::truth_;
 } // namespace
 
 TEST_F(SlicectlRegister, WritesTheResultContractAndMapsEveryPoint) {
-    const CommandResult r = slicectl("register --atlas " + p("atlas.tif") + " --image " + p("section.tif") +
-                           " --points " + p("points.csv") + " --output " + p("result.json") +
-                           " --overlay " + p("overlay.png") + " --warped-labels " + p("warped.tif"));
+    const CommandResult r =
+        slicectl("register --atlas " + p("atlas.tif") + " --image " + p("section.tif") +
+                 " --points " + p("points.csv") + " --output " + p("result.json") + " --overlay " +
+                 p("overlay.png") + " --warped-labels " + p("warped.tif"));
     ASSERT_EQ(r.exitCode, 0) << r.output;
     std::ifstream in(p("result.json"));
     const auto j = nlohmann::json::parse(in);
@@ -125,7 +128,7 @@ TEST_F(SlicectlRegister, InvalidInputFailsWithAMessageAndKeepsTheOldResult) {
     };
     for (const Case& c : cases) {
         const CommandResult r = slicectl("register --atlas " + c.atlas + " --image " + c.image +
-                               " --output " + p("old.json") + " " + c.extra);
+                                         " --output " + p("old.json") + " " + c.extra);
         EXPECT_NE(r.exitCode, 0) << c.needle;
         EXPECT_NE(r.output.find(c.needle), std::string::npos) << r.output;
         // One line, prefixed with the command.
@@ -153,7 +156,8 @@ void writeDeflateBomb(const fs::path& path, std::uint32_t width, std::uint32_t h
     const std::vector<Bytef> zeros(24u << 20, 0);
     uLongf size = compressBound(static_cast<uLong>(zeros.size()));
     std::vector<Bytef> packed(size);
-    ASSERT_EQ(compress2(packed.data(), &size, zeros.data(), static_cast<uLong>(zeros.size()), 9), Z_OK);
+    ASSERT_EQ(compress2(packed.data(), &size, zeros.data(), static_cast<uLong>(zeros.size()), 9),
+              Z_OK);
     ASSERT_EQ(TIFFWriteRawStrip(tif, 0, packed.data(), static_cast<tmsize_t>(size)),
               static_cast<tmsize_t>(size));
     TIFFClose(tif);
@@ -171,7 +175,8 @@ TEST_F(SlicectlRegister, HostileImagesAndOptionsExitTwoWithOneLine) {
     ASSERT_TRUE(core::writeImage(p("nan.tif"), nan).ok());
     // A stack whose manifest has a string for a slice's height.
     fs::create_directories(dir_ / "badstack");
-    ASSERT_TRUE(core::writeImage(dir_ / "badstack" / "slice-000.tif", sim::builtinAtlasPlane(0.5)).ok());
+    ASSERT_TRUE(
+        core::writeImage(dir_ / "badstack" / "slice-000.tif", sim::builtinAtlasPlane(0.5)).ok());
     std::ofstream(dir_ / "badstack" / "manifest.json")
         << R"({"slices": [{"index": 0, "file": "slice-000.tif", "position_um": 0,
               "normal": [1, 0, 0], "um_per_px": 25, "width": 456, "height": "x"}]})";
@@ -221,25 +226,36 @@ TEST(SlicectlDemo, RunsOnBuiltInDefaultsAndIsAccurate) {
 // Issue 20: a misspelt or hostile station file is refused with exit 2 and a message naming the
 // key, before slicectl talks to any daemon or device.
 TEST(SlicectlStationFile, MisspeltAndHostileFilesAreRefusedWithExitTwo) {
-    const fs::path dir = fs::temp_directory_path() / ("slst_slicectl_station_" + std::to_string(::getpid()));
+    const fs::path dir =
+        fs::temp_directory_path() / ("slst_slicectl_station_" + std::to_string(::getpid()));
     fs::create_directories(dir);
     const auto write = [&](const std::string& name, const std::string& text) {
         std::ofstream(dir / name, std::ios::binary) << text;
         return (dir / name).string();
     };
-    const std::string stage = "[stage]\ndriver = \"sim\"\n[stage.axes.x]\nmin_um = 0\nmax_um = 75000\n"
-                              "[stage.axes.y]\nmin_um = 0\nmax_um = 25000\n";
-    auto r = slicectl("status --config " + write("tokn.toml", stage + "[daemon]\ntokn = \"0123456789abcdef\"\n[scan]\num_per_px = 2\n"));
+    const std::string stage =
+        "[stage]\ndriver = \"sim\"\n[stage.axes.x]\nmin_um = 0\nmax_um = 75000\n"
+        "[stage.axes.y]\nmin_um = 0\nmax_um = 25000\n";
+    auto r =
+        slicectl("status --config " +
+                 write("tokn.toml",
+                       stage + "[daemon]\ntokn = \"0123456789abcdef\"\n[scan]\num_per_px = 2\n"));
     EXPECT_EQ(r.exitCode, 2) << r.output;
-    EXPECT_NE(r.output.find("daemon: unknown key \"tokn\"; did you mean \"token\"?"), std::string::npos) << r.output;
+    EXPECT_NE(r.output.find("daemon: unknown key \"tokn\"; did you mean \"token\"?"),
+              std::string::npos)
+        << r.output;
     std::string dotted = "a";
-    for (int i = 0; i < 200'000; ++i) dotted += ".a";
+    for (int i = 0; i < 200'000; ++i)
+        dotted += ".a";
     r = slicectl("status --config " + write("deep.toml", stage + dotted + " = 1\n"));
     EXPECT_EQ(r.exitCode, 2) << r.output.substr(0, 300);
-    EXPECT_NE(r.output.find("nested deeper than 64 levels"), std::string::npos) << r.output.substr(0, 300);
-    r = slicectl("stage --config " + write("speed.toml", "[stage]\ndriver = \"sim\"\nspeeed_um_per_s = 5\n"
-                                                                  "[stage.axes.x]\nmin_um = 0\nmax_um = 1\n"
-                                                                  "[stage.axes.y]\nmin_um = 0\nmax_um = 1\n") + " position");
+    EXPECT_NE(r.output.find("nested deeper than 64 levels"), std::string::npos)
+        << r.output.substr(0, 300);
+    r = slicectl("stage --config " +
+                 write("speed.toml", "[stage]\ndriver = \"sim\"\nspeeed_um_per_s = 5\n"
+                                     "[stage.axes.x]\nmin_um = 0\nmax_um = 1\n"
+                                     "[stage.axes.y]\nmin_um = 0\nmax_um = 1\n") +
+                 " position");
     EXPECT_EQ(r.exitCode, 2) << r.output;
     EXPECT_NE(r.output.find("did you mean \"speed_um_per_s\"?"), std::string::npos) << r.output;
     fs::remove_all(dir);

@@ -37,10 +37,12 @@ core::UniqueFd connectTo(int port) {
     addr.sin_family = AF_INET;
     addr.sin_port = htons(static_cast<std::uint16_t>(port));
     addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-    if (::connect(fd.get(), reinterpret_cast<sockaddr*>(&addr), sizeof addr) != 0) fd.reset();
+    if (::connect(fd.get(), reinterpret_cast<sockaddr*>(&addr), sizeof addr) != 0)
+        fd.reset();
     // A send the server does not take fails after 3 s instead of blocking the test.
     timeval tv{3, 0};
-    if (fd) ::setsockopt(fd.get(), SOL_SOCKET, SO_SNDTIMEO, &tv, sizeof tv);
+    if (fd)
+        ::setsockopt(fd.get(), SOL_SOCKET, SO_SNDTIMEO, &tv, sizeof tv);
     return fd;
 }
 
@@ -48,7 +50,8 @@ bool sendAll(int fd, const std::string& s) {
     std::size_t done = 0;
     while (done < s.size()) {
         const ssize_t n = ::send(fd, s.data() + done, s.size() - done, MSG_NOSIGNAL);
-        if (n <= 0) return false;
+        if (n <= 0)
+            return false;
         done += static_cast<std::size_t>(n);
     }
     return true;
@@ -58,13 +61,17 @@ bool sendAll(int fd, const std::string& s) {
 template <class Pred>
 bool readUntil(int fd, std::string& buf, Pred enough, Clock::time_point deadline) {
     while (!enough(buf)) {
-        const auto left = std::chrono::duration_cast<std::chrono::milliseconds>(deadline - Clock::now()).count();
-        if (left <= 0) return false;
+        const auto left =
+            std::chrono::duration_cast<std::chrono::milliseconds>(deadline - Clock::now()).count();
+        if (left <= 0)
+            return false;
         pollfd p{fd, POLLIN, 0};
-        if (::poll(&p, 1, static_cast<int>(left)) <= 0) continue;
+        if (::poll(&p, 1, static_cast<int>(left)) <= 0)
+            continue;
         char tmp[4096];
         const ssize_t n = ::recv(fd, tmp, sizeof tmp, 0);
-        if (n <= 0) return enough(buf);
+        if (n <= 0)
+            return enough(buf);
         buf.append(tmp, static_cast<std::size_t>(n));
     }
     return true;
@@ -72,7 +79,8 @@ bool readUntil(int fd, std::string& buf, Pred enough, Clock::time_point deadline
 
 /// The status code of the HTTP response at the start of `s`, 0 when there is none.
 int statusOf(const std::string& s) {
-    if (s.rfind("HTTP/1.1 ", 0) != 0 || s.size() < 12) return 0;
+    if (s.rfind("HTTP/1.1 ", 0) != 0 || s.size() < 12)
+        return 0;
     return std::atoi(s.substr(9, 3).c_str());
 }
 
@@ -81,7 +89,8 @@ std::size_t residentBytes() {
     std::ifstream in("/proc/self/status");
     std::string line;
     while (std::getline(in, line))
-        if (line.rfind("VmRSS:", 0) == 0) return std::stoull(line.substr(6)) * 1024;
+        if (line.rfind("VmRSS:", 0) == 0)
+            return std::stoull(line.substr(6)) * 1024;
     return 0;
 }
 
@@ -107,14 +116,17 @@ protected:
     std::int64_t registeredSection(int cols, int rows) {
         auto run = rig_.station->submitPlan(planFor({0}), "plan");
         EXPECT_TRUE(run) << run.error().message;
-        if (!run) return 0;
+        if (!run)
+            return 0;
         auto secs = rig_.station->journal().sections(*run);
         EXPECT_TRUE(secs && !secs->empty());
-        if (!secs || secs->empty()) return 0;
+        if (!secs || secs->empty())
+            return 0;
         const std::int64_t id = secs->front().id;
         cv::Mat labels(rows, cols, CV_32SC1);
         for (int y = 0; y < rows; ++y)
-            for (int x = 0; x < cols; ++x) labels.at<std::int32_t>(y, x) = x + 1;
+            for (int x = 0; x < cols; ++x)
+                labels.at<std::int32_t>(y, x) = x + 1;
         std::filesystem::create_directories(rig_.dir);
         auto written = core::writeImage(rig_.dir / "big.labels.tif", labels);
         EXPECT_TRUE(written) << written.error().message;
@@ -124,7 +136,8 @@ protected:
         cap.umPerPx = kUmPerPx;
         auto capId = rig_.station->journal().recordCapture(cap);
         EXPECT_TRUE(capId) << capId.error().message;
-        if (!capId) return 0;
+        if (!capId)
+            return 0;
         RegistrationRecord reg;
         reg.captureId = *capId;
         reg.labelsPath = "big.labels.tif";
@@ -146,8 +159,9 @@ TEST_F(HttpHostileTest, ARegionPixelThatOverflowsOnceScaledIsA400NotACrash) {
     // (scaled to 1024) lies inside and only x is out of range.
     const std::string id = std::to_string(registeredSection(2048, 1025));
     httplib::Client cli("127.0.0.1", port_);
-    for (const char* q : {"x=1048576&y=0&of_width=1", "x=1048576&y=0&of_width=2", "x=0&y=1048576&of_width=1",
-                          "x=1048576&y=1048576&of_width=1", "x=2048&y=0", "x=0&y=1025"}) {
+    for (const char* q :
+         {"x=1048576&y=0&of_width=1", "x=1048576&y=0&of_width=2", "x=0&y=1048576&of_width=1",
+          "x=1048576&y=1048576&of_width=1", "x=2048&y=0", "x=0&y=1025"}) {
         auto r = cli.Get("/api/sections/" + id + "/region?" + q);
         ASSERT_TRUE(r) << q << ": no answer (the daemon died?)";
         EXPECT_EQ(r->status, 400) << q << ": " << r->body;
@@ -158,7 +172,8 @@ TEST_F(HttpHostileTest, ARegionPixelThatOverflowsOnceScaledIsA400NotACrash) {
     ASSERT_TRUE(edge);
     ASSERT_EQ(edge->status, 200) << edge->body;
     EXPECT_EQ(nlohmann::json::parse(edge->body)["id"], 2048);
-    auto scaled = cli.Get("/api/sections/" + id + "/region?x=1&y=0&of_width=4"); // (1.5 * 512) = 768
+    auto scaled =
+        cli.Get("/api/sections/" + id + "/region?x=1&y=0&of_width=4"); // (1.5 * 512) = 768
     ASSERT_TRUE(scaled);
     ASSERT_EQ(scaled->status, 200) << scaled->body;
     EXPECT_EQ(nlohmann::json::parse(scaled->body)["x"], 768);
@@ -170,27 +185,33 @@ TEST_F(HttpHostileTest, ARegionPixelThatOverflowsOnceScaledIsA400NotACrash) {
 TEST_F(HttpHostileTest, IdsAndParametersThatAreNotUtf8AreA400WithValidJson) {
     startApi();
     httplib::Client cli("127.0.0.1", port_);
-    for (const std::string& path : std::vector<std::string>{"/api/runs/%ff", "/api/runs/%ff%fe/sections", "/api/sections/%c3", "/api/sections/%ff/region?x=1&y=1",
-          "/api/runs/1/export?format=%ff", "/api/sections/1/image.jpg?width=%ff", "/api/runs/%00",
-          "/api/runs/" + std::string(3000, '9')}) {
+    for (const std::string& path : std::vector<std::string>{
+             "/api/runs/%ff", "/api/runs/%ff%fe/sections", "/api/sections/%c3",
+             "/api/sections/%ff/region?x=1&y=1", "/api/runs/1/export?format=%ff",
+             "/api/sections/1/image.jpg?width=%ff", "/api/runs/%00",
+             "/api/runs/" + std::string(3000, '9')}) {
         auto r = cli.Get(path);
         ASSERT_TRUE(r) << path;
-        EXPECT_TRUE(r->status == 400 || r->status == 404) << path << " -> " << r->status << " " << r->body;
+        EXPECT_TRUE(r->status == 400 || r->status == 404)
+            << path << " -> " << r->status << " " << r->body;
         const auto j = nlohmann::json::parse(r->body, nullptr, false);
         ASSERT_FALSE(j.is_discarded()) << path << ": " << r->body;
         EXPECT_TRUE(j.contains("error")) << r->body;
         EXPECT_LT(r->body.size(), 400u) << "what is echoed is bounded";
     }
-    for (const char* path : {"/api/runs/%ff/pause", "/api/alerts/%ff/ack", "/api/sections/%ff/rescan"}) {
+    for (const char* path :
+         {"/api/runs/%ff/pause", "/api/alerts/%ff/ack", "/api/sections/%ff/rescan"}) {
         auto r = cli.Post(path, auth_, "", "text/plain");
         ASSERT_TRUE(r) << path;
         EXPECT_EQ(r->status, 400) << path << ": " << r->body;
     }
     // Bodies: not UTF-8, nested without end, numbers out of range: 400, never 500.
-    for (const std::string& body : {std::string("{\"name\": \"\xff\xfe\"}"), std::string(100000, '['),
-                                   std::string("{\"slides\": [") + std::string(50000, '{'),
-                                   std::string("name = \"\xff\"\n")}) {
-        auto r = cli.Post("/api/runs", auth_, body, body[0] == 'n' ? "application/toml" : "application/json");
+    for (const std::string& body :
+         {std::string("{\"name\": \"\xff\xfe\"}"), std::string(100000, '['),
+          std::string("{\"slides\": [") + std::string(50000, '{'),
+          std::string("name = \"\xff\"\n")}) {
+        auto r = cli.Post("/api/runs", auth_, body,
+                          body[0] == 'n' ? "application/toml" : "application/json");
         ASSERT_TRUE(r);
         EXPECT_EQ(r->status, 400) << r->body.substr(0, 200);
         EXPECT_FALSE(nlohmann::json::parse(r->body, nullptr, false).is_discarded());
@@ -198,8 +219,9 @@ TEST_F(HttpHostileTest, IdsAndParametersThatAreNotUtf8AreA400WithValidJson) {
     // Ranges (httplib 0.11 bounds neither their number nor their offsets): ignored, the page
     // is sent whole, once; a range it cannot parse is a 416.
     const std::size_t page = cli.Get("/")->body.size();
-    for (const char* range : {"bytes=0-0,1-1,2-2,0-,0-,0-", "bytes=99999999-", "bytes=10-5", "bytes=-99999999999",
-                              "bytes=0-,0-,0-,0-,0-,0-,0-,0-,0-,0-,0-,0-,0-,0-,0-,0-,0-,0-,0-,0-,0-,0-,0-"}) {
+    for (const char* range :
+         {"bytes=0-0,1-1,2-2,0-,0-,0-", "bytes=99999999-", "bytes=10-5", "bytes=-99999999999",
+          "bytes=0-,0-,0-,0-,0-,0-,0-,0-,0-,0-,0-,0-,0-,0-,0-,0-,0-,0-,0-,0-,0-,0-,0-"}) {
         auto r = cli.Get("/", httplib::Headers{{"Range", range}});
         ASSERT_TRUE(r) << range;
         EXPECT_TRUE(r->status == 200 || r->status == 416) << range << " -> " << r->status;
@@ -219,23 +241,29 @@ TEST_F(HttpHostileTest, PostBodiesAreRefusedBeforeTheyAreRead) {
     auto refusal = [&](const std::string& head) {
         auto fd = connectTo(port_);
         EXPECT_TRUE(fd);
-        if (!fd) return std::string();
+        if (!fd)
+            return std::string();
         EXPECT_TRUE(sendAll(fd.get(), head));
         std::string got;
         // The answer comes without the body being sent at all.
         readUntil(
-            fd.get(), got, [](const std::string& b) { return b.find("\r\n\r\n") != std::string::npos; },
+            fd.get(), got,
+            [](const std::string& b) { return b.find("\r\n\r\n") != std::string::npos; },
             Clock::now() + 3s);
         return got;
     };
     const std::string bearer = std::string("Authorization: Bearer ") + kToken + "\r\n";
-    std::string r = refusal("POST /api/runs HTTP/1.1\r\nHost: x\r\nTransfer-Encoding: chunked\r\n\r\n");
+    std::string r =
+        refusal("POST /api/runs HTTP/1.1\r\nHost: x\r\nTransfer-Encoding: chunked\r\n\r\n");
     EXPECT_EQ(statusOf(r), 401) << r;
-    r = refusal("POST /api/runs HTTP/1.1\r\nHost: x\r\n" + bearer + "Transfer-Encoding: chunked\r\n\r\n");
+    r = refusal("POST /api/runs HTTP/1.1\r\nHost: x\r\n" + bearer +
+                "Transfer-Encoding: chunked\r\n\r\n");
     EXPECT_EQ(statusOf(r), 411) << r;
-    r = refusal("POST /api/runs HTTP/1.1\r\nHost: x\r\n" + bearer + "Content-Length: 1048577\r\n\r\n");
+    r = refusal("POST /api/runs HTTP/1.1\r\nHost: x\r\n" + bearer +
+                "Content-Length: 1048577\r\n\r\n");
     EXPECT_EQ(statusOf(r), 413) << r;
-    r = refusal("POST /api/runs HTTP/1.1\r\nHost: x\r\n" + bearer + "Content-Length: 99999999999999999999999\r\n\r\n");
+    r = refusal("POST /api/runs HTTP/1.1\r\nHost: x\r\n" + bearer +
+                "Content-Length: 99999999999999999999999\r\n\r\n");
     EXPECT_EQ(statusOf(r), 413) << r;
     r = refusal("POST /api/runs HTTP/1.1\r\nHost: x\r\n" + bearer + "Content-Length: -5\r\n\r\n");
     EXPECT_EQ(statusOf(r), 400) << r;
@@ -248,7 +276,8 @@ TEST_F(HttpHostileTest, PostBodiesAreRefusedBeforeTheyAreRead) {
         ASSERT_TRUE(sendAll(fd.get(), "GET /"));
         const std::string junk(64 << 10, 'a');
         std::size_t sent = 0;
-        while (sent < (256u << 20) && sendAll(fd.get(), junk)) sent += junk.size();
+        while (sent < (256u << 20) && sendAll(fd.get(), junk))
+            sent += junk.size();
         EXPECT_LT(sent, 64u << 20) << "the server stopped reading";
     }
     // A small body without a token: the 401 arrives although the body was not read.
@@ -281,8 +310,10 @@ TEST_F(HttpHostileTest, HostileClientsDoNotStopTheApiOrTheStation) {
     std::thread normal, slow;
     Finally joinAll{[&] {
         attackOver = true;
-        if (slow.joinable()) slow.join();
-        if (normal.joinable()) normal.join();
+        if (slow.joinable())
+            slow.join();
+        if (normal.joinable())
+            normal.join();
     }};
     // The normal client, all along: every answer within 1 s.
     std::vector<double> latencies;
@@ -295,7 +326,8 @@ TEST_F(HttpHostileTest, HostileClientsDoNotStopTheApiOrTheStation) {
             const auto t0 = Clock::now();
             auto r = c.Get("/api/status");
             latencies.push_back(std::chrono::duration<double>(Clock::now() - t0).count());
-            if (!r || r->status != 200) ++failures;
+            if (!r || r->status != 200)
+                ++failures;
             std::this_thread::sleep_for(100ms); // pacing: a request every ~0.1 s over the attack
         }
     });
@@ -308,21 +340,28 @@ TEST_F(HttpHostileTest, HostileClientsDoNotStopTheApiOrTheStation) {
         for (int i = 0; i < 20; ++i) {
             fds.push_back(connectTo(port_));
             since.push_back(Clock::now());
-            if (fds.back()) sendAll(fds.back().get(), "GET /api/status HTTP/1.1\r\nX-Slow: ");
+            if (fds.back())
+                sendAll(fds.back().get(), "GET /api/status HTTP/1.1\r\nX-Slow: ");
         }
         slowOpen = 20;
         const auto stop = Clock::now() + 15s;
         while (slowOpen.load() > 0 && Clock::now() < stop && !attackOver.load()) {
             for (int i = 0; i < 20; ++i) {
-                if (!fds[static_cast<std::size_t>(i)] || slowCutAfter[static_cast<std::size_t>(i)] >= 0) continue;
+                if (!fds[static_cast<std::size_t>(i)] ||
+                    slowCutAfter[static_cast<std::size_t>(i)] >= 0)
+                    continue;
                 const int fd = fds[static_cast<std::size_t>(i)].get();
                 pollfd p{fd, POLLIN, 0};
                 bool closed = ::poll(&p, 1, 0) > 0 && (p.revents & (POLLHUP | POLLERR)) != 0;
-                if (!closed && (p.revents & POLLIN)) closed = true; // an answer (400) or EOF: given up on
-                if (!closed) closed = ::send(fd, "a", 1, MSG_NOSIGNAL) != 1;
+                if (!closed && (p.revents & POLLIN))
+                    closed = true; // an answer (400) or EOF: given up on
+                if (!closed)
+                    closed = ::send(fd, "a", 1, MSG_NOSIGNAL) != 1;
                 if (closed) {
                     slowCutAfter[static_cast<std::size_t>(i)] =
-                        std::chrono::duration<double>(Clock::now() - since[static_cast<std::size_t>(i)]).count();
+                        std::chrono::duration<double>(Clock::now() -
+                                                      since[static_cast<std::size_t>(i)])
+                            .count();
                     --slowOpen;
                 }
             }
@@ -375,24 +414,30 @@ TEST_F(HttpHostileTest, HostileClientsDoNotStopTheApiOrTheStation) {
     {
         auto fd = connectTo(port_);
         ASSERT_TRUE(fd);
-        ASSERT_TRUE(sendAll(fd.get(), "POST /api/runs HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
-                                      "Transfer-Encoding: chunked\r\n\r\n"));
+        ASSERT_TRUE(sendAll(
+            fd.get(), "POST /api/runs HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+                      "Transfer-Encoding: chunked\r\n\r\n"));
         const std::string chunk = "10000\r\n" + std::string(0x10000, '{') + "\r\n";
         const auto stop = Clock::now() + 10s;
         while (bodySent < (1ull << 30) && Clock::now() < stop) {
             pollfd p{fd.get(), POLLIN | POLLOUT, 0};
-            if (::poll(&p, 1, 1000) <= 0) continue;
-            if (p.revents & (POLLIN | POLLHUP | POLLERR)) break; // answered or closed
-            if (!sendAll(fd.get(), chunk)) break;
+            if (::poll(&p, 1, 1000) <= 0)
+                continue;
+            if (p.revents & (POLLIN | POLLHUP | POLLERR))
+                break; // answered or closed
+            if (!sendAll(fd.get(), chunk))
+                break;
             bodySent += 0x10000;
         }
         readUntil(
-            fd.get(), bodyAnswer, [](const std::string& b) { return b.find("\r\n\r\n") != std::string::npos; },
+            fd.get(), bodyAnswer,
+            [](const std::string& b) { return b.find("\r\n\r\n") != std::string::npos; },
             Clock::now() + 2s);
     }
     const std::size_t rssAfter = residentBytes();
     EXPECT_LT(bodySent, 64u << 20) << "the server stopped taking the body";
-    EXPECT_LT(rssAfter, rssBefore + (64u << 20)) << "resident memory " << rssBefore << " -> " << rssAfter;
+    EXPECT_LT(rssAfter, rssBefore + (64u << 20))
+        << "resident memory " << rssBefore << " -> " << rssAfter;
     if (!bodyAnswer.empty()) {
         EXPECT_EQ(statusOf(bodyAnswer), 401) << bodyAnswer;
     }
@@ -409,10 +454,12 @@ TEST_F(HttpHostileTest, HostileClientsDoNotStopTheApiOrTheStation) {
     }
     EXPECT_EQ(failures, 0);
     ASSERT_GE(latencies.size(), 5u);
-    for (double t : latencies) EXPECT_LT(t, 1.0) << "a status request took " << t << " s";
+    for (double t : latencies)
+        EXPECT_LT(t, 1.0) << "a status request took " << t << " s";
     waitRun(runId, RunState::Finished, 120s);
     EXPECT_TRUE(readUntil(
-        streams[0].get(), streamData[0], [](const std::string& b) { return b.find("\"finished\"") != std::string::npos; },
+        streams[0].get(), streamData[0],
+        [](const std::string& b) { return b.find("\"finished\"") != std::string::npos; },
         Clock::now() + 5s))
         << streamData[0];
     // Streams that go away free their place at once.
@@ -424,10 +471,12 @@ TEST_F(HttpHostileTest, HostileClientsDoNotStopTheApiOrTheStation) {
         ASSERT_TRUE(sendAll(fd.get(), "GET /api/events HTTP/1.1\r\nHost: x\r\n\r\n"));
         std::string got;
         readUntil(
-            fd.get(), got, [](const std::string& b) { return b.find("\r\n\r\n") != std::string::npos; },
+            fd.get(), got,
+            [](const std::string& b) { return b.find("\r\n\r\n") != std::string::npos; },
             Clock::now() + 1s);
         again = statusOf(got) == 200;
-        if (!again) std::this_thread::sleep_for(100ms); // the server notices closed streams within 0.5 s
+        if (!again)
+            std::this_thread::sleep_for(100ms); // the server notices closed streams within 0.5 s
     }
     EXPECT_TRUE(again) << "a new stream is accepted once the others closed";
 }

@@ -32,29 +32,34 @@ public:
 
     nlohmann::json status() override { return {{"state", "idle"}}; }
     core::Result<std::vector<RunRecord>> runs() override {
-        if (auto e = failing("runs")) return *e;
+        if (auto e = failing("runs"))
+            return *e;
         RunRecord r;
         r.id = 7;
         r.name = "mouse-42";
         return std::vector<RunRecord>{r};
     }
     core::Result<RunRecord> run(std::int64_t id) override {
-        if (id != 7) return makeError(ErrorCode::NotFound, "no run " + std::to_string(id));
+        if (id != 7)
+            return makeError(ErrorCode::NotFound, "no run " + std::to_string(id));
         RunRecord r;
         r.id = 7;
         r.plan = {{"name", "mouse-42"}};
         return r;
     }
     core::Result<std::vector<SectionRecord>> sections(std::int64_t id) override {
-        if (id != 7) return makeError(ErrorCode::NotFound, "no run " + std::to_string(id));
+        if (id != 7)
+            return makeError(ErrorCode::NotFound, "no run " + std::to_string(id));
         return std::vector<SectionRecord>(2);
     }
     core::Result<std::string> exportRun(std::int64_t, const std::string& format) override {
-        if (format != "json" && format != "csv") return makeError(ErrorCode::InvalidArgument, "format");
+        if (format != "json" && format != "csv")
+            return makeError(ErrorCode::InvalidArgument, "format");
         return std::string(format == "csv" ? "a,b\n" : "{}\n");
     }
     core::Result<nlohmann::json> sectionDetail(std::int64_t id) override {
-        if (auto e = failing("sectionDetail")) return *e;
+        if (auto e = failing("sectionDetail"))
+            return *e;
         return nlohmann::json{{"id", id}};
     }
     core::Result<std::vector<AlertRecord>> alerts(bool openOnly) override {
@@ -63,17 +68,21 @@ public:
     }
     std::shared_ptr<const hw::Frame> liveFrame() const override { return nullptr; }
     core::Result<cv::Mat> sectionImage(std::int64_t id, bool overlay) override {
-        if (auto e = failing("sectionImage")) return *e;
+        if (auto e = failing("sectionImage"))
+            return *e;
         calls.push_back("image " + std::to_string(id) + (overlay ? " overlay" : ""));
         return image;
     }
     core::Result<RegionAtPixel> regionAt(std::int64_t, int x, int y, int ofWidth) override {
-        if (auto e = failing("regionAt")) return *e;
-        calls.push_back("region " + std::to_string(x) + "," + std::to_string(y) + " of " + std::to_string(ofWidth));
+        if (auto e = failing("regionAt"))
+            return *e;
+        calls.push_back("region " + std::to_string(x) + "," + std::to_string(y) + " of " +
+                        std::to_string(ofWidth));
         return RegionAtPixel{315, x, y, "Isocortex", "Isocortex"};
     }
     core::Result<std::int64_t> submitPlan(const nlohmann::json& plan, const std::string&) override {
-        if (auto e = failing("submitPlan")) return *e;
+        if (auto e = failing("submitPlan"))
+            return *e;
         calls.push_back("submit " + plan.value("name", std::string()));
         return std::int64_t{8};
     }
@@ -83,26 +92,32 @@ public:
     }
     core::Result<void> cancelRun(std::int64_t id) override { return control("cancel", id); }
     core::Result<void> requestRescan(std::int64_t id) override { return control("rescan", id); }
-    core::Result<AlertRecord> acknowledgeAlert(std::int64_t id, const std::string& action) override {
-        if (auto r = control("ack " + action, id); !r) return r.error();
+    core::Result<AlertRecord> acknowledgeAlert(std::int64_t id,
+                                               const std::string& action) override {
+        if (auto r = control("ack " + action, id); !r)
+            return r.error();
         AlertRecord a;
         a.id = id;
         a.ackAction = action;
         return a;
     }
-    void addListener(std::function<void(const StationEvent&)> l) override { listeners.push_back(std::move(l)); }
+    void addListener(std::function<void(const StationEvent&)> l) override {
+        listeners.push_back(std::move(l));
+    }
 
 private:
     std::optional<core::Error> failing(const std::string& name) {
         auto it = fail.find(name);
-        if (it == fail.end()) return std::nullopt;
+        if (it == fail.end())
+            return std::nullopt;
         auto e = it->second;
         fail.erase(it);
         return e;
     }
     core::Result<void> control(const std::string& name, std::int64_t id) {
         const std::string key = name.substr(0, name.find(' '));
-        if (auto e = failing(key)) return *e;
+        if (auto e = failing(key))
+            return *e;
         calls.push_back(name + " " + std::to_string(id));
         return {};
     }
@@ -118,7 +133,8 @@ protected:
     }
     httplib::Result post(const std::string& path, const std::string& body = "",
                          const std::string& type = "application/json") {
-        return client_->Post(path.c_str(), {{"Authorization", std::string("Bearer ") + kToken}}, body, type.c_str());
+        return client_->Post(path.c_str(), {{"Authorization", std::string("Bearer ") + kToken}},
+                             body, type.c_str());
     }
     static std::string errorOf(const httplib::Result& r) {
         auto j = nlohmann::json::parse(r->body, nullptr, false);
@@ -151,7 +167,8 @@ TEST_F(HttpRoutes, ImagesAreStretchedScaledAndEncoded) {
     ASSERT_TRUE(jpg);
     ASSERT_EQ(jpg->status, 200);
     EXPECT_EQ(jpg->get_header_value("Content-Type"), "image/jpeg");
-    const cv::Mat shown = cv::imdecode(std::vector<uchar>(jpg->body.begin(), jpg->body.end()), cv::IMREAD_UNCHANGED);
+    const cv::Mat shown =
+        cv::imdecode(std::vector<uchar>(jpg->body.begin(), jpg->body.end()), cv::IMREAD_UNCHANGED);
     EXPECT_EQ(shown.cols, 30); // 60 px scaled to 30, never up
     EXPECT_EQ(shown.rows, 20);
     EXPECT_EQ(shown.depth(), CV_8U);
@@ -172,7 +189,8 @@ TEST_F(HttpRoutes, RegionLookupPassesThePixelAndTheShownWidth) {
     EXPECT_EQ(j["acronym"], "Isocortex");
     EXPECT_EQ(station_.calls.back(), "region 10,12 of 600");
     EXPECT_EQ(client_->Get("/api/sections/3/region?x=10")->status, 400) << "y missing";
-    station_.fail["regionAt"] = makeError(ErrorCode::InvalidArgument, "x, y: outside the 60x40 image");
+    station_.fail["regionAt"] =
+        makeError(ErrorCode::InvalidArgument, "x, y: outside the 60x40 image");
     auto outside = client_->Get("/api/sections/3/region?x=100&y=1");
     EXPECT_EQ(outside->status, 400);
     EXPECT_EQ(errorOf(outside), "x, y: outside the 60x40 image");
@@ -209,7 +227,8 @@ TEST_F(HttpRoutes, OneTableMapsStationErrorsToStatuses) {
     station_.fail["ack"] = makeError(ErrorCode::NotFound, "no alert 9");
     EXPECT_EQ(post("/api/alerts/9/ack")->status, 404);
     // A plan the station refuses is the request's fault; a journal that cannot store it is not.
-    station_.fail["submitPlan"] = makeError(ErrorCode::InvalidArgument, "slides[0].sections[0].x_um: missing");
+    station_.fail["submitPlan"] =
+        makeError(ErrorCode::InvalidArgument, "slides[0].sections[0].x_um: missing");
     EXPECT_EQ(post("/api/runs", R"({"name": "x"})")->status, 400);
     station_.fail["submitPlan"] = makeError(ErrorCode::IoError, "database or disk is full");
     EXPECT_EQ(post("/api/runs", R"({"name": "x"})")->status, 500);
@@ -233,8 +252,8 @@ TEST_F(HttpRoutes, ControlsNeedTheTokenAndReachTheStation) {
     ASSERT_EQ(plan->status, 201);
     EXPECT_EQ(nlohmann::json::parse(plan->body)["run_id"], 8);
     EXPECT_EQ(post("/api/runs", "name = ")->status, 400) << "a TOML syntax error";
-    const std::vector<std::string> expected = {"pause 7", "resume reset 7", "cancel 7", "rescan 5", "ack rescan 9",
-                                               "submit toml plan"};
+    const std::vector<std::string> expected = {"pause 7",  "resume reset 7", "cancel 7",
+                                               "rescan 5", "ack rescan 9",   "submit toml plan"};
     EXPECT_EQ(station_.calls, expected);
 }
 
@@ -257,7 +276,8 @@ TEST_F(HttpRoutes, EventsReachTheStreamAsServerSentEvents) {
         station_.listeners[0]({"section_captured", {{"section_id", 5}}});
         std::this_thread::sleep_for(std::chrono::milliseconds(50));
         std::lock_guard lock(mutex);
-        seen = received.find("event: section_captured\ndata: {\"section_id\":5}") != std::string::npos;
+        seen =
+            received.find("event: section_captured\ndata: {\"section_id\":5}") != std::string::npos;
     }
     reader.join();
     EXPECT_TRUE(seen) << received;

@@ -16,19 +16,18 @@
 #include <condition_variable>
 #include <cstring>
 #include <filesystem>
+#include <memory>
 #include <mutex>
 #include <optional>
 #include <string>
 #include <utility>
 #include <vector>
-#include <memory>
 
 namespace slicestation::test {
 namespace {
 
 namespace fs = std::filesystem;
 using namespace std::chrono_literals;
-
 
 /// Sets environment variables for one test and restores them after.
 class ScopedEnv {
@@ -43,14 +42,18 @@ public:
     }
     ~ScopedEnv() {
         for (auto& [name, old] : saved_) {
-            if (old) ::setenv(name.c_str(), old->c_str(), 1);
-            else ::unsetenv(name.c_str());
+            if (old)
+                ::setenv(name.c_str(), old->c_str(), 1);
+            else
+                ::unsetenv(name.c_str());
         }
     }
 
 private:
     void remember(const char* name) {
-        for (auto& s : saved_) if (s.first == name) return;
+        for (auto& s : saved_)
+            if (s.first == name)
+                return;
         const char* v = std::getenv(name);
         saved_.emplace_back(name, v ? std::optional<std::string>(v) : std::nullopt);
     }
@@ -200,12 +203,8 @@ protected:
         clock_.advance(1s);
         ASSERT_TRUE(clock_.waitForSleeper());
     }
-    void expectPing() {
-        EXPECT_EQ(socket_.pending(), "WATCHDOG=1");
-    }
-    void expectSilence() {
-        EXPECT_EQ(socket_.pending(), std::nullopt);
-    }
+    void expectPing() { EXPECT_EQ(socket_.pending(), "WATCHDOG=1"); }
+    void expectSilence() { EXPECT_EQ(socket_.pending(), std::nullopt); }
     daemon::SystemdNotifier notifier_;
     ManualClock clock_;
 };

@@ -1,6 +1,8 @@
 // Autofocus against the simulated stage and camera (tilted focal surface, defocus blur), the
 // tissue and focus measures, FocusSurface, and fault pass-through.
 #include "slicestation/daemon/station/autofocus.hpp"
+#include "slicestation/pipeline/focus_measures.hpp"
+#include "slicestation/pipeline/frame_image.hpp"
 
 #include "slicestation/sim/faulty_camera.hpp"
 #include "slicestation/sim/faulty_stage.hpp"
@@ -83,14 +85,14 @@ cv::Mat captureAt(Rig& rig, const hw::StagePosition& p) {
     EXPECT_TRUE(rig.stage->moveTo(p, 10s));
     auto frame = rig.camera->capture(1s);
     EXPECT_TRUE(frame);
-    return frame ? daemon::frameToMat(*frame) : cv::Mat();
+    return frame ? pipeline::frameToMat(*frame) : cv::Mat();
 }
 
 TEST(FrameToMat, CopiesInOpenCvConventions) {
     hw::Frame rgb(hw::PixelFormat::Rgb8, 3, 2);
     rgb.row(1)[3] = 10; // pixel (1, 1): R
     rgb.row(1)[5] = 30; //               B
-    cv::Mat m = daemon::frameToMat(rgb);
+    cv::Mat m = pipeline::frameToMat(rgb);
     ASSERT_EQ(m.type(), CV_8UC3);
     EXPECT_EQ(m.at<cv::Vec3b>(1, 1), cv::Vec3b(30, 0, 10)); // BGR
     rgb.row(1)[3] = 99;
@@ -98,11 +100,11 @@ TEST(FrameToMat, CopiesInOpenCvConventions) {
 
     hw::Frame mono16(hw::PixelFormat::Mono16, 4, 3);
     reinterpret_cast<std::uint16_t*>(mono16.row(2))[3] = 60'000;
-    m = daemon::frameToMat(mono16);
+    m = pipeline::frameToMat(mono16);
     ASSERT_EQ(m.type(), CV_16UC1);
     EXPECT_EQ(m.at<std::uint16_t>(2, 3), 60'000);
-    EXPECT_EQ(daemon::frameToMat(hw::Frame(hw::PixelFormat::Mono8, 5, 4)).type(), CV_8UC1);
-    EXPECT_TRUE(daemon::frameToMat(hw::Frame()).empty());
+    EXPECT_EQ(pipeline::frameToMat(hw::Frame(hw::PixelFormat::Mono8, 5, 4)).type(), CV_8UC1);
+    EXPECT_TRUE(pipeline::frameToMat(hw::Frame()).empty());
 }
 
 TEST(TissueFraction, TissueGlassAndBrightfield) {
@@ -111,10 +113,10 @@ TEST(TissueFraction, TissueGlassAndBrightfield) {
     const cv::Mat blurred = captureAt(rig, {600, 500, trueFocus(600, 500) + 80});
     const cv::Mat glass = captureAt(rig, {5'000, 500, trueFocus(5'000, 500)});
     const cv::Mat glassBlurred = captureAt(rig, {5'000, 500, trueFocus(5'000, 500) - 70});
-    EXPECT_GT(daemon::tissueFraction(tissue), 0.3);
-    EXPECT_GT(daemon::tissueFraction(blurred), 0.3) << "defocus must not hide the tissue";
-    EXPECT_LT(daemon::tissueFraction(glass), 0.005);
-    EXPECT_LT(daemon::tissueFraction(glassBlurred), 0.005);
+    EXPECT_GT(pipeline::tissueFraction(tissue), 0.3);
+    EXPECT_GT(pipeline::tissueFraction(blurred), 0.3) << "defocus must not hide the tissue";
+    EXPECT_LT(pipeline::tissueFraction(glass), 0.005);
+    EXPECT_LT(pipeline::tissueFraction(glassBlurred), 0.005);
 
     // Brightfield: dark tissue on bright glass (the same field inverted), 8-bit colour.
     cv::Mat inverted;
@@ -122,11 +124,11 @@ TEST(TissueFraction, TissueGlassAndBrightfield) {
     cv::Mat bgr;
     inverted.convertTo(bgr, CV_8U, 1.0 / 257);
     cv::cvtColor(bgr, bgr, cv::COLOR_GRAY2BGR);
-    EXPECT_NEAR(daemon::tissueFraction(bgr), daemon::tissueFraction(tissue), 0.05);
+    EXPECT_NEAR(pipeline::tissueFraction(bgr), pipeline::tissueFraction(tissue), 0.05);
     cv::Mat brightGlass;
     cv::subtract(cv::Scalar::all(65535), glass, brightGlass);
-    EXPECT_LT(daemon::tissueFraction(brightGlass), 0.005);
-    EXPECT_EQ(daemon::tissueFraction(cv::Mat()), 0.0);
+    EXPECT_LT(pipeline::tissueFraction(brightGlass), 0.005);
+    EXPECT_EQ(pipeline::tissueFraction(cv::Mat()), 0.0);
 }
 
 TEST(FocusMeasure, PeaksAtFocusAndIgnoresBrightness) {
@@ -134,17 +136,17 @@ TEST(FocusMeasure, PeaksAtFocusAndIgnoresBrightness) {
     const double z0 = trueFocus(600, 500);
     double previous = 1e300;
     for (const double dz : {0.0, 5.0, 15.0, 40.0}) {
-        const double score = daemon::focusMeasure(captureAt(rig, {600, 500, z0 + dz}));
+        const double score = pipeline::focusMeasure(captureAt(rig, {600, 500, z0 + dz}));
         EXPECT_LT(score, previous) << "dz " << dz;
         previous = score;
     }
     const cv::Mat sharp = captureAt(rig, {600, 500, z0});
     cv::Mat dimmer;
     sharp.convertTo(dimmer, CV_16U, 0.5);
-    EXPECT_NEAR(daemon::focusMeasure(dimmer), daemon::focusMeasure(sharp),
-                0.02 * daemon::focusMeasure(sharp));
-    EXPECT_EQ(daemon::focusMeasure(cv::Mat()), 0.0);
-    EXPECT_EQ(daemon::focusMeasure(cv::Mat(10, 10, CV_8UC1, cv::Scalar(0))), 0.0);
+    EXPECT_NEAR(pipeline::focusMeasure(dimmer), pipeline::focusMeasure(sharp),
+                0.02 * pipeline::focusMeasure(sharp));
+    EXPECT_EQ(pipeline::focusMeasure(cv::Mat()), 0.0);
+    EXPECT_EQ(pipeline::focusMeasure(cv::Mat(10, 10, CV_8UC1, cv::Scalar(0))), 0.0);
 }
 
 struct Place {
@@ -305,7 +307,8 @@ TEST(FocusSurface, RecoversAKnownPlane) {
     EXPECT_EQ(surface.size(), 0u);
     // All at one place: the mean.
     daemon::FocusSurface same;
-    for (double z : {10.0, 20.0, 30.0}) same.add(5, 5, z);
+    for (double z : {10.0, 20.0, 30.0})
+        same.add(5, 5, z);
     EXPECT_DOUBLE_EQ(*same.predict(100, 100), 20.0);
 }
 

@@ -36,10 +36,14 @@ public:
     ScheduledStage(std::unique_ptr<hw::Stage> inner, int timeoutEvery, int alarmAtMove)
         : inner_(std::move(inner)), timeoutEvery_(timeoutEvery), alarmAtMove_(alarmAtMove) {}
     hw::StageLimits limits() const override { return inner_->limits(); }
-    core::Result<hw::StagePosition> position(std::chrono::milliseconds t) override { return inner_->position(t); }
-    core::Result<hw::StagePosition> moveTo(const hw::StagePosition& p, std::chrono::milliseconds t) override {
+    core::Result<hw::StagePosition> position(std::chrono::milliseconds t) override {
+        return inner_->position(t);
+    }
+    core::Result<hw::StagePosition> moveTo(const hw::StagePosition& p,
+                                           std::chrono::milliseconds t) override {
         const int n = ++moves_;
-        if (alarmLatched_) return core::makeError(core::ErrorCode::Alarm, "axis x: alarm 0x30 (overload)");
+        if (alarmLatched_)
+            return core::makeError(core::ErrorCode::Alarm, "axis x: alarm 0x30 (overload)");
         if (n == alarmAtMove_) {
             alarmLatched_ = true;
             ++alarms;
@@ -47,13 +51,18 @@ public:
         }
         if (timeoutEvery_ > 0 && n % timeoutEvery_ == 0) {
             ++timeouts;
-            return core::makeError(core::ErrorCode::Timeout, "axis y: not in position before the deadline");
+            return core::makeError(core::ErrorCode::Timeout,
+                                   "axis y: not in position before the deadline");
         }
         return inner_->moveTo(p, t);
     }
-    core::Result<hw::StagePosition> home(std::chrono::milliseconds t) override { return inner_->home(t); }
+    core::Result<hw::StagePosition> home(std::chrono::milliseconds t) override {
+        return inner_->home(t);
+    }
     void stop() noexcept override { inner_->stop(); }
-    core::Result<hw::StageAlarm> alarm(std::chrono::milliseconds t) override { return inner_->alarm(t); }
+    core::Result<hw::StageAlarm> alarm(std::chrono::milliseconds t) override {
+        return inner_->alarm(t);
+    }
     core::Result<void> resetAlarm(std::chrono::milliseconds) override {
         alarmLatched_ = false;
         return {};
@@ -71,13 +80,15 @@ class ScheduledCamera final : public hw::Camera {
 public:
     ScheduledCamera(std::unique_ptr<hw::Camera> inner, int timeoutEvery)
         : inner_(std::move(inner)), timeoutEvery_(timeoutEvery) {}
-    core::Result<hw::CameraSettings> configure(const hw::CameraSettings& s, std::chrono::milliseconds t) override {
+    core::Result<hw::CameraSettings> configure(const hw::CameraSettings& s,
+                                               std::chrono::milliseconds t) override {
         return inner_->configure(s, t);
     }
     core::Result<hw::Frame> capture(std::chrono::milliseconds t) override {
         if (timeoutEvery_ > 0 && ++captures_ % timeoutEvery_ == 0) {
             ++timeouts;
-            return core::makeError(core::ErrorCode::Timeout, "camera: no frame before the deadline");
+            return core::makeError(core::ErrorCode::Timeout,
+                                   "camera: no frame before the deadline");
         }
         return inner_->capture(t);
     }
@@ -100,7 +111,8 @@ int main(int argc, char** argv) {
     app.add_option("--slides", slides, "Slides in the run");
     app.add_option("--sections", perSlide, "Sections per slide");
     app.add_option("--state-dir", stateDir, "State directory (emptied first)");
-    app.add_option("--speed-um-per-s", speedUmPerS, "Stage speed (simulated travel takes real time)");
+    app.add_option("--speed-um-per-s", speedUmPerS,
+                   "Stage speed (simulated travel takes real time)");
     CLI11_PARSE(app, argc, argv);
 
     std::filesystem::remove_all(stateDir);
@@ -115,14 +127,15 @@ int main(int argc, char** argv) {
     spec.sectionWidthUm = 13'000;
     spec.umPerPx = 10;
     for (int i = 0; i < perSlide; ++i)
-        spec.sections.push_back({0.1 + 0.8 * i / std::max(1, perSlide - 1), i % 7 == 3 ? "tear" : "",
-                                 static_cast<std::uint64_t>(1000 + i)});
+        spec.sections.push_back({0.1 + 0.8 * i / std::max(1, perSlide - 1),
+                                 i % 7 == 3 ? "tear" : "", static_cast<std::uint64_t>(1000 + i)});
     auto slide = sim::makeVirtualSlide(spec);
     if (!slide) {
         std::cerr << "virtual slide: " << slide.error().message << "\n";
         return 1;
     }
-    const double genS = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    const double genS =
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
 
     sim::SimStageConfig sc;
     sc.limits = {{0, 120'000}, {0, 80'000}, hw::AxisRange{0, 5'000}};
@@ -131,7 +144,8 @@ int main(int argc, char** argv) {
     sc.accelUmPerS2 = speedUmPerS * 5;
     sc.settle = 20ms;
     auto simStage = sim::SimStage::create(sc);
-    if (!simStage) return 1;
+    if (!simStage)
+        return 1;
     const int totalMoves = slides * perSlide * 14; // about a move per focus step and one per field
     auto stage = std::make_unique<ScheduledStage>(std::move(*simStage), 97, totalMoves / 2);
     ScheduledStage* stagePtr = stage.get();
@@ -150,11 +164,12 @@ int main(int argc, char** argv) {
     auto camera = std::make_unique<ScheduledCamera>(std::move(*simCamera), 131);
     ScheduledCamera* cameraPtr = camera.get();
 
-    auto doc = parseDocument("[daemon]\ntoken = \"bench-token-0123456789\"\n[scan]\num_per_px = 10\n"
-                             "width = 1280\nheight = 1024\n"
-                             // the built-in atlas only supports matching to ~10 slices
-                             "atlas_mismatch_tolerance = 12\n",
-                             DocumentFormat::Toml, "bench");
+    auto doc =
+        parseDocument("[daemon]\ntoken = \"bench-token-0123456789\"\n[scan]\num_per_px = 10\n"
+                      "width = 1280\nheight = 1024\n"
+                      // the built-in atlas only supports matching to ~10 slices
+                      "atlas_mismatch_tolerance = 12\n",
+                      DocumentFormat::Toml, "bench");
     auto settings = parseDaemonSettings(*doc, "bench");
     if (!settings) {
         std::cerr << settings.error().message << "\n";
@@ -198,13 +213,16 @@ int main(int argc, char** argv) {
     for (;;) {
         std::this_thread::sleep_for(200ms);
         auto r = station.journal().run(*runId);
-        if (!r) return 1;
-        if (r->state == RunState::Finished && station.idle()) break;
+        if (!r)
+            return 1;
+        if (r->state == RunState::Finished && station.idle())
+            break;
         if (r->state == RunState::Paused) {
             // The technician answers the alert: reset the drive's alarm, resume.
             const auto tp = std::chrono::steady_clock::now();
             (void)stagePtr->resetAlarm(1s);
-            if (!station.scanner().resume(*runId)) return 1;
+            if (!station.scanner().resume(*runId))
+                return 1;
             ++resumes;
             pausedS += std::chrono::duration<double>(std::chrono::steady_clock::now() - tp).count();
         }
@@ -213,7 +231,8 @@ int main(int argc, char** argv) {
             return 1;
         }
     }
-    const double runS = std::chrono::duration<double>(std::chrono::steady_clock::now() - tRun).count();
+    const double runS =
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - tRun).count();
     station.stop();
 
     // Completeness: every planned section captured exactly once, registered, files on disk.
@@ -222,45 +241,55 @@ int main(int argc, char** argv) {
     for (const auto& s : *secs) {
         ++total;
         auto caps = station.journal().captures(s.id);
-        if (caps->empty() || (s.state != SectionState::Registered && s.state != SectionState::Damaged)) ++lost;
-        if (caps->size() > 1) ++duplicated;
+        if (caps->empty() ||
+            (s.state != SectionState::Registered && s.state != SectionState::Damaged))
+            ++lost;
+        if (caps->size() > 1)
+            ++duplicated;
         for (const auto& c : *caps)
-            if (!std::filesystem::exists(std::filesystem::path(stateDir) / c.imagePath)) ++missingFiles;
+            if (!std::filesystem::exists(std::filesystem::path(stateDir) / c.imagePath))
+                ++missingFiles;
         if (s.state == SectionState::Damaged) {
             ++damaged;
-            if (s.index % 7 == 3) ++damagedAndTorn; // the painted ones (see the slide above)
+            if (s.index % 7 == 3)
+                ++damagedAndTorn; // the painted ones (see the slide above)
         }
     }
     const bool integrity = static_cast<bool>(station.journal().checkIntegrity());
     std::map<std::string, int> alertKinds;
     if (auto alerts = station.journal().alerts(false))
-        for (const auto& a : *alerts) ++alertKinds[a.kind];
+        for (const auto& a : *alerts)
+            ++alertKinds[a.kind];
     rusage ru{};
     getrusage(RUSAGE_SELF, &ru);
     const auto phases = station.stats().summary();
 
-    std::printf("overnight run: %d slides x %d sections = %d sections (slide generation %.1f s, not counted)\n",
+    std::printf("overnight run: %d slides x %d sections = %d sections (slide generation %.1f s, "
+                "not counted)\n",
                 slides, perSlide, total, genS);
     std::printf("| metric | value |\n|---|---|\n");
     std::printf("| run wall time | %.1f s |\n", runS);
     std::printf("| sections per hour | %.0f |\n", total / runS * 3600.0);
-    std::printf("| lost sections | %d |\n| duplicated captures | %d |\n| images missing on disk | %d |\n",
-                lost, duplicated, missingFiles);
-    std::printf("| flagged damaged | %d, of which painted torn %d (painted torn: %d) |\n", damaged, damagedAndTorn,
-                slides * ((perSlide + 3) / 7));
+    std::printf(
+        "| lost sections | %d |\n| duplicated captures | %d |\n| images missing on disk | %d |\n",
+        lost, duplicated, missingFiles);
+    std::printf("| flagged damaged | %d, of which painted torn %d (painted torn: %d) |\n", damaged,
+                damagedAndTorn, slides * ((perSlide + 3) / 7));
     std::printf("| injected: move timeouts / camera timeouts / alarms | %d / %d / %d |\n",
                 stagePtr->timeouts.load(), cameraPtr->timeouts.load(), stagePtr->alarms.load());
     std::printf("| pauses answered (alarm) | %d |\n", resumes);
     std::printf("| journal integrity | %s |\n", integrity ? "ok" : "FAILED");
     std::string kinds;
-    for (const auto& [k, n] : alertKinds) kinds += (kinds.empty() ? "" : ", ") + k + " " + std::to_string(n);
+    for (const auto& [k, n] : alertKinds)
+        kinds += (kinds.empty() ? "" : ", ") + k + " " + std::to_string(n);
     std::printf("| alerts raised | %s |\n", kinds.c_str());
     std::printf("| peak memory (max RSS) | %.0f MB |\n", ru.ru_maxrss / 1024.0);
-    std::printf("\n| phase | count | mean ms | median ms | max ms | total s |\n|---|---|---|---|---|---|\n");
+    std::printf("\n| phase | count | mean ms | median ms | max ms | total s "
+                "|\n|---|---|---|---|---|---|\n");
     for (const auto& [name, p] : phases.items())
-        std::printf("| %s | %d | %.1f | %.1f | %.1f | %.1f |\n", name.c_str(), p["count"].get<int>(),
-                    p["mean_ms"].get<double>(), p["median_ms"].get<double>(), p["max_ms"].get<double>(),
-                    p["total_s"].get<double>());
+        std::printf("| %s | %d | %.1f | %.1f | %.1f | %.1f |\n", name.c_str(),
+                    p["count"].get<int>(), p["mean_ms"].get<double>(), p["median_ms"].get<double>(),
+                    p["max_ms"].get<double>(), p["total_s"].get<double>());
     (void)pausedS;
     return lost == 0 && duplicated == 0 && missingFiles == 0 && integrity ? 0 : 1;
 }

@@ -73,7 +73,9 @@ struct Rig {
     ~Rig() { std::filesystem::remove_all(dir); }
     SectionSteps steps() {
         return SectionSteps({*stage, *camera, stats, dir,
-                             [this](const std::filesystem::path&) -> core::Result<std::uint64_t> { return freeBytes; },
+                             [this](const std::filesystem::path&) -> core::Result<std::uint64_t> {
+                                 return freeBytes;
+                             },
                              nullptr},
                             settings);
     }
@@ -94,19 +96,24 @@ daemon::SectionRecord section(double widthUm, double heightUm) {
 TEST(RetryPolicy, RetriesAllButCancelledOutOfRangeAndAlarm) {
     for (ErrorCode code : {ErrorCode::Cancelled, ErrorCode::OutOfRange, ErrorCode::Alarm})
         EXPECT_FALSE(daemon::worthRetrying(makeError(code, ""))) << core::toString(code);
-    for (ErrorCode code : {ErrorCode::Timeout, ErrorCode::Disconnected, ErrorCode::IoError, ErrorCode::Internal})
+    for (ErrorCode code :
+         {ErrorCode::Timeout, ErrorCode::Disconnected, ErrorCode::IoError, ErrorCode::Internal})
         EXPECT_TRUE(daemon::worthRetrying(makeError(code, ""))) << core::toString(code);
 }
 
 TEST(RetryPolicy, MovesGetOneAttemptPerRetryButNeverAfterAnAlarm) {
     Rig rig;
-    rig.faultyStage->failNext(sim::FaultyStage::Op::Move, makeError(ErrorCode::Timeout, "x drive timeout"));
-    EXPECT_TRUE(daemon::moveWithRetries(*rig.stage, {100, 100, kFocusZ}, 1s, 1)) << "the retry settles";
-    rig.faultyStage->failNext(sim::FaultyStage::Op::Move, makeError(ErrorCode::Timeout, "x drive timeout"));
+    rig.faultyStage->failNext(sim::FaultyStage::Op::Move,
+                              makeError(ErrorCode::Timeout, "x drive timeout"));
+    EXPECT_TRUE(daemon::moveWithRetries(*rig.stage, {100, 100, kFocusZ}, 1s, 1))
+        << "the retry settles";
+    rig.faultyStage->failNext(sim::FaultyStage::Op::Move,
+                              makeError(ErrorCode::Timeout, "x drive timeout"));
     auto none = daemon::moveWithRetries(*rig.stage, {100, 100, kFocusZ}, 1s, 0);
     ASSERT_FALSE(none);
     EXPECT_EQ(none.error().code, ErrorCode::Timeout);
-    rig.faultyStage->failNext(sim::FaultyStage::Op::Move, makeError(ErrorCode::Alarm, "z drive alarm 0x42"));
+    rig.faultyStage->failNext(sim::FaultyStage::Op::Move,
+                              makeError(ErrorCode::Alarm, "z drive alarm 0x42"));
     auto alarm = daemon::moveWithRetries(*rig.stage, {100, 100, kFocusZ}, 1s, 3);
     ASSERT_FALSE(alarm) << "an alarm was retried (the next attempt would have settled)";
     EXPECT_EQ(alarm.error().code, ErrorCode::Alarm);
@@ -116,7 +123,8 @@ TEST(RetryPolicy, CapturesAreRetriedAfterReinitialisingTheCamera) {
     Rig rig;
     ASSERT_TRUE(rig.camera->configure(rig.settings.camera, 1s));
     rig.faultyCamera->timeoutNext(2);
-    EXPECT_TRUE(daemon::captureWithRetries(*rig.camera, 1s, 2, rig.settings.camera)) << "third attempt";
+    EXPECT_TRUE(daemon::captureWithRetries(*rig.camera, 1s, 2, rig.settings.camera))
+        << "third attempt";
     rig.faultyCamera->timeoutNext(3);
     auto failed = daemon::captureWithRetries(*rig.camera, 1s, 2, rig.settings.camera);
     ASSERT_FALSE(failed);
@@ -145,9 +153,10 @@ TEST(SectionSteps, ALargeSectionIsCapturedAsTilesAndStitched) {
     EXPECT_EQ(one->image.cols, 320);
     EXPECT_EQ(one->image.rows, 240);
     EXPECT_TRUE(told.empty());
-    auto tiled = steps.capture(section(1000, 700), kFocusZ, [&](const std::string& s) { told = s; });
+    auto tiled =
+        steps.capture(section(1000, 700), kFocusZ, [&](const std::string& s) { told = s; });
     ASSERT_TRUE(tiled) << tiled.fault().error.message;
-    EXPECT_EQ(tiled->tiles, 4); // 2 x 2 fields of 640 x 480 um with 10 % overlap
+    EXPECT_EQ(tiled->tiles, 4);        // 2 x 2 fields of 640 x 480 um with 10 % overlap
     EXPECT_GE(tiled->image.cols, 500); // >= 1000 um at 2 um/px
     EXPECT_GE(tiled->image.rows, 350);
     EXPECT_EQ(told, "stitching 4 tiles");
@@ -206,12 +215,14 @@ TEST(SectionSteps, AnImageNoCaptureRefersToIsReplacedOneACaptureRefersToNever) {
     EXPECT_EQ(rel, std::filesystem::path("runs/3/01-slide-01/1-s1-a1.ome.tif"));
     EXPECT_FALSE(steps.writeImage(rel, *captured, "r / slide-01 / s1", *used, *rig.journal));
     EXPECT_TRUE(daemon::readOmeTiff(rig.dir / rel));
-    EXPECT_FALSE(steps.writeImage(rel, *captured, "again", *used, *rig.journal)) << "an orphan is replaced";
+    EXPECT_FALSE(steps.writeImage(rel, *captured, "again", *used, *rig.journal))
+        << "an orphan is replaced";
 
     daemon::PlannedSection planned;
     planned.slideName = "slide-01";
     planned.name = "s1";
-    auto runId = rig.journal->createRun("r", nlohmann::json::object(), nlohmann::json::object(), {planned});
+    auto runId =
+        rig.journal->createRun("r", nlohmann::json::object(), nlohmann::json::object(), {planned});
     ASSERT_TRUE(runId);
     auto sec = rig.journal->nextSectionToCapture(*runId);
     ASSERT_TRUE(sec && *sec);

@@ -85,7 +85,8 @@ TEST_F(StationTest, AWholeRunStoresEverySectionRegistersItAndFlagsTheTornOne) {
     EXPECT_TRUE(rig_.station->journal().checkIntegrity());
     // Phases were timed.
     auto phases = rig_.station->stats().summary();
-    for (const char* p : {"move", "focus", "capture", "write", "register"}) EXPECT_TRUE(phases.contains(p)) << p;
+    for (const char* p : {"move", "focus", "capture", "write", "register"})
+        EXPECT_TRUE(phases.contains(p)) << p;
 
     // Export: one row per section, CSV and JSON.
     auto csv = rig_.station->exportRun(*id, "csv");
@@ -115,12 +116,16 @@ TEST_F(StationTest, AStageAlarmPausesTheRunUntilResumed) {
     EXPECT_NE(paused.reason.find("stage_fault"), std::string::npos) << paused.reason;
     ASSERT_EQ(alertsOf("stage_fault").size(), 1u);
     EXPECT_EQ(alertsOf("run_paused").size(), 1u);
-    EXPECT_EQ(rig_.station->journal().captures((*rig_.station->journal().sections(*id))[0].id)->size(), 0u);
+    EXPECT_EQ(
+        rig_.station->journal().captures((*rig_.station->journal().sections(*id))[0].id)->size(),
+        0u);
     // The technician clears the alarm and resumes (the scan loop is idle: the run is paused).
     ASSERT_TRUE(rig_.stage->resetAlarm(1s));
     ASSERT_TRUE(rig_.station->scanner().resume(*id));
     waitRun(*id, RunState::Finished);
-    EXPECT_EQ(rig_.station->journal().captures((*rig_.station->journal().sections(*id))[0].id)->size(), 1u);
+    EXPECT_EQ(
+        rig_.station->journal().captures((*rig_.station->journal().sections(*id))[0].id)->size(),
+        1u);
 }
 
 TEST_F(StationTest, CameraTimeoutsBeyondTheRetriesPauseTheRunAndRetriesWithinThemDoNot) {
@@ -171,7 +176,8 @@ TEST_F(StationTest, PlansAreValidatedAgainstTheStationBeforeAnythingIsStored) {
     auto r = rig_.station->submitPlan(plan, "plan.toml");
     ASSERT_FALSE(r);
     EXPECT_EQ(r.error().code, core::ErrorCode::InvalidArgument);
-    EXPECT_NE(r.error().message.find("slides[0].sections[0].x_um"), std::string::npos) << r.error().message;
+    EXPECT_NE(r.error().message.find("slides[0].sections[0].x_um"), std::string::npos)
+        << r.error().message;
     plan = planFor({0});
     plan["slides"][0]["sections"][0]["atlas_slice"] = 500;
     r = rig_.station->submitPlan(plan, "plan.toml");
@@ -196,12 +202,14 @@ TEST_F(StationTest, HttpApiServesReadsAndGuardsControl) {
     // The planned slices of the front and back sections swapped (mounted out of order, 24
     // slices apart): both get a warning.
     auto swapped = planFor({0, 3});
-    std::swap(swapped["slides"][0]["sections"][0]["atlas_slice"], swapped["slides"][0]["sections"][1]["atlas_slice"]);
+    std::swap(swapped["slides"][0]["sections"][0]["atlas_slice"],
+              swapped["slides"][0]["sections"][1]["atlas_slice"]);
     const std::string plan = swapped.dump();
     auto noToken = cli.Post("/api/runs", plan, "application/json");
     ASSERT_TRUE(noToken);
     EXPECT_EQ(noToken->status, 401);
-    auto wrong = cli.Post("/api/runs", httplib::Headers{{"Authorization", "Bearer nope"}}, plan, "application/json");
+    auto wrong = cli.Post("/api/runs", httplib::Headers{{"Authorization", "Bearer nope"}}, plan,
+                          "application/json");
     EXPECT_EQ(wrong->status, 401);
     EXPECT_TRUE(rig_.station->journal().runs()->empty());
 
@@ -229,8 +237,10 @@ TEST_F(StationTest, HttpApiServesReadsAndGuardsControl) {
     EXPECT_EQ(dj["captures"].size(), 1u);
     EXPECT_EQ(dj["registrations"].size(), 1u);
     for (const auto& sec : sj) {
-        const auto d = nlohmann::json::parse(cli.Get("/api/sections/" + std::to_string(sec["id"].get<std::int64_t>()))->body);
-        EXPECT_NE(d["registrations"][0]["warning"].get<std::string>().find("mounted out of order"), std::string::npos)
+        const auto d = nlohmann::json::parse(
+            cli.Get("/api/sections/" + std::to_string(sec["id"].get<std::int64_t>()))->body);
+        EXPECT_NE(d["registrations"][0]["warning"].get<std::string>().find("mounted out of order"),
+                  std::string::npos)
             << sec["name"];
     }
     auto csv = cli.Get("/api/runs/" + std::to_string(runId) + "/export?format=csv");
@@ -241,19 +251,25 @@ TEST_F(StationTest, HttpApiServesReadsAndGuardsControl) {
     EXPECT_EQ(cli.Get("/api/sections/abc")->status, 400);
     EXPECT_EQ(cli.Get("/api/sections/99999")->status, 404);
     for (const char* evil : {"/api/runs/1%2F..%2F..%2Fjournal.sqlite", "/api/../journal.sqlite",
-                             "/api/sections/..%2Fjournal.sqlite", "/journal.sqlite", "/api/runs/1/../../journal.sqlite"}) {
+                             "/api/sections/..%2Fjournal.sqlite", "/journal.sqlite",
+                             "/api/runs/1/../../journal.sqlite"}) {
         auto r = cli.Get(evil);
         ASSERT_TRUE(r) << evil;
         EXPECT_TRUE(r->status == 400 || r->status == 404) << evil << " -> " << r->status;
         EXPECT_EQ(r->body.find("SQLite format"), std::string::npos) << evil;
     }
-    EXPECT_EQ(cli.Get("/api/runs/" + std::to_string(runId) + "/export?format=../../etc/passwd")->status, 400);
+    EXPECT_EQ(
+        cli.Get("/api/runs/" + std::to_string(runId) + "/export?format=../../etc/passwd")->status,
+        400);
 
     // Control: pause a finished run is a conflict; acknowledging an alert works once.
-    EXPECT_EQ(cli.Post("/api/runs/" + std::to_string(runId) + "/pause", auth, "", "text/plain")->status, 409);
+    EXPECT_EQ(
+        cli.Post("/api/runs/" + std::to_string(runId) + "/pause", auth, "", "text/plain")->status,
+        409);
     auto alerts = nlohmann::json::parse(cli.Get("/api/alerts?open=1")->body);
     ASSERT_FALSE(alerts.empty());
-    const std::string ackPath = "/api/alerts/" + std::to_string(alerts[0]["id"].get<std::int64_t>()) + "/ack";
+    const std::string ackPath =
+        "/api/alerts/" + std::to_string(alerts[0]["id"].get<std::int64_t>()) + "/ack";
     EXPECT_EQ(cli.Post(ackPath, "{\"action\":\"accept\"}", "application/json")->status, 401);
     EXPECT_EQ(cli.Post(ackPath, auth, "{\"action\": 5}", "application/json")->status, 400);
     EXPECT_EQ(cli.Post(ackPath, auth, "{\"action\":\"accept\"}", "application/json")->status, 200);
@@ -297,7 +313,8 @@ TEST_F(StationTest, HttpApiStreamsEventsAndServesImagesAndRegions) {
     for (int i = 0; i < 200; ++i) {
         {
             std::lock_guard lock(mu);
-            if (stream.find(": connected") != std::string::npos) break;
+            if (stream.find(": connected") != std::string::npos)
+                break;
         }
         std::this_thread::sleep_for(10ms); // waiting for the greeting
     }
@@ -309,7 +326,8 @@ TEST_F(StationTest, HttpApiStreamsEventsAndServesImagesAndRegions) {
     for (int i = 0; i < 500; ++i) {
         {
             std::lock_guard lock(mu);
-            if (stream.find("finished") != std::string::npos) break;
+            if (stream.find("finished") != std::string::npos)
+                break;
         }
         std::this_thread::sleep_for(10ms); // waiting for the last event to arrive
     }
@@ -317,28 +335,31 @@ TEST_F(StationTest, HttpApiStreamsEventsAndServesImagesAndRegions) {
     // An acknowledgement is an event too; it also ends the reader if it still waits.
     auto alerts = nlohmann::json::parse(cli.Get("/api/alerts?open=1")->body);
     ASSERT_FALSE(alerts.empty());
-    EXPECT_EQ(cli.Post("/api/alerts/" + std::to_string(alerts[0]["id"].get<std::int64_t>()) + "/ack", auth,
-                       "{\"action\":\"accept\"}", "application/json")
-                  ->status,
-              200);
+    EXPECT_EQ(
+        cli.Post("/api/alerts/" + std::to_string(alerts[0]["id"].get<std::int64_t>()) + "/ack",
+                 auth, "{\"action\":\"accept\"}", "application/json")
+            ->status,
+        200);
     reader.join();
     {
         std::lock_guard lock(mu);
-        for (const char* ev : {"event: section_captured", "event: section_registered", "event: section_damaged",
-                               "event: alert_raised", "event: run_state"})
+        for (const char* ev : {"event: section_captured", "event: section_registered",
+                               "event: section_damaged", "event: alert_raised", "event: run_state"})
             EXPECT_NE(stream.find(ev), std::string::npos) << ev << " missing from:\n" << stream;
         EXPECT_NE(stream.find("data: {"), std::string::npos);
     }
 
     // Images, scaled as asked and never up.
     auto decode = [](const httplib::Result& r) {
-        return cv::imdecode(std::vector<uchar>(r->body.begin(), r->body.end()), cv::IMREAD_UNCHANGED);
+        return cv::imdecode(std::vector<uchar>(r->body.begin(), r->body.end()),
+                            cv::IMREAD_UNCHANGED);
     };
     auto live = cli.Get("/api/live.jpg?width=320");
     ASSERT_EQ(live->status, 200);
     EXPECT_EQ(live->get_header_value("Content-Type"), "image/jpeg");
     EXPECT_EQ(decode(live).cols, 320);
-    auto secs = nlohmann::json::parse(cli.Get("/api/runs/" + std::to_string(runId) + "/sections")->body);
+    auto secs =
+        nlohmann::json::parse(cli.Get("/api/runs/" + std::to_string(runId) + "/sections")->body);
     ASSERT_EQ(secs.size(), 2u);
     const std::string torn = std::to_string(secs[1]["id"].get<std::int64_t>());
     auto image = cli.Get("/api/sections/" + torn + "/image.jpg?width=200");
@@ -349,7 +370,8 @@ TEST_F(StationTest, HttpApiStreamsEventsAndServesImagesAndRegions) {
     const cv::Mat ov = decode(overlay);
     EXPECT_EQ(ov.cols, 300);
     EXPECT_EQ(ov.channels(), 3);
-    EXPECT_EQ(decode(cli.Get("/api/sections/" + torn + "/image.jpg?width=4000")).cols, 1280) << "never scaled up";
+    EXPECT_EQ(decode(cli.Get("/api/sections/" + torn + "/image.jpg?width=4000")).cols, 1280)
+        << "never scaled up";
     for (const char* bad : {"?width=5", "?width=abc", "?width=", "?width=99999"})
         EXPECT_EQ(cli.Get("/api/sections/" + torn + "/image.jpg" + bad)->status, 400) << bad;
     EXPECT_EQ(cli.Get("/api/sections/99999/overlay.png")->status, 404);
@@ -365,7 +387,8 @@ TEST_F(StationTest, HttpApiStreamsEventsAndServesImagesAndRegions) {
     const auto cj = nlohmann::json::parse(centre->body);
     EXPECT_GT(cj["id"].get<int>(), 0) << "the centre of a section lies in the brain";
     EXPECT_FALSE(cj["name"].get<std::string>().empty());
-    EXPECT_EQ(nlohmann::json::parse(cli.Get("/api/sections/" + torn + "/region?x=2&y=2")->body)["id"], 0)
+    EXPECT_EQ(
+        nlohmann::json::parse(cli.Get("/api/sections/" + torn + "/region?x=2&y=2")->body)["id"], 0)
         << "the corner is glass";
     EXPECT_EQ(cli.Get("/api/sections/" + torn + "/region?x=5000&y=2")->status, 400);
     EXPECT_EQ(cli.Get("/api/sections/" + torn + "/region?y=2")->status, 400);
@@ -381,7 +404,8 @@ TEST_F(StationTest, HttpApiStreamsEventsAndServesImagesAndRegions) {
     auto page = cli.Get("/");
     ASSERT_EQ(page->status, 200);
     EXPECT_EQ(page->get_header_value("Content-Type"), "text/html; charset=utf-8");
-    EXPECT_NE(page->get_header_value("Content-Security-Policy").find("default-src 'self'"), std::string::npos);
+    EXPECT_NE(page->get_header_value("Content-Security-Policy").find("default-src 'self'"),
+              std::string::npos);
     EXPECT_NE(page->body.find("<title>slicestation</title>"), std::string::npos);
     EXPECT_EQ(page->body.find("http://"), std::string::npos) << "no external resources";
     EXPECT_EQ(page->body.find("https://"), std::string::npos) << "no external resources";
@@ -415,22 +439,25 @@ struct DeliveredAlerts {
     }
     std::size_t count(const std::string& kind) {
         std::lock_guard lock(mutex);
-        return static_cast<std::size_t>(
-            std::count_if(alerts.begin(), alerts.end(), [&](const AlertRecord& a) { return a.kind == kind; }));
+        return static_cast<std::size_t>(std::count_if(
+            alerts.begin(), alerts.end(), [&](const AlertRecord& a) { return a.kind == kind; }));
     }
     bool waitFor(const std::string& kind, std::chrono::seconds limit = 60s) {
         std::unique_lock lock(mutex);
         return cv.wait_for(lock, limit, [&] {
-            return std::any_of(alerts.begin(), alerts.end(), [&](const AlertRecord& a) { return a.kind == kind; });
+            return std::any_of(alerts.begin(), alerts.end(),
+                               [&](const AlertRecord& a) { return a.kind == kind; });
         });
     }
 };
 
 std::vector<std::filesystem::path> imagesUnder(const std::filesystem::path& dir) {
     std::vector<std::filesystem::path> out;
-    if (!std::filesystem::exists(dir)) return out;
+    if (!std::filesystem::exists(dir))
+        return out;
     for (const auto& e : std::filesystem::recursive_directory_iterator(dir))
-        if (e.path().filename().string().ends_with(".ome.tif")) out.push_back(e.path());
+        if (e.path().filename().string().ends_with(".ome.tif"))
+            out.push_back(e.path());
     return out;
 }
 
@@ -448,7 +475,8 @@ public:
     JournalFillsOnceRunning(testing_vfs::FullDiskVfs& vfs, Notifier& notifier) : vfs_(vfs) {
         auto filled = std::make_shared<std::atomic<bool>>(false);
         notifier.addListener([&vfs, filled](const StationEvent& e) {
-            if (e.type == "run_state" && e.data.value("state", "") == "running" && !filled->exchange(true))
+            if (e.type == "run_state" && e.data.value("state", "") == "running" &&
+                !filled->exchange(true))
                 vfs.setFull(true);
         });
     }
@@ -467,11 +495,12 @@ TEST_F(StationTest, NamesThatLookAlikeAsFileNamesAreStoredInDistinctFiles) {
     // "s 1" and "s_1", "s01é" and "s01è" on one slide, and slides "slide 1" and "slide_1":
     // each pair has one safe name, and each image went to one file before. ("s/1", the
     // audit's example, is now refused at submit: a name holds no '/'.)
-    nlohmann::json plan = {{"name", "look-alike"},
-                           {"slides",
-                            {{{"name", "slide 1"}, {"sections", {sectionAt(0, "s 1"), sectionAt(1, "s_1")}}},
-                             {{"name", "slide_1"},
-                              {"sections", {sectionAt(2, "s 1"), sectionAt(3, "s01é"), sectionAt(1, "s01è")}}}}}};
+    nlohmann::json plan = {
+        {"name", "look-alike"},
+        {"slides",
+         {{{"name", "slide 1"}, {"sections", {sectionAt(0, "s 1"), sectionAt(1, "s_1")}}},
+          {{"name", "slide_1"},
+           {"sections", {sectionAt(2, "s 1"), sectionAt(3, "s01é"), sectionAt(1, "s01è")}}}}}};
     auto id = rig_.station->submitPlan(plan, "plan");
     ASSERT_TRUE(id) << id.error().message;
     rig_.station->start();
@@ -554,7 +583,8 @@ TEST_F(StationTest, AFullDiskPausesTheRunOnceAndKeepsTheAlertUntilItCanBeStored)
     rig_.freeBytes = 100ull << 30;
     waitRun(*id, RunState::Paused);
     const auto deadline = std::chrono::steady_clock::now() + 30s;
-    while (!rig_.station->notifier().heldAlerts().empty() && std::chrono::steady_clock::now() < deadline)
+    while (!rig_.station->notifier().heldAlerts().empty() &&
+           std::chrono::steady_clock::now() < deadline)
         std::this_thread::sleep_for(50ms); // polling the notifier, bounded
     EXPECT_TRUE(rig_.station->notifier().heldAlerts().empty());
     auto lowDisk = alertsOf("low_disk");
@@ -624,8 +654,8 @@ TEST_F(StationTest, RestartRemovesTheTemporaryFilesOfEveryWriter) {
     fs::create_directories(slideDir);
     fs::create_directories(rig_.dir / "atlas-builtin-100um");
     const std::vector<fs::path> leftovers = {
-        slideDir / ".7-s1-a1.ome.tif.partial",                        // writeOmeTiffAtomic
-        slideDir / ".7-s1-a1.overlay.png.tmp.4242.3.81234",            // core image writers
+        slideDir / ".7-s1-a1.ome.tif.partial",                          // writeOmeTiffAtomic
+        slideDir / ".7-s1-a1.overlay.png.tmp.4242.3.81234",             // core image writers
         rig_.dir / "atlas-builtin-100um" / ".slice-003.tif.tmp.17.0.5", // core, atlas stack
         slideDir / "7-s1-a1.result.json.tmp-4242",                      // writeFileAtomically
     };
@@ -633,10 +663,14 @@ TEST_F(StationTest, RestartRemovesTheTemporaryFilesOfEveryWriter) {
         slideDir / "7-s1-a1.ome.tif", slideDir / "7-s1-a1.overlay.png", slideDir / "tmp-notes.txt",
         slideDir / ".partial",        slideDir / "x.tmp-abc",           slideDir / ".a.tmp.1.2",
     };
-    for (const auto& p : leftovers) std::ofstream(p) << "interrupted";
-    for (const auto& p : kept) std::ofstream(p) << "data";
+    for (const auto& p : leftovers)
+        std::ofstream(p) << "interrupted";
+    for (const auto& p : kept)
+        std::ofstream(p) << "data";
     build();
-    for (const auto& p : leftovers) EXPECT_FALSE(fs::exists(p)) << p;
-    for (const auto& p : kept) EXPECT_TRUE(fs::exists(p)) << p;
+    for (const auto& p : leftovers)
+        EXPECT_FALSE(fs::exists(p)) << p;
+    for (const auto& p : kept)
+        EXPECT_TRUE(fs::exists(p)) << p;
     EXPECT_TRUE(fs::exists(rig_.dir / "journal.sqlite"));
 }

@@ -48,7 +48,8 @@ TEST(DiskSpace, AgreesWithStatvfs) {
 }
 
 TEST(DiskSpace, FollowsWritesOnASmallFileSystem) {
-    if (::geteuid() != 0) GTEST_SKIP() << "needs root to mount a tmpfs";
+    if (::geteuid() != 0)
+        GTEST_SKIP() << "needs root to mount a tmpfs";
     ScratchDir dir;
     const fs::path mnt = dir.path() / "m";
     fs::create_directories(mnt);

@@ -77,14 +77,15 @@ TEST_F(JournalTest, RunLifecycleAndPlanOrder) {
     for (;;) {
         auto s = (*j)->nextSectionToCapture(*id);
         ASSERT_TRUE(s);
-        if (!*s) break;
+        if (!*s)
+            break;
         order.push_back((*s)->slideName + "/" + (*s)->name);
         auto c = (*j)->recordCapture(captureOf((*s)->id));
         ASSERT_TRUE(c) << c.error().message;
         EXPECT_EQ((*j)->capture(*c)->attempt, 1);
     }
-    EXPECT_EQ(order, (std::vector<std::string>{"slide-1/s1", "slide-1/s2", "slide-1/s3", "slide-2/s1",
-                                               "slide-2/s2", "slide-2/s3"}));
+    EXPECT_EQ(order, (std::vector<std::string>{"slide-1/s1", "slide-1/s2", "slide-1/s3",
+                                               "slide-2/s1", "slide-2/s2", "slide-2/s3"}));
     auto waiting = (*j)->capturesAwaitingRegistration();
     ASSERT_TRUE(waiting);
     ASSERT_EQ(waiting->size(), 6u);

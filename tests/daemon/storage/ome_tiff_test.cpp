@@ -57,7 +57,8 @@ public:
         mounted_ = ::mount("tmpfs", at_.c_str(), "tmpfs", flags, options.c_str()) == 0;
     }
     ~TmpfsMount() {
-        if (mounted_) ::umount2(at_.c_str(), MNT_DETACH);
+        if (mounted_)
+            ::umount2(at_.c_str(), MNT_DETACH);
     }
     bool mounted() const { return mounted_; }
 
@@ -68,7 +69,8 @@ private:
 
 std::vector<std::string> listDir(const fs::path& dir) {
     std::vector<std::string> names;
-    for (const auto& e : fs::directory_iterator(dir)) names.push_back(e.path().filename().string());
+    for (const auto& e : fs::directory_iterator(dir))
+        names.push_back(e.path().filename().string());
     std::sort(names.begin(), names.end());
     return names;
 }
@@ -94,10 +96,12 @@ OmeTiffInfo sampleInfo() {
 
 std::string tiffDescription(const fs::path& path) {
     TIFF* tif = TIFFOpen(path.c_str(), "r");
-    if (tif == nullptr) return {};
+    if (tif == nullptr)
+        return {};
     const char* d = nullptr;
     std::string out;
-    if (TIFFGetField(tif, TIFFTAG_IMAGEDESCRIPTION, &d) == 1 && d != nullptr) out = d;
+    if (TIFFGetField(tif, TIFFTAG_IMAGEDESCRIPTION, &d) == 1 && d != nullptr)
+        out = d;
     TIFFClose(tif);
     return out;
 }
@@ -121,9 +125,11 @@ void writeTiffWithDescription(const fs::path& path, const std::string& descripti
 std::string runCommand(const std::string& command) {
     std::string out;
     FILE* p = ::popen(command.c_str(), "r");
-    if (p == nullptr) return out;
+    if (p == nullptr)
+        return out;
     std::array<char, 256> buf{};
-    while (std::fgets(buf.data(), buf.size(), p) != nullptr) out += buf.data();
+    while (std::fgets(buf.data(), buf.size(), p) != nullptr)
+        out += buf.data();
     ::pclose(p);
     return out;
 }
@@ -208,7 +214,8 @@ TEST(OmeTiff, XmlStatesPixelSizePositionChannelAndDate) {
     const auto xpath = [&](const std::string& expr) {
         std::string out =
             runCommand("xmllint --xpath \"" + expr + "\" '" + xmlFile.string() + "' 2>&1");
-        while (!out.empty() && out.back() == '\n') out.pop_back();
+        while (!out.empty() && out.back() == '\n')
+            out.pop_back();
         return out;
     };
     const std::string pixels = "//*[local-name()='Pixels']";
@@ -296,7 +303,8 @@ TEST(OmeTiff, ReadOnlyDirectoryLeavesNothing) {
     if (::geteuid() == 0) {
         // root ignores permission bits: a read-only file system is the honest test.
         mount.emplace(ro, MS_RDONLY, "size=1m");
-        if (!mount->mounted()) GTEST_SKIP() << "running as root without permission to mount";
+        if (!mount->mounted())
+            GTEST_SKIP() << "running as root without permission to mount";
     } else {
         fs::create_directories(ro);
         fs::permissions(ro, fs::perms::owner_read | fs::perms::owner_exec);
@@ -306,18 +314,21 @@ TEST(OmeTiff, ReadOnlyDirectoryLeavesNothing) {
     EXPECT_EQ(r.error().code, ErrorCode::IoError);
     EXPECT_TRUE(r.error().sysErrno == EROFS || r.error().sysErrno == EACCES) << r.error().message;
     EXPECT_TRUE(listDir(ro).empty());
-    if (!mount) fs::permissions(ro, fs::perms::owner_all);
+    if (!mount)
+        fs::permissions(ro, fs::perms::owner_all);
 }
 
 TEST(OmeTiff, DiskFullReportsEnospcAndLeavesNothing) {
-    if (::geteuid() != 0) GTEST_SKIP() << "needs root to mount a small tmpfs";
+    if (::geteuid() != 0)
+        GTEST_SKIP() << "needs root to mount a small tmpfs";
     TempDir dir;
     const fs::path small = dir.path() / "small";
     TmpfsMount mount(small, 0, "size=64k");
-    if (!mount.mounted()) GTEST_SKIP() << "not permitted to mount a tmpfs";
+    if (!mount.mounted())
+        GTEST_SKIP() << "not permitted to mount a tmpfs";
     // Random 16-bit pixels do not compress: 1 MB of data on a 64 KiB file system.
-    auto r = daemon::writeOmeTiffAtomic(small / "big.ome.tif",
-                                        randomImage(CV_16UC1, 1024, 512, 3), sampleInfo());
+    auto r = daemon::writeOmeTiffAtomic(small / "big.ome.tif", randomImage(CV_16UC1, 1024, 512, 3),
+                                        sampleInfo());
     ASSERT_FALSE(r);
     EXPECT_EQ(r.error().code, ErrorCode::IoError);
     EXPECT_EQ(r.error().sysErrno, ENOSPC) << r.error().message;
@@ -351,7 +362,8 @@ TEST(OmeTiff, AnExistingFileIsNeverReplaced) {
     auto read = daemon::readOmeTiff(file);
     ASSERT_TRUE(read);
     EXPECT_EQ(cv::norm(read->image, first, cv::NORM_INF), 0.0);
-    EXPECT_EQ(listDir(dir.path()), (std::vector<std::string>{".r.ome.tif.partial", ".r.ome.tif.tmp.1.2.3", "r.ome.tif"}))
+    EXPECT_EQ(listDir(dir.path()),
+              (std::vector<std::string>{".r.ome.tif.partial", ".r.ome.tif.tmp.1.2.3", "r.ome.tif"}))
         << "the writer's own temporary is removed";
 
     // Once the caller has removed the old file (its decision), the new one is written.
@@ -367,13 +379,15 @@ TEST(OmeTiff, AFailingWriteReportsItsErrnoAndLeavesNothing) {
     // The injected fault goes through the writer's real error path (no root, no mount).
     TempDir dir;
     daemon::setOmeTiffWriteFaultForTesting(ENOSPC);
-    auto r = daemon::writeOmeTiffAtomic(dir.path() / "full.ome.tif", randomImage(CV_8UC1), sampleInfo());
+    auto r =
+        daemon::writeOmeTiffAtomic(dir.path() / "full.ome.tif", randomImage(CV_8UC1), sampleInfo());
     daemon::setOmeTiffWriteFaultForTesting(0);
     ASSERT_FALSE(r);
     EXPECT_EQ(r.error().code, ErrorCode::IoError);
     EXPECT_EQ(r.error().sysErrno, ENOSPC) << r.error().message;
     EXPECT_TRUE(listDir(dir.path()).empty());
-    EXPECT_TRUE(daemon::writeOmeTiffAtomic(dir.path() / "full.ome.tif", randomImage(CV_8UC1), sampleInfo()));
+    EXPECT_TRUE(daemon::writeOmeTiffAtomic(dir.path() / "full.ome.tif", randomImage(CV_8UC1),
+                                           sampleInfo()));
 }
 
 TEST(OmeTiff, ReadErrors) {
@@ -395,7 +409,8 @@ TEST(OmeTiff, ReadErrors) {
     const std::string head = "<?xml version=\"1.0\"?><OME "
                              "xmlns=\"http://www.openmicroscopy.org/Schemas/OME/2016-06\">"
                              "<Image ID=\"Image:0\"><Pixels ID=\"Pixels:0\" Type=\"uint8\" ";
-    writeTiffWithDescription(dir.path() / "nosize.tif", head + "SizeX=\"4\" SizeY=\"3\"/></Image></OME>");
+    writeTiffWithDescription(dir.path() / "nosize.tif",
+                             head + "SizeX=\"4\" SizeY=\"3\"/></Image></OME>");
     auto noSize = daemon::readOmeTiff(dir.path() / "nosize.tif");
     ASSERT_FALSE(noSize);
     EXPECT_EQ(noSize.error().code, ErrorCode::IoError);
@@ -464,11 +479,12 @@ TEST(OmeXml, OtherWritersUnitsAreConverted) {
     EXPECT_EQ(r->info.channel, "GFP");
     EXPECT_EQ(r->info.name, "a&b\xc3\xa9");
 
-    EXPECT_EQ(daemon::parseOmeXml("<OME><Image><Pixels SizeX=\"1\" SizeY=\"1\" "
-                                  "PhysicalSizeX=\"1\" PhysicalSizeXUnit=\"furlong\"/></Image></OME>")
-                  .error()
-                  .code,
-              ErrorCode::IoError);
+    EXPECT_EQ(
+        daemon::parseOmeXml("<OME><Image><Pixels SizeX=\"1\" SizeY=\"1\" "
+                            "PhysicalSizeX=\"1\" PhysicalSizeXUnit=\"furlong\"/></Image></OME>")
+            .error()
+            .code,
+        ErrorCode::IoError);
     EXPECT_EQ(daemon::parseOmeXml("<OME><Image><Pixels SizeX=\"1\" SizeY=\"1\" "
                                   "PhysicalSizeX=\"-1\"/></Image></OME>")
                   .error()
@@ -476,10 +492,10 @@ TEST(OmeXml, OtherWritersUnitsAreConverted) {
               ErrorCode::IoError);
     // Found by fuzz_small_formats: a size an int cannot hold was cast anyway (undefined).
     for (const char* size : {"16222222222222222222222222222222222222222222222222222222", "-3", "0", "2.5", "nan"}) {
-        const auto r = daemon::parseOmeXml(std::string("<OME><Image><Pixels SizeX=\"") + size +
-                                           "\" SizeY=\"1\" PhysicalSizeX=\"1\"/></Image></OME>");
-        ASSERT_FALSE(r) << size;
-        EXPECT_NE(r.error().message.find("SizeX"), std::string::npos) << r.error().message;
+        const auto refused = daemon::parseOmeXml(std::string("<OME><Image><Pixels SizeX=\"") + size +
+                                                 "\" SizeY=\"1\" PhysicalSizeX=\"1\"/></Image></OME>");
+        ASSERT_FALSE(refused) << size;
+        EXPECT_NE(refused.error().message.find("SizeX"), std::string::npos) << refused.error().message;
     }
     EXPECT_FALSE(daemon::parseOmeXml("<NotOme/>"));
     EXPECT_FALSE(daemon::parseOmeXml("<OME><Image></OME>"));

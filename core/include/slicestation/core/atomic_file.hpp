@@ -30,11 +30,13 @@ using FillTemporary = std::function<Result<void>(int fd, const std::filesystem::
 /// failure the temporary file is removed and the target is untouched.
 /// \return fill's error; NotFound (the directory does not exist), IoError with sysErrno naming
 ///         the path (ENOSPC, EEXIST under Replace::Never, EACCES, ...).
-[[nodiscard]] Result<void> replaceAtomically(const std::filesystem::path& path, const FillTemporary& fill,
+[[nodiscard]] Result<void> replaceAtomically(const std::filesystem::path& path,
+                                             const FillTemporary& fill,
                                              Replace mode = Replace::Allowed);
 
 /// replaceAtomically with `bytes` as the content.
-[[nodiscard]] Result<void> writeFileAtomically(const std::filesystem::path& path, std::string_view bytes,
+[[nodiscard]] Result<void> writeFileAtomically(const std::filesystem::path& path,
+                                               std::string_view bytes,
                                                Replace mode = Replace::Allowed);
 
 /// True when `fileName` (a name, not a path) is a temporary name of this writer.

@@ -9,9 +9,9 @@
 /// run, section and message to one already held is not held twice). storeHeldAlerts() stores
 /// the held alerts, oldest first, with their original raised time; it runs before every
 /// raise() and the scan loop calls it about once a second, so they reach the journal as soon as
-/// there is space (each stored one is announced as an `alert_stored` event). Every terminal state of a run
-/// (finished, paused, failed, cancelled) is reported through runStateChanged(), so no abort path
-/// can end silently.
+/// there is space (each stored one is announced as an `alert_stored` event). Every terminal state
+/// of a run (finished, paused, failed, cancelled) is reported through runStateChanged(), so no
+/// abort path can end silently.
 ///
 /// Threading: thread-safe. Channels are called on the caller's thread and must not block for
 /// long (issue 7's network channels queue and deliver on their own thread).
@@ -53,7 +53,8 @@ public:
     /// and cancelled runs. When the journal cannot store the state (disk full), the alert is
     /// raised all the same (held, see above) and the journal's error returned; the run_state
     /// event is published only for a stored state.
-    core::Result<void> runStateChanged(std::int64_t runId, RunState state, const std::string& reason);
+    core::Result<void> runStateChanged(std::int64_t runId, RunState state,
+                                       const std::string& reason);
     core::Result<AlertRecord> acknowledge(std::int64_t alertId, const std::string& action);
 
     static constexpr std::size_t kMaxHeldAlerts = 100;

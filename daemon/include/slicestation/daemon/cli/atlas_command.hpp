@@ -3,8 +3,8 @@
 /// and finding the stack slice a section came from.
 
 #include "slicestation/core/result.hpp"
-#include "slicestation/daemon/storage/atlas_stack.hpp"
 #include "slicestation/daemon/cli/register_command.hpp"
+#include "slicestation/daemon/storage/atlas_stack.hpp"
 #include "slicestation/pipeline/atlas_matching.hpp"
 
 #include <nlohmann/json.hpp>
@@ -25,11 +25,11 @@ inline constexpr double kMinSliceUmPerPx = 1; ///< finer than any atlas voxel
 // kMaxUmPerPx (register_command.hpp) bounds the slice pixel size from above.
 
 struct AtlasSliceRequest {
-    bool builtin = false;                ///< the procedural built-in atlas, no files needed
-    std::filesystem::path volume;        ///< annotation NRRD (uint16/uint32 ids)
-    std::filesystem::path ontology;      ///< structure_tree_safe_2017.csv; needed for "major"
-    std::string axes = "allen";          ///< allen | quicknii
-    std::string plane = "coronal";       ///< coronal | sagittal | horizontal
+    bool builtin = false;           ///< the procedural built-in atlas, no files needed
+    std::filesystem::path volume;   ///< annotation NRRD (uint16/uint32 ids)
+    std::filesystem::path ontology; ///< structure_tree_safe_2017.csv; needed for "major"
+    std::string axes = "allen";     ///< allen | quicknii
+    std::string plane = "coronal";  ///< coronal | sagittal | horizontal
     double intervalUm = 100;
     double firstUm = 0;
     double tiltLrDeg = 0; ///< the normal leans toward the image columns (coronal: LR)
@@ -48,8 +48,8 @@ struct AtlasSliceRequest {
 [[nodiscard]] core::Result<nlohmann::json> runAtlasSlice(const AtlasSliceRequest& request);
 
 struct AtlasMatchRequest {
-    std::filesystem::path stack;  ///< stack directory or its manifest.json
-    std::filesystem::path image;  ///< section image
+    std::filesystem::path stack; ///< stack directory or its manifest.json
+    std::filesystem::path image; ///< section image
     std::optional<int> expectedIndex;
     int window = 5;               ///< slices either side of expectedIndex to search, >= 0
     double imageUmPerPx = 0;      ///< 0 = unknown: the scale is then found per slice
@@ -71,6 +71,5 @@ struct AtlasMatchRequest {
 /// \return InvalidArgument (--slice without a stack, a stack without --slice), OutOfRange, the
 ///         errors of readStack.
 [[nodiscard]] core::Result<void> useStackSlice(RegisterRequest& request, int slice);
-
 
 } // namespace slicestation::daemon

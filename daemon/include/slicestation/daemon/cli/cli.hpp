@@ -16,7 +16,7 @@ using CommandRunner = std::function<int()>;
 
 CommandRunner addRegisterCommand(CLI::App& app);
 CommandRunner addDemoCommand(CLI::App& app);
-CommandRunner addStageCommand(CLI::App& app);  ///< cli_stage.cpp
+CommandRunner addStageCommand(CLI::App& app); ///< cli_stage.cpp
 /// `atlas slice` and `atlas match` (atlas_command.hpp).
 CommandRunner addAtlasCommands(CLI::App& app);
 /// scan submit, status, runs, sections, section, pause, resume, cancel, rescan, alerts,

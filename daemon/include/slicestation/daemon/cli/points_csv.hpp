@@ -18,6 +18,7 @@ namespace slicestation::daemon {
 [[nodiscard]] core::Result<std::vector<cv::Point2d>> parsePointsCsv(std::string_view text);
 
 /// Reads and parses a file. \return NotFound, IoError, or the errors of parsePointsCsv.
-[[nodiscard]] core::Result<std::vector<cv::Point2d>> readPointsCsv(const std::filesystem::path& path);
+[[nodiscard]] core::Result<std::vector<cv::Point2d>>
+readPointsCsv(const std::filesystem::path& path);
 
 } // namespace slicestation::daemon

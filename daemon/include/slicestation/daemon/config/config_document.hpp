@@ -29,8 +29,8 @@ inline constexpr int kMaxDocumentDepth = 64;
 /// Parses `text`; \return InvalidArgument naming `origin`: a syntax error (with the parser's
 /// line and column or byte), a document over kMaxDocumentBytes or nested deeper than
 /// kMaxDocumentDepth, a number out of range (1e400) or not finite (TOML inf, nan). Never throws.
-[[nodiscard]] core::Result<nlohmann::json> parseDocument(std::string_view text, DocumentFormat format,
-                                                         const std::string& origin);
+[[nodiscard]] core::Result<nlohmann::json>
+parseDocument(std::string_view text, DocumentFormat format, const std::string& origin);
 /// Reads a file; the format comes from the extension (.toml, .json), else from the first
 /// non-blank character ('{' is JSON). NotFound / IoError for the file, InvalidArgument for a file
 /// over kMaxDocumentBytes (not read) and everything parseDocument refuses.
@@ -50,7 +50,8 @@ public:
                                 double max = 1e300) const;
     core::Result<std::int64_t> integer(const nlohmann::json& obj, const std::string& path,
                                        const char* key, std::optional<std::int64_t> fallback,
-                                       std::int64_t min = INT64_MIN, std::int64_t max = INT64_MAX) const;
+                                       std::int64_t min = INT64_MIN,
+                                       std::int64_t max = INT64_MAX) const;
     core::Result<std::string> string(const nlohmann::json& obj, const std::string& path,
                                      const char* key, std::optional<std::string> fallback) const;
     core::Result<bool> boolean(const nlohmann::json& obj, const std::string& path, const char* key,

@@ -32,15 +32,15 @@
 #include <chrono>
 #include <cstdint>
 #include <filesystem>
-#include <string_view>
 #include <string>
+#include <string_view>
 
 namespace slicestation::daemon {
 
 /// The tables a station file may have: [stage] and [camera] (station_config), [daemon] and
 /// [scan] (here), [alerts] (alert_channels).
-inline constexpr std::array<std::string_view, 5> kStationTables = {"stage", "camera", "daemon", "scan",
-                                                                  "alerts"};
+inline constexpr std::array<std::string_view, 5> kStationTables = {"stage", "camera", "daemon",
+                                                                   "scan", "alerts"};
 inline constexpr std::size_t kMaxTokenBytes = 4096; ///< daemon.token / token_file's first line
 
 struct ObjectiveSettings {
@@ -66,7 +66,6 @@ struct ScanSettings {
     std::chrono::milliseconds moveTimeout{10'000};
     std::chrono::milliseconds captureTimeout{5'000};
     std::uint64_t minFreeBytes = 500ull << 20;
-    bool registerSections = true;
     bool checkAtlasMatch = true;
     int mismatchToleranceSlices = 2;
 };
@@ -76,8 +75,9 @@ struct DaemonSettings {
     std::string atlas = "builtin"; ///< "builtin" or a stack directory
     double builtinIntervalUm = 100;
     std::string httpBind = "127.0.0.1";
-    int httpPort = 8470; ///< 0: choose a free port (tests); the port is written to state_dir/http.port
-    std::string token;   ///< bearer token for control requests; empty: control refused
+    int httpPort =
+        8470; ///< 0: choose a free port (tests); the port is written to state_dir/http.port
+    std::string token; ///< bearer token for control requests; empty: control refused
     std::chrono::seconds watchdogStall{120};
     ScanSettings scan;
 };
@@ -87,6 +87,7 @@ struct DaemonSettings {
                                                                const std::string& origin);
 nlohmann::json toJson(const ScanSettings& s);
 /// Restores a run's snapshot. InvalidArgument naming the key when the snapshot is damaged.
-[[nodiscard]] core::Result<ScanSettings> scanSettingsFromJson(const nlohmann::json& j, const std::string& origin);
+[[nodiscard]] core::Result<ScanSettings> scanSettingsFromJson(const nlohmann::json& j,
+                                                              const std::string& origin);
 
 } // namespace slicestation::daemon

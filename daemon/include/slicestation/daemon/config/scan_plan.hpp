@@ -35,7 +35,7 @@ namespace slicestation::daemon {
 inline constexpr std::size_t kMaxPlanNameBytes = 64;
 inline constexpr std::size_t kMaxRunNameBytes = 256; ///< the plan's `name`; no control characters
 inline constexpr std::size_t kMaxPlanSections = 10'000; ///< over all slides of one plan
-inline constexpr double kMaxPlanCoordinateUm = 1e7;  ///< |x_um|, |y_um|, |atlas_position_um|
+inline constexpr double kMaxPlanCoordinateUm = 1e7;     ///< |x_um|, |y_um|, |atlas_position_um|
 
 struct PlanSection {
     PlannedSection section;
@@ -48,8 +48,8 @@ struct ScanPlan {
     nlohmann::json document;           ///< the plan as submitted (JSON form)
 };
 
-[[nodiscard]] core::Result<ScanPlan> parseScanPlan(const nlohmann::json& document, const std::string& origin);
-[[nodiscard]] core::Result<ScanPlan> loadScanPlan(const std::filesystem::path& file);
+[[nodiscard]] core::Result<ScanPlan> parseScanPlan(const nlohmann::json& document,
+                                                   const std::string& origin);
 
 /// Checks the plan against the station: every section's whole extent (centre +- width/2 and
 /// height/2) inside the stage's soft limits, every

@@ -24,35 +24,35 @@
 
 namespace slicestation::daemon {
 
-inline constexpr std::size_t kMaxSimSections = 1'000;        ///< camera.sim.sections / images
-inline constexpr double kMaxSimSlideSidePx = 40'000;          ///< the virtual slide image, a side
-inline constexpr double kMaxSimSlidePixels = 400'000'000;     ///< ... and in all
+inline constexpr std::size_t kMaxSimSections = 1'000;     ///< camera.sim.sections / images
+inline constexpr double kMaxSimSlideSidePx = 40'000;      ///< the virtual slide image, a side
+inline constexpr double kMaxSimSlidePixels = 400'000'000; ///< ... and in all
 
 struct StageConfig {
-    std::string driver;                       ///< "modbus" or "sim"
-    drivers::ModbusStageConfig modbus;        ///< driver = "modbus"
-    sim::SimStageConfig sim;                  ///< driver = "sim"
+    std::string driver;                ///< "modbus" or "sim"
+    drivers::ModbusStageConfig modbus; ///< driver = "modbus"
+    sim::SimStageConfig sim;           ///< driver = "sim"
     std::chrono::milliseconds moveTimeout{10'000};
     std::chrono::milliseconds homeTimeout{60'000};
 };
 
 /// [camera.sim]: the simulated camera, the virtual slide it looks at and injected faults.
 struct SimCameraSection {
-    sim::VirtualSlideSpec slide;                ///< generated sections (when `images` is empty)
-    std::vector<std::filesystem::path> images;  ///< real section images (relative to the file)
-    double imagesUmPerPx = 20;                  ///< pixel size of `images`
+    sim::VirtualSlideSpec slide;               ///< generated sections (when `images` is empty)
+    std::vector<std::filesystem::path> images; ///< real section images (relative to the file)
+    double imagesUmPerPx = 20;                 ///< pixel size of `images`
     double sensorUmPerPx = 2.0;
     double focusZUm = 2'500, focusTiltX = 0.0, focusTiltY = 0.0;
     double blurSigmaPxPerUm = 0.15;
-    int timeoutFirstCaptures = 0;     ///< FaultyCamera: the first N captures time out
-    int disconnectAfterFrames = -1;   ///< FaultyCamera: disconnect after N frames (-1: never)
+    int timeoutFirstCaptures = 0;   ///< FaultyCamera: the first N captures time out
+    int disconnectAfterFrames = -1; ///< FaultyCamera: disconnect after N frames (-1: never)
 };
 
 /// [camera]; optional in a station file (driver empty when absent).
 struct CameraConfig {
-    std::string driver;   ///< "v4l2", "libcamera" or "sim"; empty: no [camera] section
+    std::string driver; ///< "v4l2", "libcamera" or "sim"; empty: no [camera] section
     std::string device = "/dev/video0"; ///< v4l2
-    std::string cameraId; ///< libcamera (empty: the first camera)
+    std::string cameraId;               ///< libcamera (empty: the first camera)
     hw::CameraSettings settings;        ///< format, width, height, exposure_us, gain, red/blue_gain
     std::chrono::milliseconds captureTimeout{5'000};
     int settleFrames = 3; ///< v4l2, libcamera: frames dropped after (re)configuring
@@ -66,20 +66,7 @@ struct StationConfig {
 };
 
 core::Result<StationConfig> loadStationConfig(const std::filesystem::path& file);
-core::Result<StationConfig> parseStationConfig(std::string_view toml, const std::filesystem::path& origin);
-
-/// Opens the configured stage. `simulated` is set when it is a simulator (callers announce it).
-core::Result<std::unique_ptr<hw::Stage>> openStage(const StageConfig& config, bool& simulated);
-
-/// Opens the configured camera (not yet configured: call configure(config.settings, ...)).
-/// `stagePosition` tells a simulated camera where the stage is (the daemon passes the position it
-/// last moved the real or simulated stage to); required for driver = "sim", unused otherwise.
-/// `simulated` is set when it is a simulator (callers announce it). Building a generated virtual
-/// slide takes about 0.3 s per section.
-/// \return InvalidArgument (no [camera] section: names `camera`; sim without stagePosition),
-///         or the driver's error (NotFound: no such device / no camera found, ...).
-core::Result<std::unique_ptr<hw::Camera>> openCamera(const CameraConfig& config,
-                                                     std::function<hw::StagePosition()> stagePosition,
-                                                     bool& simulated);
+core::Result<StationConfig> parseStationConfig(std::string_view toml,
+                                               const std::filesystem::path& origin);
 
 } // namespace slicestation::daemon

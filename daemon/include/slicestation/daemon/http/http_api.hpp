@@ -38,16 +38,20 @@ namespace slicestation::daemon {
 
 /// What the API takes from any client (docs/operation.md).
 struct HttpLimits {
-    static constexpr std::size_t kMaxBody = 1 << 20;   ///< a request body, bytes (else 413)
-    static constexpr std::size_t kMaxHead = 16 << 10;  ///< request line + headers, bytes (else cut off)
-    static constexpr int kMaxEventStreams = 16;         ///< open /api/events at once (else 503)
-    static constexpr int kWorkers = 64;                 ///< connections served at once
-    static constexpr int kMaxConnections = 128;         ///< open (served or waiting), else 503 and closed
-    static constexpr int kKeepAliveRequests = 32;       ///< requests on one connection
-    static constexpr auto kIdle = std::chrono::seconds(5);        ///< wait for a request (first or next)
-    static constexpr auto kHeadDeadline = std::chrono::seconds(5); ///< head complete after its first byte
-    static constexpr auto kBodyDeadline = std::chrono::seconds(10); ///< body complete after the head
-    static constexpr auto kWriteStall = std::chrono::seconds(5);  ///< a client that takes nothing this long is dropped
+    static constexpr std::size_t kMaxBody = 1 << 20; ///< a request body, bytes (else 413)
+    static constexpr std::size_t kMaxHead = 16
+                                            << 10; ///< request line + headers, bytes (else cut off)
+    static constexpr int kMaxEventStreams = 16;    ///< open /api/events at once (else 503)
+    static constexpr int kWorkers = 64;            ///< connections served at once
+    static constexpr int kMaxConnections = 128;   ///< open (served or waiting), else 503 and closed
+    static constexpr int kKeepAliveRequests = 32; ///< requests on one connection
+    static constexpr auto kIdle = std::chrono::seconds(5); ///< wait for a request (first or next)
+    static constexpr auto kHeadDeadline =
+        std::chrono::seconds(5); ///< head complete after its first byte
+    static constexpr auto kBodyDeadline =
+        std::chrono::seconds(10); ///< body complete after the head
+    static constexpr auto kWriteStall =
+        std::chrono::seconds(5); ///< a client that takes nothing this long is dropped
 };
 
 namespace http {
@@ -59,8 +63,8 @@ class HttpApi {
 public:
     /// Binds (port 0: any free port) and starts serving `station` (borrowed: it must outlive
     /// the API). IoError when the address is taken, InvalidArgument for a port outside 0..65535.
-    [[nodiscard]] static core::Result<std::unique_ptr<HttpApi>> start(StationApi& station, const std::string& bind,
-                                                                      int port, std::string token);
+    [[nodiscard]] static core::Result<std::unique_ptr<HttpApi>>
+    start(StationApi& station, const std::string& bind, int port, std::string token);
     ~HttpApi();
     int port() const { return port_; }
     void stop() noexcept;

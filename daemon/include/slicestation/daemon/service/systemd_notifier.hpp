@@ -41,11 +41,11 @@ public:
         return watchdogInterval_;
     }
 
-    void ready();                           ///< READY=1: devices and database are up
-    void status(const std::string& text);   ///< STATUS=<text> (newlines become spaces)
-    void stopping();                        ///< STOPPING=1: shutting down
-    void watchdogPing();                    ///< WATCHDOG=1
-    void reloading();                       ///< RELOADING=1 with MONOTONIC_USEC (systemd >= 253)
+    void ready();                         ///< READY=1: devices and database are up
+    void status(const std::string& text); ///< STATUS=<text> (newlines become spaces)
+    void stopping();                      ///< STOPPING=1: shutting down
+    void watchdogPing();                  ///< WATCHDOG=1
+    void reloading();                     ///< RELOADING=1 with MONOTONIC_USEC (systemd >= 253)
     /// ERRNO=<n>: the errno-style reason of a fatal error, sent before exiting non-zero.
     void errnoStatus(int err);
 

@@ -19,27 +19,11 @@
 
 namespace slicestation::daemon {
 
-/// A deep copy of the frame's pixels in OpenCV's conventions: Mono8 -> CV_8UC1, Mono16 ->
-/// CV_16UC1, Rgb8 -> CV_8UC3 in BGR order. The Mat owns its pixels (safe to keep or hand to
-/// another thread). An empty frame gives an empty Mat.
-cv::Mat frameToMat(const hw::Frame& frame);
-
-/// Sharpness of `image` (8/16-bit, 1 or 3 channels): mean squared Sobel gradient (Tenengrad)
-/// of the grey image, computed on a copy downscaled to at most 512 px per side and divided by
-/// the squared mean intensity, so exposure and gain do not change it. Higher is sharper;
-/// comparable only between images of the same field. 0 for an empty or black image.
-double focusMeasure(const cv::Mat& image);
-
-/// Share (0..1) of the field that is tissue. Works for fluorescence (bright tissue on dark
-/// glass) and brightfield (dark tissue on bright glass): the glass level is the 2nd percentile
-/// (dark field, median below half scale) or the 98th percentile (bright field); a pixel is
-/// tissue when it differs from the glass by more than max(5 x noise, 2% of full scale), the
-/// noise being estimated from neighbouring-pixel differences. Computed on a copy downscaled to
-/// at most 256 px per side. Blank glass, in or out of focus, gives ~0. Empty image: 0.
-double tissueFraction(const cv::Mat& image);
+/// The focus and tissue measures are pipeline::focusMeasure and pipeline::tissueFraction
+/// (pipeline/focus_measures.hpp).
 
 struct AutofocusSettings {
-    double rangeUm = 150;       ///< full width of the search, centred on the start z
+    double rangeUm = 150; ///< full width of the search, centred on the start z
     double coarseStepUm = 25;
     double fineStepUm = 5;
     double minTissueFraction = 0.03; ///< below this at the start z: blank glass, no search
@@ -55,9 +39,9 @@ struct AutofocusSettings {
 };
 
 struct FocusResult {
-    double zUm = 0;          ///< best z found (the start z when no tissue)
-    double score = 0;        ///< focusMeasure at zUm
-    int captures = 0;        ///< frames taken
+    double zUm = 0;   ///< best z found (the start z when no tissue)
+    double score = 0; ///< focusMeasure at zUm
+    int captures = 0; ///< frames taken
     bool tissueFound = false;
     double tissueFraction = 0; ///< at the start z
     /// The best coarse z was at the edge of the range (clamped by the stage limits or the

@@ -29,14 +29,14 @@ inline constexpr int kMinSectionSidePx = 300;
 inline constexpr int kMaxSectionSidePx = 8000;
 
 struct RegisterRequest {
-    std::filesystem::path atlas;  ///< label image (8/16/32-bit ids or colour-coded RGB)
-    std::filesystem::path image;  ///< section image (PNG or TIFF)
+    std::filesystem::path atlas; ///< label image (8/16/32-bit ids or colour-coded RGB)
+    std::filesystem::path image; ///< section image (PNG or TIFF)
     std::optional<std::filesystem::path> points;       ///< CSV x,y to map (read by loadPoints)
     std::filesystem::path output;                      ///< RESULT.json
     std::optional<std::filesystem::path> overlay;      ///< PNG
     std::optional<std::filesystem::path> warpedLabels; ///< TIFF, CV_32S ids at section size
-    double imageUmPerPx = 0; ///< 0 = unknown
-    double atlasUmPerPx = 0; ///< 0 = unknown
+    double imageUmPerPx = 0;                           ///< 0 = unknown
+    double atlasUmPerPx = 0;                           ///< 0 = unknown
     int workingMaxSide = 1024;
 };
 
@@ -55,8 +55,9 @@ struct RegisteredSection {
 ///         input (the message names the file and what is wrong), NoTissue. Nothing is written
 ///         then.
 /// Reads the points file of a request (slicectl's CSV reader); called after both images are read.
-using PointsLoader = std::function<core::Result<std::vector<cv::Point2d>>(const std::filesystem::path&)>;
-[[nodiscard]] core::Result<RegisteredSection> registerSectionFiles(const RegisterRequest& request,
-                                                                   const PointsLoader& loadPoints = {});
+using PointsLoader =
+    std::function<core::Result<std::vector<cv::Point2d>>(const std::filesystem::path&)>;
+[[nodiscard]] core::Result<RegisteredSection>
+registerSectionFiles(const RegisterRequest& request, const PointsLoader& loadPoints = {});
 
 } // namespace slicestation::daemon

@@ -10,11 +10,11 @@
 /// Crash safety: the queue is not persistent: after a restart the daemon re-enqueues
 /// Journal::capturesAwaitingRegistration().
 /// Threading: enqueue()/idle()/waitIdle() from any thread; stop() joins.
+#include "slicestation/daemon/alerts/notifier.hpp"
 #include "slicestation/daemon/config/daemon_settings.hpp"
+#include "slicestation/daemon/station/phase_stats.hpp"
 #include "slicestation/daemon/storage/atlas_stack.hpp"
 #include "slicestation/daemon/storage/journal.hpp"
-#include "slicestation/daemon/alerts/notifier.hpp"
-#include "slicestation/daemon/station/phase_stats.hpp"
 #include "slicestation/pipeline/atlas_matching.hpp"
 
 #include <chrono>
@@ -57,7 +57,8 @@ private:
         std::optional<int> matched; ///< what matching found, when it ran and succeeded
         std::string warning;
     };
-    core::Result<SliceChoice> chooseSlice(const SectionRecord& section, const CaptureRecord& capture,
+    core::Result<SliceChoice> chooseSlice(const SectionRecord& section,
+                                          const CaptureRecord& capture,
                                           const ScanSettings& settings);
     /// Journals the registration and tells: an event, and alerts for a mismatch or damage.
     void record(RegistrationRecord& rec, const RunRecord& run, const SectionRecord& section,

@@ -26,19 +26,21 @@ bool worthRetrying(const core::Error& error) noexcept;
 
 /// moveTo with 1 + retries attempts under the policy. \return the settled position or the
 /// last error.
-[[nodiscard]] core::Result<hw::StagePosition> moveWithRetries(hw::Stage& stage, const hw::StagePosition& target,
-                                                              std::chrono::milliseconds timeout, int retries);
+[[nodiscard]] core::Result<hw::StagePosition> moveWithRetries(hw::Stage& stage,
+                                                              const hw::StagePosition& target,
+                                                              std::chrono::milliseconds timeout,
+                                                              int retries);
 
 /// configure with 1 + retries attempts under the policy. \return the settings the camera uses.
-[[nodiscard]] core::Result<hw::CameraSettings> configureWithRetries(hw::Camera& camera,
-                                                                    const hw::CameraSettings& settings,
-                                                                    std::chrono::milliseconds timeout, int retries);
+[[nodiscard]] core::Result<hw::CameraSettings>
+configureWithRetries(hw::Camera& camera, const hw::CameraSettings& settings,
+                     std::chrono::milliseconds timeout, int retries);
 
 /// capture with 1 + retries attempts under the policy; before each retry the camera is
 /// re-initialised with `reinitialise` when given (a failed re-initialisation counts as that
 /// attempt's failure). \return the frame or the last error.
-[[nodiscard]] core::Result<hw::Frame> captureWithRetries(hw::Camera& camera, std::chrono::milliseconds timeout,
-                                                         int retries,
-                                                         const std::optional<hw::CameraSettings>& reinitialise);
+[[nodiscard]] core::Result<hw::Frame>
+captureWithRetries(hw::Camera& camera, std::chrono::milliseconds timeout, int retries,
+                   const std::optional<hw::CameraSettings>& reinitialise);
 
 } // namespace slicestation::daemon

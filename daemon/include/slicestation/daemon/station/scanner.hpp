@@ -21,12 +21,12 @@
 /// the run "running" so a restarted daemon resumes it.
 #include "slicestation/core/camera.hpp"
 #include "slicestation/core/stage.hpp"
-#include "slicestation/daemon/config/daemon_settings.hpp"
-#include "slicestation/daemon/storage/journal.hpp"
 #include "slicestation/daemon/alerts/notifier.hpp"
+#include "slicestation/daemon/config/daemon_settings.hpp"
 #include "slicestation/daemon/station/phase_stats.hpp"
 #include "slicestation/daemon/station/registration_worker.hpp"
 #include "slicestation/daemon/station/section_steps.hpp"
+#include "slicestation/daemon/storage/journal.hpp"
 
 #include <atomic>
 #include <condition_variable>
@@ -106,7 +106,8 @@ private:
     /// Every section captured: Done once all are registered; nullopt while waiting.
     std::optional<Outcome> finishOnceRegistered(const RunContext& ctx);
     /// Disk, move, focus, capture, write, journal, hand to the worker. nullopt: captured.
-    std::optional<Outcome> scanSection(RunContext& ctx, SectionSteps& steps, const SectionRecord& section);
+    std::optional<Outcome> scanSection(RunContext& ctx, SectionSteps& steps,
+                                       const SectionRecord& section);
     /// The run paused with the fault's alert (low_disk for any ENOSPC).
     Outcome pauseFor(const RunContext& ctx, const Fault& fault);
     /// As pauseFor, but a Cancelled device call ends the run as cancelled (or shuts down).

@@ -37,7 +37,7 @@ struct Fault {
 /// A step's value, or its Fault.
 template <class T> class Step {
 public:
-    Step(T value) : v_(std::move(value)) {} // NOLINT(google-explicit-constructor)
+    Step(T value) : v_(std::move(value)) {}     // NOLINT(google-explicit-constructor)
     Step(Fault fault) : v_(std::move(fault)) {} // NOLINT(google-explicit-constructor)
     explicit operator bool() const noexcept { return v_.index() == 0; }
     T& operator*() { return std::get<0>(v_); }
@@ -49,7 +49,8 @@ private:
 };
 
 /// Where a capture's image goes, relative to the state directory:
-///   runs/<run id>/<slide number, 2+ digits>-<slide name>/<section id>-<section name>-a<attempt>.ome.tif
+///   runs/<run id>/<slide number, 2+ digits>-<slide name>/<section id>-<section
+///   name>-a<attempt>.ome.tif
 /// The run id, slide number (index + 1 within the run) and section id (unique in the journal)
 /// make it injective whatever the names; the names (ASCII letters, digits, '-' and '_' kept,
 /// every other byte '_', at most 48 bytes) are only there for people.
@@ -92,9 +93,9 @@ public:
     Step<Focus> focus(double xUm, double yUm, double zUm);
 
     struct Capture {
-        cv::Mat image;                 ///< in the stage frame (camera orientation applied)
-        hw::StagePosition stage;       ///< the section centre (the settled one for one field)
-        hw::FrameMetadata meta;        ///< of the last frame
+        cv::Mat image;           ///< in the stage frame (camera orientation applied)
+        hw::StagePosition stage; ///< the section centre (the settled one for one field)
+        hw::FrameMetadata meta;  ///< of the last frame
         int tiles = 0;
     };
     /// One field, or tiles covering the section stitched by stage position. `activity` is told
@@ -106,8 +107,9 @@ public:
     /// Writes the OME-TIFF to stateDir/rel atomically. A file already there that no capture
     /// refers to (a crash came between writing and journaling) is replaced; one a capture
     /// refers to never is. Faults: storage_fault, low_disk (ENOSPC), journal_error.
-    std::optional<Fault> writeImage(const std::filesystem::path& rel, const Capture& capture, const std::string& name,
-                                    const hw::CameraSettings& used, Journal& journal);
+    std::optional<Fault> writeImage(const std::filesystem::path& rel, const Capture& capture,
+                                    const std::string& name, const hw::CameraSettings& used,
+                                    Journal& journal);
 
 private:
     Deps d_;

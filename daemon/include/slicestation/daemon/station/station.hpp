@@ -10,14 +10,14 @@
 /// calls from any thread (the HTTP server's).
 #include "slicestation/core/camera.hpp"
 #include "slicestation/core/stage.hpp"
-#include "slicestation/daemon/storage/atlas_stack.hpp"
-#include "slicestation/daemon/config/daemon_settings.hpp"
-#include "slicestation/daemon/storage/journal.hpp"
 #include "slicestation/daemon/alerts/notifier.hpp"
+#include "slicestation/daemon/config/daemon_settings.hpp"
 #include "slicestation/daemon/station/phase_stats.hpp"
 #include "slicestation/daemon/station/registration_worker.hpp"
 #include "slicestation/daemon/station/scanner.hpp"
 #include "slicestation/daemon/station/station_api.hpp"
+#include "slicestation/daemon/storage/atlas_stack.hpp"
+#include "slicestation/daemon/storage/journal.hpp"
 
 #include <nlohmann/json.hpp>
 
@@ -68,7 +68,8 @@ public:
     [[nodiscard]] core::Result<std::vector<SectionRecord>> sections(std::int64_t runId) override;
     /// Export rows of a run: per section the image path, stage position, atlas slice,
     /// registration quality and damage. Format "json" or "csv".
-    [[nodiscard]] core::Result<std::string> exportRun(std::int64_t runId, const std::string& format) override;
+    [[nodiscard]] core::Result<std::string> exportRun(std::int64_t runId,
+                                                      const std::string& format) override;
     /// Section detail: record, captures, registrations (with region names), alerts.
     [[nodiscard]] core::Result<nlohmann::json> sectionDetail(std::int64_t sectionId) override;
     [[nodiscard]] core::Result<std::vector<AlertRecord>> alerts(bool openOnly) override;
@@ -76,17 +77,24 @@ public:
     /// null before the first. Any thread.
     std::shared_ptr<const hw::Frame> liveFrame() const override;
     [[nodiscard]] core::Result<cv::Mat> sectionImage(std::int64_t sectionId, bool overlay) override;
-    [[nodiscard]] core::Result<RegionAtPixel> regionAt(std::int64_t sectionId, int x, int y, int ofWidth) override;
+    [[nodiscard]] core::Result<RegionAtPixel> regionAt(std::int64_t sectionId, int x, int y,
+                                                       int ofWidth) override;
     /// Validates and journals a plan (TOML/JSON already parsed) with a snapshot of the scan
     /// settings. \return the run id; InvalidArgument naming the field.
-    [[nodiscard]] core::Result<std::int64_t> submitPlan(const nlohmann::json& plan, const std::string& origin) override;
-    [[nodiscard]] core::Result<void> pauseRun(std::int64_t runId) override { return scanner_->pause(runId); }
+    [[nodiscard]] core::Result<std::int64_t> submitPlan(const nlohmann::json& plan,
+                                                        const std::string& origin) override;
+    [[nodiscard]] core::Result<void> pauseRun(std::int64_t runId) override {
+        return scanner_->pause(runId);
+    }
     [[nodiscard]] core::Result<void> resumeRun(std::int64_t runId, bool resetStageAlarm) override {
         return scanner_->resume(runId, resetStageAlarm);
     }
-    [[nodiscard]] core::Result<void> cancelRun(std::int64_t runId) override { return scanner_->cancel(runId); }
+    [[nodiscard]] core::Result<void> cancelRun(std::int64_t runId) override {
+        return scanner_->cancel(runId);
+    }
     [[nodiscard]] core::Result<void> requestRescan(std::int64_t sectionId) override;
-    [[nodiscard]] core::Result<AlertRecord> acknowledgeAlert(std::int64_t alertId, const std::string& action) override;
+    [[nodiscard]] core::Result<AlertRecord> acknowledgeAlert(std::int64_t alertId,
+                                                             const std::string& action) override;
     void addListener(std::function<void(const StationEvent&)> listener) override {
         notifier_->addListener(std::move(listener));
     }

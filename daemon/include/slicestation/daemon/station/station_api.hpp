@@ -27,8 +27,8 @@ namespace slicestation::daemon {
 
 /// The atlas region at a pixel of a section's latest registered capture.
 struct RegionAtPixel {
-    std::int32_t id = 0; ///< 0: outside the brain
-    int x = 0, y = 0;    ///< the full-resolution pixel looked at
+    std::int32_t id = 0;       ///< 0: outside the brain
+    int x = 0, y = 0;          ///< the full-resolution pixel looked at
     std::string name, acronym; ///< empty when the ontology lacks the id (or id 0)
 };
 
@@ -44,7 +44,8 @@ public:
     /// NotFound when the run does not exist.
     [[nodiscard]] virtual core::Result<std::vector<SectionRecord>> sections(std::int64_t runId) = 0;
     /// Format "json" or "csv" (else InvalidArgument).
-    [[nodiscard]] virtual core::Result<std::string> exportRun(std::int64_t runId, const std::string& format) = 0;
+    [[nodiscard]] virtual core::Result<std::string> exportRun(std::int64_t runId,
+                                                              const std::string& format) = 0;
     [[nodiscard]] virtual core::Result<nlohmann::json> sectionDetail(std::int64_t sectionId) = 0;
     [[nodiscard]] virtual core::Result<std::vector<AlertRecord>> alerts(bool openOnly) = 0;
     /// The latest camera frame, null before the first.
@@ -52,7 +53,8 @@ public:
     /// The image of a section's latest capture, or (`overlay`) its registration overlay, as
     /// stored. NotFound: no such section, no capture yet, not registered yet (overlay); IoError:
     /// the stored file is unreadable or its journal path leaves the state directory.
-    [[nodiscard]] virtual core::Result<cv::Mat> sectionImage(std::int64_t sectionId, bool overlay) = 0;
+    [[nodiscard]] virtual core::Result<cv::Mat> sectionImage(std::int64_t sectionId,
+                                                             bool overlay) = 0;
     /// The atlas region at pixel (x, y) of the section's latest registered capture; with
     /// ofWidth > 0, (x, y) is a pixel of that image scaled to width ofWidth. NotFound as
     /// sectionImage(overlay); InvalidArgument: the pixel lies outside the image; IoError: the
@@ -65,7 +67,8 @@ public:
     [[nodiscard]] virtual core::Result<std::int64_t> submitPlan(const nlohmann::json& plan,
                                                                 const std::string& origin) = 0;
     [[nodiscard]] virtual core::Result<void> pauseRun(std::int64_t runId) = 0;
-    [[nodiscard]] virtual core::Result<void> resumeRun(std::int64_t runId, bool resetStageAlarm) = 0;
+    [[nodiscard]] virtual core::Result<void> resumeRun(std::int64_t runId,
+                                                       bool resetStageAlarm) = 0;
     [[nodiscard]] virtual core::Result<void> cancelRun(std::int64_t runId) = 0;
     [[nodiscard]] virtual core::Result<void> requestRescan(std::int64_t sectionId) = 0;
     /// Acknowledges an alert with `action` ("rescan": the alert's section is rescanned first,

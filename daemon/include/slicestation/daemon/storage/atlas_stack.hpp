@@ -87,7 +87,7 @@ inline constexpr double kBuiltinUmPerPx = 25;
 std::vector<StackRegion> builtinStackRegions();
 
 /// Matching features of every slice of `stack` (read from disk), one working pixel size.
-[[nodiscard]] core::Result<std::vector<pipeline::SliceFeatures>> stackFeatures(
-    const AtlasStack& stack);
+[[nodiscard]] core::Result<std::vector<pipeline::SliceFeatures>>
+stackFeatures(const AtlasStack& stack);
 
 } // namespace slicestation::daemon

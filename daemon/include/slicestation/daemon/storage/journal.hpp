@@ -48,9 +48,9 @@ struct PlannedSection {
     std::string slideName;
     int index = 0; ///< within the slide
     std::string name;
-    double xUm = 0, yUm = 0;            ///< centre, stage frame
-    double widthUm = 0, heightUm = 0;   ///< 0 = one field of view
-    std::optional<int> expectedSlice;   ///< atlas stack index
+    double xUm = 0, yUm = 0;          ///< centre, stage frame
+    double widthUm = 0, heightUm = 0; ///< 0 = one field of view
+    std::optional<int> expectedSlice; ///< atlas stack index
 };
 
 struct RunRecord {
@@ -82,7 +82,7 @@ struct SectionRecord {
 struct CaptureRecord {
     std::int64_t id = 0;
     std::int64_t sectionId = 0;
-    int attempt = 0; ///< 1 for the first capture, 2 after a rescan, ...
+    int attempt = 0;       ///< 1 for the first capture, 2 after a rescan, ...
     std::string imagePath; ///< relative to the state directory
     double umPerPx = 0;
     hw::StagePosition stage;
@@ -125,7 +125,8 @@ struct AlertRecord {
 class Journal {
 public:
     /// Opens (creating when absent) the journal at `file` and migrates it.
-    [[nodiscard]] static core::Result<std::unique_ptr<Journal>> open(const std::filesystem::path& file);
+    [[nodiscard]] static core::Result<std::unique_ptr<Journal>>
+    open(const std::filesystem::path& file);
     ~Journal();
     Journal(const Journal&) = delete;
     Journal& operator=(const Journal&) = delete;
@@ -143,7 +144,8 @@ public:
     /// Sets the state (and reason); stamps started/ended times. Refuses to leave a terminal
     /// state (InvalidArgument) unless `reopen` (a rescan of a finished run).
     [[nodiscard]] core::Result<void> setRunState(std::int64_t runId, RunState state,
-                                                 const std::string& reason = {}, bool reopen = false);
+                                                 const std::string& reason = {},
+                                                 bool reopen = false);
     /// The run to work on: a running one (resume after a crash) first, else the oldest queued.
     /// Paused runs wait for resume. Empty when there is nothing to do.
     [[nodiscard]] core::Result<std::optional<RunRecord>> nextRun();
@@ -152,19 +154,22 @@ public:
     [[nodiscard]] core::Result<std::vector<SectionRecord>> sections(std::int64_t runId);
     [[nodiscard]] core::Result<SectionRecord> section(std::int64_t sectionId);
     /// The next section of `runId` to capture (pending or rescan), in plan order.
-    [[nodiscard]] core::Result<std::optional<SectionRecord>> nextSectionToCapture(std::int64_t runId);
+    [[nodiscard]] core::Result<std::optional<SectionRecord>>
+    nextSectionToCapture(std::int64_t runId);
     /// Stores a complete capture and moves the section to `captured`, in one transaction.
     /// The attempt number is assigned here. \return the capture id.
     [[nodiscard]] core::Result<std::int64_t> recordCapture(CaptureRecord capture);
     [[nodiscard]] core::Result<std::vector<CaptureRecord>> captures(std::int64_t sectionId);
     [[nodiscard]] core::Result<CaptureRecord> capture(std::int64_t captureId);
     /// The capture whose image is `imagePath` (relative to the state directory), if any.
-    [[nodiscard]] core::Result<std::optional<std::int64_t>> captureWithImage(const std::string& imagePath);
+    [[nodiscard]] core::Result<std::optional<std::int64_t>>
+    captureWithImage(const std::string& imagePath);
     /// Captures whose section is `captured` and that have no registration (after a crash).
     [[nodiscard]] core::Result<std::vector<std::int64_t>> capturesAwaitingRegistration();
     /// Stores the registration and moves the section to registered or damaged.
     [[nodiscard]] core::Result<std::int64_t> recordRegistration(RegistrationRecord registration);
-    [[nodiscard]] core::Result<std::vector<RegistrationRecord>> registrations(std::int64_t sectionId);
+    [[nodiscard]] core::Result<std::vector<RegistrationRecord>>
+    registrations(std::int64_t sectionId);
     /// Marks a section failed with a reason (capture or registration gave up).
     [[nodiscard]] core::Result<void> failSection(std::int64_t sectionId, const std::string& reason);
     /// After re-mounting: the section is captured again (its old records stay). A finished run
@@ -176,7 +181,8 @@ public:
     [[nodiscard]] core::Result<std::vector<AlertRecord>> alerts(bool openOnly);
     [[nodiscard]] core::Result<AlertRecord> alert(std::int64_t alertId);
     /// InvalidArgument when already acknowledged.
-    [[nodiscard]] core::Result<AlertRecord> acknowledgeAlert(std::int64_t alertId, const std::string& action);
+    [[nodiscard]] core::Result<AlertRecord> acknowledgeAlert(std::int64_t alertId,
+                                                             const std::string& action);
 
     /// `PRAGMA integrity_check` and `foreign_key_check`; IoError naming the first problem.
     [[nodiscard]] core::Result<void> checkIntegrity();

@@ -29,8 +29,8 @@
 namespace slicestation::daemon {
 
 struct OmeTiffInfo {
-    double umPerPx = 0;          ///< pixel size at the sample, µm (square pixels); must be > 0
-    hw::StagePosition stage;     ///< stage position of the image centre, µm
+    double umPerPx = 0;      ///< pixel size at the sample, µm (square pixels); must be > 0
+    hw::StagePosition stage; ///< stage position of the image centre, µm
     std::string channel = "fluorescence";
     std::string name;            ///< image name (e.g. "slide3-section05"); may be empty
     std::int64_t exposureUs = 0; ///< >= 0

@@ -11,7 +11,7 @@
 
 #include <vector>
 
-namespace slicestation::daemon {
+namespace slicestation::pipeline {
 
 struct TilePlan {
     std::vector<hw::StagePosition> centres; ///< row-major: y rows top to bottom, x left to right
@@ -53,4 +53,4 @@ struct Tile {
 [[nodiscard]] core::Result<cv::Mat> stitchTiles(const std::vector<Tile>& tiles, double umPerPx,
                                                 bool refineWithPhaseCorrelation = true);
 
-} // namespace slicestation::daemon
+} // namespace slicestation::pipeline

@@ -1,4 +1,4 @@
-#include "slicestation/daemon/station/tile_stitcher.hpp"
+#include "slicestation/pipeline/tile_stitching.hpp"
 
 #include <opencv2/core.hpp>
 #include <opencv2/imgproc.hpp>
@@ -8,7 +8,7 @@
 #include <optional>
 #include <string>
 
-namespace slicestation::daemon {
+namespace slicestation::pipeline {
 namespace {
 
 using core::ErrorCode;
@@ -21,13 +21,15 @@ constexpr int kMaxMosaicSidePx = 40'000;
 
 /// Centres along one axis: evenly spaced, overlapping by at least `overlap` of a field.
 std::vector<double> axisCentres(double centre, double extent, double field, double overlap) {
-    if (extent <= field) return {centre};
+    if (extent <= field)
+        return {centre};
     const double maxStep = field * (1 - overlap);
     const int n = static_cast<int>(std::ceil((extent - field) / maxStep - 1e-9)) + 1;
     const double step = (extent - field) / (n - 1);
     std::vector<double> out;
     const double first = centre - extent / 2 + field / 2;
-    for (int i = 0; i < n; ++i) out.push_back(first + i * step);
+    for (int i = 0; i < n; ++i)
+        out.push_back(first + i * step);
     return out;
 }
 
@@ -59,7 +61,8 @@ bool hasStructure(const cv::Mat& patch) {
 /// phaseCorrelate pads odd sizes and then reports a half-pixel bias.
 int evenDftSize(int n) {
     for (int m = n - (n % 2); m >= 2; m -= 2) {
-        if (cv::getOptimalDFTSize(m) == m) return m;
+        if (cv::getOptimalDFTSize(m) == m)
+            return m;
     }
     return 0;
 }
@@ -68,7 +71,8 @@ int evenDftSize(int n) {
 /// overlap, starting from the stage's `guess`; nullopt when there is no reliable measurement.
 std::optional<cv::Point2d> measureOffset(const cv::Mat& gi, const cv::Mat& gj, cv::Point guess) {
     const cv::Rect first = cv::Rect(cv::Point(0, 0), gi.size()) & cv::Rect(guess, gj.size());
-    if (first.width < kMinOverlapPx || first.height < kMinOverlapPx) return std::nullopt;
+    if (first.width < kMinOverlapPx || first.height < kMinOverlapPx)
+        return std::nullopt;
     const double bound = std::max(2.0, 0.25 * std::min(first.width, first.height));
     cv::Point g = guess;
     cv::Point2d s;
@@ -79,7 +83,8 @@ std::optional<cv::Point2d> measureOffset(const cv::Mat& gi, const cv::Mat& gj, c
         cv::Rect a = cv::Rect(cv::Point(0, 0), gi.size()) & cv::Rect(g, gj.size());
         const int w = evenDftSize(a.width);
         const int h = evenDftSize(a.height);
-        if (w < kMinOverlapPx || h < kMinOverlapPx) return std::nullopt;
+        if (w < kMinOverlapPx || h < kMinOverlapPx)
+            return std::nullopt;
         a = cv::Rect(a.x + (a.width - w) / 2, a.y + (a.height - h) / 2, w, h);
         const cv::Mat pi = gi(a);
         const cv::Mat pj = gj(a - g);
@@ -108,9 +113,11 @@ std::optional<cv::Point2d> measureOffset(const cv::Mat& gi, const cv::Mat& gj, c
         }
         g = next;
     }
-    if (!converged) return std::nullopt; // the estimate kept moving: not reliable
+    if (!converged)
+        return std::nullopt; // the estimate kept moving: not reliable
     const cv::Point2d d = cv::Point2d(g) - s;
-    if (std::abs(d.x - guess.x) > bound || std::abs(d.y - guess.y) > bound) return std::nullopt;
+    if (std::abs(d.x - guess.x) > bound || std::abs(d.y - guess.y) > bound)
+        return std::nullopt;
     return d;
 }
 
@@ -137,8 +144,10 @@ core::Result<cv::Mat> stitch(const std::vector<Tile>& tiles, double umPerPx, boo
     const auto bad = [](const std::string& what) {
         return makeError(ErrorCode::InvalidArgument, "stitchTiles: " + what);
     };
-    if (tiles.empty()) return bad("no tiles");
-    if (!(umPerPx > 0) || !std::isfinite(umPerPx)) return bad("umPerPx must be > 0");
+    if (tiles.empty())
+        return bad("no tiles");
+    if (!(umPerPx > 0) || !std::isfinite(umPerPx))
+        return bad("umPerPx must be > 0");
     const int type = tiles.front().image.type();
     const int depth = CV_MAT_DEPTH(type);
     const int channels = CV_MAT_CN(type);
@@ -148,8 +157,10 @@ core::Result<cv::Mat> stitch(const std::vector<Tile>& tiles, double umPerPx, boo
     for (std::size_t k = 0; k < tiles.size(); ++k) {
         const auto& t = tiles[k];
         const std::string which = "tile " + std::to_string(k);
-        if (t.image.empty()) return bad(which + " is empty");
-        if (t.image.type() != type) return bad(which + " differs in type from tile 0");
+        if (t.image.empty())
+            return bad(which + " is empty");
+        if (t.image.type() != type)
+            return bad(which + " differs in type from tile 0");
         if (!std::isfinite(t.stage.xUm) || !std::isfinite(t.stage.yUm)) {
             return bad(which + " has a non-finite stage position");
         }
@@ -161,7 +172,7 @@ core::Result<cv::Mat> stitch(const std::vector<Tile>& tiles, double umPerPx, boo
     for (int k = 0; k < n; ++k) {
         const auto& t = tiles[k];
         nominal[k] = {t.stage.xUm / umPerPx - t.image.cols / 2.0,
-                                                t.stage.yUm / umPerPx - t.image.rows / 2.0};
+                      t.stage.yUm / umPerPx - t.image.rows / 2.0};
     }
     // Reject nonsense before anything is allocated.
     double minX = 1e300, minY = 1e300, maxX = -1e300, maxY = -1e300;
@@ -181,7 +192,8 @@ core::Result<cv::Mat> stitch(const std::vector<Tile>& tiles, double umPerPx, boo
     std::vector<Offset> offsets;
     if (refine && n > 1) {
         std::vector<cv::Mat> grey(tiles.size());
-        for (int k = 0; k < n; ++k) grey[k] = greyFloat(tiles[k].image);
+        for (int k = 0; k < n; ++k)
+            grey[k] = greyFloat(tiles[k].image);
         for (int i = 0; i < n; ++i) {
             for (int j = i + 1; j < n; ++j) {
                 const cv::Point guess(static_cast<int>(std::lround(nominal[j].x - nominal[i].x)),
@@ -215,8 +227,7 @@ core::Result<cv::Mat> stitch(const std::vector<Tile>& tiles, double umPerPx, boo
         cv::Mat solution;
         if (cv::solve(a, b, solution, cv::DECOMP_CHOLESKY)) {
             for (int k = 0; k < n; ++k) {
-                placed[k] = {solution.at<double>(k, 0),
-                                                       solution.at<double>(k, 1)};
+                placed[k] = {solution.at<double>(k, 0), solution.at<double>(k, 1)};
             }
         }
     }
@@ -228,8 +239,7 @@ core::Result<cv::Mat> stitch(const std::vector<Tile>& tiles, double umPerPx, boo
     cv::Point maxCorner(INT32_MIN, INT32_MIN);
     for (int k = 0; k < n; ++k) {
         const cv::Point2d rel = placed[k] - placed[0];
-        corner[k] = {static_cast<int>(std::lround(rel.x)),
-                                               static_cast<int>(std::lround(rel.y))};
+        corner[k] = {static_cast<int>(std::lround(rel.x)), static_cast<int>(std::lround(rel.y))};
         const auto& im = tiles[k].image;
         minCorner.x = std::min(minCorner.x, corner[k].x);
         minCorner.y = std::min(minCorner.y, corner[k].y);
@@ -255,7 +265,8 @@ core::Result<cv::Mat> stitch(const std::vector<Tile>& tiles, double umPerPx, boo
         } else {
             std::vector<cv::Mat> planes;
             cv::split(f, planes);
-            for (auto& p : planes) p = p.mul(w);
+            for (auto& p : planes)
+                p = p.mul(w);
             cv::merge(planes, weighted);
         }
         cv::Mat target = sum(where);
@@ -270,7 +281,8 @@ core::Result<cv::Mat> stitch(const std::vector<Tile>& tiles, double umPerPx, boo
     } else {
         std::vector<cv::Mat> planes;
         cv::split(sum, planes);
-        for (auto& p : planes) cv::divide(p, norm, p);
+        for (auto& p : planes)
+            cv::divide(p, norm, p);
         cv::merge(planes, mosaic);
     }
     cv::Mat out;
@@ -287,14 +299,16 @@ TilePlan planTiles(const hw::StagePosition& centre, double widthUm, double heigh
                        heightUm >= 0 && fieldWidthUm > 0 && fieldHeightUm > 0 &&
                        std::isfinite(fieldWidthUm) && std::isfinite(fieldHeightUm) &&
                        overlapFraction >= 0 && overlapFraction <= 0.9;
-    if (!valid) return {};
+    if (!valid)
+        return {};
     const auto xs = axisCentres(centre.xUm, widthUm, fieldWidthUm, overlapFraction);
     const auto ys = axisCentres(centre.yUm, heightUm, fieldHeightUm, overlapFraction);
     TilePlan plan;
     plan.columns = static_cast<int>(xs.size());
     plan.rows = static_cast<int>(ys.size());
     for (const double y : ys) {
-        for (const double x : xs) plan.centres.push_back({x, y, centre.zUm});
+        for (const double x : xs)
+            plan.centres.push_back({x, y, centre.zUm});
     }
     return plan;
 }
@@ -310,4 +324,4 @@ core::Result<cv::Mat> stitchTiles(const std::vector<Tile>& tiles, double umPerPx
     }
 }
 
-} // namespace slicestation::daemon
+} // namespace slicestation::pipeline

@@ -1,6 +1,6 @@
 // Tile planning and stitching: tiles cut from a known image at known positions, reported with
 // a stage position error, stitched and compared with the original.
-#include "slicestation/daemon/station/tile_stitcher.hpp"
+#include "slicestation/pipeline/tile_stitching.hpp"
 
 #include <gtest/gtest.h>
 
@@ -36,7 +36,7 @@ cv::Mat texture(cv::Size size, int type, std::uint64_t seed) {
 }
 
 struct Cut {
-    std::vector<daemon::Tile> tiles;
+    std::vector<pipeline::Tile> tiles;
     cv::Point firstTopLeftPx; ///< where the mosaic's top-left should be in the original
 };
 
@@ -46,17 +46,16 @@ Cut cutTiles(const cv::Mat& image, cv::Size fieldPx, double overlap, double erro
              std::uint64_t seed) {
     const hw::StagePosition centre{image.cols * kUmPerPx / 2, image.rows * kUmPerPx / 2, 100};
     const double marginPx = 8; // keep every cut inside the image
-    const auto plan = daemon::planTiles(centre, (image.cols - 2 * marginPx) * kUmPerPx,
-                                        (image.rows - 2 * marginPx) * kUmPerPx,
-                                        fieldPx.width * kUmPerPx, fieldPx.height * kUmPerPx,
-                                        overlap);
+    const auto plan = pipeline::planTiles(
+        centre, (image.cols - 2 * marginPx) * kUmPerPx, (image.rows - 2 * marginPx) * kUmPerPx,
+        fieldPx.width * kUmPerPx, fieldPx.height * kUmPerPx, overlap);
     cv::RNG rng(seed);
     Cut cut;
     cut.firstTopLeftPx = {INT32_MAX, INT32_MAX};
     for (const auto& c : plan.centres) {
         const cv::Point tl(static_cast<int>(std::lround(c.xUm / kUmPerPx - fieldPx.width / 2.0)),
                            static_cast<int>(std::lround(c.yUm / kUmPerPx - fieldPx.height / 2.0)));
-        daemon::Tile t;
+        pipeline::Tile t;
         t.image = image(cv::Rect(tl, fieldPx)).clone();
         t.stage.xUm = (tl.x + fieldPx.width / 2.0 + rng.uniform(-errorPx, errorPx)) * kUmPerPx;
         t.stage.yUm = (tl.y + fieldPx.height / 2.0 + rng.uniform(-errorPx, errorPx)) * kUmPerPx;
@@ -69,7 +68,7 @@ Cut cutTiles(const cv::Mat& image, cv::Size fieldPx, double overlap, double erro
 }
 
 TEST(PlanTiles, OneTileWhenItFits) {
-    const auto plan = daemon::planTiles({1000, 2000, 50}, 500, 400, 640, 480);
+    const auto plan = pipeline::planTiles({1000, 2000, 50}, 500, 400, 640, 480);
     ASSERT_EQ(plan.centres.size(), 1u);
     EXPECT_EQ(plan.columns, 1);
     EXPECT_EQ(plan.rows, 1);
@@ -80,7 +79,7 @@ TEST(PlanTiles, OneTileWhenItFits) {
 
 TEST(PlanTiles, RowMajorOverlappingCoverage) {
     const double fw = 640, fh = 480, overlap = 0.1;
-    const auto plan = daemon::planTiles({10'000, 5'000, 7}, 1'700, 1'000, fw, fh, overlap);
+    const auto plan = pipeline::planTiles({10'000, 5'000, 7}, 1'700, 1'000, fw, fh, overlap);
     ASSERT_EQ(plan.columns, 3); // (1700 - 640) / 576 -> 2 steps
     ASSERT_EQ(plan.rows, 3);    // (1000 - 480) / 432 -> 2 steps
     ASSERT_EQ(plan.centres.size(), 9u);
@@ -95,16 +94,17 @@ TEST(PlanTiles, RowMajorOverlappingCoverage) {
     EXPECT_DOUBLE_EQ(plan.centres.back().yUm + fh / 2, 5'000 + 500);
     EXPECT_LE(plan.centres[1].xUm - plan.centres[0].xUm, fw * (1 - overlap) + 1e-9);
     EXPECT_LE(plan.centres[3].yUm - plan.centres[0].yUm, fh * (1 - overlap) + 1e-9);
-    for (const auto& c : plan.centres) EXPECT_EQ(c.zUm, 7);
+    for (const auto& c : plan.centres)
+        EXPECT_EQ(c.zUm, 7);
 }
 
 TEST(PlanTiles, InvalidInputGivesAnEmptyPlan) {
-    EXPECT_TRUE(daemon::planTiles({}, 1000, 1000, 0, 480).centres.empty());
-    EXPECT_TRUE(daemon::planTiles({}, 1000, 1000, 640, -1).centres.empty());
-    EXPECT_TRUE(daemon::planTiles({}, -5, 1000, 640, 480).centres.empty());
-    EXPECT_TRUE(daemon::planTiles({}, NAN, 1000, 640, 480).centres.empty());
-    EXPECT_TRUE(daemon::planTiles({}, 1000, 1000, 640, 480, 0.95).centres.empty());
-    EXPECT_TRUE(daemon::planTiles({}, 1000, 1000, 640, 480, -0.1).centres.empty());
+    EXPECT_TRUE(pipeline::planTiles({}, 1000, 1000, 0, 480).centres.empty());
+    EXPECT_TRUE(pipeline::planTiles({}, 1000, 1000, 640, -1).centres.empty());
+    EXPECT_TRUE(pipeline::planTiles({}, -5, 1000, 640, 480).centres.empty());
+    EXPECT_TRUE(pipeline::planTiles({}, NAN, 1000, 640, 480).centres.empty());
+    EXPECT_TRUE(pipeline::planTiles({}, 1000, 1000, 640, 480, 0.95).centres.empty());
+    EXPECT_TRUE(pipeline::planTiles({}, 1000, 1000, 640, 480, -0.1).centres.empty());
 }
 
 struct StitchCase {
@@ -119,7 +119,7 @@ TEST_P(Stitch, RecoversTheOriginalWithoutSeams) {
     const cv::Mat original = texture({700, 520}, type, 3);
     const Cut cut = cutTiles(original, {256, 192}, 0.15, errorPx, 9);
     ASSERT_GE(cut.tiles.size(), 9u);
-    auto mosaic = daemon::stitchTiles(cut.tiles, kUmPerPx);
+    auto mosaic = pipeline::stitchTiles(cut.tiles, kUmPerPx);
     ASSERT_TRUE(mosaic) << mosaic.error().message;
     ASSERT_EQ(mosaic->type(), type);
     const cv::Mat truth = original(cv::Rect(cut.firstTopLeftPx, mosaic->size()));
@@ -140,15 +140,17 @@ INSTANTIATE_TEST_SUITE_P(TypesAndErrors, Stitch,
 TEST(Stitch, WithoutRefinementStageErrorsShowAsSeams) {
     const cv::Mat original = texture({700, 520}, CV_16UC1, 3);
     const Cut cut = cutTiles(original, {256, 192}, 0.15, 3.0, 9);
-    auto placedOnly = daemon::stitchTiles(cut.tiles, kUmPerPx, false);
-    auto refined = daemon::stitchTiles(cut.tiles, kUmPerPx, true);
+    auto placedOnly = pipeline::stitchTiles(cut.tiles, kUmPerPx, false);
+    auto refined = pipeline::stitchTiles(cut.tiles, kUmPerPx, true);
     ASSERT_TRUE(placedOnly && refined);
     // The placement-only mosaic mixes misplaced content: far larger errors than the refined one.
     const cv::Size common(std::min(placedOnly->cols, refined->cols),
                           std::min(placedOnly->rows, refined->rows));
     const cv::Rect r(cv::Point(16, 16), common - cv::Size(32, 32));
-    const double refinedError = cv::norm((*refined)(r), original(r + cut.firstTopLeftPx), cv::NORM_L1);
-    const double placedError = cv::norm((*placedOnly)(r), original(r + cut.firstTopLeftPx), cv::NORM_L1);
+    const double refinedError =
+        cv::norm((*refined)(r), original(r + cut.firstTopLeftPx), cv::NORM_L1);
+    const double placedError =
+        cv::norm((*placedOnly)(r), original(r + cut.firstTopLeftPx), cv::NORM_L1);
     EXPECT_GT(placedError, 20 * (refinedError + 1));
 }
 
@@ -156,7 +158,7 @@ TEST(Stitch, BlankOverlapsKeepTheStagePlacement) {
     // Uniform glass: nothing to correlate; the tiles stay where the stage put them.
     const cv::Mat glass(400, 600, CV_16UC1, cv::Scalar(1000));
     const Cut cut = cutTiles(glass, {256, 192}, 0.15, 0.0, 1);
-    auto mosaic = daemon::stitchTiles(cut.tiles, kUmPerPx);
+    auto mosaic = pipeline::stitchTiles(cut.tiles, kUmPerPx);
     ASSERT_TRUE(mosaic) << mosaic.error().message;
     EXPECT_EQ(cv::norm(*mosaic, cv::Mat(mosaic->size(), CV_16UC1, cv::Scalar(1000)), cv::NORM_INF),
               0.0);
@@ -164,7 +166,7 @@ TEST(Stitch, BlankOverlapsKeepTheStagePlacement) {
 
 TEST(Stitch, OneTileComesBackAsIs) {
     const cv::Mat image = texture({64, 48}, CV_8UC3, 2);
-    auto mosaic = daemon::stitchTiles({{image, {500, 500, 0}}}, kUmPerPx);
+    auto mosaic = pipeline::stitchTiles({{image, {500, 500, 0}}}, kUmPerPx);
     ASSERT_TRUE(mosaic);
     EXPECT_EQ(cv::norm(*mosaic, image, cv::NORM_INF), 0.0);
 }
@@ -175,14 +177,14 @@ TEST(Stitch, InvalidInput) {
         ASSERT_FALSE(r) << why;
         EXPECT_EQ(r.error().code, ErrorCode::InvalidArgument) << why;
     };
-    expectInvalid(daemon::stitchTiles({}, kUmPerPx), "no tiles");
-    expectInvalid(daemon::stitchTiles({{a, {}}}, 0), "pixel size");
-    expectInvalid(daemon::stitchTiles({{a, {}}, {cv::Mat(), {}}}, kUmPerPx), "empty tile");
-    expectInvalid(daemon::stitchTiles({{a, {}}, {texture({64, 48}, CV_16UC1, 1), {}}}, kUmPerPx),
+    expectInvalid(pipeline::stitchTiles({}, kUmPerPx), "no tiles");
+    expectInvalid(pipeline::stitchTiles({{a, {}}}, 0), "pixel size");
+    expectInvalid(pipeline::stitchTiles({{a, {}}, {cv::Mat(), {}}}, kUmPerPx), "empty tile");
+    expectInvalid(pipeline::stitchTiles({{a, {}}, {texture({64, 48}, CV_16UC1, 1), {}}}, kUmPerPx),
                   "mixed types");
-    expectInvalid(daemon::stitchTiles({{cv::Mat(4, 4, CV_64FC1, 0.0), {}}}, kUmPerPx), "type");
-    expectInvalid(daemon::stitchTiles({{a, {NAN, 0, 0}}}, kUmPerPx), "position");
-    expectInvalid(daemon::stitchTiles({{a, {0, 0, 0}}, {a, {1e9, 0, 0}}}, kUmPerPx), "too large");
+    expectInvalid(pipeline::stitchTiles({{cv::Mat(4, 4, CV_64FC1, 0.0), {}}}, kUmPerPx), "type");
+    expectInvalid(pipeline::stitchTiles({{a, {NAN, 0, 0}}}, kUmPerPx), "position");
+    expectInvalid(pipeline::stitchTiles({{a, {0, 0, 0}}, {a, {1e9, 0, 0}}}, kUmPerPx), "too large");
 }
 
 } // namespace

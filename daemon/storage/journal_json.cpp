@@ -1,0 +1,86 @@
+// The journal's records as JSON, for the API, events and exports.
+#include "slicestation/daemon/storage/journal.hpp"
+
+namespace slicestation::daemon {
+
+nlohmann::json toJson(const RunRecord& r) {
+    return {{"id", r.id},
+            {"name", r.name},
+            {"state", toString(r.state)},
+            {"reason", r.reason},
+            {"created_utc", r.createdUtc},
+            {"started_utc", r.startedUtc},
+            {"ended_utc", r.endedUtc},
+            {"sections", r.sectionCount},
+            {"done", r.doneCount},
+            {"settings", r.settings}};
+}
+
+nlohmann::json toJson(const SectionRecord& s) {
+    nlohmann::json j{{"id", s.id},
+                     {"run_id", s.runId},
+                     {"slide_index", s.slideIndex},
+                     {"slide", s.slideName},
+                     {"index", s.index},
+                     {"name", s.name},
+                     {"x_um", s.xUm},
+                     {"y_um", s.yUm},
+                     {"width_um", s.widthUm},
+                     {"height_um", s.heightUm},
+                     {"state", toString(s.state)},
+                     {"reason", s.reason},
+                     {"attempts", s.attempts}};
+    j["expected_slice"] = s.expectedSlice ? nlohmann::json(*s.expectedSlice) : nlohmann::json();
+    return j;
+}
+
+nlohmann::json toJson(const CaptureRecord& c) {
+    nlohmann::json j{
+        {"id", c.id},
+        {"section_id", c.sectionId},
+        {"attempt", c.attempt},
+        {"image", c.imagePath},
+        {"um_per_px", c.umPerPx},
+        {"stage", {{"x_um", c.stage.xUm}, {"y_um", c.stage.yUm}, {"z_um", c.stage.zUm}}},
+        {"focus_found", c.focusFound},
+        {"tiles", c.tiles},
+        {"exposure_us", c.exposureUs},
+        {"gain", c.gain},
+        {"captured_utc", c.capturedUtc}};
+    j["focus_score"] = c.focusScore ? nlohmann::json(*c.focusScore) : nlohmann::json();
+    return j;
+}
+
+nlohmann::json toJson(const RegistrationRecord& r) {
+    nlohmann::json j{{"id", r.id},
+                     {"capture_id", r.captureId},
+                     {"atlas_slice", r.atlasSlice},
+                     {"damaged", r.damaged},
+                     {"damage_fraction", r.damageFraction},
+                     {"damage_summary", r.summary},
+                     {"warning", r.warning},
+                     {"quality", r.quality},
+                     {"result", r.resultPath},
+                     {"overlay", r.overlayPath},
+                     {"labels", r.labelsPath},
+                     {"registered_utc", r.registeredUtc}};
+    j["matched_slice"] = r.matchedSlice ? nlohmann::json(*r.matchedSlice) : nlohmann::json();
+    return j;
+}
+
+nlohmann::json toJson(const AlertRecord& a) {
+    nlohmann::json j{{"id", a.id},
+                     {"kind", a.kind},
+                     {"severity", a.severity},
+                     {"message", a.message},
+                     {"raised_utc", a.raisedUtc},
+                     {"ack_action", a.ackAction}};
+    j["run_id"] = a.runId ? nlohmann::json(*a.runId) : nlohmann::json();
+    j["section_id"] = a.sectionId ? nlohmann::json(*a.sectionId) : nlohmann::json();
+    j["acknowledged_utc"] =
+        a.acknowledgedUtc ? nlohmann::json(*a.acknowledgedUtc) : nlohmann::json();
+    j["open"] = !a.acknowledgedUtc.has_value();
+    return j;
+}
+
+} // namespace slicestation::daemon
