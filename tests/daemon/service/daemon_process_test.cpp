@@ -8,6 +8,7 @@
 // - stage faults injected in the Modbus server during runs: an alarm pauses the run until the
 //   technician asks for the alarm reset; dropped, corrupt, busy and slow replies are retried.
 #include "fake_notify_socket.hpp"
+#include "slicestation/core/atomic_file.hpp"
 #include "slicestation/daemon/storage/journal.hpp"
 #include "slicestation/daemon/storage/ome_tiff.hpp"
 #include "slicestation/sim/modbus_stage_server.hpp"
@@ -384,7 +385,9 @@ protected:
             // No temporary file left, and no complete image that the journal does not know.
             for (const auto& e : fs::recursive_directory_iterator(state() / "runs")) {
                 const std::string n = e.path().filename().string();
-                EXPECT_FALSE(n.ends_with(".partial") || n.find(".tmp-") != std::string::npos) << e.path();
+                EXPECT_FALSE(core::isAtomicTemporaryName(n) || n.ends_with(".partial") ||
+                             n.find(".tmp-") != std::string::npos)
+                    << e.path();
                 if (n.ends_with(".ome.tif")) {
                     EXPECT_TRUE(referenced.count(fs::relative(e.path(), state())) == 1) << "orphan " << e.path();
                 }
