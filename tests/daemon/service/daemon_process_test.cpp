@@ -381,7 +381,7 @@ protected:
             }
         }
         if (final) {
-            EXPECT_EQ(daemon::toString(runs->front().state), "finished");
+            EXPECT_EQ(std::string(daemon::toString(runs->front().state)), "finished"); // a const char*: compare the text, not the address
             // No temporary file left, and no complete image that the journal does not know.
             for (const auto& e : fs::recursive_directory_iterator(state() / "runs")) {
                 const std::string n = e.path().filename().string();
