@@ -4,10 +4,12 @@
 #   build-check/  the checking build (clang, AddressSanitizer + UndefinedBehaviorSanitizer +
 #                 LeakSanitizer on everything), every test again, and each fuzz target (label
 #                 fuzz) replaying its committed corpus and fuzzing for SLST_FUZZ_SECONDS (30).
+# Before the tests, scripts/check-format.sh checks that every C++ file follows .clang-format.
 # CI runs exactly this. SLST_TEST_CHECKING=0 skips the checking build (a quicker local run).
 set -euo pipefail
 here=$(cd "$(dirname "$0")/.." && pwd)
 bash "$here/scripts/build.sh"
+bash "$here/scripts/check-format.sh"
 if [ ! -d "$here/../shared" ]; then
     echo "note: ../shared is absent; tests that need the real atlas and sections will skip" >&2
 fi

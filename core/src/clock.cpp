@@ -21,7 +21,8 @@ bool StopSignal::waitUntil(TimePoint deadline) const {
 }
 
 bool VirtualClock::sleepUntil(TimePoint t, const StopSignal& stop) {
-    if (stop.raised()) return false;
+    if (stop.raised())
+        return false;
     std::int64_t target = t.time_since_epoch().count();
     std::int64_t cur = nowNs_.load();
     while (cur < target && !nowNs_.compare_exchange_weak(cur, target)) {

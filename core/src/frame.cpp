@@ -4,18 +4,24 @@ namespace slicestation::hw {
 
 int bytesPerPixel(PixelFormat f) noexcept {
     switch (f) {
-    case PixelFormat::Mono8: return 1;
-    case PixelFormat::Mono16: return 2;
-    case PixelFormat::Rgb8: return 3;
+    case PixelFormat::Mono8:
+        return 1;
+    case PixelFormat::Mono16:
+        return 2;
+    case PixelFormat::Rgb8:
+        return 3;
     }
     return 1;
 }
 
 const char* toString(PixelFormat f) noexcept {
     switch (f) {
-    case PixelFormat::Mono8: return "mono8";
-    case PixelFormat::Mono16: return "mono16";
-    case PixelFormat::Rgb8: return "rgb8";
+    case PixelFormat::Mono8:
+        return "mono8";
+    case PixelFormat::Mono16:
+        return "mono16";
+    case PixelFormat::Rgb8:
+        return "rgb8";
     }
     return "unknown";
 }

@@ -285,13 +285,13 @@ Result<void> checkImageSize(const std::string& where, std::uint64_t width, std::
     const std::uint64_t bytes =
         pixels * static_cast<std::uint64_t>(channels) * static_cast<std::uint64_t>(sampleBytes);
     if (pixels > kMaxImagePixels || bytes > kMaxImageBytes) {
-        return makeError(ErrorCode::Unsupported,
-                         where + ": image of " + std::to_string(width) + " x " +
-                             std::to_string(height) + " px, " + std::to_string(channels) +
-                             " channel(s) of " + std::to_string(8 * sampleBytes) + " bits (" +
-                             megabytes(bytes) + ") exceeds the limit of " +
-                             std::to_string(kMaxImagePixels) + " px and " +
-                             megabytes(kMaxImageBytes));
+        return makeError(ErrorCode::Unsupported, where + ": image of " + std::to_string(width) +
+                                                     " x " + std::to_string(height) + " px, " +
+                                                     std::to_string(channels) + " channel(s) of " +
+                                                     std::to_string(8 * sampleBytes) + " bits (" +
+                                                     megabytes(bytes) + ") exceeds the limit of " +
+                                                     std::to_string(kMaxImagePixels) + " px and " +
+                                                     megabytes(kMaxImageBytes));
     }
     return {};
 }
@@ -321,9 +321,8 @@ Result<void> checkBlockSize(TIFF* tif, const std::string& where, std::uint64_t w
         return makeError(ErrorCode::Unsupported,
                          where + ": one strip or tile of " + std::to_string(blockWidth) + " x " +
                              std::to_string(blockHeight) + " px and " +
-                             std::to_string(layout.blockSamples) + " samples (" +
-                             megabytes(bytes) + ") exceeds the limit of " +
-                             megabytes(kMaxImageBytes));
+                             std::to_string(layout.blockSamples) + " samples (" + megabytes(bytes) +
+                             ") exceeds the limit of " + megabytes(kMaxImageBytes));
     }
     return {};
 }
@@ -335,13 +334,19 @@ Result<void> checkBlockSize(TIFF* tif, const std::string& where, std::uint64_t w
 /// (about 32000:1).
 double maxExpansion(std::uint16_t compression) {
     switch (compression) {
-    case COMPRESSION_NONE: return 1;
-    case COMPRESSION_PACKBITS: return 64;
+    case COMPRESSION_NONE:
+        return 1;
+    case COMPRESSION_PACKBITS:
+        return 64;
     case COMPRESSION_ADOBE_DEFLATE:
-    case COMPRESSION_DEFLATE: return 1032;
-    case COMPRESSION_LZW: return 2000;
-    case COMPRESSION_JPEG: return 1024;
-    default: return 40000;
+    case COMPRESSION_DEFLATE:
+        return 1032;
+    case COMPRESSION_LZW:
+        return 2000;
+    case COMPRESSION_JPEG:
+        return 1024;
+    default:
+        return 40000;
     }
 }
 
@@ -367,14 +372,16 @@ Result<void> checkStoredData(TIFF* tif, const std::string& where, std::uint64_t 
                                  " lies beyond the end of the file (" + std::to_string(fileSize) +
                                  " bytes): truncated or corrupt");
         }
-        if (count > 0) ranges.emplace_back(offset, offset + count);
+        if (count > 0)
+            ranges.emplace_back(offset, offset + count);
     }
     std::sort(ranges.begin(), ranges.end());
     std::uint64_t stored = 0;
     std::uint64_t end = 0;
     for (const auto& [from, to] : ranges) {
         const std::uint64_t start = std::max(from, end);
-        if (to > start) stored += to - start;
+        if (to > start)
+            stored += to - start;
         end = std::max(end, to);
     }
     const double reach = static_cast<double>(stored) * maxExpansion(compression);
@@ -578,7 +585,8 @@ std::optional<PngHeader> readPngHeader(const fs::path& path) {
     std::array<unsigned char, 26> h{};
     std::ifstream in(path, std::ios::binary);
     in.read(reinterpret_cast<char*>(h.data()), static_cast<std::streamsize>(h.size()));
-    static constexpr std::array<unsigned char, 8> kSignature{0x89, 'P', 'N', 'G', '\r', '\n', 0x1A, '\n'};
+    static constexpr std::array<unsigned char, 8> kSignature{0x89, 'P',  'N',  'G',
+                                                             '\r', '\n', 0x1A, '\n'};
     if (in.gcount() != static_cast<std::streamsize>(h.size()) ||
         !std::equal(kSignature.begin(), kSignature.end(), h.begin()) ||
         std::memcmp(h.data() + 12, "IHDR", 4) != 0) {
@@ -595,7 +603,10 @@ std::optional<PngHeader> readPngHeader(const fs::path& path) {
     const int colourType = h[25];
     png.sampleBytes = bitDepth > 8 ? 2 : 1;
     // 0 grey, 2 RGB, 3 palette (decoded to BGR), 4 grey + alpha, 6 RGBA.
-    png.channels = colourType == 2 || colourType == 3 ? 3 : colourType == 4 ? 2 : colourType == 6 ? 4 : 1;
+    png.channels = colourType == 2 || colourType == 3 ? 3
+                   : colourType == 4                  ? 2
+                   : colourType == 6                  ? 4
+                                                      : 1;
     const int storedSamples = colourType == 2 ? 3 : colourType == 4 ? 2 : colourType == 6 ? 4 : 1;
     png.storedBitsPerPixel = std::max(1, bitDepth) * storedSamples;
     png.maxExpansion = 1032; // zlib's deflate: at most 1032:1
@@ -624,8 +635,8 @@ std::optional<PngHeader> readJpegHeader(const fs::path& path) {
             continue;
         }
         const std::size_t length = (std::size_t{h[at + 2]} << 8) | h[at + 3];
-        const bool frame = marker >= 0xC0 && marker <= 0xCF && marker != 0xC4 && marker != 0xC8 &&
-                           marker != 0xCC;
+        const bool frame =
+            marker >= 0xC0 && marker <= 0xCF && marker != 0xC4 && marker != 0xC8 && marker != 0xCC;
         if (frame) {
             PngHeader jpeg;
             jpeg.height = (std::uint64_t{h[at + 5]} << 8) | h[at + 6];
@@ -655,14 +666,17 @@ std::optional<PngHeader> readJpegHeader(const fs::path& path) {
 Result<void> checkFileHolds(const fs::path& path, const char* format, const PngHeader& header) {
     std::error_code ec;
     const std::uint64_t fileSize = fs::file_size(path, ec);
-    const double stored = static_cast<double>(header.height) *
-                          std::ceil(static_cast<double>(header.width) * header.storedBitsPerPixel / 8.0);
-    if (!ec && header.maxExpansion > 0 && static_cast<double>(fileSize) * header.maxExpansion < stored) {
-        return makeError(ErrorCode::IoError,
-                         std::string(format) + " " + quoted(path) + ": the header claims " +
-                             std::to_string(header.width) + " x " + std::to_string(header.height) +
-                             " px but the file has only " + std::to_string(fileSize) +
-                             " bytes, fewer than its compression can expand (truncated or hostile)");
+    const double stored =
+        static_cast<double>(header.height) *
+        std::ceil(static_cast<double>(header.width) * header.storedBitsPerPixel / 8.0);
+    if (!ec && header.maxExpansion > 0 &&
+        static_cast<double>(fileSize) * header.maxExpansion < stored) {
+        return makeError(
+            ErrorCode::IoError,
+            std::string(format) + " " + quoted(path) + ": the header claims " +
+                std::to_string(header.width) + " x " + std::to_string(header.height) +
+                " px but the file has only " + std::to_string(fileSize) +
+                " bytes, fewer than its compression can expand (truncated or hostile)");
     }
     return {};
 }

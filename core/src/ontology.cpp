@@ -204,10 +204,10 @@ private:
         }
         const std::uintmax_t fileBytes = std::filesystem::file_size(path_, ec);
         if (!ec && fileBytes > kMaxOntologyBytes) {
-            return makeError(ErrorCode::InvalidArgument,
-                             where_ + " has " + std::to_string(fileBytes) + " bytes, more than the " +
-                                 std::to_string(kMaxOntologyBytes >> 20) +
-                                 " MiB an ontology may hold");
+            return makeError(
+                ErrorCode::InvalidArgument,
+                where_ + " has " + std::to_string(fileBytes) + " bytes, more than the " +
+                    std::to_string(kMaxOntologyBytes >> 20) + " MiB an ontology may hold");
         }
         std::ostringstream bytes;
         bytes << in.rdbuf();

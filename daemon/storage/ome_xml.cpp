@@ -494,7 +494,8 @@ core::Result<OmeXmlContent> parseOmeXml(std::string_view xml) {
         // A pixel count: a whole number that an int holds (found by fuzz_small_formats:
         // SizeX="1.6e55" was cast to int, which is undefined).
         if (!(*v >= 1 && *v <= 2147483647.0 && *v == std::floor(*v)))
-            return bad(std::string(key) + "=\"" + *pixels->attribute(key) + "\" is not a pixel count");
+            return bad(std::string(key) + "=\"" + *pixels->attribute(key) +
+                       "\" is not a pixel count");
         (std::string_view(key) == "SizeX" ? out.sizeX : out.sizeY) = static_cast<int>(*v);
     }
     auto sizeUm = length(*pixels, "PhysicalSizeX");

@@ -11,13 +11,15 @@ using core::ErrorCode;
 using core::makeError;
 
 core::Result<cv::Mat> labelsFromImage(const cv::Mat& image) {
-    if (image.empty()) return makeError(ErrorCode::InvalidArgument, "atlas label image is empty");
+    if (image.empty())
+        return makeError(ErrorCode::InvalidArgument, "atlas label image is empty");
     cv::Mat labels;
     const int depth = image.depth();
     if (image.channels() == 1) {
         if (depth == CV_32F || depth == CV_64F)
-            return makeError(ErrorCode::InvalidArgument,
-                             "atlas label image has floating-point pixels; labels must be integers");
+            return makeError(
+                ErrorCode::InvalidArgument,
+                "atlas label image has floating-point pixels; labels must be integers");
         if (depth == CV_8S || depth == CV_16S)
             return makeError(ErrorCode::InvalidArgument, "atlas label image has signed pixels");
         image.convertTo(labels, CV_32S);
@@ -28,7 +30,8 @@ core::Result<cv::Mat> labelsFromImage(const cv::Mat& image) {
         for (int y = 0; y < image.rows; ++y) {
             const uchar* p = image.ptr<uchar>(y);
             int* o = labels.ptr<int>(y);
-            for (int x = 0; x < image.cols; ++x, p += ch) o[x] = (p[2] << 16) | (p[1] << 8) | p[0];
+            for (int x = 0; x < image.cols; ++x, p += ch)
+                o[x] = (p[2] << 16) | (p[1] << 8) | p[0];
         }
         std::map<int, int> border;
         for (int x = 0; x < labels.cols; ++x) {
@@ -39,10 +42,9 @@ core::Result<cv::Mat> labelsFromImage(const cv::Mat& image) {
             ++border[labels.at<int>(y, 0)];
             ++border[labels.at<int>(y, labels.cols - 1)];
         }
-        const int outside =
-            std::max_element(border.begin(), border.end(), [](auto& a, auto& b) {
-                return a.second < b.second;
-            })->first;
+        const int outside = std::max_element(border.begin(), border.end(), [](auto& a, auto& b) {
+                                return a.second < b.second;
+                            })->first;
         // Keep ids distinct from 0: black regions (0x000000) inside become a separate id.
         labels.setTo(0x1000000, labels == 0);
         labels.setTo(0, labels == (outside == 0 ? 0x1000000 : outside));
@@ -81,8 +83,8 @@ core::Result<cv::Mat> coronalPlane(const core::Volume& volume, VolumeAxes axes, 
 }
 
 const std::vector<std::uint32_t>& majorRegionIds() {
-    static const std::vector<std::uint32_t> ids{315, 698, 1080, 822, 703, 278, 56,  754,
-                                                672, 275, 998,  803, 549, 958, 1097, 313,
+    static const std::vector<std::uint32_t> ids{315, 698, 1080, 822, 703,  278, 56,   754,
+                                                672, 275, 998,  803, 549,  958, 1097, 313,
                                                 771, 354, 519,  528, 1009, 73};
     return ids;
 }

@@ -33,7 +33,8 @@ cv::Mat distanceTo(const cv::Mat& edges) {
 
 float lookup(const cv::Mat& dist, cv::Point2f p, float outside) {
     const int x = int(std::lround(p.x)), y = int(std::lround(p.y));
-    if (x < 0 || y < 0 || x >= dist.cols || y >= dist.rows) return outside;
+    if (x < 0 || y < 0 || x >= dist.cols || y >= dist.rows)
+        return outside;
     return dist.at<float>(y, x);
 }
 
@@ -68,13 +69,15 @@ IcpResult runIcp(const EdgePoints& source, const EdgePoints& target, const cv::M
         const IcpResult next = icpAffine(s, t, grid, r.targetFromSource, o);
         // A level that collapses the scale or flips the section is a wrong turn: keep the last.
         const double d0 = det(r.targetFromSource), d1 = det(next.targetFromSource);
-        if (d1 <= 0 || d1 < 0.5 * d0 || d1 > 2 * d0) break;
+        if (d1 <= 0 || d1 < 0.5 * d0 || d1 > 2 * d0)
+            break;
         r = next;
     }
     return r;
 }
 
-double overlap(const cv::Mat& tissue, const cv::Mat& sliceMask, const cv::Matx23d& sliceFromSection) {
+double overlap(const cv::Mat& tissue, const cv::Mat& sliceMask,
+               const cv::Matx23d& sliceFromSection) {
     cv::Mat mapped;
     cv::warpAffine(sliceMask, mapped, cv::Mat(sliceFromSection), tissue.size(),
                    cv::INTER_NEAREST | cv::WARP_INVERSE_MAP, cv::BORDER_CONSTANT, 0);
@@ -108,7 +111,8 @@ Agreement agreement(const SectionFeatures& sec, const SliceFeatures& sl, const c
     int n = 0;
     for (const cv::Point2f& p : sec.edges.points) {
         const cv::Point2f q = cv::Point2f(apply(t, p));
-        if (wantSide != 0 && side(q) != wantSide) continue;
+        if (wantSide != 0 && side(q) != wantSide)
+            continue;
         const double d = lookup(sl.edgeDistance, q, far);
         sum += std::exp(k * d * d);
         ++n;
@@ -119,7 +123,8 @@ Agreement agreement(const SectionFeatures& sec, const SliceFeatures& sl, const c
     sum = 0;
     n = 0;
     for (const cv::Point2f& s : sl.edges.points) {
-        if (wantSide != 0 && side(s) != wantSide) continue;
+        if (wantSide != 0 && side(s) != wantSide)
+            continue;
         const cv::Point2f q = cv::Point2f(apply(inv, s));
         const double d = lookup(sec.edgeDistance, q, float(far / scale));
         sum += std::exp(kSec * d * d);
@@ -136,7 +141,8 @@ Agreement agreement(const SectionFeatures& sec, const SliceFeatures& sl, const c
 /// which is what tells the frontal slices apart (their boundaries are few and mostly outline).
 double regionAgreement(const SectionFeatures& sec, const SliceFeatures& sl, const cv::Matx23d& t,
                        const cv::Mat& inner) {
-    if (sl.regionCount <= 0) return 0;
+    if (sl.regionCount <= 0)
+        return 0;
     struct Sums {
         double n = 0, s = 0, ss = 0;
     };
@@ -146,7 +152,8 @@ double regionAgreement(const SectionFeatures& sec, const SliceFeatures& sl, cons
         const uchar* in = inner.ptr<uchar>(y);
         const float* g = sec.grey.ptr<float>(y);
         for (int x = 0; x < inner.cols; ++x) {
-            if (!in[x]) continue;
+            if (!in[x])
+                continue;
             const double qx = t(0, 0) * x + t(0, 1) * y + t(0, 2);
             const double qy = t(1, 0) * x + t(1, 1) * y + t(1, 2);
             const int ix = int(std::lround(qx)), iy = int(std::lround(qy));
@@ -164,10 +171,12 @@ double regionAgreement(const SectionFeatures& sec, const SliceFeatures& sl, cons
         }
     }
     const double total = all.ss - all.s * all.s / std::max(all.n, 1.0);
-    if (all.n < 16 || total <= 0) return 0;
+    if (all.n < 16 || total <= 0)
+        return 0;
     double within = 0;
     for (const Sums& b : sums)
-        if (b.n > 0) within += b.ss - b.s * b.s / b.n;
+        if (b.n > 0)
+            within += b.ss - b.s * b.s / b.n;
     return std::clamp(1 - within / total, 0.0, 1.0);
 }
 
@@ -182,7 +191,8 @@ double combinedScore(const MatchCandidate& c) {
 /// Vertex of the parabola through (-1, a), (0, b), (1, c), in [-0.5, 0.5]; 0 when flat.
 double parabolaPeak(double a, double b, double c) {
     const double den = a - 2 * b + c;
-    if (den >= 0) return 0;
+    if (den >= 0)
+        return 0;
     return std::clamp(0.5 * (a - c) / den, -0.5, 0.5);
 }
 
@@ -191,7 +201,8 @@ double parabolaPeak(double a, double b, double c) {
 double matchWorkUmPerPx(const std::vector<cv::Mat>& labels, double umPerPx, int targetPx) {
     int longest = 1;
     for (const cv::Mat& l : labels) {
-        if (l.empty()) continue;
+        if (l.empty())
+            continue;
         const cv::Rect box = cv::boundingRect(l != 0);
         longest = std::max({longest, box.width, box.height});
     }
@@ -206,12 +217,14 @@ SliceFeatures sliceFeatures(const cv::Mat& labels, double umPerPx, double positi
     f.workUmPerPx = workUmPerPx;
     const double s = umPerPx / workUmPerPx;
     cv::Mat work;
-    cv::resize(labels, work, cv::Size(std::max(1, int(std::lround(labels.cols * s))),
-                                      std::max(1, int(std::lround(labels.rows * s)))),
+    cv::resize(labels, work,
+               cv::Size(std::max(1, int(std::lround(labels.cols * s))),
+                        std::max(1, int(std::lround(labels.rows * s)))),
                0, 0, cv::INTER_NEAREST);
     f.mask = fillHoles(work != 0);
     f.areaPx = cv::countNonZero(f.mask);
-    if (f.areaPx < 16) return f;
+    if (f.areaPx < 16)
+        return f;
     const auto contour = outerContourPoints(f.mask);
     f.box = orientedBox(contour);
     f.heightPx = 2 * std::min(f.box.halfMajor, f.box.halfMinor);
@@ -226,10 +239,12 @@ SliceFeatures sliceFeatures(const cv::Mat& labels, double umPerPx, double positi
         const auto* l = work.ptr<std::int32_t>(y);
         auto* r = f.regions.ptr<std::uint16_t>(y);
         for (int x = 0; x < work.cols; ++x) {
-            if (l[x] == 0) continue;
+            if (l[x] == 0)
+                continue;
             auto it = ids.find(l[x]);
             if (it == ids.end()) {
-                if (ids.size() >= 65535) continue; // more regions than any atlas plane holds
+                if (ids.size() >= 65535)
+                    continue; // more regions than any atlas plane holds
                 it = ids.emplace(l[x], std::uint16_t(ids.size() + 1)).first;
             }
             r[x] = it->second;
@@ -244,13 +259,15 @@ core::Result<SectionFeatures> sectionFeatures(const cv::Mat& image, double image
     if (imageUmPerPx < 0 || workUmPerPx <= 0 || unknownScaleMaxSide < 64)
         return makeError(ErrorCode::InvalidArgument,
                          "pixel sizes must be positive and the working size at least 64 px");
-    if (image.empty()) return makeError(ErrorCode::InvalidArgument, "section image is empty");
+    if (image.empty())
+        return makeError(ErrorCode::InvalidArgument, "section image is empty");
     const int longSide = std::max(image.cols, image.rows);
     const int maxSide = imageUmPerPx > 0
                             ? std::max(64, int(std::lround(longSide * imageUmPerPx / workUmPerPx)))
                             : unknownScaleMaxSide;
     auto prepared = prepareSection(image, maxSide);
-    if (!prepared) return prepared.error();
+    if (!prepared)
+        return prepared.error();
     SectionFeatures f;
     f.scale = prepared->scale;
     f.workUmPerPx = imageUmPerPx > 0 ? imageUmPerPx / f.scale : 0.0;
@@ -284,7 +301,8 @@ core::Result<SectionFeatures> sectionFeatures(const cv::Mat& image, double image
 core::Result<SectionMatch> matchSection(const SectionFeatures& sec,
                                         const std::vector<SliceFeatures>& slices,
                                         const MatchOptions& options) {
-    if (slices.empty()) return makeError(ErrorCode::InvalidArgument, "the atlas stack is empty");
+    if (slices.empty())
+        return makeError(ErrorCode::InvalidArgument, "the atlas stack is empty");
     const int last = options.last < 0 ? int(slices.size()) - 1 : options.last;
     if (options.first < 0 || last >= int(slices.size()) || options.first > last)
         return makeError(ErrorCode::InvalidArgument,
@@ -337,24 +355,29 @@ core::Result<SectionMatch> matchSection(const SectionFeatures& sec,
     MatchCandidate seed;
     seed.overlap = -1;
     for (int i = options.first; i <= last; i += 3) {
-        if (!usable(i)) continue;
+        if (!usable(i))
+            continue;
         const SliceFeatures& sl = slices[size_t(i)];
         std::vector<Placement> places{{1, 1, false}, {-1, -1, false}};
-        if (options.allowMirror) places.insert(places.end(), {{1, -1, false}, {-1, 1, false}});
+        if (options.allowMirror)
+            places.insert(places.end(), {{1, -1, false}, {-1, 1, false}});
         const double aspectSec = sec.box.halfMajor / std::max(sec.box.halfMinor, 1e-9);
         const double aspectSl = sl.box.halfMajor / std::max(sl.box.halfMinor, 1e-9);
         if (aspectSec < 1.25 || aspectSl < 1.25) {
             const size_t n = places.size();
-            for (size_t k = 0; k < n; ++k) places.push_back({places[k].sMaj, -places[k].sMin, true});
+            for (size_t k = 0; k < n; ++k)
+                places.push_back({places[k].sMaj, -places[k].sMin, true});
         }
         std::vector<cv::Matx23d> inits;
         for (const Placement& p : places)
             inits.push_back(placement(sec.box, sl.box, p.sMaj, p.sMin, p.swap, scaleFor(sl)));
         byIndex[size_t(i)] = align(i, inits);
         done[size_t(i)] = true;
-        if (byIndex[size_t(i)].overlap > seed.overlap) seed = byIndex[size_t(i)];
+        if (byIndex[size_t(i)].overlap > seed.overlap)
+            seed = byIndex[size_t(i)];
     }
-    if (seed.overlap < 0) return makeError(ErrorCode::NoTissue, "no stack slice holds a brain to match");
+    if (seed.overlap < 0)
+        return makeError(ErrorCode::NoTissue, "no stack slice holds a brain to match");
     // The seed's rotation (and reflection) as a similarity; centre on centre with each slice's
     // own scale.
     const cv::Matx23d& st = seed.sliceFromSection;
@@ -365,7 +388,8 @@ core::Result<SectionMatch> matchSection(const SectionFeatures& sec,
     const double cosT = rc / norm, sinT = rs / norm;
     std::vector<MatchCandidate> all;
     for (int i = options.first; i <= last; ++i) {
-        if (!usable(i)) continue;
+        if (!usable(i))
+            continue;
         if (!done[size_t(i)]) {
             const SliceFeatures& sl = slices[size_t(i)];
             const double k = scaleFor(sl);
@@ -374,11 +398,13 @@ core::Result<SectionMatch> matchSection(const SectionFeatures& sec,
                                            : cv::Matx22d(k * cosT, -k * sinT, k * sinT, k * cosT);
             const cv::Vec2d c = cv::Vec2d(sl.box.centre.x, sl.box.centre.y) -
                                 L * cv::Vec2d(sec.box.centre.x, sec.box.centre.y);
-            byIndex[size_t(i)] = align(i, {cv::Matx23d(L(0, 0), L(0, 1), c[0], L(1, 0), L(1, 1), c[1])});
+            byIndex[size_t(i)] =
+                align(i, {cv::Matx23d(L(0, 0), L(0, 1), c[0], L(1, 0), L(1, 1), c[1])});
         }
         all.push_back(byIndex[size_t(i)]);
     }
-    if (all.empty()) return makeError(ErrorCode::NoTissue, "no stack slice holds a brain to match");
+    if (all.empty())
+        return makeError(ErrorCode::NoTissue, "no stack slice holds a brain to match");
 
     // Stage 2, a shortlist: the best overlaps and the neighbours of the top three, so the
     // position can be refined between slices.
@@ -390,8 +416,10 @@ core::Result<SectionMatch> matchSection(const SectionFeatures& sec,
     for (size_t k = 0; k < order.size() && k < size_t(std::max(1, options.shortlist)); ++k) {
         chosen[order[k]] = true;
         if (k < 3) {
-            if (order[k] > 0) chosen[order[k] - 1] = true;
-            if (order[k] + 1 < all.size()) chosen[order[k] + 1] = true;
+            if (order[k] > 0)
+                chosen[order[k] - 1] = true;
+            if (order[k] + 1 < all.size())
+                chosen[order[k] + 1] = true;
         }
     }
     cv::Mat inner;
@@ -411,7 +439,8 @@ core::Result<SectionMatch> matchSection(const SectionFeatures& sec,
             c.sliceFromSection = r.targetFromSource;
             c.overlap = o;
         }
-        const Agreement a = agreement(sec, sl, c.sliceFromSection, [](cv::Point2f) { return 0; }, 0);
+        const Agreement a = agreement(
+            sec, sl, c.sliceFromSection, [](cv::Point2f) { return 0; }, 0);
         c.edgeAgreement = a.f();
         c.regionAgreement = regionAgreement(sec, sl, c.sliceFromSection, inner);
         c.score = combinedScore(c);
@@ -419,7 +448,8 @@ core::Result<SectionMatch> matchSection(const SectionFeatures& sec,
     lap("overlap");
     std::vector<MatchCandidate> scored;
     for (size_t k = 0; k < all.size(); ++k) {
-        if (!chosen[k]) continue;
+        if (!chosen[k])
+            continue;
         refine(all[k]);
         scored.push_back(all[k]);
     }
@@ -435,7 +465,8 @@ core::Result<SectionMatch> matchSection(const SectionFeatures& sec,
     m.positionUm = slices[size_t(best.index)].positionUm;
     auto scoreOf = [&](int index) -> double {
         for (const MatchCandidate& c : scored)
-            if (c.index == index) return c.score;
+            if (c.index == index)
+                return c.score;
         return -1;
     };
     const double below = scoreOf(best.index - 1), above = scoreOf(best.index + 1);
@@ -450,9 +481,8 @@ core::Result<SectionMatch> matchSection(const SectionFeatures& sec,
     // the difference of the halves' positions over their distance is the tilt. Only a dense
     // stack resolves the few tens of micrometres this takes.
     const int lo = std::max(options.first, best.index - 3), hi = std::min(last, best.index + 3);
-    const double interval = hi > lo ? (slices[size_t(hi)].positionUm - slices[size_t(lo)].positionUm) /
-                                          (hi - lo)
-                                    : 0;
+    const double interval =
+        hi > lo ? (slices[size_t(hi)].positionUm - slices[size_t(lo)].positionUm) / (hi - lo) : 0;
     if (options.tiltMaxIntervalUm > 0 && hi - lo >= 4 && interval > 0 &&
         interval <= options.tiltMaxIntervalUm) {
         struct Half {
@@ -485,7 +515,8 @@ core::Result<SectionMatch> matchSection(const SectionFeatures& sec,
         auto peak = [&](const std::vector<double>& s) {
             const size_t k = size_t(std::max_element(s.begin(), s.end()) - s.begin());
             double t = 0;
-            if (k > 0 && k + 1 < s.size()) t = parabolaPeak(s[k - 1], s[k], s[k + 1]);
+            if (k > 0 && k + 1 < s.size())
+                t = parabolaPeak(s[k - 1], s[k], s[k + 1]);
             return (double(k) + t) * interval;
         };
         // The halves' centres lie about half the brain's extent apart. A plane leaning toward
@@ -494,10 +525,10 @@ core::Result<SectionMatch> matchSection(const SectionFeatures& sec,
         const double halfWidthUm = 0.5 * box.width * ref.workUmPerPx;
         const double halfHeightUm = 0.5 * box.height * ref.workUmPerPx;
         if (halfWidthUm > 0 && halfHeightUm > 0) {
-            m.tiltColumnsDeg = std::atan2(peak(halves[0].score) - peak(halves[1].score),
-                                          halfWidthUm) * 180 / kPi;
-            m.tiltRowsDeg = std::atan2(peak(halves[2].score) - peak(halves[3].score),
-                                       halfHeightUm) * 180 / kPi;
+            m.tiltColumnsDeg =
+                std::atan2(peak(halves[0].score) - peak(halves[1].score), halfWidthUm) * 180 / kPi;
+            m.tiltRowsDeg =
+                std::atan2(peak(halves[2].score) - peak(halves[3].score), halfHeightUm) * 180 / kPi;
             m.tiltEstimated = true;
         }
     }
@@ -535,8 +566,10 @@ std::vector<int> monotonicAssignment(const std::vector<std::vector<double>>& val
         }
     }
     std::vector<int> pick(n);
-    pick[n - 1] = int(std::max_element(best[n - 1].begin(), best[n - 1].end()) - best[n - 1].begin());
-    for (size_t i = n - 1; i > 0; --i) pick[i - 1] = from[i][size_t(pick[i])];
+    pick[n - 1] =
+        int(std::max_element(best[n - 1].begin(), best[n - 1].end()) - best[n - 1].begin());
+    for (size_t i = n - 1; i > 0; --i)
+        pick[i - 1] = from[i][size_t(pick[i])];
     return pick;
 }
 
@@ -545,14 +578,16 @@ std::vector<int> monotonicAssignment(const std::vector<std::vector<double>>& val
 core::Result<std::vector<SectionMatch>> matchSeries(const std::vector<SectionFeatures>& sections,
                                                     const std::vector<SliceFeatures>& slices,
                                                     const SeriesOptions& options) {
-    if (sections.empty()) return std::vector<SectionMatch>{};
-    if (slices.empty()) return makeError(ErrorCode::InvalidArgument, "the atlas stack is empty");
+    if (sections.empty())
+        return std::vector<SectionMatch>{};
+    if (slices.empty())
+        return makeError(ErrorCode::InvalidArgument, "the atlas stack is empty");
     const int first = options.match.first;
     const int last = options.match.last < 0 ? int(slices.size()) - 1 : options.match.last;
     const int minStep = std::max(1, options.minStep);
     if (first < 0 || last >= int(slices.size()) || first > last)
-        return makeError(ErrorCode::InvalidArgument, "slice range " + std::to_string(first) +
-                                                         ".." + std::to_string(last) +
+        return makeError(ErrorCode::InvalidArgument, "slice range " + std::to_string(first) + ".." +
+                                                         std::to_string(last) +
                                                          " is not inside the stack");
     const int count = last - first + 1;
     if ((int(sections.size()) - 1) * minStep + 1 > count)
@@ -573,13 +608,15 @@ core::Result<std::vector<SectionMatch>> matchSeries(const std::vector<SectionFea
         std::vector<std::vector<double>> value(sections.size(), std::vector<double>(size_t(count)));
         for (size_t i = 0; i < sections.size(); ++i) {
             const double top = std::max(1e-12, *std::max_element(raw[i].begin(), raw[i].end()));
-            for (int j = 0; j < count; ++j) value[i][size_t(j)] = std::max(0.0, raw[i][size_t(j)]) / top;
+            for (int j = 0; j < count; ++j)
+                value[i][size_t(j)] = std::max(0.0, raw[i][size_t(j)]) / top;
         }
         return monotonicAssignment(value, minStep);
     };
     for (size_t i = 0; i < sections.size(); ++i) {
         auto m = matchSection(sections[i], slices, options.match);
-        if (!m) return m.error();
+        if (!m)
+            return m.error();
         merge(i, *m);
         own[i] = std::move(*m);
     }
@@ -594,7 +631,8 @@ core::Result<std::vector<SectionMatch>> matchSeries(const std::vector<SectionFea
         w.shortlist = std::max(w.shortlist, w.last - w.first + 1);
         w.tiltMaxIntervalUm = 0;
         auto m = matchSection(sections[i], slices, w);
-        if (m) merge(i, *m);
+        if (m)
+            merge(i, *m);
     }
     pick = assign();
 
@@ -609,9 +647,9 @@ core::Result<std::vector<SectionMatch>> matchSeries(const std::vector<SectionFea
         if (j > 0 && j + 1 < count && raw[i][size_t(j - 1)] >= 0 && raw[i][size_t(j + 1)] >= 0) {
             const double t = std::clamp(
                 parabolaPeak(raw[i][size_t(j - 1)], m.score, raw[i][size_t(j + 1)]), -0.45, 0.45);
-            m.positionUm += t * 0.5 *
-                            (slices[size_t(m.index + 1)].positionUm -
-                             slices[size_t(m.index - 1)].positionUm);
+            m.positionUm +=
+                t * 0.5 *
+                (slices[size_t(m.index + 1)].positionUm - slices[size_t(m.index - 1)].positionUm);
         }
         if (!ownChoice) {
             m.tiltColumnsDeg = m.tiltRowsDeg = 0;

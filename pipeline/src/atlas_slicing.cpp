@@ -83,9 +83,12 @@ std::string_view toString(PlaneOrientation o) noexcept {
 }
 
 core::Result<PlaneOrientation> parsePlaneOrientation(std::string_view name) {
-    if (name == "coronal") return PlaneOrientation::Coronal;
-    if (name == "sagittal") return PlaneOrientation::Sagittal;
-    if (name == "horizontal") return PlaneOrientation::Horizontal;
+    if (name == "coronal")
+        return PlaneOrientation::Coronal;
+    if (name == "sagittal")
+        return PlaneOrientation::Sagittal;
+    if (name == "horizontal")
+        return PlaneOrientation::Horizontal;
     return makeError(ErrorCode::InvalidArgument,
                      "plane '" + std::string(name) + "' is not coronal, sagittal or horizontal");
 }
@@ -120,9 +123,8 @@ core::Result<SliceGeometry> planeGeometry(const core::Volume& volume, VolumeAxes
     if (plane.positionUm < -slack || plane.positionUm > lastUm + slack)
         return makeError(ErrorCode::OutOfRange,
                          std::string(toString(plane.orientation)) + " plane at " +
-                             std::to_string(plane.positionUm) +
-                             " um is outside the volume (0.." + std::to_string(lastUm) +
-                             " um along its normal)");
+                             std::to_string(plane.positionUm) + " um is outside the volume (0.." +
+                             std::to_string(lastUm) + " um along its normal)");
 
     // Tilts as two rotations: first the normal leans toward the column axis, then toward the
     // row axis; the in-plane axes follow so the frame stays orthonormal.
@@ -147,12 +149,14 @@ core::Result<SliceGeometry> planeGeometry(const core::Volume& volume, VolumeAxes
     SliceGeometry g;
     g.size = cv::Size(int(widthPx), int(heightPx));
     cv::Vec3d centre;
-    for (int i = 0; i < 3; ++i) centre[i] = 0.5 * (m.size[i] - 1) * m.spacingUm[i];
+    for (int i = 0; i < 3; ++i)
+        centre[i] = 0.5 * (m.size[i] - 1) * m.spacingUm[i];
     centre[l.normalAxis] = plane.positionUm;
     g.columnUm = plane.umPerPx * u;
     g.rowUm = plane.umPerPx * v;
     g.normal = n;
-    g.originUm = centre - 0.5 * (g.size.width - 1) * g.columnUm - 0.5 * (g.size.height - 1) * g.rowUm;
+    g.originUm =
+        centre - 0.5 * (g.size.width - 1) * g.columnUm - 0.5 * (g.size.height - 1) * g.rowUm;
     g.positionUm = plane.positionUm;
     return g;
 }
@@ -185,7 +189,8 @@ core::Result<cv::Mat> sampleLabels(const core::Volume& volume, VolumeAxes axes,
                 inside = k >= 0 && k < m.size[i];
                 offset += std::int64_t(k) * m.stride[i];
             }
-            if (!inside) continue;
+            if (!inside)
+                continue;
             const std::uint32_t id = data[offset];
             maxSeen = std::max(maxSeen, id);
             row[c] = static_cast<int>(id);
@@ -201,24 +206,23 @@ core::Result<void> checkStackBudget(double slices, cv::Size size) {
     const double pixels = double(size.width) * size.height;
     const double bytes = slices * pixels * double(sizeof(std::int32_t));
     auto mib = [](double b) { return std::to_string(std::llround(b / (1 << 20))) + " MiB"; };
-    const std::string plan = (slices < 1e15 ? std::to_string(std::llround(slices)) : "more than 1e15") +
-                             " slices of " + std::to_string(size.width) + " x " +
-                             std::to_string(size.height) + " px";
+    const std::string plan =
+        (slices < 1e15 ? std::to_string(std::llround(slices)) : "more than 1e15") + " slices of " +
+        std::to_string(size.width) + " x " + std::to_string(size.height) + " px";
     if (!(slices <= kMaxStackSlices))
         return makeError(ErrorCode::InvalidArgument,
                          "the plan cuts " + plan + ", more than the " +
                              std::to_string(kMaxStackSlices) +
                              " slices a stack may hold (raise the interval)");
     if (pixels > double(kMaxSlicePixels))
-        return makeError(ErrorCode::InvalidArgument,
-                         "the plan cuts " + plan + ": more than " +
-                             std::to_string(kMaxSlicePixels) +
-                             " px per slice (raise the pixel size)");
+        return makeError(ErrorCode::InvalidArgument, "the plan cuts " + plan + ": more than " +
+                                                         std::to_string(kMaxSlicePixels) +
+                                                         " px per slice (raise the pixel size)");
     if (bytes > double(kMaxStackBytes))
-        return makeError(ErrorCode::InvalidArgument,
-                         "the plan cuts " + plan + ": " + mib(bytes) +
-                             " of labels, beyond the budget of " + mib(double(kMaxStackBytes)) +
-                             " (raise the interval or the pixel size)");
+        return makeError(ErrorCode::InvalidArgument, "the plan cuts " + plan + ": " + mib(bytes) +
+                                                         " of labels, beyond the budget of " +
+                                                         mib(double(kMaxStackBytes)) +
+                                                         " (raise the interval or the pixel size)");
     return {};
 }
 
@@ -234,19 +238,24 @@ core::Result<std::vector<AtlasSlice>> sliceVolume(const core::Volume& volume, Vo
     // Every plane has the first one's size (the tilts are the plan's): the whole stack is
     // known before a voxel is sampled.
     auto first = planeGeometry(volume, axes, p);
-    if (!first) return first.error();
-    const double planes = 1 + std::max(0.0, std::floor((lastUm + 1e-6 - plan.firstUm) /
-                                                       plan.intervalUm));
-    if (auto budget = checkStackBudget(planes, first->size); !budget) return budget.error();
+    if (!first)
+        return first.error();
+    const double planes =
+        1 + std::max(0.0, std::floor((lastUm + 1e-6 - plan.firstUm) / plan.intervalUm));
+    if (auto budget = checkStackBudget(planes, first->size); !budget)
+        return budget.error();
     slices.reserve(std::size_t(planes));
     // Index-based positions: repeated addition would drift off the plan's grid.
     for (int i = 0;; ++i) {
         p.positionUm = plan.firstUm + i * plan.intervalUm;
-        if (i > 0 && p.positionUm > lastUm + 1e-6) break;
+        if (i > 0 && p.positionUm > lastUm + 1e-6)
+            break;
         auto g = planeGeometry(volume, axes, p);
-        if (!g) return g.error();
+        if (!g)
+            return g.error();
         auto labels = sampleLabels(volume, axes, *g);
-        if (!labels) return labels.error();
+        if (!labels)
+            return labels.error();
         slices.push_back({std::move(*labels), *g});
     }
     return slices;

@@ -21,14 +21,16 @@ std::vector<cv::Point2f> polygonOf(const cv::Mat& regionMask, cv::Point offset =
     std::vector<std::vector<cv::Point>> contours;
     cv::findContours(regionMask.clone(), contours, cv::RETR_EXTERNAL, cv::CHAIN_APPROX_SIMPLE,
                      offset);
-    if (contours.empty()) return {};
+    if (contours.empty())
+        return {};
     const auto& c = *std::max_element(contours.begin(), contours.end(), [](auto& a, auto& b) {
         return cv::contourArea(a) < cv::contourArea(b);
     });
     std::vector<cv::Point> simple;
     cv::approxPolyDP(c, simple, 1.0, true);
     std::vector<cv::Point2f> out;
-    for (const auto& p : simple) out.emplace_back(float(p.x), float(p.y));
+    for (const auto& p : simple)
+        out.emplace_back(float(p.x), float(p.y));
     return out;
 }
 
@@ -42,9 +44,12 @@ cv::Rect grown(const cv::Rect& box, int margin, cv::Size size) {
 
 std::string_view toString(DamageKind kind) noexcept {
     switch (kind) {
-    case DamageKind::Tear: return "tear";
-    case DamageKind::Missing: return "missing";
-    case DamageKind::Fragment: return "fragment";
+    case DamageKind::Tear:
+        return "tear";
+    case DamageKind::Missing:
+        return "missing";
+    case DamageKind::Fragment:
+        return "fragment";
     }
     return "unknown";
 }
@@ -54,7 +59,8 @@ std::vector<cv::Point2f> subdivide(const std::vector<cv::Point2f>& polygon, doub
     for (size_t i = 0; i < polygon.size(); ++i) {
         const cv::Point2f a = polygon[i], b = polygon[(i + 1) % polygon.size()];
         const int pieces = std::max(1, static_cast<int>(std::ceil(cv::norm(b - a) / maxSegmentPx)));
-        for (int k = 0; k < pieces; ++k) out.push_back(a + (b - a) * (float(k) / float(pieces)));
+        for (int k = 0; k < pieces; ++k)
+            out.push_back(a + (b - a) * (float(k) / float(pieces)));
     }
     return out;
 }
@@ -63,7 +69,8 @@ Outline tissueOutline(const cv::Mat& tissueMask, double maxSegmentPx) {
     Outline out;
     std::vector<std::vector<cv::Point>> contours;
     cv::findContours(tissueMask.clone(), contours, cv::RETR_EXTERNAL, cv::CHAIN_APPROX_NONE);
-    if (contours.empty()) return out;
+    if (contours.empty())
+        return out;
     const auto& c = *std::max_element(contours.begin(), contours.end(), [](auto& a, auto& b) {
         return cv::contourArea(a) < cv::contourArea(b);
     });
@@ -71,9 +78,11 @@ Outline tissueOutline(const cv::Mat& tissueMask, double maxSegmentPx) {
     cv::approxPolyDP(c, simple, 1.0, true);
     for (const auto& p : simple) {
         const cv::Point2f q(float(p.x), float(p.y));
-        if (out.points.empty() || q != out.points.back()) out.points.push_back(q);
+        if (out.points.empty() || q != out.points.back())
+            out.points.push_back(q);
     }
-    while (out.points.size() > 1 && out.points.front() == out.points.back()) out.points.pop_back();
+    while (out.points.size() > 1 && out.points.front() == out.points.back())
+        out.points.pop_back();
     out.points = subdivide(out.points, maxSegmentPx);
     const size_t n = out.points.size();
     for (size_t i = 0; i < n; ++i) {
@@ -88,7 +97,8 @@ std::vector<Concavity> deepConcavities(const Outline& outline, double alphaPx) {
     std::vector<Concavity> out;
     const ExteriorTriangulation ext = exteriorMedialAxis(outline.points);
     for (const MedialBranch& b : ext.branches) {
-        if (b.length < alphaPx) break; // sorted longest first
+        if (b.length < alphaPx)
+            break; // sorted longest first
         Concavity c;
         c.axisLength = b.length;
         for (int v : b.outlineVertices) {
@@ -117,7 +127,8 @@ void markSymmetric(std::vector<Concavity>& concavities, const Outline& outline,
                 if (std::abs(m.x * outline.normals[j].x + m.y * outline.normals[j].y) >= cosMax)
                     found = true;
             });
-            if (found) ++partnered;
+            if (found)
+                ++partnered;
         }
         c.symmetric = !c.points.empty() &&
                       double(partnered) >= params.symmetricShare * double(c.points.size());
@@ -128,11 +139,13 @@ cv::Mat concavityExclusion(const std::vector<Concavity>& concavities, cv::Size s
                            double marginPx) {
     cv::Mat mask = cv::Mat::zeros(size, CV_8U);
     for (const Concavity& c : concavities) {
-        if (c.symmetric || c.points.size() < 3) continue;
+        if (c.symmetric || c.points.size() < 3)
+            continue;
         std::vector<cv::Point2f> hull;
         cv::convexHull(c.points, hull);
         std::vector<cv::Point> poly;
-        for (const auto& p : hull) poly.emplace_back(cvRound(p.x), cvRound(p.y));
+        for (const auto& p : hull)
+            poly.emplace_back(cvRound(p.x), cvRound(p.y));
         cv::fillConvexPoly(mask, poly, cv::Scalar(255));
     }
     const int m = std::max(1, static_cast<int>(std::lround(marginPx)));
@@ -142,10 +155,12 @@ cv::Mat concavityExclusion(const std::vector<Concavity>& concavities, cv::Size s
 }
 
 GreyLevels greyLevels(const cv::Mat& grey, const cv::Mat& tissueMask) {
-    CV_Assert(grey.type() == CV_32F && tissueMask.type() == CV_8U && grey.size() == tissueMask.size());
+    CV_Assert(grey.type() == CV_32F && tissueMask.type() == CV_8U &&
+              grey.size() == tissueMask.size());
     GreyLevels out;
     const auto tissuePx = static_cast<size_t>(cv::countNonZero(tissueMask));
-    if (tissuePx == 0 || tissuePx == tissueMask.total()) return out;
+    if (tissuePx == 0 || tissuePx == tissueMask.total())
+        return out;
     out.glass = static_cast<float>(cv::mean(grey, ~tissueMask)[0]);
     out.tissue = percentile(grey, 0.5, tissueMask);
     return out;
@@ -153,7 +168,8 @@ GreyLevels greyLevels(const cv::Mat& grey, const cv::Mat& tissueMask) {
 
 cv::Mat darkValleys(const cv::Mat& grey, GreyLevels levels, const DamageParams& params) {
     CV_Assert(grey.type() == CV_32F);
-    if (levels.tissue <= levels.glass) return cv::Mat::zeros(grey.size(), CV_8U);
+    if (levels.tissue <= levels.glass)
+        return cv::Mat::zeros(grey.size(), CV_8U);
     // A line under a pixel wide is only darker than the tissue beside it: dark against the
     // tissue's level, and a valley, darker than the tissue on both sides (the black top-hat of a
     // 5 px disc), which neither dim tissue nor its edge against bright tissue is.
@@ -172,7 +188,8 @@ GapThreads gapThreads(const cv::Mat& rawGaps, const cv::Mat& openedGaps) {
               rawGaps.size() == openedGaps.size());
     GapThreads t;
     cv::Mat centroids;
-    cv::connectedComponentsWithStats(rawGaps & ~openedGaps, t.labels, t.stats, centroids, 8, CV_32S);
+    cv::connectedComponentsWithStats(rawGaps & ~openedGaps, t.labels, t.stats, centroids, 8,
+                                     CV_32S);
     return t;
 }
 
@@ -180,7 +197,8 @@ double crackLength(const cv::Mat& region, const GapThreads& threads) {
     CV_Assert(region.type() == CV_8U && threads.labels.size() == region.size());
     std::vector<cv::Point> piece;
     cv::findNonZero(region, piece);
-    if (piece.empty()) return 0;
+    if (piece.empty())
+        return 0;
     // The threads touching the region (8-connected: within one pixel of it).
     const cv::Rect box = grown(cv::boundingRect(piece), 1, region.size());
     cv::Mat near;
@@ -201,7 +219,8 @@ double crackLength(const cv::Mat& region, const GapThreads& threads) {
         for (int y = b.y; y < b.y + b.height; ++y) {
             const std::int32_t* l = threads.labels.ptr<std::int32_t>(y);
             for (int x = b.x; x < b.x + b.width; ++x)
-                if (l[x] == id) piece.emplace_back(x, y);
+                if (l[x] == id)
+                    piece.emplace_back(x, y);
         }
     }
     const cv::RotatedRect r = cv::minAreaRect(piece);
@@ -225,7 +244,8 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const AtlasExp
     // slivers along the expected boundaries, so the expected tissue is first eroded by that
     // slack; a thin crack inside the tissue is far from those boundaries and stays.
     const int r = std::max(1, static_cast<int>(std::lround(params.slackFrac * brainWidthPx)));
-    const cv::Mat disc = cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * r + 1, 2 * r + 1));
+    const cv::Mat disc =
+        cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * r + 1, 2 * r + 1));
     cv::Mat inner;
     cv::erode(expectedTissue, inner, disc);
     const cv::Mat rawDeficit = inner & ~tissueMask;
@@ -241,7 +261,8 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const AtlasExp
         const cv::Rect roi = grown(box, reach, labels.size());
         cv::Mat thin = rawDeficit(roi).clone();
         if (!grey.empty()) {
-            if (!levels) levels = greyLevels(grey, tissueMask);
+            if (!levels)
+                levels = greyLevels(grey, tissueMask);
             thin |= darkValleys(grey(roi), *levels, params) & inner(roi);
         }
         return crackLength(labels(roi) == id, gapThreads(thin, deficit(roi)));
@@ -253,16 +274,19 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const AtlasExp
         tissueParts = cv::Mat::zeros(tissueMask.size(), CV_8U);
         expected.parts.copyTo(tissueParts, tissueMask);
     }
-    const int ringPx = std::max(1, static_cast<int>(std::lround(params.fissureRingFrac * brainWidthPx)));
+    const int ringPx =
+        std::max(1, static_cast<int>(std::lround(params.fissureRingFrac * brainWidthPx)));
     cv::Mat labels, stats, centroids;
     int n = cv::connectedComponentsWithStats(deficit, labels, stats, centroids, 8, CV_32S);
     for (int i = 1; i < n; ++i) {
         const double area = stats.at<int>(i, cv::CC_STAT_AREA);
-        if (area < minArea / 4) continue;
+        if (area < minArea / 4)
+            continue;
         // Each gap is looked at in its box, grown by the farthest any measure below reaches
         // (the rim, the fissure ring), so that the result is as on the whole image.
         const cv::Rect bounds(stats.at<int>(i, cv::CC_STAT_LEFT), stats.at<int>(i, cv::CC_STAT_TOP),
-                              stats.at<int>(i, cv::CC_STAT_WIDTH), stats.at<int>(i, cv::CC_STAT_HEIGHT));
+                              stats.at<int>(i, cv::CC_STAT_WIDTH),
+                              stats.at<int>(i, cv::CC_STAT_HEIGHT));
         const cv::Rect roi = grown(bounds, std::max(r + 3, ringPx + 1), labels.size());
         const cv::Mat region = labels(roi) == i;
         std::vector<cv::Point> pts;
@@ -271,7 +295,8 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const AtlasExp
         const double length = std::max(box.size.width, box.size.height);
         const double meanWidth = area / std::max(length, 1.0);
         // A long thin crack has little area; its length makes it count.
-        if (area < minArea && length < 0.5 * params.deepTearFrac * brainWidthPx) continue;
+        if (area < minArea && length < 0.5 * params.deepTearFrac * brainWidthPx)
+            continue;
         // A gap lying along the outline (much of its rim on the glass outside) and shallow is
         // registration slack where the boundary is faint, not lost tissue; a bite out of the
         // edge is deep, and a crack opens to the outside only at its mouth.
@@ -287,13 +312,13 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const AtlasExp
         double thickness = 0;
         cv::minMaxLoc(dist, nullptr, &thickness);
         const bool alongOutline = openShare > params.alongOutlineShare;
-        if (alongOutline && 2 * thickness < params.shallowFrac * brainWidthPx) continue;
+        if (alongOutline && 2 * thickness < params.shallowFrac * brainWidthPx)
+            continue;
         // A long band along the outline, tissue along one side and glass along the other, is
         // an atlas outline lying parallel outside the section's own, a fit that did not bend
         // that far, not lost tissue: a piece lost from the edge leaves a bite about as deep as
         // it is wide, and a lobe lost whole leaves a gap with glass all round.
-        if (alongOutline && openShare < 0.75 &&
-            length >= params.bandElongation * 2 * thickness)
+        if (alongOutline && openShare < 0.75 && length >= params.bandElongation * 2 * thickness)
             continue;
         // A gap with one part of the brain on one side and another on the other is a natural
         // fissure opened; a tear runs through a part, or across the interface.
@@ -324,18 +349,21 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const AtlasExp
         }
     for (int i = 1; i < n; ++i) {
         const double area = stats.at<int>(i, cv::CC_STAT_AREA);
-        if (i == main || area < minArea) continue;
+        if (i == main || area < minArea)
+            continue;
         const cv::Mat piece = labels == i;
         const double inside = cv::countNonZero(piece & expectedBrain) / area;
         const bool known =
             !knownFragments.empty() && cv::countNonZero(piece & knownFragments) > 0.5 * area;
-        if (inside > 0.7 && !known) continue;
+        if (inside > 0.7 && !known)
+            continue;
         DamageRegion d;
         d.kind = DamageKind::Fragment;
         d.polygon = polygonOf(piece);
         d.areaPx = area;
         d.share = area / tissueArea;
-        d.lengthPx = std::max(stats.at<int>(i, cv::CC_STAT_WIDTH), stats.at<int>(i, cv::CC_STAT_HEIGHT));
+        d.lengthPx =
+            std::max(stats.at<int>(i, cv::CC_STAT_WIDTH), stats.at<int>(i, cv::CC_STAT_HEIGHT));
         out.push_back(std::move(d));
     }
     std::sort(out.begin(), out.end(),
@@ -349,11 +377,13 @@ std::vector<cv::Mat> pieces(const cv::Mat& mask, double minShare) {
     cv::Mat labels, stats, centroids;
     const int n = cv::connectedComponentsWithStats(mask, labels, stats, centroids, 8, CV_32S);
     std::vector<std::pair<int, int>> byArea;
-    for (int i = 1; i < n; ++i) byArea.emplace_back(stats.at<int>(i, cv::CC_STAT_AREA), i);
+    for (int i = 1; i < n; ++i)
+        byArea.emplace_back(stats.at<int>(i, cv::CC_STAT_AREA), i);
     std::sort(byArea.rbegin(), byArea.rend());
     std::vector<cv::Mat> out;
     for (const auto& [area, i] : byArea)
-        if (area >= minShare * byArea.front().first) out.push_back(labels == i);
+        if (area >= minShare * byArea.front().first)
+            out.push_back(labels == i);
     return out;
 }
 } // namespace
@@ -362,14 +392,16 @@ cv::Mat partMap(const cv::Mat& labels, const std::vector<std::vector<std::int32_
     CV_Assert(labels.type() == CV_32S && parts.size() < 256);
     std::unordered_map<std::int32_t, std::uint8_t> partOf;
     for (size_t i = 0; i < parts.size(); ++i)
-        for (const std::int32_t id : parts[i]) partOf[id] = static_cast<std::uint8_t>(i + 1);
+        for (const std::int32_t id : parts[i])
+            partOf[id] = static_cast<std::uint8_t>(i + 1);
     cv::Mat out = cv::Mat::zeros(labels.size(), CV_8U);
     for (int y = 0; y < labels.rows; ++y) {
         const std::int32_t* in = labels.ptr<std::int32_t>(y);
         std::uint8_t* o = out.ptr<std::uint8_t>(y);
         for (int x = 0; x < labels.cols; ++x)
             if (in[x] != 0)
-                if (const auto it = partOf.find(in[x]); it != partOf.end()) o[x] = it->second;
+                if (const auto it = partOf.find(in[x]); it != partOf.end())
+                    o[x] = it->second;
     }
     return out;
 }
@@ -377,15 +409,17 @@ cv::Mat partMap(const cv::Mat& labels, const std::vector<std::vector<std::int32_
 bool betweenParts(const cv::Mat& region, const cv::Mat& parts, int ringPx, double purity) {
     CV_Assert(region.type() == CV_8U && parts.type() == CV_8U && region.size() == parts.size());
     const cv::Moments m = cv::moments(region, true);
-    if (m.m00 <= 0) return false;
+    if (m.m00 <= 0)
+        return false;
     // The gap's principal axis through its centroid; the ring's pixels on either side of it.
     const double cx = m.m10 / m.m00, cy = m.m01 / m.m00;
     const double angle = 0.5 * std::atan2(2 * m.mu11, m.mu20 - m.mu02);
     const double nx = -std::sin(angle), ny = std::cos(angle);
     const cv::Rect roi = grown(cv::boundingRect(region), ringPx, region.size());
     cv::Mat ring;
-    cv::dilate(region(roi), ring,
-               cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * ringPx + 1, 2 * ringPx + 1)));
+    cv::dilate(
+        region(roi), ring,
+        cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * ringPx + 1, 2 * ringPx + 1)));
     ring &= ~region(roi);
     std::array<std::array<int, 256>, 2> count{};
     int ringSide[2] = {0, 0};
@@ -393,10 +427,12 @@ bool betweenParts(const cv::Mat& region, const cv::Mat& parts, int ringPx, doubl
         const std::uint8_t* rp = ring.ptr<std::uint8_t>(y);
         const std::uint8_t* pp = parts.ptr<std::uint8_t>(y + roi.y) + roi.x;
         for (int x = 0; x < roi.width; ++x) {
-            if (!rp[x]) continue;
+            if (!rp[x])
+                continue;
             const int side = (x + roi.x - cx) * nx + (y + roi.y - cy) * ny > 0;
             ++ringSide[side];
-            if (pp[x]) ++count[side][pp[x]];
+            if (pp[x])
+                ++count[side][pp[x]];
         }
     }
     int major[2] = {0, 0};
@@ -410,7 +446,8 @@ bool betweenParts(const cv::Mat& region, const cv::Mat& parts, int ringPx, doubl
             }
         }
         // A side mostly glass (a bite out of the edge) has no part beside the gap.
-        if (total < 0.25 * ringSide[s] || best < purity * total) return false;
+        if (total < 0.25 * ringSide[s] || best < purity * total)
+            return false;
     }
     return major[0] != major[1];
 }
@@ -418,9 +455,11 @@ bool betweenParts(const cv::Mat& region, const cv::Mat& parts, int ringPx, doubl
 cv::Mat extraPieces(const cv::Mat& tissueMask, const cv::Mat& atlasMask, double minShare) {
     const auto section = pieces(tissueMask, minShare);
     const size_t expected = std::max<size_t>(1, pieces(atlasMask, minShare).size());
-    if (section.size() <= expected) return {};
+    if (section.size() <= expected)
+        return {};
     cv::Mat extra = cv::Mat::zeros(tissueMask.size(), CV_8U);
-    for (size_t i = expected; i < section.size(); ++i) extra |= section[i];
+    for (size_t i = expected; i < section.size(); ++i)
+        extra |= section[i];
     return extra;
 }
 
@@ -433,9 +472,11 @@ cv::Mat piecesInside(const cv::Mat& pieces, const cv::Mat& region, double share)
         const std::int32_t* l = labels.ptr<std::int32_t>(y);
         const std::uint8_t* r = region.ptr<std::uint8_t>(y);
         for (int x = 0; x < labels.cols; ++x) {
-            if (l[x] == 0) continue;
+            if (l[x] == 0)
+                continue;
             ++area[static_cast<size_t>(l[x])];
-            if (r[x]) ++in[static_cast<size_t>(l[x])];
+            if (r[x])
+                ++in[static_cast<size_t>(l[x])];
         }
     }
     cv::Mat out = cv::Mat::zeros(pieces.size(), CV_8U);
@@ -444,7 +485,8 @@ cv::Mat piecesInside(const cv::Mat& pieces, const cv::Mat& region, double share)
         std::uint8_t* o = out.ptr<std::uint8_t>(y);
         for (int x = 0; x < labels.cols; ++x) {
             const auto k = static_cast<size_t>(l[x]);
-            if (k != 0 && in[k] >= share * area[k]) o[x] = 255;
+            if (k != 0 && in[k] >= share * area[k])
+                o[x] = 255;
         }
     }
     return out;
@@ -463,7 +505,8 @@ bool isDamaged(const std::vector<DamageRegion>& regions, double brainWidthPx,
 }
 
 std::string damageSummary(const std::vector<DamageRegion>& regions) {
-    if (regions.empty()) return "no damage found";
+    if (regions.empty())
+        return "no damage found";
     double share[3] = {0, 0, 0};
     int count[3] = {0, 0, 0};
     for (const DamageRegion& r : regions) {
@@ -472,7 +515,8 @@ std::string damageSummary(const std::vector<DamageRegion>& regions) {
     }
     std::string s;
     for (int k = 0; k < 3; ++k) {
-        if (!count[k]) continue;
+        if (!count[k])
+            continue;
         char buf[96];
         std::snprintf(buf, sizeof buf, "%s%d %s (%.1f%% of the tissue)", s.empty() ? "" : ", ",
                       count[k], std::string(toString(static_cast<DamageKind>(k))).c_str(),

@@ -13,7 +13,8 @@ std::vector<cv::Point2f> edgePixels(const cv::Mat& edgeImage) {
     for (int y = 0; y < edgeImage.rows; ++y) {
         const uchar* row = edgeImage.ptr<uchar>(y);
         for (int x = 0; x < edgeImage.cols; ++x)
-            if (row[x]) out.emplace_back(float(x), float(y));
+            if (row[x])
+                out.emplace_back(float(x), float(y));
     }
     return out;
 }
@@ -25,8 +26,10 @@ std::vector<cv::Point2f> labelBoundarySamples(const cv::Mat& labels) {
         const int* row = labels.ptr<int>(y);
         const int* next = y + 1 < labels.rows ? labels.ptr<int>(y + 1) : nullptr;
         for (int x = 0; x < labels.cols; ++x) {
-            if (x + 1 < labels.cols && row[x + 1] != row[x]) out.emplace_back(x + 0.5f, float(y));
-            if (next && next[x] != row[x]) out.emplace_back(float(x), y + 0.5f);
+            if (x + 1 < labels.cols && row[x + 1] != row[x])
+                out.emplace_back(x + 0.5f, float(y));
+            if (next && next[x] != row[x])
+                out.emplace_back(float(x), y + 0.5f);
         }
     }
     return out;
@@ -45,7 +48,8 @@ EdgePoints thinEdgePoints(const EdgePoints& points, float spacing) {
     EdgePoints out;
     std::unordered_set<long long> taken;
     for (size_t i = 0; i < points.size(); ++i) {
-        if (!taken.insert(cellKey(points.points[i], spacing)).second) continue;
+        if (!taken.insert(cellKey(points.points[i], spacing)).second)
+            continue;
         out.points.push_back(points.points[i]);
         out.normals.push_back(points.normals[i]);
     }
@@ -54,14 +58,16 @@ EdgePoints thinEdgePoints(const EdgePoints& points, float spacing) {
 
 EdgePoints mlsEdgePoints(const std::vector<cv::Point2f>& raw, float spacing, float radius) {
     EdgePoints out;
-    if (raw.empty()) return out;
+    if (raw.empty())
+        return out;
     const PointGrid grid(raw, radius);
     const float inv2s2 = 1.0f / (2.0f * (radius / 2) * (radius / 2));
     std::unordered_set<long long> taken;
     const float cell = std::max(spacing, 1e-3f);
     for (const cv::Point2f& p : raw) {
         const long long key = cellKey(p, cell);
-        if (taken.count(key)) continue;
+        if (taken.count(key))
+            continue;
         // Weighted line fit (moving least squares of degree 1) around p.
         double sw = 0, mx = 0, my = 0;
         int n = 0;
@@ -72,7 +78,8 @@ EdgePoints mlsEdgePoints(const std::vector<cv::Point2f>& raw, float spacing, flo
             my += w * raw[i].y;
             ++n;
         });
-        if (n < 3) continue;
+        if (n < 3)
+            continue;
         mx /= sw;
         my /= sw;
         double cxx = 0, cxy = 0, cyy = 0;

@@ -13,7 +13,8 @@ double dominantEdgeThreshold(const cv::Mat& gradientMagnitude, const DominantEdg
     cv::Mat mag = gradientMagnitude.isContinuous() ? gradientMagnitude : gradientMagnitude.clone();
     const auto* v = mag.ptr<float>();
     const size_t n = mag.total();
-    if (n < 2) return 0.0;
+    if (n < 2)
+        return 0.0;
 
     // Only pixels with some gradient take part: flat glass would otherwise dominate the
     // histogram and Scott's rule alike.
@@ -26,12 +27,15 @@ double dominantEdgeThreshold(const cv::Mat& gradientMagnitude, const DominantEdg
             maxV = std::max<double>(maxV, v[i]);
         }
     }
-    if (vals.size() < 16) return maxV;
+    if (vals.size() < 16)
+        return maxV;
     double mean = 0;
-    for (float x : vals) mean += x;
+    for (float x : vals)
+        mean += x;
     mean /= double(vals.size());
     double var = 0;
-    for (float x : vals) var += (x - mean) * (x - mean);
+    for (float x : vals)
+        var += (x - mean) * (x - mean);
     const double sd = std::sqrt(var / double(vals.size()));
 
     // Algorithm 1 line 3: Scott's rule, bin width h = 3.49 sigma N^(-1/3).
@@ -53,7 +57,8 @@ double dominantEdgeThreshold(const cv::Mat& gradientMagnitude, const DominantEdg
         bool stable = true;
         for (int i = start; i + 1 < start + k && stable; ++i)
             stable = std::abs(count[i + 1] - count[i]) <= s;
-        if (!stable) continue;
+        if (!stable)
+            continue;
         double total = 0;
         int cnt = 0;
         for (int i = start; i < start + k; ++i) {
@@ -61,7 +66,8 @@ double dominantEdgeThreshold(const cv::Mat& gradientMagnitude, const DominantEdg
             cnt += count[i];
         }
         // Line 5: K is the mean magnitude of the values in those bins.
-        if (cnt > 0) return total / cnt;
+        if (cnt > 0)
+            return total / cnt;
         return (start + 0.5 * k) * h;
     }
     std::nth_element(vals.begin(), vals.begin() + static_cast<std::ptrdiff_t>(vals.size() * 9 / 10),
@@ -98,12 +104,14 @@ cv::Mat dominantEdges(const cv::Mat& grey, const DominantEdgeParams& params) {
         cv::Mat labels, stats, centroids;
         const int n = cv::connectedComponentsWithStats(edges, labels, stats, centroids, 8, CV_32S);
         std::vector<uchar> drop(static_cast<size_t>(n), 0);
-        for (int i = 1; i < n; ++i) drop[i] = stats.at<int>(i, cv::CC_STAT_AREA) < minChain;
+        for (int i = 1; i < n; ++i)
+            drop[i] = stats.at<int>(i, cv::CC_STAT_AREA) < minChain;
         for (int y = 0; y < edges.rows; ++y) {
             uchar* e = edges.ptr<uchar>(y);
             const int* l = labels.ptr<int>(y);
             for (int x = 0; x < edges.cols; ++x)
-                if (e[x] && drop[l[x]]) e[x] = 0;
+                if (e[x] && drop[l[x]])
+                    e[x] = 0;
         }
     }
     return edges;
@@ -119,7 +127,8 @@ cv::Mat atlasEdges(const cv::Mat& labels) {
         for (int x = 0; x < labels.cols; ++x) {
             const bool right = x + 1 < labels.cols && row[x + 1] != row[x];
             const bool down = next && next[x] != row[x];
-            if (right || down) e[x] = 255;
+            if (right || down)
+                e[x] = 255;
         }
     }
     return edges;

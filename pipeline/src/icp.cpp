@@ -25,7 +25,8 @@ std::vector<Match> findMatches(const std::vector<cv::Point2f>& mappedPoints,
         float nearestD2 = 0;
         targetGrid.forEachWithin(q, float(distance), [&](int j, float d2) {
             const cv::Point2f m = target.normals[j];
-            if (std::abs(m.x * n.x + m.y * n.y) < cosMax) return;
+            if (std::abs(m.x * n.x + m.y * n.y) < cosMax)
+                return;
             if (nearest < 0 || d2 < nearestD2) {
                 nearest = j;
                 nearestD2 = d2;
@@ -37,7 +38,8 @@ std::vector<Match> findMatches(const std::vector<cv::Point2f>& mappedPoints,
             sx += w * target.points[j].x;
             sy += w * target.points[j].y;
         });
-        if (nearest < 0) continue;
+        if (nearest < 0)
+            continue;
         if (rule == TargetRule::WeightedAverage) {
             matches.push_back({static_cast<int>(i), {sx / sw, sy / sw}});
         } else {
@@ -47,7 +49,8 @@ std::vector<Match> findMatches(const std::vector<cv::Point2f>& mappedPoints,
             matches.push_back({static_cast<int>(i), cv::Point2d(q) + m * along});
         }
     }
-    if (!consistencyCheck || matches.size() < 8) return matches;
+    if (!consistencyCheck || matches.size() < 8)
+        return matches;
 
     // Neighbourhood consistency: neighbouring source points should move alike.
     std::vector<cv::Point2f> at(matches.size());
@@ -67,19 +70,22 @@ std::vector<Match> findMatches(const std::vector<cv::Point2f>& mappedPoints,
             xs.push_back(disp[j].x);
             ys.push_back(disp[j].y);
         });
-        if (xs.size() < 3) continue; // an isolated match has nothing to agree with
+        if (xs.size() < 3)
+            continue; // an isolated match has nothing to agree with
         auto mid = xs.size() / 2;
         std::nth_element(xs.begin(), xs.begin() + static_cast<std::ptrdiff_t>(mid), xs.end());
         std::nth_element(ys.begin(), ys.begin() + static_cast<std::ptrdiff_t>(mid), ys.end());
         const double dx = disp[k].x - xs[mid], dy = disp[k].y - ys[mid];
-        if (std::hypot(dx, dy) <= 0.5 * distance) kept.push_back(matches[k]);
+        if (std::hypot(dx, dy) <= 0.5 * distance)
+            kept.push_back(matches[k]);
     }
     return kept;
 }
 
 bool fitAffine(const std::vector<cv::Point2f>& source, const std::vector<Match>& matches,
                cv::Matx23d& out) {
-    if (matches.size() < 3) return false;
+    if (matches.size() < 3)
+        return false;
     // Normal equations of Z T_1 = b_x and Z T_2 = b_y, centred for conditioning.
     double cx = 0, cy = 0;
     for (const auto& m : matches) {
@@ -97,9 +103,11 @@ bool fitAffine(const std::vector<cv::Point2f>& source, const std::vector<Match>&
         zty += z * m.target.y;
     }
     const Eigen::LDLT<Eigen::Matrix3d> ldlt(ztz);
-    if (ldlt.info() != Eigen::Success || std::abs(ztz.determinant()) < 1e-9) return false;
+    if (ldlt.info() != Eigen::Success || std::abs(ztz.determinant()) < 1e-9)
+        return false;
     const Eigen::Vector3d t1 = ldlt.solve(ztx), t2 = ldlt.solve(zty);
-    if (!t1.allFinite() || !t2.allFinite()) return false;
+    if (!t1.allFinite() || !t2.allFinite())
+        return false;
     out = cv::Matx23d(t1[0], t1[1], t1[2] - t1[0] * cx - t1[1] * cy, t2[0], t2[1],
                       t2[2] - t2[0] * cx - t2[1] * cy);
     return true;
@@ -121,18 +129,23 @@ IcpResult icpAffine(const EdgePoints& source, const EdgePoints& target, const Po
             auto matches = findMatches(mp, mn, target, targetGrid, level.distance, level.angleDeg,
                                        options.consistencyCheck);
             ++r.iterations;
-            if (static_cast<int>(matches.size()) < options.minMatches) break;
+            if (static_cast<int>(matches.size()) < options.minMatches)
+                break;
             cv::Matx23d next;
-            if (!fitAffine(source.points, matches, next)) break;
+            if (!fitAffine(source.points, matches, next))
+                break;
             // Guard against collapse: a fit that shrinks or blows up the section is wrong.
             const double ratio = std::abs(det(next)) / std::max(initDet, 1e-12);
-            if (!(ratio > 0.4 && ratio < 2.5)) break;
+            if (!(ratio > 0.4 && ratio < 2.5))
+                break;
             double motion = 0;
             for (size_t i = 0; i < source.size(); i += 7)
-                motion = std::max(motion, cv::norm(apply(next, source.points[i]) - cv::Point2d(mp[i])));
+                motion =
+                    std::max(motion, cv::norm(apply(next, source.points[i]) - cv::Point2d(mp[i])));
             r.targetFromSource = next;
             r.matches = std::move(matches);
-            if (motion < options.settleDistance) break;
+            if (motion < options.settleDistance)
+                break;
         }
     }
     double ss = 0;

@@ -13,7 +13,8 @@ DisplacementField::DisplacementField(cv::Mat dx, cv::Mat dy, double cellPx)
 }
 
 cv::Point2d DisplacementField::at(cv::Point2d p) const {
-    if (dx_.empty()) return {0, 0};
+    if (dx_.empty())
+        return {0, 0};
     const double gx = std::clamp(p.x / cellPx_, 0.0, double(dx_.cols - 1));
     const double gy = std::clamp(p.y / cellPx_, 0.0, double(dx_.rows - 1));
     const int x0 = std::min(static_cast<int>(gx), dx_.cols - 2 < 0 ? 0 : dx_.cols - 2);
@@ -90,7 +91,8 @@ DisplacementField solveLaplaceWarp(cv::Size domain, const std::vector<cv::Point2
                                    const std::vector<cv::Point2d>& displacements,
                                    const LaplaceOptions& options) {
     CV_Assert(points.size() == displacements.size());
-    if (points.empty() || domain.area() == 0) return {};
+    if (points.empty() || domain.area() == 0)
+        return {};
     // Levels from coarse to fine; each coarse level gives the next its starting guess, which is
     // what makes plain relaxation converge in a few dozen sweeps (a cascadic multigrid).
     std::vector<double> cells{options.cellPx};

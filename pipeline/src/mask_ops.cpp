@@ -20,7 +20,8 @@ std::vector<cv::Point2f> outerContourPoints(const cv::Mat& mask) {
     cv::findContours(mask.clone(), contours, cv::RETR_EXTERNAL, cv::CHAIN_APPROX_NONE);
     std::vector<cv::Point2f> out;
     for (const auto& c : contours)
-        for (const auto& p : c) out.emplace_back(float(p.x), float(p.y));
+        for (const auto& p : c)
+            out.emplace_back(float(p.x), float(p.y));
     return out;
 }
 
@@ -33,9 +34,11 @@ float percentile(const cv::Mat& f32, double q, const cv::Mat& valid) {
         const float* row = f32.ptr<float>(y);
         const uchar* ok = valid.ptr<uchar>(y);
         for (int x = 0; x < f32.cols; x += step)
-            if (ok[x]) v.push_back(row[x]);
+            if (ok[x])
+                v.push_back(row[x]);
     }
-    if (v.empty()) return 0.0f;
+    if (v.empty())
+        return 0.0f;
     auto k = static_cast<size_t>(std::clamp(q, 0.0, 1.0) * static_cast<double>(v.size() - 1));
     std::nth_element(v.begin(), v.begin() + static_cast<std::ptrdiff_t>(k), v.end());
     return v[k];

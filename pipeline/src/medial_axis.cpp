@@ -28,12 +28,14 @@ using Cdt = CGAL::Constrained_Delaunay_triangulation_2<K, Tds, CGAL::Exact_predi
 
 /// Flood fill over faces; crossing a constrained edge raises the nesting level by one.
 void markNesting(Cdt& cdt) {
-    for (auto f = cdt.all_faces_begin(); f != cdt.all_faces_end(); ++f) f->info().nesting = -1;
+    for (auto f = cdt.all_faces_begin(); f != cdt.all_faces_end(); ++f)
+        f->info().nesting = -1;
     std::deque<std::pair<Cdt::Face_handle, int>> border{{cdt.infinite_face(), 0}};
     while (!border.empty()) {
         auto [start, level] = border.front();
         border.pop_front();
-        if (start->info().nesting != -1) continue;
+        if (start->info().nesting != -1)
+            continue;
         std::deque<Cdt::Face_handle> queue{start};
         start->info().nesting = level;
         while (!queue.empty()) {
@@ -41,7 +43,8 @@ void markNesting(Cdt& cdt) {
             queue.pop_front();
             for (int i = 0; i < 3; ++i) {
                 const Cdt::Face_handle n = f->neighbor(i);
-                if (n->info().nesting != -1) continue;
+                if (n->info().nesting != -1)
+                    continue;
                 if (cdt.is_constrained(Cdt::Edge(f, i))) {
                     border.emplace_back(n, level + 1);
                 } else {
@@ -65,15 +68,18 @@ double longestPath(const std::vector<std::vector<std::pair<int, double>>>& adj,
             const int u = q.front();
             q.pop_front();
             for (const auto& [v, w] : adj[u]) {
-                if (dist.count(v)) continue;
+                if (dist.count(v))
+                    continue;
                 dist[v] = dist[u] + w;
-                if (dist[v] > dist[far]) far = v;
+                if (dist[v] > dist[far])
+                    far = v;
                 q.push_back(v);
             }
         }
         return std::pair<int, double>{far, dist[far]};
     };
-    if (nodes.empty()) return 0;
+    if (nodes.empty())
+        return 0;
     const int a = farthest(nodes.front()).first;
     return farthest(a).second;
 }
@@ -82,7 +88,8 @@ double longestPath(const std::vector<std::vector<std::pair<int, double>>>& adj,
 
 ExteriorTriangulation exteriorMedialAxis(const std::vector<cv::Point2f>& outline) {
     ExteriorTriangulation out;
-    if (outline.size() < 3) return out;
+    if (outline.size() < 3)
+        return out;
     Cdt cdt;
     std::vector<Cdt::Vertex_handle> vh;
     vh.reserve(outline.size());
@@ -94,13 +101,15 @@ ExteriorTriangulation exteriorMedialAxis(const std::vector<cv::Point2f>& outline
     for (size_t i = 0; i < vh.size(); ++i) {
         const auto& a = vh[i];
         const auto& b = vh[(i + 1) % vh.size()];
-        if (a != b) cdt.insert_constraint(a, b);
+        if (a != b)
+            cdt.insert_constraint(a, b);
     }
     // Vertices the triangulation created where the outline touches itself belong to no outline
     // index; duplicates of one point keep the first index.
     std::set<Cdt::Vertex_handle> ours(vh.begin(), vh.end());
     for (auto v = cdt.finite_vertices_begin(); v != cdt.finite_vertices_end(); ++v)
-        if (!ours.count(v)) v->info() = -1;
+        if (!ours.count(v))
+            v->info() = -1;
     markNesting(cdt);
 
     // Kept exterior faces: even nesting, finite, circumcentre inside (non-obtuse): Algorithm 2
@@ -131,8 +140,8 @@ ExteriorTriangulation exteriorMedialAxis(const std::vector<cv::Point2f>& outline
                     longest = i;
                 }
             }
-            const K::Point_2 m = CGAL::midpoint(tri.vertex((longest + 1) % 3),
-                                                tri.vertex((longest + 2) % 3));
+            const K::Point_2 m =
+                CGAL::midpoint(tri.vertex((longest + 1) % 3), tri.vertex((longest + 2) % 3));
             node = {CGAL::to_double(m.x()), CGAL::to_double(m.y())};
         } else {
             ++out.keptFaces;
@@ -148,8 +157,10 @@ ExteriorTriangulation exteriorMedialAxis(const std::vector<cv::Point2f>& outline
         for (int i = 0; i < 3; ++i) {
             const Cdt::Face_handle n = kept[k]->neighbor(i);
             const int m = n->info().node;
-            if (m < 0 || m <= static_cast<int>(k) || cdt.is_infinite(n)) continue;
-            if (cdt.is_constrained(Cdt::Edge(kept[k], i))) continue;
+            if (m < 0 || m <= static_cast<int>(k) || cdt.is_infinite(n))
+                continue;
+            if (cdt.is_constrained(Cdt::Edge(kept[k], i)))
+                continue;
             const double w = cv::norm(centre[k] - centre[m]);
             adj[k].emplace_back(m, w);
             adj[m].emplace_back(static_cast<int>(k), w);
@@ -158,7 +169,8 @@ ExteriorTriangulation exteriorMedialAxis(const std::vector<cv::Point2f>& outline
     // Connected pieces (line 4 keeps those whose length reaches alpha; the caller decides).
     std::vector<int> comp(kept.size(), -1);
     for (size_t s = 0; s < kept.size(); ++s) {
-        if (comp[s] >= 0) continue;
+        if (comp[s] >= 0)
+            continue;
         std::vector<int> nodes;
         std::deque<int> q{static_cast<int>(s)};
         comp[s] = static_cast<int>(out.branches.size());
@@ -167,7 +179,8 @@ ExteriorTriangulation exteriorMedialAxis(const std::vector<cv::Point2f>& outline
             q.pop_front();
             nodes.push_back(u);
             for (const auto& [v, w] : adj[u]) {
-                if (comp[v] >= 0) continue;
+                if (comp[v] >= 0)
+                    continue;
                 comp[v] = comp[s];
                 q.push_back(v);
             }
@@ -179,7 +192,8 @@ ExteriorTriangulation exteriorMedialAxis(const std::vector<cv::Point2f>& outline
             b.axis.push_back(centre[u]);
             for (int i = 0; i < 3; ++i) {
                 const int vi = kept[u]->vertex(i)->info();
-                if (vi >= 0 && vi < static_cast<int>(outline.size())) verts.insert(vi);
+                if (vi >= 0 && vi < static_cast<int>(outline.size()))
+                    verts.insert(vi);
             }
         }
         b.outlineVertices.assign(verts.begin(), verts.end());

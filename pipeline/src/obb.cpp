@@ -9,14 +9,17 @@ namespace slicestation::pipeline {
 
 OrientedBox orientedBox(const std::vector<cv::Point2f>& points, int samples) {
     OrientedBox box;
-    if (points.size() < 3) return box;
+    if (points.size() < 3)
+        return box;
     std::vector<cv::Point2f> hull;
     cv::convexHull(points, hull);
-    if (hull.size() < 3) return box;
+    if (hull.size() < 3)
+        return box;
     double perimeter = 0;
     for (size_t i = 0; i < hull.size(); ++i)
         perimeter += cv::norm(hull[(i + 1) % hull.size()] - hull[i]);
-    if (perimeter <= 0) return box;
+    if (perimeter <= 0)
+        return box;
 
     // Uniform samples along the hull: hull vertices cluster where the outline is curved, and PCA
     // of the vertices would follow that clustering rather than the shape.
@@ -35,7 +38,8 @@ OrientedBox orientedBox(const std::vector<cv::Point2f>& points, int samples) {
         carry = t - len;
     }
     cv::Point2d c(0, 0);
-    for (const auto& p : s) c += p;
+    for (const auto& p : s)
+        c += p;
     c *= 1.0 / double(s.size());
     double cxx = 0, cxy = 0, cyy = 0;
     for (const auto& p : s) {

@@ -18,7 +18,8 @@ cv::Mat renderOverlay(const cv::Mat& sectionGrey, const cv::Mat& labelsInImage,
         std::vector<std::vector<cv::Point>> polys;
         for (const auto& poly : damagePolygons) {
             std::vector<cv::Point> p;
-            for (const auto& q : poly) p.emplace_back(cvRound(q.x), cvRound(q.y));
+            for (const auto& q : poly)
+                p.emplace_back(cvRound(q.x), cvRound(q.y));
             polys.push_back(std::move(p));
         }
         cv::fillPoly(layer, polys, cv::Scalar(0, 0, 255));
@@ -46,7 +47,8 @@ cv::Mat renderOverlay(const Registration& reg, const cv::Mat& atlasLabels) {
     std::vector<std::vector<cv::Point2f>> damage;
     for (const DamageRegion& d : reg.damage) {
         std::vector<cv::Point2f> poly;
-        for (const cv::Point2f& p : d.polygon) poly.emplace_back(reg.workingFromImage(p));
+        for (const cv::Point2f& p : d.polygon)
+            poly.emplace_back(reg.workingFromImage(p));
         damage.push_back(std::move(poly));
     }
     return renderOverlay(reg.workingGrey, reg.warpedLabels(atlasLabels, reg.workingGrey.size()),

@@ -27,10 +27,12 @@ PointGrid::PointGrid(const std::vector<cv::Point2f>& points, float cellSize)
         cellOf[i] = cellY(points_[i].y) * cols_ + cellX(points_[i].x);
         ++start_[cellOf[i] + 1];
     }
-    for (size_t c = 1; c < start_.size(); ++c) start_[c] += start_[c - 1];
+    for (size_t c = 1; c < start_.size(); ++c)
+        start_[c] += start_[c - 1];
     order_.resize(points_.size());
     std::vector<int> fill(start_.begin(), start_.end() - 1);
-    for (size_t i = 0; i < points_.size(); ++i) order_[fill[cellOf[i]]++] = static_cast<int>(i);
+    for (size_t i = 0; i < points_.size(); ++i)
+        order_[fill[cellOf[i]]++] = static_cast<int>(i);
 }
 
 int PointGrid::cellX(float x) const {

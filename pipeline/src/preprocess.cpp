@@ -32,7 +32,8 @@ float borderMedian(const cv::Mat& f32, const cv::Mat& valid) {
                 v.push_back(row[x]);
         }
     }
-    if (v.empty()) return 0.0f;
+    if (v.empty())
+        return 0.0f;
     std::nth_element(v.begin(), v.begin() + static_cast<std::ptrdiff_t>(v.size() / 2), v.end());
     return v[v.size() / 2];
 }
@@ -47,9 +48,11 @@ float ringDeviation(const cv::Mat& image, const cv::Mat& valid, float glass) {
         for (int x = box.x; x < box.x + box.width; ++x) {
             const bool edge = y < box.y + b || y >= box.y + box.height - b || x < box.x + b ||
                               x >= box.x + box.width - b;
-            if (edge && valid.at<uchar>(y, x)) ring.push_back(std::abs(image.at<float>(y, x) - glass));
+            if (edge && valid.at<uchar>(y, x))
+                ring.push_back(std::abs(image.at<float>(y, x) - glass));
         }
-    if (ring.empty()) return 0.01f;
+    if (ring.empty())
+        return 0.01f;
     std::nth_element(ring.begin(), ring.begin() + static_cast<std::ptrdiff_t>(ring.size() / 2),
                      ring.end());
     return std::max(0.002f, 1.4826f * ring[ring.size() / 2]);
@@ -72,25 +75,30 @@ cv::Mat segmentTissue(const cv::Mat& grey, const cv::Mat& valid, float glass,
     // Uneven illumination also spreads the ring's values, so the noise margin is capped at a
     // fraction of the tissue's contrast.
     const float bright = percentile(heavy, 0.9, valid);
-    const float margin = std::max(0.03f, std::min(6.0f * std::max(mad, 0.01f), 0.3f * (bright - glass)));
+    const float margin =
+        std::max(0.03f, std::min(6.0f * std::max(mad, 0.01f), 0.3f * (bright - glass)));
     cv::Mat coarse = (heavy > glass + margin) & valid;
-    if (cv::countNonZero(coarse) == 0) return coarse;
+    if (cv::countNonZero(coarse) == 0)
+        return coarse;
 
     // The dimmest tissue: a low percentile of the heavy blur inside the coarse region, away
     // from its blurred rim.
     cv::Mat inner;
     cv::erode(coarse, inner, cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(9, 9)),
               cv::Point(-1, -1), std::max(1, longSide / 150));
-    if (cv::countNonZero(inner) < 64) inner = coarse;
+    if (cv::countNonZero(inner) < 64)
+        inner = coarse;
     const float dim = percentile(heavy, 0.05, inner);
     // The outline sits half way between the glass and the dimmest tissue, where a blurred edge
     // really is. Inside that outline, anything clearly above the glass noise is tissue too: dark
     // tissue (white matter has few nuclei) is not glass.
     const float outlineT = glass + std::max(0.5f * (dim - glass), 0.5f * margin);
     const float clearlyAbove = std::max(0.1f * (bright - glass), 8.0f * madLight);
-    const float insideT = glass + std::max(0.5f * margin, std::min(0.5f * (dim - glass), clearlyAbove));
+    const float insideT =
+        glass + std::max(0.5f * margin, std::min(0.5f * (dim - glass), clearlyAbove));
     const int r = std::max(1, longSide / 250);
-    const cv::Mat disc = cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * r + 1, 2 * r + 1));
+    const cv::Mat disc =
+        cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * r + 1, 2 * r + 1));
     cv::Mat reach;
     cv::dilate(coarse, reach, disc);
     const cv::Mat outline = (light > outlineT) & valid & reach;
@@ -126,7 +134,8 @@ bool flattenBackground(cv::Mat& grey, const cv::Mat& valid, const cv::Mat& tissu
     const double sx = 2.0 / grey.cols, sy = 2.0 / grey.rows; // coordinates in [-1, 1]
     for (int y = 0; y < grey.rows; y += step)
         for (int x = 0; x < grey.cols; x += step) {
-            if (!glassMask.at<uchar>(y, x)) continue;
+            if (!glassMask.at<uchar>(y, x))
+                continue;
             const double u = x * sx - 1, v = y * sy - 1;
             Eigen::Matrix<double, 6, 1> r;
             r << 1, u, v, u * u, u * v, v * v;
@@ -134,15 +143,18 @@ bool flattenBackground(cv::Mat& grey, const cv::Mat& valid, const cv::Mat& tissu
             atb += r * grey.at<float>(y, x);
             ++n;
         }
-    if (n < 200) return false;
+    if (n < 200)
+        return false;
     const Eigen::Matrix<double, 6, 1> c = ata.ldlt().solve(atb);
-    if (!c.allFinite()) return false;
+    if (!c.allFinite())
+        return false;
     for (int y = 0; y < grey.rows; ++y) {
         float* row = grey.ptr<float>(y);
         const double v = y * sy - 1;
         for (int x = 0; x < grey.cols; ++x) {
             const double u = x * sx - 1;
-            const double bg = c[0] + c[1] * u + c[2] * v + c[3] * u * u + c[4] * u * v + c[5] * v * v;
+            const double bg =
+                c[0] + c[1] * u + c[2] * v + c[3] * u * u + c[4] * u * v + c[5] * v * v;
             row[x] = std::clamp(float(row[x] - bg + glassLevel), 0.0f, 1.0f);
         }
     }
@@ -152,15 +164,20 @@ bool flattenBackground(cv::Mat& grey, const cv::Mat& valid, const cv::Mat& tissu
 } // namespace
 
 core::Result<cv::Mat> toGreyFloat(const cv::Mat& image) {
-    if (image.empty()) return makeError(ErrorCode::InvalidArgument, "image is empty");
+    if (image.empty())
+        return makeError(ErrorCode::InvalidArgument, "image is empty");
     const int depth = image.depth();
     if (depth != CV_8U && depth != CV_16U && depth != CV_32S && depth != CV_32F)
-        return makeError(ErrorCode::InvalidArgument, "unsupported pixel type (depth " +
-                                                         std::to_string(depth) + ")");
+        return makeError(ErrorCode::InvalidArgument,
+                         "unsupported pixel type (depth " + std::to_string(depth) + ")");
     cv::Mat one;
     switch (image.channels()) {
-    case 1: one = image; break;
-    case 2: cv::extractChannel(image, one, 0); break; // channel 0 carries the tissue stain
+    case 1:
+        one = image;
+        break;
+    case 2:
+        cv::extractChannel(image, one, 0);
+        break; // channel 0 carries the tissue stain
     case 3:
     case 4: {
         cv::Mat f;
@@ -178,11 +195,12 @@ core::Result<cv::Mat> toGreyFloat(const cv::Mat& image) {
 }
 
 core::Result<PreparedSection> prepareSection(const cv::Mat& image, int workingMaxSide) {
-    if (image.empty()) return makeError(ErrorCode::InvalidArgument, "image is empty");
+    if (image.empty())
+        return makeError(ErrorCode::InvalidArgument, "image is empty");
     if (std::min(image.rows, image.cols) < 32)
-        return makeError(ErrorCode::InvalidArgument,
-                         "image is too small (" + std::to_string(image.cols) + "x" +
-                             std::to_string(image.rows) + " px)");
+        return makeError(ErrorCode::InvalidArgument, "image is too small (" +
+                                                         std::to_string(image.cols) + "x" +
+                                                         std::to_string(image.rows) + " px)");
     PreparedSection out;
     const int longSide = std::max(image.rows, image.cols);
     out.scale = longSide > workingMaxSide ? double(workingMaxSide) / longSide : 1.0;
@@ -192,11 +210,13 @@ core::Result<PreparedSection> prepareSection(const cv::Mat& image, int workingMa
     cv::Mat small = image;
     if (out.scale < 1.0) {
         cv::Mat src = image;
-        if (image.depth() == CV_32S) image.convertTo(src, CV_32F); // INTER_AREA lacks 32S
+        if (image.depth() == CV_32S)
+            image.convertTo(src, CV_32F); // INTER_AREA lacks 32S
         cv::resize(src, small, cv::Size(), out.scale, out.scale, cv::INTER_AREA);
     }
     auto greyOr = toGreyFloat(small);
-    if (!greyOr) return greyOr.error();
+    if (!greyOr)
+        return greyOr.error();
     cv::Mat grey = std::move(*greyOr);
 
     // Scanners and stitchers pad the acquired area with exact zeros (or the minimum); such
@@ -209,7 +229,8 @@ core::Result<PreparedSection> prepareSection(const cv::Mat& image, int workingMa
 
     const float lo = percentile(grey, 0.005, valid);
     const float hi = percentile(grey, 0.995, valid);
-    if (!(hi > lo)) return makeError(ErrorCode::NoTissue, "no tissue found: the image is blank (no contrast)");
+    if (!(hi > lo))
+        return makeError(ErrorCode::NoTissue, "no tissue found: the image is blank (no contrast)");
     grey = (grey - lo) / (hi - lo);
     cv::min(cv::max(grey, 0.0), 1.0, grey);
 
@@ -217,7 +238,8 @@ core::Result<PreparedSection> prepareSection(const cv::Mat& image, int workingMa
     // tissue is bright in both cases.
     const float glass = borderMedian(grey, valid);
     out.contrast = glass > 0.5f ? Contrast::Brightfield : Contrast::Fluorescence;
-    if (out.contrast == Contrast::Brightfield) grey = 1.0f - grey;
+    if (out.contrast == Contrast::Brightfield)
+        grey = 1.0f - grey;
     grey.setTo(out.contrast == Contrast::Brightfield ? 1.0f - glass : glass, ~valid);
     out.grey = grey;
 
@@ -235,18 +257,21 @@ core::Result<PreparedSection> prepareSection(const cv::Mat& image, int workingMa
     cv::Mat labels, stats, centroids;
     const int n = cv::connectedComponentsWithStats(mask, labels, stats, centroids, 8, CV_32S);
     int largest = 0;
-    for (int i = 1; i < n; ++i) largest = std::max(largest, stats.at<int>(i, cv::CC_STAT_AREA));
+    for (int i = 1; i < n; ++i)
+        largest = std::max(largest, stats.at<int>(i, cv::CC_STAT_AREA));
     cv::Mat keep = cv::Mat::zeros(mask.size(), CV_8U);
     for (int i = 1; i < n; ++i) {
-        if (stats.at<int>(i, cv::CC_STAT_AREA) >= std::max(16, largest / 50)) keep |= (labels == i);
+        if (stats.at<int>(i, cv::CC_STAT_AREA) >= std::max(16, largest / 50))
+            keep |= (labels == i);
     }
     const double share = cv::countNonZero(keep) / double(keep.total());
     if (share < 0.01)
         return makeError(ErrorCode::NoTissue, "no tissue found (tissue covers " +
                                                   std::to_string(share * 100) + "% of the image)");
     if (share > 0.97)
-        return makeError(ErrorCode::NoTissue,
-                         "no tissue found: no glass around the tissue to tell it from the background");
+        return makeError(
+            ErrorCode::NoTissue,
+            "no tissue found: no glass around the tissue to tell it from the background");
     // Pure noise also splits into "tissue" and "glass"; real tissue stands well clear of the
     // glass noise.
     cv::Scalar inMean, inSd, outMean, outSd;

@@ -50,8 +50,8 @@ double overlap(const cv::Mat& tissueFilled, const cv::Mat& atlasMask, const cv::
 
 /// atlas = cA + L (p - cI): the linear part L with the section's OBB centre on the atlas's.
 cv::Matx23d centreOnCentre(const cv::Matx22d& L, const OrientedBox& img, const OrientedBox& atl) {
-    const cv::Vec2d c = cv::Vec2d(atl.centre.x, atl.centre.y) -
-                        L * cv::Vec2d(img.centre.x, img.centre.y);
+    const cv::Vec2d c =
+        cv::Vec2d(atl.centre.x, atl.centre.y) - L * cv::Vec2d(img.centre.x, img.centre.y);
     return {L(0, 0), L(0, 1), c[0], L(1, 0), L(1, 1), c[1]};
 }
 
@@ -124,12 +124,24 @@ cv::Matx23d refineByOverlap(const OverlapScorer& score, cv::Matx23d t, cv::Point
             for (const double sign : {1.0, -1.0}) {
                 double dx = 0, dy = 0, a = 1, b = 0, c = 0, d = 1;
                 switch (k) {
-                case 0: dx = sign * step[0]; break;
-                case 1: dy = sign * step[1]; break;
-                case 2: a += sign * step[2]; break;
-                case 3: d += sign * step[3]; break;
-                case 4: b += sign * step[4]; break;
-                default: c += sign * step[5]; break;
+                case 0:
+                    dx = sign * step[0];
+                    break;
+                case 1:
+                    dy = sign * step[1];
+                    break;
+                case 2:
+                    a += sign * step[2];
+                    break;
+                case 3:
+                    d += sign * step[3];
+                    break;
+                case 4:
+                    b += sign * step[4];
+                    break;
+                default:
+                    c += sign * step[5];
+                    break;
                 }
                 const cv::Matx23d local(a, b, centre.x + dx - a * centre.x - b * centre.y, c, d,
                                         centre.y + dy - c * centre.x - d * centre.y);
@@ -144,8 +156,10 @@ cv::Matx23d refineByOverlap(const OverlapScorer& score, cv::Matx23d t, cv::Point
             }
         }
         if (!improved) {
-            for (double& st : step) st *= 0.5;
-            if (step[2] < 0.001) break;
+            for (double& st : step)
+                st *= 0.5;
+            if (step[2] < 0.001)
+                break;
         }
     }
     return t;
@@ -154,7 +168,8 @@ cv::Matx23d refineByOverlap(const OverlapScorer& score, cv::Matx23d t, cv::Point
 /// ICP level by level on point sets thinned to suit each level's reach: a point every
 /// distance/8 is plenty to steer a loose level, and it keeps the neighbour searches short.
 IcpResult multiLevelIcp(const EdgePoints& source, const EdgePoints& target, cv::Matx23d init,
-                        const std::vector<IcpLevel>& levels, int iterations, double atlasPerSource) {
+                        const std::vector<IcpLevel>& levels, int iterations,
+                        double atlasPerSource) {
     IcpResult r;
     r.targetFromSource = init;
     for (const IcpLevel& level : levels) {
@@ -171,10 +186,12 @@ IcpResult multiLevelIcp(const EdgePoints& source, const EdgePoints& target, cv::
 }
 
 double shareMatched(const std::vector<cv::Point2f>& pts, const PointGrid& other, double tol) {
-    if (pts.empty()) return 0;
+    if (pts.empty())
+        return 0;
     size_t hit = 0;
     for (const auto& p : pts)
-        if (other.nearest(p, float(tol)) >= 0) ++hit;
+        if (other.nearest(p, float(tol)) >= 0)
+            ++hit;
     return double(hit) / double(pts.size());
 }
 
@@ -197,9 +214,9 @@ void mapThrough(const EdgePoints& section, const cv::Matx23d& atlasFromWorking,
 /// Warp conditions (section point, displacement from the affine) from the matches of
 /// `section` mapped through `atlasFromWorking` and `warp` against `atlas`.
 void addWarpConditions(const EdgePoints& section, const cv::Matx23d& atlasFromWorking,
-                       const DisplacementField& warp, const EdgePoints& atlas, const PointGrid& grid,
-                       double distance, double angleDeg, std::vector<cv::Point2d>& points,
-                       std::vector<cv::Point2d>& displacements) {
+                       const DisplacementField& warp, const EdgePoints& atlas,
+                       const PointGrid& grid, double distance, double angleDeg,
+                       std::vector<cv::Point2d>& points, std::vector<cv::Point2d>& displacements) {
     std::vector<cv::Point2f> mapped, normals;
     mapThrough(section, atlasFromWorking, warp, mapped, normals);
     for (const Match& m : findMatches(mapped, normals, atlas, grid, distance, angleDeg, true,
@@ -213,7 +230,8 @@ void addWarpConditions(const EdgePoints& section, const cv::Matx23d& atlasFromWo
 /// Smallest Jacobian determinant of working px -> atlas px (affine + warp) on the warp's nodes,
 /// relative to the affine's.
 double minJacobianRelative(const cv::Matx23d& affine, const DisplacementField& warp) {
-    if (warp.empty() || warp.dx().cols < 2 || warp.dx().rows < 2) return 1.0;
+    if (warp.empty() || warp.dx().cols < 2 || warp.dx().rows < 2)
+        return 1.0;
     const double inv = 1.0 / warp.cellPx();
     cv::Mat xx, xy, yx, yy;
     cv::Sobel(warp.dx(), xx, CV_32F, 1, 0, 1, 0.5 * inv, affine(0, 0), cv::BORDER_REPLICATE);
@@ -332,22 +350,23 @@ cv::Mat Registration::warpedLabels(const cv::Mat& atlasLabels, cv::Size size) co
 core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat& atlasLabels,
                                            const RegistrationOptions& options) {
     if (atlasLabels.empty() || atlasLabels.type() != CV_32S)
-        return makeError(ErrorCode::InvalidArgument, "atlas labels must be a non-empty CV_32S image");
+        return makeError(ErrorCode::InvalidArgument,
+                         "atlas labels must be a non-empty CV_32S image");
     if (options.workingMaxSide < 128)
         return makeError(ErrorCode::InvalidArgument, "working size must be at least 128 px");
     if (options.imageUmPerPx < 0 || options.atlasUmPerPx < 0)
         return makeError(ErrorCode::InvalidArgument, "pixel sizes must be positive");
-    if (!options.atlasIntensity.empty() &&
-        (options.atlasIntensity.type() != CV_32F || options.atlasIntensity.size() != atlasLabels.size()))
+    if (!options.atlasIntensity.empty() && (options.atlasIntensity.type() != CV_32F ||
+                                            options.atlasIntensity.size() != atlasLabels.size()))
         return makeError(ErrorCode::InvalidArgument,
                          "atlas intensity must be CV_32F and the size of the atlas labels");
-    if (options.denseRefine &&
-        (options.dense.gridMaxSide < 32 || options.dense.levels.empty() ||
-         options.dense.fieldSigma < 0 || options.dense.damping < 0 ||
-         std::any_of(options.dense.levels.begin(), options.dense.levels.end(),
-                     [](const DenseLevel& l) {
-                         return l.imageSigma < 0 || l.window < 1 || l.iterations < 0;
-                     })))
+    if (options.denseRefine && (options.dense.gridMaxSide < 32 || options.dense.levels.empty() ||
+                                options.dense.fieldSigma < 0 || options.dense.damping < 0 ||
+                                std::any_of(options.dense.levels.begin(),
+                                            options.dense.levels.end(), [](const DenseLevel& l) {
+                                                return l.imageSigma < 0 || l.window < 1 ||
+                                                       l.iterations < 0;
+                                            })))
         return makeError(ErrorCode::InvalidArgument,
                          "dense refinement options: grid at least 32 px, at least one level, "
                          "windows at least 1, no negative sigma, damping or iterations");
@@ -358,7 +377,8 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     Registration reg;
     StepTimer timer(reg.timingsMs);
     auto prepared = prepareSection(section, options.workingMaxSide);
-    if (!prepared) return prepared.error();
+    if (!prepared)
+        return prepared.error();
     reg.imageSize = section.size();
     reg.workingScale = prepared->scale;
     reg.contrast = prepared->contrast;
@@ -370,8 +390,8 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     cv::Mat mei = dominantEdges(reg.workingGrey, options.edges);
     cv::Mat near;
     const int grow = std::max(2, static_cast<int>(std::lround(reg.workingGrey.cols / 200.0)));
-    cv::dilate(reg.workingTissueMask, near, cv::getStructuringElement(
-                                                cv::MORPH_ELLIPSE, cv::Size(2 * grow + 1, 2 * grow + 1)));
+    cv::dilate(reg.workingTissueMask, near,
+               cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * grow + 1, 2 * grow + 1)));
     mei &= near;
     if (!options.excludeMask.empty()) {
         cv::Mat ex;
@@ -388,7 +408,9 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     if (!fragments.empty()) {
         mainTissue = reg.workingTissueMask & ~fragments;
         cv::Mat grown;
-        cv::dilate(fragments, grown, cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * grow + 1, 2 * grow + 1)));
+        cv::dilate(
+            fragments, grown,
+            cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * grow + 1, 2 * grow + 1)));
         mei.setTo(0, grown);
     }
     const cv::Mat tissueFilled = fillHoles(mainTissue);
@@ -401,10 +423,10 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     const double knownScale = options.imageUmPerPx > 0 && options.atlasUmPerPx > 0
                                   ? options.imageUmPerPx / (options.atlasUmPerPx * reg.workingScale)
                                   : 0.0;
-    const double scaleGuess =
-        knownScale > 0 ? knownScale
-                       : std::sqrt(atlBox.halfMajor * atlBox.halfMinor /
-                                   std::max(imgBox.halfMajor * imgBox.halfMinor, 1e-9));
+    const double scaleGuess = knownScale > 0
+                                  ? knownScale
+                                  : std::sqrt(atlBox.halfMajor * atlBox.halfMinor /
+                                              std::max(imgBox.halfMajor * imgBox.halfMinor, 1e-9));
 
     // Feature density: the same spacing on both sides, measured in atlas pixels.
     const double atlasH = std::max(atlBox.halfMajor, atlBox.halfMinor) * 2 * 0.7;
@@ -412,10 +434,10 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     const double spacingImg = spacingAtlas / scaleGuess;
     reg.atlasEdges = mlsEdgePoints(labelBoundarySamples(atlasLabels), float(spacingAtlas),
                                    float(3 * spacingAtlas));
-    const EdgePoints atlasOuter = mlsEdgePoints(atlasOutline, float(spacingAtlas),
-                                                float(3 * spacingAtlas));
-    const EdgePoints imgOuter = mlsEdgePoints(tissueSamples, float(spacingImg),
-                                              float(std::max(2.0, 3 * spacingImg)));
+    const EdgePoints atlasOuter =
+        mlsEdgePoints(atlasOutline, float(spacingAtlas), float(3 * spacingAtlas));
+    const EdgePoints imgOuter =
+        mlsEdgePoints(tissueSamples, float(spacingImg), float(std::max(2.0, 3 * spacingImg)));
     if (imgOuter.size() < 20)
         return makeError(ErrorCode::NoTissue, "no tissue found: the tissue outline is too small");
     const PointGrid atlasGrid(reg.atlasEdges.points, float(atlasH / 40));
@@ -428,12 +450,14 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         bool swap;
     };
     std::vector<Candidate> cands{{1, 1, false}, {-1, -1, false}};
-    if (options.allowMirror) cands.insert(cands.end(), {{1, -1, false}, {-1, 1, false}});
+    if (options.allowMirror)
+        cands.insert(cands.end(), {{1, -1, false}, {-1, 1, false}});
     const double aspectImg = imgBox.halfMajor / std::max(imgBox.halfMinor, 1e-9);
     const double aspectAtl = atlBox.halfMajor / std::max(atlBox.halfMinor, 1e-9);
     if (aspectImg < 1.25 || aspectAtl < 1.25) {
         const size_t n = cands.size();
-        for (size_t i = 0; i < n; ++i) cands.push_back({cands[i].sMaj, -cands[i].sMin, true});
+        for (size_t i = 0; i < n; ++i)
+            cands.push_back({cands[i].sMaj, -cands[i].sMin, true});
     }
     const std::vector<IcpLevel> coarse{
         {30, atlasH / 5}, {20, atlasH / 8}, {15, atlasH / 12}, {10, atlasH / 20}};
@@ -455,23 +479,26 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         std::sort(sweep.rbegin(), sweep.rend());
         std::vector<int> picked;
         for (const auto& candidate : sweep) {
-            const int deg = candidate.second; // a plain local: clang 14 cannot capture a structured binding
+            const int deg =
+                candidate.second; // a plain local: clang 14 cannot capture a structured binding
             const bool apart = std::all_of(picked.begin(), picked.end(), [&](int other) {
                 const int d = std::abs(deg - other) % 360;
                 return std::min(d, 360 - d) >= 45;
             });
-            if (!apart) continue;
+            if (!apart)
+                continue;
             picked.push_back(deg);
             inits.push_back(rotatedPlacement(imgBox, atlBox, deg, scaleGuess));
-            if (picked.size() == 3) break;
+            if (picked.size() == 3)
+                break;
         }
     }
     for (const cv::Matx23d& init : inits) {
         const IcpResult r = multiLevelIcp(imgOuter, atlasOuter, init, coarse, 6, scaleGuess);
         // The refinement can wander off on an odd outline; the placement it started from stays
         // in the running, and the overlap search polishes whichever is better.
-        const cv::Matx23d start = scorer(r.targetFromSource) >= scorer(init) ? r.targetFromSource
-                                                                            : init;
+        const cv::Matx23d start =
+            scorer(r.targetFromSource) >= scorer(init) ? r.targetFromSource : init;
         double score = 0;
         const cv::Matx23d t =
             refineByOverlap(scorer, start, imgBox.centre, 2 * imgBox.halfMajor, score);
@@ -500,8 +527,8 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         damagedOutline = concavityExclusion(reg.concavities, mei.size(), 0.02 * brainWidth);
         mei.setTo(0, damagedOutline);
     }
-    reg.sectionEdges = mlsEdgePoints(edgePixels(mei), float(spacingImg),
-                                     float(std::max(2.0, 3 * spacingImg)));
+    reg.sectionEdges =
+        mlsEdgePoints(edgePixels(mei), float(spacingImg), float(std::max(2.0, 3 * spacingImg)));
     if (reg.sectionEdges.size() < 20)
         return makeError(ErrorCode::NoTissue, "no tissue found: too few tissue edges to register");
     timer.lap("damage-outline");
@@ -516,7 +543,8 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     auto edgeAgreement = [&](const cv::Matx23d& t) {
         std::vector<cv::Point2f> mapped;
         mapped.reserve(reg.sectionEdges.size());
-        for (const auto& p : reg.sectionEdges.points) mapped.emplace_back(apply(t, p));
+        for (const auto& p : reg.sectionEdges.points)
+            mapped.emplace_back(apply(t, p));
         return shareMatched(mapped, atlasGrid, atlasH / 80);
     };
     // A near tie of the edge agreement (within 0.02) is settled by how well the atlas regions,
@@ -554,14 +582,16 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     double agreement = edgeAgreement(affine.targetFromSource);
     double fitOfBest = std::numeric_limits<double>::quiet_NaN();
     for (size_t k = 1; k < placed.size(); ++k) {
-        if (placed[k].overlap < placed.front().overlap - 0.05) break;
+        if (placed[k].overlap < placed.front().overlap - 0.05)
+            break;
         IcpResult other =
             multiLevelIcp(reg.sectionEdges, reg.atlasEdges, placed[k].t, fine, 8, scaleGuess);
         const double a = edgeAgreement(other.targetFromSource);
         bool better = a > agreement + kTieMargin;
         double fit = std::numeric_limits<double>::quiet_NaN();
         if (!better && a > agreement - kTieMargin) {
-            if (std::isnan(fitOfBest)) fitOfBest = regionFit(affine.targetFromSource);
+            if (std::isnan(fitOfBest))
+                fitOfBest = regionFit(affine.targetFromSource);
             fit = regionFit(other.targetFromSource);
             better = fit > fitOfBest;
         }
@@ -599,7 +629,8 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         for (size_t i = 0; pullOutline && i < imgOuter.size(); ++i) {
             const cv::Point p(std::clamp(cvRound(imgOuter.points[i].x), 0, mei.cols - 1),
                               std::clamp(cvRound(imgOuter.points[i].y), 0, mei.rows - 1));
-            if (!damagedOutline.empty() && damagedOutline.at<std::uint8_t>(p)) continue;
+            if (!damagedOutline.empty() && damagedOutline.at<std::uint8_t>(p))
+                continue;
             outline.points.push_back(imgOuter.points[i]);
             outline.normals.push_back(imgOuter.normals[i]);
         }
@@ -609,7 +640,8 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
             std::vector<cv::Point2d> pts, disp;
             addWarpConditions(reg.sectionEdges, reg.atlasFromWorking, reg.warp, reg.atlasEdges,
                               atlasGrid, dist, ang, pts, disp);
-            if (pts.size() < 12) break;
+            if (pts.size() < 12)
+                break;
             if (pullOutline)
                 addWarpConditions(outline, reg.atlasFromWorking, reg.warp, atlasOuter,
                                   atlasOuterGrid, std::max(dist, outlineReach), 15, pts, disp);
@@ -625,7 +657,8 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         // pixel counts when mostly tissue; any excluded share excludes it), then the glass
         // band is grown there.
         const cv::Size ws = reg.workingGrey.size();
-        const double f = std::min(1.0, double(options.dense.gridMaxSide) / std::max(ws.width, ws.height));
+        const double f =
+            std::min(1.0, double(options.dense.gridMaxSide) / std::max(ws.width, ws.height));
         const cv::Size gs(std::max(8, static_cast<int>(std::lround(ws.width * f))),
                           std::max(8, static_cast<int>(std::lround(ws.height * f))));
         cv::Mat grey, weight, excluded, mx, my;
@@ -633,10 +666,12 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         cv::resize(tissueFilled, weight, gs, 0, 0, cv::INTER_AREA);
         weight = weight > 127;
         const int band = std::max(1, static_cast<int>(std::lround(gs.width / 100.0)));
-        cv::dilate(weight, weight,
-                   cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * band + 1, 2 * band + 1)));
+        cv::dilate(
+            weight, weight,
+            cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * band + 1, 2 * band + 1)));
         auto exclude = [&](const cv::Mat& mask, int grownBy) {
-            if (mask.empty()) return;
+            if (mask.empty())
+                return;
             cv::resize(mask != 0, excluded, gs, 0, 0, cv::INTER_AREA);
             excluded = excluded > 0;
             if (grownBy > 0)
@@ -649,12 +684,13 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         exclude(fragments, band);
         exclude(damagedOutline, 0);
         reg.atlasMaps(gs, mx, my);
-        const DenseRefinement dense = refineDense(grey, weight, mx, my, atlasLabels,
-                                                  options.atlasIntensity, options.dense);
+        const DenseRefinement dense =
+            refineDense(grey, weight, mx, my, atlasLabels, options.atlasIntensity, options.dense);
         reg.quality.explainedBeforeRefine = dense.explainedBefore;
         reg.quality.explainedAfterRefine = dense.explainedAfter;
         reg.quality.refined = dense.accepted;
-        if (dense.accepted) reg.warp = addToWarp(reg.warp, ws, dense.ux, dense.uy);
+        if (dense.accepted)
+            reg.warp = addToWarp(reg.warp, ws, dense.ux, dense.uy);
         cv::resize(dense.confidence, reg.confidence, ws, 0, 0, cv::INTER_LINEAR);
         reg.regionConfidence =
             meanByLabel(dense.confidence, reg.warpedLabels(atlasLabels, gs), weight);
@@ -664,12 +700,13 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
 
     std::vector<cv::Point2f> mp, mn;
     mapThrough(reg.sectionEdges, reg.atlasFromWorking, reg.warp, mp, mn);
-    const std::vector<Match> matches = findMatches(mp, mn, reg.atlasEdges, atlasGrid, finalDist,
-                                                   5, true, TargetRule::PointToLine);
+    const std::vector<Match> matches =
+        findMatches(mp, mn, reg.atlasEdges, atlasGrid, finalDist, 5, true, TargetRule::PointToLine);
 
     reg.quality.correspondences = static_cast<int>(matches.size());
     double ss = 0;
-    for (const Match& m : matches) ss += std::pow(cv::norm(cv::Point2d(mp[m.source]) - m.target), 2);
+    for (const Match& m : matches)
+        ss += std::pow(cv::norm(cv::Point2d(mp[m.source]) - m.target), 2);
     reg.quality.residualFinal = matches.empty() ? 0 : std::sqrt(ss / double(matches.size()));
     const PointGrid mappedGrid(mp, float(finalDist));
     reg.quality.atlasBoundaryMatched = shareMatched(reg.atlasEdges.points, mappedGrid, atlasH / 80);
@@ -683,13 +720,14 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         const cv::Mat expectedBrain = seen != 0;
         const cv::Mat ventricles = partMap(seen, {options.ventricleIds}) != 0;
         AtlasExpectation expected{expectedBrain & ~ventricles, expectedBrain, cv::Mat()};
-        if (options.separateParts.size() > 1) expected.parts = partMap(seen, options.separateParts);
+        if (options.separateParts.size() > 1)
+            expected.parts = partMap(seen, options.separateParts);
         // Small pieces set aside as debris where the atlas expects brain are tissue there (a
         // lobe cut apart), not glass.
         const cv::Mat sectionTissue =
             prepared->tissueMaskFine | piecesInside(prepared->smallPiecesFine, expectedBrain, 0.7);
-        std::vector<DamageRegion> regions = tissueDamage(sectionTissue, expected, brainWidth,
-                                                         options.damage, fragments, reg.workingGrey);
+        std::vector<DamageRegion> regions = tissueDamage(
+            sectionTissue, expected, brainWidth, options.damage, fragments, reg.workingGrey);
         reg.damaged = isDamaged(regions, brainWidth, options.damage);
         reg.damageSummary = damageSummary(regions);
         // Report in full-resolution pixels.

@@ -5,21 +5,26 @@ namespace slicestation::sim {
 using core::ErrorCode;
 using core::makeError;
 
-core::Result<std::unique_ptr<FaultyCamera>> FaultyCamera::create(std::unique_ptr<hw::Camera> inner,
-                                                                 std::shared_ptr<core::Clock> clock) {
-    if (!inner) return makeError(ErrorCode::InvalidArgument, "faulty camera: no camera to decorate");
-    if (!clock) clock = std::make_shared<core::SteadyClock>();
+core::Result<std::unique_ptr<FaultyCamera>>
+FaultyCamera::create(std::unique_ptr<hw::Camera> inner, std::shared_ptr<core::Clock> clock) {
+    if (!inner)
+        return makeError(ErrorCode::InvalidArgument, "faulty camera: no camera to decorate");
+    if (!clock)
+        clock = std::make_shared<core::SteadyClock>();
     return std::unique_ptr<FaultyCamera>(new FaultyCamera(std::move(inner), std::move(clock)));
 }
 
-core::Result<hw::CameraSettings> FaultyCamera::configure(const hw::CameraSettings& s, std::chrono::milliseconds t) {
-    if (framesLeft_ == 0) return makeError(ErrorCode::Disconnected, "faulty camera: injected disconnect");
+core::Result<hw::CameraSettings> FaultyCamera::configure(const hw::CameraSettings& s,
+                                                         std::chrono::milliseconds t) {
+    if (framesLeft_ == 0)
+        return makeError(ErrorCode::Disconnected, "faulty camera: injected disconnect");
     return inner_->configure(s, t);
 }
 
 core::Result<hw::Frame> FaultyCamera::capture(std::chrono::milliseconds timeout) {
     stop_.clear();
-    if (framesLeft_ == 0) return makeError(ErrorCode::Disconnected, "faulty camera: injected disconnect");
+    if (framesLeft_ == 0)
+        return makeError(ErrorCode::Disconnected, "faulty camera: injected disconnect");
     if (timeouts_ > 0) {
         --timeouts_;
         if (!clock_->sleepUntil(clock_->now() + timeout, stop_))
@@ -31,7 +36,8 @@ core::Result<hw::Frame> FaultyCamera::capture(std::chrono::milliseconds timeout)
         return makeError(ErrorCode::IoError, "faulty camera: injected corrupt frame");
     }
     auto f = inner_->capture(timeout);
-    if (f && framesLeft_ > 0) --framesLeft_;
+    if (f && framesLeft_ > 0)
+        --framesLeft_;
     return f;
 }
 

@@ -51,18 +51,20 @@ core::Result<void> checkRange(const char* name, double v, double lo, double hi) 
 }
 
 core::Result<void> validate(const cv::Mat& labels, const GeneratorOptionsB& o) {
-    if (labels.empty()) return makeError(ErrorCode::InvalidArgument, "atlas labels: empty plane");
+    if (labels.empty())
+        return makeError(ErrorCode::InvalidArgument, "atlas labels: empty plane");
     if (labels.type() != CV_32SC1)
         return makeError(ErrorCode::InvalidArgument, "atlas labels: must be CV_32S, one channel");
     double maxId = 0;
     cv::minMaxLoc(labels, nullptr, &maxId);
-    if (maxId <= 0) return makeError(ErrorCode::InvalidArgument, "atlas labels: no label > 0");
+    if (maxId <= 0)
+        return makeError(ErrorCode::InvalidArgument, "atlas labels: no label > 0");
     for (int side : {o.imageSize.width, o.imageSize.height})
         if (side < 300 || side > 10000)
-            return makeError(ErrorCode::InvalidArgument,
-                             "GeneratorOptionsB::imageSize: each side must lie in [300, 10000], got " +
-                                 std::to_string(o.imageSize.width) + "x" +
-                                 std::to_string(o.imageSize.height));
+            return makeError(
+                ErrorCode::InvalidArgument,
+                "GeneratorOptionsB::imageSize: each side must lie in [300, 10000], got " +
+                    std::to_string(o.imageSize.width) + "x" + std::to_string(o.imageSize.height));
     const std::array<std::tuple<const char*, double, double, double>, 12> ranges{{
         {"fillFraction", o.fillFraction, 0.2, 0.95},
         {"maxRotationDeg", o.maxRotationDeg, 0, 180},
@@ -78,7 +80,8 @@ core::Result<void> validate(const cv::Mat& labels, const GeneratorOptionsB& o) {
         {"atlasUmPerPx", o.atlasUmPerPx, 1, 200},
     }};
     for (const auto& [name, v, lo, hi] : ranges)
-        if (auto r = checkRange(name, v, lo, hi); !r) return r.error();
+        if (auto r = checkRange(name, v, lo, hi); !r)
+            return r.error();
     if (o.stain == StainB::Template) {
         if (o.templatePlane.empty() || o.templatePlane.type() != CV_32FC1 ||
             o.templatePlane.size() != labels.size())
@@ -96,7 +99,7 @@ core::Result<void> validate(const cv::Mat& labels, const GeneratorOptionsB& o) {
 
 /// Per-id rendering style.
 struct Style {
-    float level = 0;    ///< stain amount in [0, 1]
+    float level = 0; ///< stain amount in [0, 1]
     float cellsPerUm2 = 0;
     bool tract = false, ventricle = false;
 };
@@ -115,7 +118,8 @@ Style styleOf(std::int32_t id, const core::Ontology& onto, const GeneratorOption
         s.tract = onto.isDescendantOf(std::uint32_t(id), 1009);
         s.ventricle = onto.isDescendantOf(std::uint32_t(id), 73);
     } else {
-        s.tract = std::find(o.fiberTractIds.begin(), o.fiberTractIds.end(), id) != o.fiberTractIds.end();
+        s.tract =
+            std::find(o.fiberTractIds.begin(), o.fiberTractIds.end(), id) != o.fiberTractIds.end();
         s.ventricle =
             std::find(o.ventricleIds.begin(), o.ventricleIds.end(), id) != o.ventricleIds.end();
     }
@@ -132,7 +136,8 @@ Style styleOf(std::int32_t id, const core::Ontology& onto, const GeneratorOption
     switch (o.stain) {
     case StainB::Immuno:
         s.level = float(0.35 * grp + 0.65 * bimodal);
-        if (s.tract) s.level = look.tractsDark ? 0.06f : 0.92f;
+        if (s.tract)
+            s.level = look.tractsDark ? 0.06f : 0.92f;
         break;
     case StainB::Nissl:
         s.level = float(0.15 + 0.85 * (std::log10(s.cellsPerUm2) + 3.4) / 1.2);
@@ -143,11 +148,15 @@ Style styleOf(std::int32_t id, const core::Ontology& onto, const GeneratorOption
         break;
     case StainB::Autofluorescence:
         s.level = float(0.45 + 0.2 * grp + 0.1 * own);
-        if (s.tract) s.level = 0.9f;
+        if (s.tract)
+            s.level = 0.9f;
         break;
-    case StainB::Template: s.level = 1; break;
+    case StainB::Template:
+        s.level = 1;
+        break;
     }
-    if (s.tract && o.stain != StainB::Nissl) s.cellsPerUm2 = 2e-4f;
+    if (s.tract && o.stain != StainB::Nissl)
+        s.cellsPerUm2 = 2e-4f;
     return s;
 }
 
@@ -189,7 +198,8 @@ cv::Mat smoothNoise(Rng& rng, cv::Size size, double scalePx) {
     const int step = std::max(2, int(scalePx / 2));
     cv::Mat c((size.height + step - 1) / step + 2, (size.width + step - 1) / step + 2, CV_32F);
     for (int y = 0; y < c.rows; ++y)
-        for (int x = 0; x < c.cols; ++x) c.at<float>(y, x) = float(rng.normal(1.0));
+        for (int x = 0; x < c.cols; ++x)
+            c.at<float>(y, x) = float(rng.normal(1.0));
     cv::GaussianBlur(c, c, cv::Size(), 1.0);
     cv::Scalar mean, sd;
     cv::meanStdDev(c, mean, sd);
@@ -204,7 +214,9 @@ struct Field {
     double minJacobian = 1;
 };
 
-double tpsKernel(double r2) { return r2 > 1e-12 ? 0.5 * r2 * std::log(r2) : 0.0; }
+double tpsKernel(double r2) {
+    return r2 > 1e-12 ? 0.5 * r2 * std::log(r2) : 0.0;
+}
 
 Field makeField(Rng& rng, cv::Rect2d tissueBox, cv::Size size, const GeneratorOptionsB& o) {
     Field f;
@@ -216,9 +228,9 @@ Field makeField(Rng& rng, cv::Rect2d tissueBox, cv::Size size, const GeneratorOp
     std::vector<cv::Point2d> disp;
     for (int j = 0; j < 4; ++j)
         for (int i = 0; i < 4; ++i) {
-            ctrl.emplace_back(tissueBox.x + tissueBox.width * (i + 0.5 + rng.uniform(-0.3, 0.3)) / 4,
-                              tissueBox.y +
-                                  tissueBox.height * (j + 0.5 + rng.uniform(-0.3, 0.3)) / 4);
+            ctrl.emplace_back(
+                tissueBox.x + tissueBox.width * (i + 0.5 + rng.uniform(-0.3, 0.3)) / 4,
+                tissueBox.y + tissueBox.height * (j + 0.5 + rng.uniform(-0.3, 0.3)) / 4);
             disp.emplace_back(rng.normal(o.warpAmplitudeFrac * width),
                               rng.normal(o.warpAmplitudeFrac * width));
         }
@@ -229,8 +241,10 @@ Field makeField(Rng& rng, cv::Rect2d tissueBox, cv::Size size, const GeneratorOp
             const cv::Point2d d = (ctrl[a] - ctrl[b]) * (1.0 / width);
             L.at<double>(a, b) = tpsKernel(d.dot(d));
         }
-        const double row[3] = {1, (ctrl[a].x - tissueBox.x) / width, (ctrl[a].y - tissueBox.y) / width};
-        for (int k = 0; k < 3; ++k) L.at<double>(a, n + k) = L.at<double>(n + k, a) = row[k];
+        const double row[3] = {1, (ctrl[a].x - tissueBox.x) / width,
+                               (ctrl[a].y - tissueBox.y) / width};
+        for (int k = 0; k < 3; ++k)
+            L.at<double>(a, n + k) = L.at<double>(n + k, a) = row[k];
         rhs.at<double>(a, 0) = disp[a].x;
         rhs.at<double>(a, 1) = disp[a].y;
     }
@@ -250,9 +264,11 @@ Field makeField(Rng& rng, cv::Rect2d tissueBox, cv::Size size, const GeneratorOp
         for (int r = 0; r < rows; ++r)
             for (int c = 0; c < cols; ++c) {
                 const cv::Point2d p(c * f.step, r * f.step);
-                double ux = w.at<double>(n, 0) + w.at<double>(n + 1, 0) * (p.x - tissueBox.x) / width +
+                double ux = w.at<double>(n, 0) +
+                            w.at<double>(n + 1, 0) * (p.x - tissueBox.x) / width +
                             w.at<double>(n + 2, 0) * (p.y - tissueBox.y) / width;
-                double uy = w.at<double>(n, 1) + w.at<double>(n + 1, 1) * (p.x - tissueBox.x) / width +
+                double uy = w.at<double>(n, 1) +
+                            w.at<double>(n + 1, 1) * (p.x - tissueBox.x) / width +
                             w.at<double>(n + 2, 1) * (p.y - tissueBox.y) / width;
                 for (int a = 0; a < n; ++a) {
                     const cv::Point2d d = (p - ctrl[a]) * (1.0 / width);
@@ -267,7 +283,8 @@ Field makeField(Rng& rng, cv::Rect2d tissueBox, cv::Size size, const GeneratorOp
                 const cv::Point2d s = p - swellCentre;
                 const double win = std::exp(-s.dot(s) / (2 * swellSigma * swellSigma));
                 const double t = q.dot(axis) / (width / 2);
-                const double along = grad * t * t / 2 * (width / 2) * std::exp(-std::max(0.0, std::abs(t) - 1.2));
+                const double along =
+                    grad * t * t / 2 * (width / 2) * std::exp(-std::max(0.0, std::abs(t) - 1.2));
                 f.dx.at<float>(r, c) =
                     float(gain * (damp * ux + swell * win * s.x + along * axis.x));
                 f.dy.at<float>(r, c) =
@@ -277,14 +294,19 @@ Field makeField(Rng& rng, cv::Rect2d tissueBox, cv::Size size, const GeneratorOp
         double minDet = 1e9;
         for (int r = 1; r + 1 < rows; ++r)
             for (int c = 1; c + 1 < cols; ++c) {
-                const double a = 1 + (f.dx.at<float>(r, c + 1) - f.dx.at<float>(r, c - 1)) / (2.0 * f.step);
-                const double b = (f.dx.at<float>(r + 1, c) - f.dx.at<float>(r - 1, c)) / (2.0 * f.step);
-                const double cc = (f.dy.at<float>(r, c + 1) - f.dy.at<float>(r, c - 1)) / (2.0 * f.step);
-                const double d = 1 + (f.dy.at<float>(r + 1, c) - f.dy.at<float>(r - 1, c)) / (2.0 * f.step);
+                const double a =
+                    1 + (f.dx.at<float>(r, c + 1) - f.dx.at<float>(r, c - 1)) / (2.0 * f.step);
+                const double b =
+                    (f.dx.at<float>(r + 1, c) - f.dx.at<float>(r - 1, c)) / (2.0 * f.step);
+                const double cc =
+                    (f.dy.at<float>(r, c + 1) - f.dy.at<float>(r, c - 1)) / (2.0 * f.step);
+                const double d =
+                    1 + (f.dy.at<float>(r + 1, c) - f.dy.at<float>(r - 1, c)) / (2.0 * f.step);
                 minDet = std::min(minDet, a * d - b * cc);
             }
         f.minJacobian = minDet;
-        if (minDet >= 0.5) break;
+        if (minDet >= 0.5)
+            break;
         gain *= 0.6;
     }
     return f;
@@ -308,7 +330,8 @@ EdgeSite pickEdge(Rng& rng, const cv::Mat& tissue, const cv::Mat& avoid) {
     cv::findContours(tissue.clone(), contours, cv::RETR_EXTERNAL, cv::CHAIN_APPROX_NONE);
     size_t best = 0;
     for (size_t i = 1; i < contours.size(); ++i)
-        if (contours[i].size() > contours[best].size()) best = i;
+        if (contours[i].size() > contours[best].size())
+            best = i;
     const auto& c = contours[best];
     const cv::Moments m = cv::moments(tissue, true);
     const cv::Point2d centroid(m.m10 / std::max(1.0, m.m00), m.m01 / std::max(1.0, m.m00));
@@ -316,14 +339,16 @@ EdgeSite pickEdge(Rng& rng, const cv::Mat& tissue, const cv::Mat& avoid) {
     for (int attempt = 0; attempt < 40; ++attempt) {
         const size_t i = size_t(rng.integer(0, int(c.size()) - 1));
         const cv::Point p = c[i];
-        if (!avoid.empty() && avoid.at<std::uint8_t>(p) != 0 && attempt < 39) continue;
+        if (!avoid.empty() && avoid.at<std::uint8_t>(p) != 0 && attempt < 39)
+            continue;
         // Outward normal from the contour's local tangent, oriented away from the centroid.
         const cv::Point a = c[(i + c.size() - 6) % c.size()], b = c[(i + 6) % c.size()];
         cv::Point2d t(b.x - a.x, b.y - a.y);
         cv::Point2d nrm(t.y, -t.x);
         const double len = std::max(1e-9, std::sqrt(nrm.dot(nrm)));
         nrm *= 1.0 / len;
-        if (nrm.dot(cv::Point2d(p) - centroid) < 0) nrm = -nrm;
+        if (nrm.dot(cv::Point2d(p) - centroid) < 0)
+            nrm = -nrm;
         s.point = p;
         s.outward = nrm;
         break;
@@ -363,7 +388,8 @@ cv::Mat blob(Rng& rng, cv::Size size, cv::Point2d centre, double radius) {
     for (int i = 0; i < 96; ++i) {
         const double a = 2 * kPi * i / 96;
         double r = 1;
-        for (int k = 0; k < 4; ++k) r += amp[size_t(k)] * std::sin((k + 2) * a + phase[size_t(k)]);
+        for (int k = 0; k < 4; ++k)
+            r += amp[size_t(k)] * std::sin((k + 2) * a + phase[size_t(k)]);
         poly.emplace_back(cvRound(centre.x + radius * r * std::cos(a)),
                           cvRound(centre.y + radius * r * std::sin(a)));
     }
@@ -399,7 +425,8 @@ std::vector<cv::Point2f> outline(const cv::Mat& mask) {
     }
     std::vector<cv::Point2f> out;
     if (!contours.empty())
-        for (const cv::Point& p : contours[best]) out.emplace_back(float(p.x), float(p.y));
+        for (const cv::Point& p : contours[best])
+            out.emplace_back(float(p.x), float(p.y));
     return out;
 }
 
@@ -416,7 +443,8 @@ GeneratedSectionB renderB(const cv::Mat& labels, const core::Ontology& onto,
     cv::findContours(brain.clone(), contours, cv::RETR_EXTERNAL, cv::CHAIN_APPROX_SIMPLE);
     std::vector<cv::Point2d> hull;
     for (const auto& c : contours)
-        for (const auto& p : c) hull.emplace_back(p.x, p.y);
+        for (const auto& p : c)
+            hull.emplace_back(p.x, p.y);
     const cv::Rect box = cv::boundingRect(brain);
     const cv::Point2d atlasCentre(box.x + box.width / 2.0, box.y + box.height / 2.0);
 
@@ -450,17 +478,19 @@ GeneratedSectionB renderB(const cv::Mat& labels, const core::Ontology& onto,
         const double slackX = std::max(0.0, (W * (1 - margin) - k * (hi.x - lo.x)) / 2);
         const double slackY = std::max(0.0, (H * (1 - margin) - k * (hi.y - lo.y)) / 2);
         Rng trng(o.seed * 31 + 7);
-        const double tx = std::clamp(trng.uniform(-1, 1) * o.maxTranslationFrac * W, -slackX, slackX);
-        const double ty = std::clamp(trng.uniform(-1, 1) * o.maxTranslationFrac * H, -slackY, slackY);
+        const double tx =
+            std::clamp(trng.uniform(-1, 1) * o.maxTranslationFrac * W, -slackX, slackX);
+        const double ty =
+            std::clamp(trng.uniform(-1, 1) * o.maxTranslationFrac * H, -slackY, slackY);
         const cv::Point2d imgCentre(W / 2.0 - k * (lo.x + hi.x) / 2 + tx,
                                     H / 2.0 - k * (lo.y + hi.y) / 2 + ty);
         // image = L (atlas - atlasCentre) + imgCentre  =>  atlas = L^-1 (image - imgCentre) + ac
         const cv::Matx22d Li = L.inv();
-        const cv::Vec2d off = cv::Vec2d(atlasCentre.x, atlasCentre.y) -
-                              Li * cv::Vec2d(imgCentre.x, imgCentre.y);
+        const cv::Vec2d off =
+            cv::Vec2d(atlasCentre.x, atlasCentre.y) - Li * cv::Vec2d(imgCentre.x, imgCentre.y);
         atlasFromImage = cv::Matx23d(Li(0, 0), Li(0, 1), off[0], Li(1, 0), Li(1, 1), off[1]);
-        const cv::Rect2d tissueBox(imgCentre.x + k * lo.x, imgCentre.y + k * lo.y, k * (hi.x - lo.x),
-                                   k * (hi.y - lo.y));
+        const cv::Rect2d tissueBox(imgCentre.x + k * lo.x, imgCentre.y + k * lo.y,
+                                   k * (hi.x - lo.x), k * (hi.y - lo.y));
         Rng frng(o.seed * 131 + 17);
         field = makeField(frng, tissueBox, size, o);
         const cv::Mat dx = upsample(field.dx, field.step, size);
@@ -477,8 +507,10 @@ GeneratedSectionB renderB(const cv::Mat& labels, const core::Ontology& onto,
             std::int32_t* lab = imgLabels.ptr<std::int32_t>(y);
             for (int x = 0; x < W; ++x) {
                 const double qx = x + px[x], qy = y + py[x];
-                const double u = atlasFromImage(0, 0) * qx + atlasFromImage(0, 1) * qy + atlasFromImage(0, 2);
-                const double v = atlasFromImage(1, 0) * qx + atlasFromImage(1, 1) * qy + atlasFromImage(1, 2);
+                const double u =
+                    atlasFromImage(0, 0) * qx + atlasFromImage(0, 1) * qy + atlasFromImage(0, 2);
+                const double v =
+                    atlasFromImage(1, 0) * qx + atlasFromImage(1, 1) * qy + atlasFromImage(1, 2);
                 ax[x] = float(u);
                 ay[x] = float(v);
                 const long iu = std::lround(double(ax[x])), iv = std::lround(double(ay[x]));
@@ -486,10 +518,12 @@ GeneratedSectionB renderB(const cv::Mat& labels, const core::Ontology& onto,
                 if (iu >= 0 && iv >= 0 && iu < labels.cols && iv < labels.rows)
                     id = std::max(0, labels.at<std::int32_t>(int(iv), int(iu)));
                 lab[x] = id;
-                if (id > 0 && (x < 3 || y < 3 || x >= W - 3 || y >= H - 3)) touches = true;
+                if (id > 0 && (x < 3 || y < 3 || x >= W - 3 || y >= H - 3))
+                    touches = true;
             }
         }
-        if (!touches) break;
+        if (!touches)
+            break;
     }
     out.truth.atlasX = atlasX;
     out.truth.atlasY = atlasY;
@@ -532,7 +566,8 @@ GeneratedSectionB renderB(const cv::Mat& labels, const core::Ontology& onto,
         std::vector<float> v;
         for (int y = 0; y < labels.rows; ++y)
             for (int x = 0; x < labels.cols; ++x)
-                if (labels.at<std::int32_t>(y, x) > 0) v.push_back(o.templatePlane.at<float>(y, x));
+                if (labels.at<std::int32_t>(y, x) > 0)
+                    v.push_back(o.templatePlane.at<float>(y, x));
         if (!v.empty()) {
             const size_t q = std::min(v.size() - 1, size_t(0.995 * double(v.size())));
             std::nth_element(v.begin(), v.begin() + std::ptrdiff_t(q), v.end());
@@ -546,21 +581,24 @@ GeneratedSectionB renderB(const cv::Mat& labels, const core::Ontology& onto,
         float* cp = cellProb.ptr<float>(y);
         float* ce = cells.ptr<float>(y);
         for (int x = 0; x < W; ++x) {
-            if (ix[x] < 0) continue;
+            if (ix[x] < 0)
+                continue;
             const Style& s = styles[size_t(ix[x])];
-            if (s.ventricle) continue;
+            if (s.ventricle)
+                continue;
             t[x] = 255;
             float l = s.level;
             if (o.stain == StainB::Template) {
-                l = float(std::clamp(bilinear(o.templatePlane, atlasX.at<float>(y, x),
-                                              atlasY.at<float>(y, x)) *
-                                         templScale,
-                                     0.0, 1.2));
+                l = float(std::clamp(
+                    bilinear(o.templatePlane, atlasX.at<float>(y, x), atlasY.at<float>(y, x)) *
+                        templScale,
+                    0.0, 1.2));
             }
             lv[x] = l;
             const float p = float(std::min(0.9, s.cellsPerUm2 * umPerPx2));
             cp[x] = p;
-            if (rng.chance(p)) ce[x] = float(rng.uniform(0.5, 1.5));
+            if (rng.chance(p))
+                ce[x] = float(rng.uniform(0.5, 1.5));
         }
     }
     // Cell bodies of about 12 um: Gaussian blobs, normalised so the mean over a region is 1.
@@ -581,7 +619,8 @@ GeneratedSectionB renderB(const cv::Mat& labels, const core::Ontology& onto,
         const float* dn = density.ptr<float>(y);
         float* s = S.ptr<float>(y);
         for (int x = 0; x < W; ++x) {
-            if (!t[x]) continue;
+            if (!t[x])
+                continue;
             const double f = std::min(3.0, double(ce[x]) / std::max(1e-4, double(cp[x])));
             s[x] = float(lv[x] * ((1 - texture) + texture * f) * (1 + 0.06 * o.texture * dn[x]));
         }
@@ -600,7 +639,8 @@ GeneratedSectionB renderB(const cv::Mat& labels, const core::Ontology& onto,
     if (o.damage.bite) {
         const EdgeSite e = pickEdge(rng, tissue, used);
         const double r = rng.uniform(0.06, 0.11) * tissueWidth;
-        Damage d{DamageKindB::Bite, blob(rng, size, e.point + e.outward * (0.35 * r), r) & tissue, {}};
+        Damage d{
+            DamageKindB::Bite, blob(rng, size, e.point + e.outward * (0.35 * r), r) & tissue, {}};
         d.excluded = d.region.clone();
         tissue.setTo(0, d.region);
         S.setTo(0, d.region);
@@ -633,7 +673,8 @@ GeneratedSectionB renderB(const cv::Mat& labels, const core::Ontology& onto,
             for (int x = roi.x; x < roi.x + roi.width; ++x) {
                 const cv::Point2d p(x, y);
                 const double s = (p - lineP).dot(n), lat = (p - lineP).dot(tangent);
-                if (std::abs(lat) > halfLen) continue;
+                if (std::abs(lat) > halfLen)
+                    continue;
                 if (s > 0 && tissue.at<std::uint8_t>(y, x)) {
                     d.region.at<std::uint8_t>(y, x) = 255;
                     Snew.at<float>(y, x) = 0;
@@ -642,8 +683,10 @@ GeneratedSectionB renderB(const cv::Mat& labels, const core::Ontology& onto,
                     // The flap pixel that now lies on p.
                     const cv::Point2d q = p - n * (2 * s);
                     const int qx = cvRound(q.x), qy = cvRound(q.y);
-                    if (qx < 0 || qy < 0 || qx >= W || qy >= H) continue;
-                    if (!tissue.at<std::uint8_t>(qy, qx) || (q - lineP).dot(n) <= 0) continue;
+                    if (qx < 0 || qy < 0 || qx >= W || qy >= H)
+                        continue;
+                    if (!tissue.at<std::uint8_t>(qy, qx) || (q - lineP).dot(n) <= 0)
+                        continue;
                     d.excluded.at<std::uint8_t>(y, x) = 255;
                     Snew.at<float>(y, x) += float(flapGain * S.at<float>(qy, qx));
                 }
@@ -682,7 +725,8 @@ GeneratedSectionB renderB(const cv::Mat& labels, const core::Ontology& onto,
                 if (cv::countNonZero(moved) < 0.9 * m.m00 || mb.x < 4 || mb.y < 4 ||
                     mb.x + mb.width > W - 4 || mb.y + mb.height > H - 4)
                     continue;
-                if (cv::countNonZero(moved & restGrown) > 0) continue;
+                if (cv::countNonZero(moved & restGrown) > 0)
+                    continue;
                 cv::Mat Spiece = cv::Mat::zeros(size, CV_32F), Smoved;
                 S.copyTo(Spiece, piece);
                 cv::warpAffine(Spiece, Smoved, M, size, cv::INTER_LINEAR);
@@ -723,7 +767,8 @@ GeneratedSectionB renderB(const cv::Mat& labels, const core::Ontology& onto,
         std::vector<cv::Point> cand;
         for (int y = 0; y < H; y += stride)
             for (int x = 0; x < W; x += stride)
-                if (intact.at<std::uint8_t>(y, x)) cand.emplace_back(x, y);
+                if (intact.at<std::uint8_t>(y, x))
+                    cand.emplace_back(x, y);
         const int n = std::min<int>(o.landmarkCount, int(cand.size()));
         for (int i = 0; i < n; ++i) {
             const int j = rng.integer(i, int(cand.size()) - 1);
@@ -742,7 +787,8 @@ GeneratedSectionB renderB(const cv::Mat& labels, const core::Ontology& onto,
     const cv::Point2d tileOffset(rng.uniform(0, tile), rng.uniform(0, tile));
     const int tilesX = W / tile + 3, tilesY = H / tile + 3;
     std::vector<std::array<double, 3>> tileLook(size_t(tilesX * tilesY));
-    for (auto& t : tileLook) t = {rng.uniform(-0.06, 0.06), rng.normal(0.04), rng.normal(0.04)};
+    for (auto& t : tileLook)
+        t = {rng.uniform(-0.06, 0.06), rng.normal(0.04), rng.normal(0.04)};
     const double seam = rng.uniform(-0.08, 0.08);
     for (int y = 0; y < H; ++y) {
         float* il = illum.ptr<float>(y);
@@ -752,11 +798,13 @@ GeneratedSectionB renderB(const cv::Mat& labels, const core::Ontology& onto,
             if (o.tiles) {
                 const double tx = (x + tileOffset.x) / tile, ty = (y + tileOffset.y) / tile;
                 const int ix = int(tx), iy = int(ty);
-                const auto& t = tileLook[size_t(std::min(iy, tilesY - 1) * tilesX + std::min(ix, tilesX - 1))];
+                const auto& t =
+                    tileLook[size_t(std::min(iy, tilesY - 1) * tilesX + std::min(ix, tilesX - 1))];
                 // Each tile: its own gain and a linear gradient (its own vignetting).
                 g *= 1 + t[0] + t[1] * (tx - ix - 0.5) + t[2] * (ty - iy - 0.5);
                 const double fx = (tx - ix) * tile, fy = (ty - iy) * tile;
-                if (fx < 1.0 * pxScale || fy < 1.0 * pxScale) g *= 1 + seam;
+                if (fx < 1.0 * pxScale || fy < 1.0 * pxScale)
+                    g *= 1 + seam;
             }
             il[x] = float(g);
         }
@@ -814,7 +862,8 @@ GeneratedSectionB renderB(const cv::Mat& labels, const core::Ontology& onto,
                 const double n = o.noise * 2.0 * gauss(rng.gen);
                 for (int ch = 0; ch < 3; ++ch) {
                     const double a = strength * od[ch] * s[x] + counter[ch] * tb[x] + 0.6 * rim[x];
-                    dst[x][ch] = cv::saturate_cast<std::uint8_t>(glass[ch] * il[x] * std::exp(-a) + n);
+                    dst[x][ch] =
+                        cv::saturate_cast<std::uint8_t>(glass[ch] * il[x] * std::exp(-a) + n);
                 }
             }
         }
@@ -826,20 +875,28 @@ GeneratedSectionB renderB(const cv::Mat& labels, const core::Ontology& onto,
 
 std::string_view toString(StainB stain) noexcept {
     switch (stain) {
-    case StainB::Immuno: return "immuno";
-    case StainB::Nissl: return "nissl";
-    case StainB::Autofluorescence: return "autofluorescence";
-    case StainB::Template: return "template";
+    case StainB::Immuno:
+        return "immuno";
+    case StainB::Nissl:
+        return "nissl";
+    case StainB::Autofluorescence:
+        return "autofluorescence";
+    case StainB::Template:
+        return "template";
     }
     return "?";
 }
 
 std::string_view toString(DamageKindB kind) noexcept {
     switch (kind) {
-    case DamageKindB::Crack: return "crack";
-    case DamageKindB::Bite: return "bite";
-    case DamageKindB::Fragment: return "fragment";
-    case DamageKindB::Fold: return "fold";
+    case DamageKindB::Crack:
+        return "crack";
+    case DamageKindB::Bite:
+        return "bite";
+    case DamageKindB::Fragment:
+        return "fragment";
+    case DamageKindB::Fold:
+        return "fold";
     }
     return "?";
 }
@@ -847,7 +904,8 @@ std::string_view toString(DamageKindB kind) noexcept {
 core::Result<GeneratedSectionB> generateSectionB(const cv::Mat& atlasLabels,
                                                  const core::Ontology& ontology,
                                                  const GeneratorOptionsB& options) {
-    if (auto v = validate(atlasLabels, options); !v) return v.error();
+    if (auto v = validate(atlasLabels, options); !v)
+        return v.error();
     try {
         return renderB(atlasLabels, ontology, options);
     } catch (const cv::Exception& e) {

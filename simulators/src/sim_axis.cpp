@@ -41,33 +41,42 @@ void SimAxis::start(double target, double speed, double accel, core::TimePoint n
 
 bool SimAxis::startMove(double targetSteps, double speed, double accel, core::TimePoint now) {
     update(now);
-    if (alarm_ != 0) return false;
+    if (alarm_ != 0)
+        return false;
     start(targetSteps, speed, accel, now, false);
     return true;
 }
 
 bool SimAxis::startHome(double speed, double accel, core::TimePoint now) {
     update(now);
-    if (alarm_ != 0) return false;
+    if (alarm_ != 0)
+        return false;
     start(0.0, speed, accel, now, true);
     return true;
 }
 
 double SimAxis::profilePosition(double t) const {
-    if (!active_) return p1_;
+    if (!active_)
+        return p1_;
     const double d = std::abs(p1_ - p0_);
     const double dir = p1_ >= p0_ ? 1.0 : -1.0;
     double s;
-    if (t <= 0) s = 0;
-    else if (t >= durationS_) s = d;
-    else if (t < rampS_) s = 0.5 * accel_ * t * t;
-    else if (t < durationS_ - rampS_) s = 0.5 * accel_ * rampS_ * rampS_ + peakSpeed_ * (t - rampS_);
-    else s = d - 0.5 * accel_ * (durationS_ - t) * (durationS_ - t);
+    if (t <= 0)
+        s = 0;
+    else if (t >= durationS_)
+        s = d;
+    else if (t < rampS_)
+        s = 0.5 * accel_ * t * t;
+    else if (t < durationS_ - rampS_)
+        s = 0.5 * accel_ * rampS_ * rampS_ + peakSpeed_ * (t - rampS_);
+    else
+        s = d - 0.5 * accel_ * (durationS_ - t) * (durationS_ - t);
     return p0_ + dir * std::min(s, d);
 }
 
 void SimAxis::update(core::TimePoint now) {
-    if (!active_ || frozen_) return;
+    if (!active_ || frozen_)
+        return;
     const double t = seconds(t0_, now);
     if (faultThisMove_ && t >= durationS_ / 2) {
         frozen_ = true;

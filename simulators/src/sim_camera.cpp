@@ -27,7 +27,8 @@ core::Result<cv::Mat> makeGeneratedSlide(int count, cv::Size size, std::uint64_t
             o.imageSize = size;
             o.landmarkCount = 0;
             auto s = generateSection(builtinAtlasPlane(0.2 + 0.6 * i / std::max(1, count - 1)), o);
-            if (!s) return s.error();
+            if (!s)
+                return s.error();
             s->image.copyTo(slide(cv::Rect(i * size.width, 0, size.width, size.height)));
         }
         return slide;
@@ -39,17 +40,22 @@ core::Result<cv::Mat> makeGeneratedSlide(int count, cv::Size size, std::uint64_t
 core::Result<std::unique_ptr<SimCamera>> SimCamera::create(SimCameraConfig config) {
     const int t = config.slide.type();
     if (config.slide.empty() || (t != CV_8UC1 && t != CV_16UC1 && t != CV_8UC3))
-        return makeError(ErrorCode::InvalidArgument, "sim camera: slide must be 8/16-bit mono or 8-bit BGR");
-    if (!(config.slideUmPerPx > 0) || !(config.sensorUmPerPx > 0) || config.referenceExposureUs <= 0)
-        return makeError(ErrorCode::InvalidArgument, "sim camera: pixel sizes and exposure must be positive");
+        return makeError(ErrorCode::InvalidArgument,
+                         "sim camera: slide must be 8/16-bit mono or 8-bit BGR");
+    if (!(config.slideUmPerPx > 0) || !(config.sensorUmPerPx > 0) ||
+        config.referenceExposureUs <= 0)
+        return makeError(ErrorCode::InvalidArgument,
+                         "sim camera: pixel sizes and exposure must be positive");
     if (!config.stagePosition)
         return makeError(ErrorCode::InvalidArgument, "sim camera: needs the stage position source");
     return std::unique_ptr<SimCamera>(new SimCamera(std::move(config)));
 }
 
-core::Result<hw::CameraSettings> SimCamera::configure(const hw::CameraSettings& s, std::chrono::milliseconds) {
+core::Result<hw::CameraSettings> SimCamera::configure(const hw::CameraSettings& s,
+                                                      std::chrono::milliseconds) {
     if (s.width < 16 || s.height < 16 || s.width > 8192 || s.height > 8192)
-        return makeError(ErrorCode::InvalidArgument, "sim camera: size must be 16..8192 px per side");
+        return makeError(ErrorCode::InvalidArgument,
+                         "sim camera: size must be 16..8192 px per side");
     if (s.exposureUs <= 0 || s.exposureUs > 10'000'000)
         return makeError(ErrorCode::InvalidArgument, "sim camera: exposure must be 1 us..10 s");
     if (!(s.analogueGain >= 1.0 && s.analogueGain <= 64.0))
@@ -60,7 +66,8 @@ core::Result<hw::CameraSettings> SimCamera::configure(const hw::CameraSettings& 
     return settings_;
 }
 
-core::Result<std::unique_ptr<SimCamera>> SimCamera::create(const VirtualSlide& slide, SimCameraConfig config) {
+core::Result<std::unique_ptr<SimCamera>> SimCamera::create(const VirtualSlide& slide,
+                                                           SimCameraConfig config) {
     config.slide = slide.image;
     config.slideUmPerPx = slide.umPerPx;
     config.slideOriginXUm = slide.originXUm;
@@ -72,7 +79,8 @@ namespace {
 
 /// Renders a gw x gh grid whose pixel g samples slide index a*g + b (x and y alike in a, with
 /// offsets bx, by) from only the slide region it needs, as float in [0, 1].
-void renderGrid(const cv::Mat& slide, double a, double bx, double by, int gw, int gh, cv::Mat& srcF, cv::Mat& out) {
+void renderGrid(const cv::Mat& slide, double a, double bx, double by, int gw, int gh, cv::Mat& srcF,
+                cv::Mat& out) {
     const double x0 = bx, x1 = a * (gw - 1) + bx, y0 = by, y1 = a * (gh - 1) + by;
     const cv::Rect all(0, 0, slide.cols, slide.rows);
     cv::Rect roi(static_cast<int>(std::floor(x0)) - 1, static_cast<int>(std::floor(y0)) - 1, 0, 0);
@@ -98,8 +106,10 @@ void renderGrid(const cv::Mat& slide, double a, double bx, double by, int gw, in
         step = f;
     }
     src.convertTo(srcF, CV_32F, slide.depth() == CV_16U ? 1.0 / 65535 : 1.0 / 255);
-    const cv::Mat m = (cv::Mat_<double>(2, 3) << a / step, 0, (bx - ox) / step, 0, a / step, (by - oy) / step);
-    cv::warpAffine(srcF, out, m, cv::Size(gw, gh), cv::INTER_LINEAR | cv::WARP_INVERSE_MAP, cv::BORDER_REPLICATE);
+    const cv::Mat m =
+        (cv::Mat_<double>(2, 3) << a / step, 0, (bx - ox) / step, 0, a / step, (by - oy) / step);
+    cv::warpAffine(srcF, out, m, cv::Size(gw, gh), cv::INTER_LINEAR | cv::WARP_INVERSE_MAP,
+                   cv::BORDER_REPLICATE);
 }
 
 } // namespace
@@ -114,7 +124,8 @@ core::Result<hw::Frame> SimCamera::capture(std::chrono::milliseconds) {
         const double X = (pos.xUm - config_.slideOriginXUm) / config_.slideUmPerPx;
         const double Y = (pos.yUm - config_.slideOriginYUm) / config_.slideUmPerPx;
         // Defocus: distance of z from the tilted focal surface at this x, y.
-        const double dz = pos.zUm - (config_.focusZUm + config_.focusTiltX * pos.xUm + config_.focusTiltY * pos.yUm);
+        const double dz = pos.zUm - (config_.focusZUm + config_.focusTiltX * pos.xUm +
+                                     config_.focusTiltY * pos.yUm);
         const double sigma = std::abs(dz) * config_.blurSigmaPxPerUm; // sensor px
         const bool blur = sigma > 0.3;
         const int margin = blur ? static_cast<int>(std::ceil(3 * sigma)) : 0;
@@ -129,14 +140,15 @@ core::Result<hw::Frame> SimCamera::capture(std::chrono::milliseconds) {
         // arithmetic (page faults).
         auto& w = scratch_;
         renderGrid(config_.slide, a, bx, by, gw, gh, w.srcF, w.grid);
-        if (blur) cv::GaussianBlur(w.grid, w.grid, cv::Size(), sigma / down);
+        if (blur)
+            cv::GaussianBlur(w.grid, w.grid, cv::Size(), sigma / down);
         if (down == 1.0) {
             w.grid(cv::Rect(margin, margin, s.width, s.height)).copyTo(w.view);
         } else { // sensor pixel u' sits at grid coordinate (u' + 0.5 + margin) / down - 0.5
             const double off = (0.5 + margin) / down - 0.5;
             const cv::Mat m = (cv::Mat_<double>(2, 3) << 1 / down, 0, off, 0, 1 / down, off);
-            cv::warpAffine(w.grid, w.view, m, cv::Size(s.width, s.height), cv::INTER_LINEAR | cv::WARP_INVERSE_MAP,
-                           cv::BORDER_REPLICATE);
+            cv::warpAffine(w.grid, w.view, m, cv::Size(s.width, s.height),
+                           cv::INTER_LINEAR | cv::WARP_INVERSE_MAP, cv::BORDER_REPLICATE);
         }
         cv::Mat& view = w.view;
         // Exposure and gain scale the signal; noise: shot (sqrt signal) and read, times gain.
@@ -152,17 +164,24 @@ core::Result<hw::Frame> SimCamera::capture(std::chrono::milliseconds) {
         view += w.noise;
 
         hw::Frame f(s.format, s.width, s.height);
-        const int outType = s.format == hw::PixelFormat::Mono16 ? CV_16UC1 : s.format == hw::PixelFormat::Mono8 ? CV_8UC1 : CV_8UC3;
-        cv::Mat out(s.height, s.width, outType, f.bytes().data(), f.stride()); // writes into the frame
+        const int outType = s.format == hw::PixelFormat::Mono16  ? CV_16UC1
+                            : s.format == hw::PixelFormat::Mono8 ? CV_8UC1
+                                                                 : CV_8UC3;
+        cv::Mat out(s.height, s.width, outType, f.bytes().data(),
+                    f.stride()); // writes into the frame
         if (s.format == hw::PixelFormat::Mono16) {
-            if (view.channels() == 3) cv::cvtColor(view, view, cv::COLOR_BGR2GRAY);
+            if (view.channels() == 3)
+                cv::cvtColor(view, view, cv::COLOR_BGR2GRAY);
             view.convertTo(out, CV_16U, 65535);
         } else if (s.format == hw::PixelFormat::Mono8) {
-            if (view.channels() == 3) cv::cvtColor(view, view, cv::COLOR_BGR2GRAY);
+            if (view.channels() == 3)
+                cv::cvtColor(view, view, cv::COLOR_BGR2GRAY);
             view.convertTo(out, CV_8U, 255);
         } else {
-            if (view.channels() == 1) cv::cvtColor(view, view, cv::COLOR_GRAY2RGB);
-            else cv::cvtColor(view, view, cv::COLOR_BGR2RGB);
+            if (view.channels() == 1)
+                cv::cvtColor(view, view, cv::COLOR_GRAY2RGB);
+            else
+                cv::cvtColor(view, view, cv::COLOR_BGR2RGB);
             cv::multiply(view, cv::Scalar(s.redGain, 1.0, s.blueGain), view);
             view.convertTo(out, CV_8UC3, 255);
         }
@@ -173,7 +192,8 @@ core::Result<hw::Frame> SimCamera::capture(std::chrono::milliseconds) {
         f.metadata.blueGain = s.blueGain;
         f.metadata.sequence = sequence_++;
         f.metadata.timestampNs = std::chrono::duration_cast<std::chrono::nanoseconds>(
-                                     std::chrono::steady_clock::now().time_since_epoch()).count();
+                                     std::chrono::steady_clock::now().time_since_epoch())
+                                     .count();
         f.metadata.stage = pos;
         return f;
     } catch (const cv::Exception& e) {

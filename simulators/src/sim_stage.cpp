@@ -16,14 +16,16 @@ core::Result<std::unique_ptr<SimStage>> SimStage::create(SimStageConfig config) 
     if (!(config.speedUmPerS > 0) || !(config.accelUmPerS2 > 0) || !(config.positionWindowUm > 0))
         return makeError(ErrorCode::InvalidArgument,
                          "sim stage: speed, acceleration and position window must be positive");
-    if (config.pollInterval.count() <= 0) config.pollInterval = std::chrono::milliseconds(1);
-    if (!config.clock) config.clock = std::make_shared<core::SteadyClock>();
+    if (config.pollInterval.count() <= 0)
+        config.pollInterval = std::chrono::milliseconds(1);
+    if (!config.clock)
+        config.clock = std::make_shared<core::SteadyClock>();
     return std::unique_ptr<SimStage>(new SimStage(std::move(config)));
 }
 
 SimStage::SimStage(SimStageConfig config)
-    : config_(std::move(config)),
-      axes_{SimAxis(config_.start.xUm), SimAxis(config_.start.yUm), SimAxis(config_.start.zUm)} {}
+    : config_(std::move(config)), axes_{SimAxis(config_.start.xUm), SimAxis(config_.start.yUm),
+                                        SimAxis(config_.start.zUm)} {}
 
 SimAxis& SimStage::axis(char name) {
     return axes_[name == 'x' ? 0 : name == 'y' ? 1 : 2];
@@ -45,13 +47,15 @@ void SimStage::stop() noexcept {
     stop_.raise();
     std::lock_guard lock(mutex_);
     const auto now = config_.clock->now();
-    for (auto& a : axes_) a.halt(now);
+    for (auto& a : axes_)
+        a.halt(now);
 }
 
 core::Result<hw::StagePosition> SimStage::moveTo(const hw::StagePosition& target,
                                                  std::chrono::milliseconds timeout) {
     stop_.clear();
-    if (auto r = hw::checkWithinLimits(config_.limits, target); !r) return r.error();
+    if (auto r = hw::checkWithinLimits(config_.limits, target); !r)
+        return r.error();
     {
         std::lock_guard lock(mutex_);
         const auto now = config_.clock->now();
@@ -60,8 +64,9 @@ core::Result<hw::StagePosition> SimStage::moveTo(const hw::StagePosition& target
         for (int i = 0; i < n; ++i)
             if (!axes_[i].startMove(t[i], config_.speedUmPerS, config_.accelUmPerS2, now)) {
                 std::ostringstream os;
-                os << "sim stage: axis " << "xyz"[i] << " is in alarm (code "
-                   << axes_[i].state(now).alarmCode << "); reset the alarm first";
+                os << "sim stage: axis "
+                   << "xyz"[i] << " is in alarm (code " << axes_[i].state(now).alarmCode
+                   << "); reset the alarm first";
                 return makeError(ErrorCode::Alarm, os.str());
             }
     }
@@ -100,7 +105,8 @@ core::Result<hw::StagePosition> SimStage::waitSettled(const hw::StagePosition& t
                 const AxisState s = axes_[i].state(now);
                 if (s.alarmCode != 0) {
                     std::ostringstream os;
-                    os << "sim stage: axis " << "xyz"[i] << " alarm code " << s.alarmCode;
+                    os << "sim stage: axis "
+                       << "xyz"[i] << " alarm code " << s.alarmCode;
                     return makeError(ErrorCode::Alarm, os.str());
                 }
                 const bool done = !s.moving && s.inPosition && (!homing || s.homeEnd);
@@ -108,16 +114,19 @@ core::Result<hw::StagePosition> SimStage::waitSettled(const hw::StagePosition& t
                 if (!done || err > config_.positionWindowUm) {
                     settled = false;
                     std::ostringstream os;
-                    os << "axis " << "xyz"[i] << (done ? " in position but feedback " : " at ")
+                    os << "axis "
+                       << "xyz"[i] << (done ? " in position but feedback " : " at ")
                        << s.feedbackSteps << " um, target " << t[i] << " um";
                     lastReason = os.str();
                 }
             }
         }
         if (settled) {
-            if (!settling) settledSince = now;
+            if (!settling)
+                settledSince = now;
             settling = true;
-            if (now - settledSince >= config_.settle) return peekPosition();
+            if (now - settledSince >= config_.settle)
+                return peekPosition();
         } else {
             settling = false;
         }
@@ -143,7 +152,8 @@ core::Result<hw::StageAlarm> SimStage::alarm(std::chrono::milliseconds) {
 core::Result<void> SimStage::resetAlarm(std::chrono::milliseconds) {
     std::lock_guard lock(mutex_);
     const auto now = config_.clock->now();
-    for (auto& a : axes_) a.resetAlarm(now);
+    for (auto& a : axes_)
+        a.resetAlarm(now);
     return {};
 }
 

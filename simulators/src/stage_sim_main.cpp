@@ -53,17 +53,27 @@ int main(int argc, char** argv) {
         return 1;
     }
     auto& s = **server;
-    if (stallSlave) s.setStall(stallSlave, true);
-    if (alarmSlave) s.armAlarm(alarmSlave, 0x30);
-    if (driftSlave) s.setDriftSteps(driftSlave, driftSteps);
-    if (drop) s.injectReplyFault(ReplyFault::Drop, drop);
-    if (badCrc) s.injectReplyFault(ReplyFault::Corrupt, badCrc);
-    if (exceptions) s.injectReplyFault(ReplyFault::Exception, exceptions);
-    if (slowMs) s.injectReplyFault(ReplyFault::Slow, -1, std::chrono::milliseconds(slowMs));
+    if (stallSlave)
+        s.setStall(stallSlave, true);
+    if (alarmSlave)
+        s.armAlarm(alarmSlave, 0x30);
+    if (driftSlave)
+        s.setDriftSteps(driftSlave, driftSteps);
+    if (drop)
+        s.injectReplyFault(ReplyFault::Drop, drop);
+    if (badCrc)
+        s.injectReplyFault(ReplyFault::Corrupt, badCrc);
+    if (exceptions)
+        s.injectReplyFault(ReplyFault::Exception, exceptions);
+    if (slowMs)
+        s.injectReplyFault(ReplyFault::Slow, -1, std::chrono::milliseconds(slowMs));
     std::cout << "stage-sim: SIMULATED stage, protocol " << preset << ", slaves";
-    for (int id : slaves) std::cout << " " << id;
-    if (rtu) std::cout << "\nstage-sim: rtu device " << s.rtuDevice() << "\n";
-    else std::cout << "\nstage-sim: tcp 127.0.0.1:" << s.tcpPort() << "\n";
+    for (int id : slaves)
+        std::cout << " " << id;
+    if (rtu)
+        std::cout << "\nstage-sim: rtu device " << s.rtuDevice() << "\n";
+    else
+        std::cout << "\nstage-sim: tcp 127.0.0.1:" << s.tcpPort() << "\n";
     std::cout.flush();
     int sig = 0;
     sigwait(&set, &sig);

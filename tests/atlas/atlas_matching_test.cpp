@@ -41,7 +41,8 @@ TEST(AtlasMatching, FindsThePlaneOfGeneratedSections) {
         auto gen = sim::generateSection(sim::builtinAtlasPlane(pos / kLengthUm), go);
         ASSERT_TRUE(gen.ok()) << gen.error().message;
         const auto& a = gen->truth.affineAtlasFromImage;
-        const double imageUm = std::sqrt(std::abs(a(0, 0) * a(1, 1) - a(0, 1) * a(1, 0))) * kUmPerPx;
+        const double imageUm =
+            std::sqrt(std::abs(a(0, 0) * a(1, 1) - a(0, 1) * a(1, 0))) * kUmPerPx;
         auto sec = sectionFeatures(gen->image, imageUm, workUm);
         ASSERT_TRUE(sec.ok()) << sec.error().message;
         auto m = matchSection(*sec, stack);
@@ -68,7 +69,8 @@ TEST(AtlasMatching, FindsThePlaneOfGeneratedSections) {
 TEST(AtlasMatching, BadInputsAreErrors) {
     double workUm = 0;
     const auto stack = builtinStack(workUm);
-    EXPECT_EQ(sectionFeatures(cv::Mat(), 10, workUm).error().code, core::ErrorCode::InvalidArgument);
+    EXPECT_EQ(sectionFeatures(cv::Mat(), 10, workUm).error().code,
+              core::ErrorCode::InvalidArgument);
     EXPECT_EQ(sectionFeatures(cv::Mat::zeros(400, 400, CV_16U), 10, workUm).error().code,
               core::ErrorCode::NoTissue);
     sim::GeneratorOptions go;
@@ -99,7 +101,8 @@ TEST(AtlasMatching, SeriesModeKeepsTheCuttingOrder) {
         auto gen = sim::generateSection(sim::builtinAtlasPlane(truth[k] / kLengthUm), go);
         ASSERT_TRUE(gen.ok()) << gen.error().message;
         const auto& a = gen->truth.affineAtlasFromImage;
-        const double imageUm = std::sqrt(std::abs(a(0, 0) * a(1, 1) - a(0, 1) * a(1, 0))) * kUmPerPx;
+        const double imageUm =
+            std::sqrt(std::abs(a(0, 0) * a(1, 1) - a(0, 1) * a(1, 0))) * kUmPerPx;
         auto sec = sectionFeatures(gen->image, imageUm, workUm);
         ASSERT_TRUE(sec.ok()) << sec.error().message;
         sections.push_back(std::move(*sec));

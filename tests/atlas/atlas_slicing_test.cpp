@@ -26,9 +26,10 @@ const core::Volume* annotation100() {
     return volume;
 }
 
-#define REQUIRE_ALLEN(v)                                                                          \
-    const core::Volume* v = annotation100();                                                      \
-    if (!v) GTEST_SKIP() << "no Allen annotation at " << kAtlasDir << " (SLST_SHARED_DIR)"
+#define REQUIRE_ALLEN(v)                                                                           \
+    const core::Volume* v = annotation100();                                                       \
+    if (!v)                                                                                        \
+    GTEST_SKIP() << "no Allen annotation at " << kAtlasDir << " (SLST_SHARED_DIR)"
 
 /// A small volume with every voxel distinct, Allen axes, anisotropic spacing.
 core::Volume rampVolume() {
@@ -36,7 +37,8 @@ core::Volume rampVolume() {
     v.sizes = {12, 9, 15}; // AP, DV, LR
     v.spacingUm = {20, 30, 25};
     v.data.resize(12 * 9 * 15);
-    for (size_t i = 0; i < v.data.size(); ++i) v.data[i] = std::uint32_t(i + 1);
+    for (size_t i = 0; i < v.data.size(); ++i)
+        v.data[i] = std::uint32_t(i + 1);
     return v;
 }
 
@@ -76,14 +78,16 @@ int referenceLabel(const core::Volume& v, int normalAxis, int colAxis, int rowAx
     const cv::Matx33d r2 = rot(n1.cross(v0), tiltRowDeg);
     const cv::Vec3d u = r2 * (r1 * u0), w = r2 * v0;
     cv::Vec3d c;
-    for (int i = 0; i < 3; ++i) c[i] = 0.5 * (v.sizes[i] - 1) * v.spacingUm[i];
+    for (int i = 0; i < 3; ++i)
+        c[i] = 0.5 * (v.sizes[i] - 1) * v.spacingUm[i];
     c[normalAxis] = positionUm;
     const cv::Vec3d p = c + (col - 0.5 * (size.width - 1)) * umPerPx * u +
                         (row - 0.5 * (size.height - 1)) * umPerPx * w;
     int k[3];
     for (int i = 0; i < 3; ++i) {
         k[i] = int(std::lround(p[i] / v.spacingUm[i]));
-        if (k[i] < 0 || k[i] >= v.sizes[i]) return 0;
+        if (k[i] < 0 || k[i] >= v.sizes[i])
+            return 0;
     }
     return int(v.at(k[0], k[1], k[2]));
 }
@@ -93,7 +97,8 @@ int referenceLabel(const core::Volume& v, int normalAxis, int colAxis, int rowAx
 TEST(AtlasSlicing, UntiltedCoronalSliceIsTheVolumePlane) {
     REQUIRE_ALLEN(v);
     for (int ap = 0; ap < v->sizes[0]; ap += 7) {
-        auto g = planeGeometry(*v, VolumeAxes::Allen, {PlaneOrientation::Coronal, ap * 100.0, 0, 0, 100});
+        auto g = planeGeometry(*v, VolumeAxes::Allen,
+                               {PlaneOrientation::Coronal, ap * 100.0, 0, 0, 100});
         ASSERT_TRUE(g.ok()) << g.error().message;
         auto s = sampleLabels(*v, VolumeAxes::Allen, *g);
         auto ref = coronalPlane(*v, VolumeAxes::Allen, ap);
@@ -137,8 +142,8 @@ TEST(AtlasSlicing, TiltedPlanesMatchAnIndependentReference) {
         int differ = 0, brain = 0;
         for (int y = 0; y < s->rows; ++y)
             for (int x = 0; x < s->cols; ++x) {
-                const int ref = referenceLabel(*v, k.n, k.c, k.r, k.pos, k.ta, k.tb, k.um,
-                                               s->size(), x, y);
+                const int ref =
+                    referenceLabel(*v, k.n, k.c, k.r, k.pos, k.ta, k.tb, k.um, s->size(), x, y);
                 differ += ref != s->at<int>(y, x);
                 brain += ref != 0;
             }
@@ -151,8 +156,8 @@ TEST(AtlasSlicing, TiltedPlanesMatchAnIndependentReference) {
 TEST(AtlasSlicing, QuickNiiAxesGiveTheSameSlicesAsAllenAxes) {
     const core::Volume a = rampVolume();
     const core::Volume q = asQuickNii(a);
-    for (auto o : {PlaneOrientation::Coronal, PlaneOrientation::Sagittal,
-                   PlaneOrientation::Horizontal}) {
+    for (auto o :
+         {PlaneOrientation::Coronal, PlaneOrientation::Sagittal, PlaneOrientation::Horizontal}) {
         const CuttingPlane p{o, 100, 7, -4, 11};
         auto ga = planeGeometry(a, VolumeAxes::Allen, p);
         auto gq = planeGeometry(q, VolumeAxes::QuickNii, p);
@@ -184,16 +189,21 @@ TEST(AtlasSlicing, BadPlanesAreClearErrors) {
     ASSERT_FALSE(out.ok());
     EXPECT_EQ(out.error().code, core::ErrorCode::OutOfRange);
     EXPECT_NE(out.error().message.find("outside the volume"), std::string::npos);
-    EXPECT_EQ(planeGeometry(a, VolumeAxes::Allen, {PlaneOrientation::Coronal, 0, 0, 0, 0})
-                  .error().code, core::ErrorCode::InvalidArgument);
-    EXPECT_EQ(planeGeometry(a, VolumeAxes::Allen, {PlaneOrientation::Coronal, 0, 75, 0, 10})
-                  .error().code, core::ErrorCode::InvalidArgument);
+    EXPECT_EQ(
+        planeGeometry(a, VolumeAxes::Allen, {PlaneOrientation::Coronal, 0, 0, 0, 0}).error().code,
+        core::ErrorCode::InvalidArgument);
+    EXPECT_EQ(
+        planeGeometry(a, VolumeAxes::Allen, {PlaneOrientation::Coronal, 0, 75, 0, 10}).error().code,
+        core::ErrorCode::InvalidArgument);
     core::Volume noSpacing = a;
     noSpacing.spacingUm = {0, 0, 0};
     EXPECT_EQ(planeGeometry(noSpacing, VolumeAxes::Allen, {PlaneOrientation::Coronal, 0, 0, 0, 10})
-                  .error().code, core::ErrorCode::InvalidArgument);
-    EXPECT_EQ(sliceVolume(a, VolumeAxes::Allen, {PlaneOrientation::Coronal, 0, 0, 0, 0, 10})
-                  .error().code, core::ErrorCode::InvalidArgument);
+                  .error()
+                  .code,
+              core::ErrorCode::InvalidArgument);
+    EXPECT_EQ(
+        sliceVolume(a, VolumeAxes::Allen, {PlaneOrientation::Coronal, 0, 0, 0, 0, 10}).error().code,
+        core::ErrorCode::InvalidArgument);
     EXPECT_FALSE(parsePlaneOrientation("oblique").ok());
     core::Volume big = a;
     big.data[0] = 0x90000000u;
@@ -208,8 +218,7 @@ TEST(AtlasSlicing, PlansBeyondTheMemoryBudgetAreRefusedBeforeSampling) {
     auto many = sliceVolume(a, VolumeAxes::Allen, {PlaneOrientation::Coronal, 0, 0.01, 0, 0, 20});
     ASSERT_FALSE(many.ok());
     EXPECT_EQ(many.error().code, core::ErrorCode::InvalidArgument);
-    EXPECT_NE(many.error().message.find("22001 slices"), std::string::npos)
-        << many.error().message;
+    EXPECT_NE(many.error().message.find("22001 slices"), std::string::npos) << many.error().message;
     EXPECT_NE(many.error().message.find(std::to_string(kMaxStackSlices)), std::string::npos);
     // 0.02 um/px: 18750 x 13500 px planes, more than a plane may hold; 1e-6 um/px would
     // overflow int.
@@ -222,8 +231,7 @@ TEST(AtlasSlicing, PlansBeyondTheMemoryBudgetAreRefusedBeforeSampling) {
             << fine.error().message;
     }
     // 0.1 um apart at 0.05 um/px: 2201 planes of 7500 x 5400 px, 332 GiB in all.
-    auto heavy =
-        sliceVolume(a, VolumeAxes::Allen, {PlaneOrientation::Coronal, 0, 0.1, 0, 0, 0.05});
+    auto heavy = sliceVolume(a, VolumeAxes::Allen, {PlaneOrientation::Coronal, 0, 0.1, 0, 0, 0.05});
     ASSERT_FALSE(heavy.ok());
     EXPECT_NE(heavy.error().message.find("MiB of labels, beyond the budget of 2048 MiB"),
               std::string::npos)
@@ -250,7 +258,8 @@ TEST(AtlasSlicing, MajorRegionCollapseOfARealSlice) {
     ASSERT_TRUE(s.ok());
     const cv::Mat c = collapseLabels(*s, *onto, majorRegionIds(), 8);
     std::set<int> ids(c.begin<int>(), c.end<int>());
-    for (int id : {315, 672, 1009, 73}) EXPECT_TRUE(ids.count(id)) << id;
-    EXPECT_LE(ids.size(), majorRegionIds().size() + 2); // + outside (0) and other (8)
+    for (int id : {315, 672, 1009, 73})
+        EXPECT_TRUE(ids.count(id)) << id;
+    EXPECT_LE(ids.size(), majorRegionIds().size() + 2);             // + outside (0) and other (8)
     EXPECT_EQ(cv::countNonZero(c != 0), cv::countNonZero(*s != 0)); // the brain keeps its shape
 }

@@ -8,8 +8,8 @@
 
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
-#include <zlib.h>
 #include <opencv2/core.hpp>
+#include <zlib.h>
 
 #include <array>
 #include <cmath>
@@ -36,7 +36,8 @@ CommandResult slicectl(const std::string& args) {
     const std::string cmd = std::string(SLICECTL_PATH) + " " + args + " 2>&1";
     FILE* p = ::popen(cmd.c_str(), "r");
     std::array<char, 4096> buf{};
-    while (p && std::fgets(buf.data(), buf.size(), p)) r.output += buf.data();
+    while (p && std::fgets(buf.data(), buf.size(), p))
+        r.output += buf.data();
     const int status = p ? ::pclose(p) : -1;
     r.exitCode = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
     return r;
@@ -52,9 +53,9 @@ protected:
     static void SetUpTestSuite() {
         dir_ = fs::temp_directory_path() / ("slst_slicectl_atlas_" + std::to_string(::getpid()));
         fs::create_directories(dir_);
-        const CommandResult r = slicectl("atlas slice --builtin --interval-um " +
-                                         std::to_string(int(kIntervalUm)) + " --output " +
-                                         p("stack"));
+        const CommandResult r =
+            slicectl("atlas slice --builtin --interval-um " + std::to_string(int(kIntervalUm)) +
+                     " --output " + p("stack"));
         ASSERT_EQ(r.exitCode, 0) << r.output;
         // A section cut at 4900 um, between slices 24 (4800 um) and 25 (5000 um).
         sim::GeneratorOptions o;
@@ -80,15 +81,14 @@ double SlicectlAtlas::imageUmPerPx_ = 0;
 } // namespace
 
 TEST_F(SlicectlAtlas, MatchFindsThePlaneAndWritesTheContract) {
-    const CommandResult r = slicectl("atlas match --stack " + p("stack") + " --image " +
-                                     p("section.tif") + " --image-um-per-px " + um() +
-                                     " --output " + p("match.json"));
+    const CommandResult r =
+        slicectl("atlas match --stack " + p("stack") + " --image " + p("section.tif") +
+                 " --image-um-per-px " + um() + " --output " + p("match.json"));
     ASSERT_EQ(r.exitCode, 0) << r.output;
     const auto j = readJson(p("match.json"));
     const int index = j.at("index").get<int>();
     // The built-in brain changes slowly: within two slices of the truth (400 um).
-    EXPECT_LE(std::abs(j.at("position_um").get<double>() - kTruthUm), 2 * kIntervalUm)
-        << r.output;
+    EXPECT_LE(std::abs(j.at("position_um").get<double>() - kTruthUm), 2 * kIntervalUm) << r.output;
     EXPECT_DOUBLE_EQ(j.at("slice_position_um").get<double>(), index * kIntervalUm);
     const auto& c = j.at("candidates");
     ASSERT_GE(c.size(), 3u);
@@ -136,8 +136,7 @@ TEST_F(SlicectlAtlas, MatchErrorsNameTheProblem) {
     const std::vector<Case> cases{
         {"--stack " + p("nostack") + " --image " + p("section.tif"), "nostack"},
         {"--stack " + p("stack") + " --image " + p("missing.tif"), "missing.tif"},
-        {"--stack " + p("stack") + " --image " + p("section.tif") + " --expected-index 999",
-         "999"},
+        {"--stack " + p("stack") + " --image " + p("section.tif") + " --expected-index 999", "999"},
     };
     for (const Case& c : cases) {
         const CommandResult r = slicectl("atlas match " + c.args + " --output " + p("err.json"));
@@ -148,10 +147,10 @@ TEST_F(SlicectlAtlas, MatchErrorsNameTheProblem) {
 }
 
 TEST_F(SlicectlAtlas, RegisterToASliceOfTheStack) {
-    const CommandResult r = slicectl("register --atlas " + p("stack") + " --slice 24 --image " +
-                                     p("section.tif") + " --image-um-per-px " + um() +
-                                     " --output " + p("result.json") + " --overlay " +
-                                     p("overlay.png"));
+    const CommandResult r =
+        slicectl("register --atlas " + p("stack") + " --slice 24 --image " + p("section.tif") +
+                 " --image-um-per-px " + um() + " --output " + p("result.json") + " --overlay " +
+                 p("overlay.png"));
     ASSERT_EQ(r.exitCode, 0) << r.output;
     const auto j = readJson(p("result.json"));
     ASSERT_EQ(j.at("affine_atlas_from_image").size(), 2u);
@@ -189,8 +188,9 @@ TEST_F(SlicectlAtlas, HostileVolumesPlansAndOptionsExitTwo) {
         const std::vector<Bytef> zeros(64u << 20, 0);
         uLongf size = compressBound(static_cast<uLong>(zeros.size()));
         std::vector<Bytef> packed(size);
-        ASSERT_EQ(compress2(packed.data(), &size, zeros.data(), static_cast<uLong>(zeros.size()), 9),
-                  Z_OK);
+        ASSERT_EQ(
+            compress2(packed.data(), &size, zeros.data(), static_cast<uLong>(zeros.size()), 9),
+            Z_OK);
         std::ofstream out(p("bomb.nrrd"), std::ios::binary);
         out << "NRRD0004\ntype: uint8\ndimension: 3\nsizes: 1000 1000 1000\n"
                "spacings: 25 25 25\nencoding: gzip\n\n";
@@ -211,8 +211,7 @@ TEST_F(SlicectlAtlas, HostileVolumesPlansAndOptionsExitTwo) {
         {"match --stack " + p("stack") + " --image " + p("section.tif") +
              " --expected-index 3 --window 2147483647",
          "--window"},
-        {"match --stack " + p("stack") + " --image " + p("section.tif") +
-             " --image-um-per-px nan",
+        {"match --stack " + p("stack") + " --image " + p("section.tif") + " --image-um-per-px nan",
          "--image-um-per-px"},
     };
     for (const Case& c : cases) {

@@ -78,13 +78,14 @@ int main(int argc, char** argv) {
         ontology = std::move(*o);
     }
     const double stackUmPerPx = 50, sectionAtlasUmPerPx = 25;
-    const double lengthUm = real ? pipeline::volumeExtentUm(volume, pipeline::VolumeAxes::Allen)[0]
-                                 : 8000.0;
+    const double lengthUm =
+        real ? pipeline::volumeExtentUm(volume, pipeline::VolumeAxes::Allen)[0] : 8000.0;
     auto collapse = [&](const cv::Mat& l) {
         return real ? pipeline::collapseLabels(l, ontology, pipeline::majorRegionIds(), 8) : l;
     };
     auto cut = [&](double pos, double ta, double tb, double um) -> cv::Mat {
-        if (!real) return sim::builtinAtlasPlane(pos / lengthUm);
+        if (!real)
+            return sim::builtinAtlasPlane(pos / lengthUm);
         auto g = pipeline::planeGeometry(volume, pipeline::VolumeAxes::Allen,
                                          {pipeline::PlaneOrientation::Coronal, pos, ta, tb, um});
         auto s = g ? pipeline::sampleLabels(volume, pipeline::VolumeAxes::Allen, *g)
@@ -123,7 +124,8 @@ int main(int argc, char** argv) {
         sim::GeneratorOptions go;
         go.seed = seed * 1000 + std::uint64_t(c);
         go.imageSize = {w, h};
-        if (onlyCase >= 0 && c != onlyCase) continue;
+        if (onlyCase >= 0 && c != onlyCase)
+            continue;
         auto gen = sim::generateSection(plane, go);
         if (!gen) {
             std::printf("%5d generator: %s\n", c, gen.error().message.c_str());
@@ -131,11 +133,13 @@ int main(int argc, char** argv) {
         }
         const double atlasUm = real ? sectionAtlasUmPerPx : 25;
         const double imageUm =
-            knownScale ? std::sqrt(std::abs(cv::determinant(cv::Matx22d(
-                             gen->truth.affineAtlasFromImage(0, 0), gen->truth.affineAtlasFromImage(0, 1),
-                             gen->truth.affineAtlasFromImage(1, 0), gen->truth.affineAtlasFromImage(1, 1))))) *
-                             atlasUm
-                       : 0.0;
+            knownScale
+                ? std::sqrt(std::abs(cv::determinant(cv::Matx22d(
+                      gen->truth.affineAtlasFromImage(0, 0), gen->truth.affineAtlasFromImage(0, 1),
+                      gen->truth.affineAtlasFromImage(1, 0),
+                      gen->truth.affineAtlasFromImage(1, 1))))) *
+                      atlasUm
+                : 0.0;
         if (!dump.empty()) {
             cv::Mat view;
             cv::normalize(gen->image, view, 0, 255, cv::NORM_MINMAX, CV_8U);
@@ -162,9 +166,10 @@ int main(int argc, char** argv) {
         within += err <= intervalUm;
         if (m->tiltEstimated && tilted)
             tiltErrors.push_back(std::hypot(m->tiltColumnsDeg - ta, m->tiltRowsDeg - tb));
-        std::printf("%5d %9.0f %6.1f %6.1f %9.0f %7.0f %7.0f %4.1f/%4.1f  prepare %.0f", c, pos,
-                    ta, tb, m->positionUm, err, ms, m->tiltColumnsDeg, m->tiltRowsDeg, prepMs);
-        for (const auto& [step, v] : m->timingsMs) std::printf(" %s %.0f", step.c_str(), v);
+        std::printf("%5d %9.0f %6.1f %6.1f %9.0f %7.0f %7.0f %4.1f/%4.1f  prepare %.0f", c, pos, ta,
+                    tb, m->positionUm, err, ms, m->tiltColumnsDeg, m->tiltRowsDeg, prepMs);
+        for (const auto& [step, v] : m->timingsMs)
+            std::printf(" %s %.0f", step.c_str(), v);
         std::printf("\n");
         if (err > intervalUm || verbose) {
             // What the matcher weighed: the best candidates and the slices around the truth.
@@ -180,22 +185,26 @@ int main(int argc, char** argv) {
         }
     }
     auto median = [](std::vector<double> v) {
-        if (v.empty()) return 0.0;
+        if (v.empty())
+            return 0.0;
         std::nth_element(v.begin(), v.begin() + long(v.size() / 2), v.end());
         return v[v.size() / 2];
     };
     auto mean = [](const std::vector<double>& v) {
         double s = 0;
-        for (double x : v) s += x;
+        for (double x : v)
+            s += x;
         return v.empty() ? 0.0 : s / double(v.size());
     };
     std::printf("\nsections %d, failed %d, within one slice (<= %.0f um): %d (%.1f%%)\n", done,
                 failed, intervalUm, within, done ? 100.0 * within / done : 0.0);
     std::printf("position error um: median %.0f, mean %.0f, max %.0f\n", median(errors),
-                mean(errors), errors.empty() ? 0.0 : *std::max_element(errors.begin(), errors.end()));
-    std::printf("time per section ms (prepare + match, %zu slices): median %.0f, mean %.0f, max %.0f\n",
-                features.size(), median(times), mean(times),
-                times.empty() ? 0.0 : *std::max_element(times.begin(), times.end()));
+                mean(errors),
+                errors.empty() ? 0.0 : *std::max_element(errors.begin(), errors.end()));
+    std::printf(
+        "time per section ms (prepare + match, %zu slices): median %.0f, mean %.0f, max %.0f\n",
+        features.size(), median(times), mean(times),
+        times.empty() ? 0.0 : *std::max_element(times.begin(), times.end()));
     if (!tiltErrors.empty())
         std::printf("tilt error deg (tilted cases): median %.1f, mean %.1f\n", median(tiltErrors),
                     mean(tiltErrors));

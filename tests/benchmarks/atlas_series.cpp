@@ -8,8 +8,8 @@
 #include "slicestation/pipeline/atlas.hpp"
 #include "slicestation/pipeline/atlas_matching.hpp"
 #include "slicestation/pipeline/atlas_slicing.hpp"
-#include "slicestation/pipeline/overlay.hpp"
 #include "slicestation/pipeline/damage.hpp"
+#include "slicestation/pipeline/overlay.hpp"
 #include "slicestation/pipeline/registration.hpp"
 
 #include <CLI/CLI.hpp>
@@ -44,9 +44,9 @@ int main(int argc, char** argv) {
         std::fprintf(stderr, "cannot read the Allen files\n");
         return 1;
     }
-    auto stack = pipeline::sliceVolume(*volume, pipeline::VolumeAxes::Allen,
-                                       {pipeline::PlaneOrientation::Coronal, 0, intervalUm, 0, 0,
-                                        stackUmPerPx});
+    auto stack = pipeline::sliceVolume(
+        *volume, pipeline::VolumeAxes::Allen,
+        {pipeline::PlaneOrientation::Coronal, 0, intervalUm, 0, 0, stackUmPerPx});
     if (!stack) {
         std::fprintf(stderr, "%s\n", stack.error().message.c_str());
         return 1;
@@ -64,7 +64,8 @@ int main(int argc, char** argv) {
     std::vector<cv::Mat> tiles;
     std::vector<double> positions;
     std::FILE* csv = std::fopen((fs::path(output) / "positions.csv").c_str(), "w");
-    if (csv) std::fprintf(csv, "section,index,position_um,score,tilt_lr_deg,tilt_dv_deg\n");
+    if (csv)
+        std::fprintf(csv, "section,index,position_um,score,tilt_lr_deg,tilt_dv_deg\n");
     std::printf("%8s %6s %9s %6s %13s %8s %8s  %s\n", "section", "slice", "pos_um", "score",
                 "tilt_lr/dv", "match_ms", "overlap", "damage (flag, share, kinds)");
     std::vector<int> flagged;
@@ -95,8 +96,9 @@ int main(int argc, char** argv) {
         std::fprintf(stderr, "series: %s\n", series.error().message.c_str());
         return 1;
     }
-    const double seriesMs = std::chrono::duration<double, std::milli>(
-                                std::chrono::steady_clock::now() - tSeries).count();
+    const double seriesMs =
+        std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - tSeries)
+            .count();
     std::vector<int> ownBest;
     for (int n = 1; n <= 20; ++n) {
         char name[32];
@@ -105,7 +107,8 @@ int main(int argc, char** argv) {
         const pipeline::SectionMatch* m = &(*series)[size_t(n - 1)];
         ownBest.push_back(m->candidates.front().index);
         double ms = 0;
-        for (const auto& [step, v] : m->timingsMs) ms += v;
+        for (const auto& [step, v] : m->timingsMs)
+            ms += v;
         positions.push_back(m->positionUm);
         pipeline::RegistrationOptions ro;
         ro.imageUmPerPx = sectionUmPerPx;
@@ -119,7 +122,8 @@ int main(int argc, char** argv) {
             iou = reg->quality.tissueOverlap;
             std::string kinds;
             for (const auto& d : reg->damage) {
-                kinds += std::string(kinds.empty() ? "" : "+") + std::string(pipeline::toString(d.kind));
+                kinds +=
+                    std::string(kinds.empty() ? "" : "+") + std::string(pipeline::toString(d.kind));
             }
             char buf[160];
             std::snprintf(buf, sizeof buf, "%s %.1f%% %s", reg->damaged ? "DAMAGED" : "clean",
@@ -132,7 +136,8 @@ int main(int argc, char** argv) {
                               d.lengthPx, d.openShare, d.thicknessPx);
                 damage += buf;
             }
-            if (reg->damaged) flagged.push_back(n);
+            if (reg->damaged)
+                flagged.push_back(n);
             tile = pipeline::renderOverlay(*reg, atlas);
         } else {
             tile = cv::Mat(300, 420, CV_8UC3, cv::Scalar(0, 0, 80));
@@ -143,7 +148,8 @@ int main(int argc, char** argv) {
             std::fprintf(stderr, "%s\n", w.error().message.c_str());
         cv::resize(tile, tile, cv::Size(420, int(std::lround(420.0 * tile.rows / tile.cols))));
         char caption[96];
-        std::snprintf(caption, sizeof caption, "%02d: slice %d, %.0f um", n, m->index, m->positionUm);
+        std::snprintf(caption, sizeof caption, "%02d: slice %d, %.0f um", n, m->index,
+                      m->positionUm);
         cv::putText(tile, caption, {8, 22}, cv::FONT_HERSHEY_SIMPLEX, 0.6, cv::Scalar(0, 255, 255),
                     2);
         tiles.push_back(tile);
@@ -154,13 +160,16 @@ int main(int argc, char** argv) {
             std::fprintf(csv, "%d,%d,%.1f,%.4f,%.2f,%.2f\n", n, m->index, m->positionUm, m->score,
                          m->tiltColumnsDeg, m->tiltRowsDeg);
     }
-    if (csv) std::fclose(csv);
+    if (csv)
+        std::fclose(csv);
     int inversions = 0, ownInversions = 0;
-    for (size_t i = 1; i < positions.size(); ++i) inversions += positions[i] <= positions[i - 1];
+    for (size_t i = 1; i < positions.size(); ++i)
+        inversions += positions[i] <= positions[i - 1];
     std::string own;
     for (size_t i = 0; i < ownBest.size(); ++i) {
         own += (i ? " " : "") + std::to_string(ownBest[i]);
-        if (i > 0) ownInversions += ownBest[i] <= ownBest[i - 1];
+        if (i > 0)
+            ownInversions += ownBest[i] <= ownBest[i - 1];
     }
     // Contact sheet: 5 columns x 4 rows.
     const int tw = 420, th = tiles.front().rows;

@@ -15,9 +15,12 @@ namespace slicestation::bench {
 
 const char* familyName(Family family) {
     switch (family) {
-    case Family::First: return "1";
-    case Family::Second: return "2";
-    case Family::Template: return "template";
+    case Family::First:
+        return "1";
+    case Family::Second:
+        return "2";
+    case Family::Template:
+        return "template";
     }
     return "?";
 }
@@ -27,17 +30,24 @@ std::string BenchCase::describe() const {
     if (family == Family::First) {
         s << "case " << index << " seed " << seed << " plane " << plane
           << (options.stain == sim::Stain::Brightfield ? " brightfield" : " fluorescence");
-        if (options.damage.tear) s << " tear";
-        if (options.damage.missing) s << " missing";
-        if (options.damage.fragment) s << " fragment";
+        if (options.damage.tear)
+            s << " tear";
+        if (options.damage.missing)
+            s << " missing";
+        if (options.damage.fragment)
+            s << " fragment";
         return s.str();
     }
     s << "f" << familyName(family) << " case " << index << " seed " << seed << " plane " << plane
       << " " << sim::toString(optionsB.stain) << (optionsB.brightfield ? " brightfield" : "");
-    if (optionsB.damage.crack) s << " crack";
-    if (optionsB.damage.bite) s << " bite";
-    if (optionsB.damage.fragment) s << " fragment";
-    if (optionsB.damage.fold) s << " fold";
+    if (optionsB.damage.crack)
+        s << " crack";
+    if (optionsB.damage.bite)
+        s << " bite";
+    if (optionsB.damage.fragment)
+        s << " fragment";
+    if (optionsB.damage.fold)
+        s << " fold";
     return s.str();
 }
 
@@ -48,12 +58,14 @@ namespace {
 bool mirroredAgainst(const core::Volume& ann100, const cv::Mat& qnPlane25, int ap25) {
     const int ap100 = std::clamp(int(std::lround((ap25 - 1.5) / 4)), 0, ann100.sizes[0] - 1);
     auto p = pipeline::coronalPlane(ann100, pipeline::VolumeAxes::Allen, ap100);
-    if (!p) return false;
+    if (!p)
+        return false;
     long same = 0, mirrored = 0;
     for (int r = 0; r < p->rows; ++r)
         for (int c = 0; c < p->cols; ++c) {
             const int a = p->at<int>(r, c);
-            if (a == 0) continue;
+            if (a == 0)
+                continue;
             const int rr = std::min(qnPlane25.rows - 1, r * 4 + 1);
             same += a == qnPlane25.at<int>(rr, std::min(qnPlane25.cols - 1, c * 4 + 1));
             mirrored +=
@@ -74,8 +86,7 @@ cv::Mat templateOnGrid(const core::Volume& templ, int ap25, bool mirror, cv::Siz
     for (int r = 0; r < rows; ++r)
         for (int c = 0; c < cols; ++c) {
             const int cc = mirror ? cols - 1 - c : c;
-            t100.at<float>(r, c) =
-                float((1 - wa) * templ.at(a0, r, cc) + wa * templ.at(a1, r, cc));
+            t100.at<float>(r, c) = float((1 - wa) * templ.at(a0, r, cc) + wa * templ.at(a1, r, cc));
         }
     cv::Mat mapX(size, CV_32F), mapY(size, CV_32F), out;
     for (int r = 0; r < size.height; ++r)
@@ -102,9 +113,11 @@ core::Result<AtlasSource> loadAtlasPlanes(const std::filesystem::path& sharedDir
         return src;
     }
     auto vol = core::readNrrd(dir / "annotation_25_quicknii.nrrd");
-    if (!vol) return vol.error();
+    if (!vol)
+        return vol.error();
     auto onto = core::readOntologyCsv(dir / "structure_tree_safe_2017.csv");
-    if (!onto) return onto.error();
+    if (!onto)
+        return onto.error();
     src.name = "allen-ccf-25um";
     // AP 25-um indices from the front of the olfactory bulbs to the hind brainstem, avoiding the
     // few extreme planes where the brain is a sliver.
@@ -112,7 +125,8 @@ core::Result<AtlasSource> loadAtlasPlanes(const std::filesystem::path& sharedDir
     for (int i = 0; i < count; ++i) {
         const int ap = first + (last - first) * i / std::max(1, count - 1);
         auto plane = pipeline::coronalPlane(*vol, pipeline::VolumeAxes::QuickNii, ap);
-        if (!plane) return plane.error();
+        if (!plane)
+            return plane.error();
         src.planes.push_back(
             pipeline::collapseLabels(*plane, *onto, pipeline::majorRegionIds(), 8));
         src.fullPlanes.push_back(*plane);
@@ -126,16 +140,16 @@ core::Result<AtlasSource> loadAtlasPlanes(const std::filesystem::path& sharedDir
         const size_t mid = src.fullPlanes.size() / 2;
         src.templateMirrored = mirroredAgainst(*ann100, src.fullPlanes[mid], src.apIndices[mid]);
         for (size_t i = 0; i < src.fullPlanes.size(); ++i) {
-            src.templatePlanes.push_back(templateOnGrid(*templ, src.apIndices[i],
-                                                        src.templateMirrored,
-                                                        src.fullPlanes[i].size()));
-            const int ap100 = std::clamp(static_cast<int>(std::lround((src.apIndices[i] + 0.5) / 4 - 0.5)),
-                                         0, templ->sizes[0] - 1);
+            src.templatePlanes.push_back(templateOnGrid(
+                *templ, src.apIndices[i], src.templateMirrored, src.fullPlanes[i].size()));
+            const int ap100 =
+                std::clamp(static_cast<int>(std::lround((src.apIndices[i] + 0.5) / 4 - 0.5)), 0,
+                           templ->sizes[0] - 1);
             cv::Mat moving(templ->sizes[1], templ->sizes[2], CV_32F);
             for (int r = 0; r < moving.rows; ++r)
                 for (int col = 0; col < moving.cols; ++col)
-                    moving.at<float>(r, col) = float(templ->at(
-                        ap100, r, src.templateMirrored ? moving.cols - 1 - col : col));
+                    moving.at<float>(r, col) = float(
+                        templ->at(ap100, r, src.templateMirrored ? moving.cols - 1 - col : col));
             src.templatePlanes100.push_back(moving);
         }
     }
@@ -153,13 +167,22 @@ std::vector<BenchCase> makeCases(int count, int planes, cv::Size size) {
         c.options.seed = c.seed;
         c.options.imageSize = size;
         // Brightfield on one clean and one damaged case in every eight.
-        c.options.stain = (i % 8 == 2 || i % 8 == 3) ? sim::Stain::Brightfield : sim::Stain::Fluorescence;
+        c.options.stain =
+            (i % 8 == 2 || i % 8 == 3) ? sim::Stain::Brightfield : sim::Stain::Fluorescence;
         if (i % 2 == 1) {
             switch ((i / 2) % 4) {
-            case 0: c.options.damage.tear = true; break;
-            case 1: c.options.damage.missing = true; break;
-            case 2: c.options.damage.fragment = true; break;
-            default: c.options.damage.tear = c.options.damage.missing = true; break;
+            case 0:
+                c.options.damage.tear = true;
+                break;
+            case 1:
+                c.options.damage.missing = true;
+                break;
+            case 2:
+                c.options.damage.fragment = true;
+                break;
+            default:
+                c.options.damage.tear = c.options.damage.missing = true;
+                break;
             }
         }
         cases.push_back(c);
@@ -168,7 +191,8 @@ std::vector<BenchCase> makeCases(int count, int planes, cv::Size size) {
 }
 
 cv::Mat templatePlane100(const AtlasSource& atlas, int plane) {
-    if (plane < 0 || size_t(plane) >= atlas.templatePlanes100.size()) return {};
+    if (plane < 0 || size_t(plane) >= atlas.templatePlanes100.size())
+        return {};
     return atlas.templatePlanes100[size_t(plane)];
 }
 
@@ -189,11 +213,21 @@ std::vector<BenchCase> makeCasesB(int count, int planes, cv::Size size) {
         if (i % 2 == 1) {
             auto& d = c.optionsB.damage;
             switch ((i / 2) % 5) {
-            case 0: d.crack = true; break;
-            case 1: d.bite = true; break;
-            case 2: d.fragment = true; break;
-            case 3: d.fold = true; break;
-            default: d.crack = d.bite = true; break;
+            case 0:
+                d.crack = true;
+                break;
+            case 1:
+                d.bite = true;
+                break;
+            case 2:
+                d.fragment = true;
+                break;
+            case 3:
+                d.fold = true;
+                break;
+            default:
+                d.crack = d.bite = true;
+                break;
             }
         }
         cases.push_back(c);
@@ -215,10 +249,18 @@ std::vector<BenchCase> makeCasesTemplate(int count, int planes, cv::Size size) {
         if (i % 2 == 1) {
             auto& d = c.optionsB.damage;
             switch ((i / 2) % 4) {
-            case 0: d.crack = true; break;
-            case 1: d.bite = true; break;
-            case 2: d.fragment = true; break;
-            default: d.fold = true; break;
+            case 0:
+                d.crack = true;
+                break;
+            case 1:
+                d.bite = true;
+                break;
+            case 2:
+                d.fragment = true;
+                break;
+            default:
+                d.fold = true;
+                break;
             }
         }
         cases.push_back(c);
@@ -229,7 +271,8 @@ std::vector<BenchCase> makeCasesTemplate(int count, int planes, cv::Size size) {
 core::Result<Section> generate(const BenchCase& c, const AtlasSource& atlas) {
     if (c.family == Family::First) {
         auto g = sim::generateSection(atlas.planes[size_t(c.plane)], c.options);
-        if (!g) return g.error();
+        if (!g)
+            return g.error();
         return Section{g->image, std::move(g->truth)};
     }
     sim::GeneratorOptionsB o = c.optionsB;
@@ -241,7 +284,8 @@ core::Result<Section> generate(const BenchCase& c, const AtlasSource& atlas) {
         o.templatePlane = atlas.templatePlanes[size_t(c.plane)];
     }
     auto g = sim::generateSectionB(atlas.fullPlanes[size_t(c.plane)], atlas.ontology, o);
-    if (!g) return g.error();
+    if (!g)
+        return g.error();
     return Section{g->image, std::move(g->truth)};
 }
 
@@ -251,9 +295,11 @@ Errors landmarkErrors(const std::vector<sim::Landmark>& truth,
     std::vector<double> d;
     for (size_t i = 0; i < truth.size() && i < mapped.size(); ++i)
         d.push_back(cv::norm(mapped[i] - truth[i].atlas));
-    if (d.empty()) return e;
+    if (d.empty())
+        return e;
     double ss = 0;
-    for (double x : d) ss += x * x;
+    for (double x : d)
+        ss += x * x;
     e.rmse = std::sqrt(ss / double(d.size()));
     std::sort(d.begin(), d.end());
     e.median = d[d.size() / 2];

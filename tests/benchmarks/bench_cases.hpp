@@ -3,8 +3,8 @@
 /// collapsed to the paper's major regions) when ../shared is present, the built-in atlas
 /// otherwise, warped by known transforms, some damaged, some brightfield.
 
-#include "slicestation/core/result.hpp"
 #include "slicestation/core/ontology.hpp"
+#include "slicestation/core/result.hpp"
 #include "slicestation/sim/section_generator.hpp"
 #include "slicestation/sim/section_generator_b.hpp"
 
@@ -17,9 +17,9 @@
 namespace slicestation::bench {
 
 struct AtlasSource {
-    std::string name;              ///< "allen-ccf-25um" or "builtin"
-    std::vector<cv::Mat> planes;   ///< label planes, CV_32S, one per case slot
-    std::vector<int> apIndices;    ///< AP index of each plane (25 um grid), -1 for built-in
+    std::string name;            ///< "allen-ccf-25um" or "builtin"
+    std::vector<cv::Mat> planes; ///< label planes, CV_32S, one per case slot
+    std::vector<int> apIndices;  ///< AP index of each plane (25 um grid), -1 for built-in
     double umPerPx = 25.0;
     /// The same planes with every Allen id (not collapsed); equal to `planes` for built-in.
     std::vector<cv::Mat> fullPlanes;
@@ -46,7 +46,7 @@ struct BenchCase {
     Family family = Family::First;
     int index = 0;
     std::uint64_t seed = 0;
-    int plane = 0;                 ///< into AtlasSource::planes
+    int plane = 0;                   ///< into AtlasSource::planes
     sim::GeneratorOptions options;   ///< first family
     sim::GeneratorOptionsB optionsB; ///< second family and template (templatePlane set later)
     bool brightfield() const {
@@ -54,7 +54,8 @@ struct BenchCase {
                                        : optionsB.brightfield;
     }
     bool damaged() const {
-        if (family != Family::First) return optionsB.damage.any();
+        if (family != Family::First)
+            return optionsB.damage.any();
         return options.damage.tear || options.damage.missing || options.damage.fragment;
     }
     std::string describe() const;

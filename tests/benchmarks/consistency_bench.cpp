@@ -97,7 +97,8 @@ Warp randomWarp(std::mt19937_64& rng, cv::Size size, bool shiftOnly) {
     std::normal_distribution<float> n(0, 1);
     for (cv::Mat* m : {&w.sx, &w.sy}) {
         for (int r = 0; r < rows; ++r)
-            for (int c = 0; c < cols; ++c) m->at<float>(r, c) = n(rng);
+            for (int c = 0; c < cols; ++c)
+                m->at<float>(r, c) = n(rng);
         const double sigma = 0.25 * side / w.step / 2;
         cv::GaussianBlur(*m, *m, cv::Size(), sigma, sigma, cv::BORDER_REFLECT);
         cv::Scalar mean, sd;
@@ -120,7 +121,8 @@ cv::Scalar glassOf(const cv::Mat& image) {
         const int b = std::max(2, std::min(f.rows, f.cols) / 50);
         for (int r = 0; r < f.rows; ++r)
             for (int x = 0; x < f.cols; ++x)
-                if (r < b || x < b || r >= f.rows - b || x >= f.cols - b) v.push_back(f.at<float>(r, x));
+                if (r < b || x < b || r >= f.rows - b || x >= f.cols - b)
+                    v.push_back(f.at<float>(r, x));
         std::nth_element(v.begin(), v.begin() + std::ptrdiff_t(v.size() / 2), v.end());
         out[int(c)] = v[v.size() / 2];
     }
@@ -140,7 +142,8 @@ cv::Mat applyWarp(const cv::Mat& image, const Warp& w) {
 }
 
 double median(std::vector<double> v) {
-    if (v.empty()) return 0;
+    if (v.empty())
+        return 0;
     std::sort(v.begin(), v.end());
     return v.size() % 2 ? v[v.size() / 2] : 0.5 * (v[v.size() / 2 - 1] + v[v.size() / 2]);
 }
@@ -149,13 +152,17 @@ core::Result<std::vector<RealSection>> mouseSeries(const fs::path& shared) {
     const fs::path atlasDir = shared / "atlas" / "allen-ccf-2017";
     const fs::path dir = shared / "sections" / "abba-mouse-series";
     auto volume = core::readNrrd(atlasDir / "annotation_50.nrrd");
-    if (!volume) return volume.error();
+    if (!volume)
+        return volume.error();
     auto onto = core::readOntologyCsv(atlasDir / "structure_tree_safe_2017.csv");
-    if (!onto) return onto.error();
+    if (!onto)
+        return onto.error();
     const double stackUm = 25, sectionUm = 20;
-    auto stack = pipeline::sliceVolume(*volume, pipeline::VolumeAxes::Allen,
-                                       {pipeline::PlaneOrientation::Coronal, 0, 100, 0, 0, stackUm});
-    if (!stack) return stack.error();
+    auto stack =
+        pipeline::sliceVolume(*volume, pipeline::VolumeAxes::Allen,
+                              {pipeline::PlaneOrientation::Coronal, 0, 100, 0, 0, stackUm});
+    if (!stack)
+        return stack.error();
     std::vector<cv::Mat> labels;
     for (auto& s : *stack)
         labels.push_back(pipeline::collapseLabels(s.labels, *onto, pipeline::majorRegionIds(), 8));
@@ -170,15 +177,19 @@ core::Result<std::vector<RealSection>> mouseSeries(const fs::path& shared) {
         char name[32];
         std::snprintf(name, sizeof name, "Section-%02d.tif", n);
         auto image = core::readImage(dir / name);
-        if (!image) return image.error();
+        if (!image)
+            return image.error();
         auto f = pipeline::sectionFeatures(*image, sectionUm, workUm);
-        if (!f) return f.error();
+        if (!f)
+            return f.error();
         sections.push_back(std::move(*f));
         out.push_back({"mouse", name, *image, {}, sectionUm});
     }
     auto match = pipeline::matchSeries(sections, features);
-    if (!match) return match.error();
-    for (size_t i = 0; i < out.size(); ++i) out[i].atlas = labels[size_t((*match)[i].index)];
+    if (!match)
+        return match.error();
+    for (size_t i = 0; i < out.size(); ++i)
+        out[i].atlas = labels[size_t((*match)[i].index)];
     return out;
 }
 
@@ -186,9 +197,11 @@ core::Result<std::vector<RealSection>> gerbiSeries(const fs::path& shared) {
     const fs::path atlasDir = shared / "atlas" / "allen-ccf-2017";
     const fs::path dir = shared / "sections" / "abba-gerbi-series";
     auto volume = core::readNrrd(atlasDir / "annotation_25_quicknii.nrrd");
-    if (!volume) return volume.error();
+    if (!volume)
+        return volume.error();
     auto onto = core::readOntologyCsv(atlasDir / "structure_tree_safe_2017.csv");
-    if (!onto) return onto.error();
+    if (!onto)
+        return onto.error();
     std::ifstream csv(dir / "sections.csv");
     if (!csv)
         return core::makeError(core::ErrorCode::NotFound, (dir / "sections.csv").string());
@@ -199,10 +212,13 @@ core::Result<std::vector<RealSection>> gerbiSeries(const fs::path& shared) {
         std::vector<std::string> f;
         std::stringstream ss(line);
         std::string cell;
-        while (std::getline(ss, cell, ',')) f.push_back(cell);
-        if (f.size() < 6) continue;
+        while (std::getline(ss, cell, ','))
+            f.push_back(cell);
+        if (f.size() < 6)
+            continue;
         auto image = core::readImage(dir / f[1]);
-        if (!image) return image.error();
+        if (!image)
+            return image.error();
         // ABBA's position is along AP from the front of the 10 um volume (voxel centres at
         // 5 + 10 i um from the front face); the atlas frame here starts at the 25 um volume's
         // first voxel centre, 12.5 um from the front face. ABBA's slicing angles (README):
@@ -215,9 +231,11 @@ core::Result<std::vector<RealSection>> gerbiSeries(const fs::path& shared) {
         plane.tiltColumnsDeg = 0.0015 * 180 / kPi;
         plane.umPerPx = 25;
         auto geo = pipeline::planeGeometry(*volume, pipeline::VolumeAxes::QuickNii, plane);
-        if (!geo) return geo.error();
+        if (!geo)
+            return geo.error();
         auto labels = pipeline::sampleLabels(*volume, pipeline::VolumeAxes::QuickNii, *geo);
-        if (!labels) return labels.error();
+        if (!labels)
+            return labels.error();
         out.push_back({"gerbi", f[1], *image,
                        pipeline::collapseLabels(*labels, *onto, pipeline::majorRegionIds(), 8),
                        std::stod(f[4])});
@@ -268,11 +286,12 @@ int main(int argc, char** argv) {
         long allN = 0;
         int failed = 0;
         int warpsDone = 0, grossWarps = 0; ///< gross: a warp's RMS over 25 px (a flip or jump)
-        std::vector<double> warpRms;         ///< every (section, warp) RMS that is not gross
+        std::vector<double> warpRms;       ///< every (section, warp) RMS that is not gross
     };
     std::vector<SeriesResult> results;
     for (const std::string series : {"mouse", "gerbi"}) {
-        if (seriesText != "all" && seriesText != series) continue;
+        if (seriesText != "all" && seriesText != series)
+            continue;
         auto secs = series == "mouse" ? mouseSeries(sh) : gerbiSeries(sh);
         if (!secs) {
             std::fprintf(stderr, "%s series: %s\n", series.c_str(), secs.error().message.c_str());
@@ -324,15 +343,18 @@ int main(int argc, char** argv) {
                     for (int x = 0; x < w.size.width; x += step) {
                         const cv::Point2d p = w(cv::Point2d(x, y));
                         const int px = int(std::lround(p.x)), py = int(std::lround(p.y));
-                        if (px < 0 || py < 0 || px >= tissue.cols || py >= tissue.rows) continue;
-                        if (!tissue.at<std::uint8_t>(py, px)) continue;
-                        const double d =
-                            cv::norm(reg1->atlasFromImage({double(x), double(y)}) - reg0->atlasFromImage(p));
+                        if (px < 0 || py < 0 || px >= tissue.cols || py >= tissue.rows)
+                            continue;
+                        if (!tissue.at<std::uint8_t>(py, px))
+                            continue;
+                        const double d = cv::norm(reg1->atlasFromImage({double(x), double(y)}) -
+                                                  reg0->atlasFromImage(p));
                         wsq += d * d;
                         wmax = std::max(wmax, d);
                         ++wn;
                     }
-                if (wn == 0) continue;
+                if (wn == 0)
+                    continue;
                 const double rms = std::sqrt(wsq / double(wn));
                 ++res.warpsDone;
                 if (rms > 25)
@@ -347,7 +369,8 @@ int main(int argc, char** argv) {
                     csv << series << ',' << s.name << ',' << k << ',' << rms << ',' << wmax << ','
                         << wn << ',' << sec0 << ',' << sec1 << '\n';
             }
-            if (n == 0) continue;
+            if (n == 0)
+                continue;
             const double rms = std::sqrt(sq / double(n));
             res.sectionRms.push_back(rms);
             res.sectionNames.push_back(s.name);
@@ -368,7 +391,8 @@ int main(int argc, char** argv) {
         }
         const auto worst = std::max_element(r.sectionRms.begin(), r.sectionRms.end());
         double mean = 0;
-        for (double v : r.sectionRms) mean += v;
+        for (double v : r.sectionRms)
+            mean += v;
         mean /= double(r.sectionRms.size());
         char w[64];
         std::snprintf(w, sizeof w, "%.2f (%s)", *worst,

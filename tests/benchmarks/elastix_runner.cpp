@@ -10,7 +10,8 @@
 namespace slicestation::bench {
 namespace {
 
-void writeMha(const std::filesystem::path& path, const cv::Mat& img, double spacing, double origin) {
+void writeMha(const std::filesystem::path& path, const cv::Mat& img, double spacing,
+              double origin) {
     CV_Assert(img.type() == CV_32F && img.isContinuous());
     std::ofstream f(path, std::ios::binary);
     f << "ObjectType = Image\nNDims = 2\nBinaryData = True\nBinaryDataByteOrderMSB = False\n"
@@ -56,7 +57,8 @@ bool run(const std::string& cmd, std::string& err) {
 } // namespace
 
 bool elastixAvailable() {
-    return std::system("command -v elastix >/dev/null 2>&1 && command -v transformix >/dev/null 2>&1") == 0;
+    return std::system(
+               "command -v elastix >/dev/null 2>&1 && command -v transformix >/dev/null 2>&1") == 0;
 }
 
 void writeElastixInputs(const ElastixInput& in, const std::filesystem::path& dir) {
@@ -98,9 +100,8 @@ ElastixOutput runElastix(const ElastixInput& in, const std::filesystem::path& di
                  d + "/bspline.txt -out " + d + " -threads 1 > " + d + "/elastix.out 2>&1",
              out.error))
         return out;
-    if (!run("transformix -def " + d + "/points.txt -tp " + d +
-                 "/TransformParameters.1.txt -out " + d + " -threads 1 > " + d +
-                 "/transformix.out 2>&1",
+    if (!run("transformix -def " + d + "/points.txt -tp " + d + "/TransformParameters.1.txt -out " +
+                 d + " -threads 1 > " + d + "/transformix.out 2>&1",
              out.error))
         return out;
     out.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
@@ -113,7 +114,8 @@ ElastixOutput runElastix(const ElastixInput& in, const std::filesystem::path& di
             out.mappedUm.emplace_back(std::stod(m[1].str()), std::stod(m[2].str()));
     }
     out.ok = out.mappedUm.size() == in.points.size();
-    if (!out.ok) out.error = "transformix returned " + std::to_string(out.mappedUm.size()) + " points";
+    if (!out.ok)
+        out.error = "transformix returned " + std::to_string(out.mappedUm.size()) + " points";
     return out;
 }
 

@@ -19,7 +19,7 @@ struct ElastixInput {
     double fixedSpacingUm = 1; ///< section pixel size given to elastix (the calibration a user has)
     cv::Mat moving;            ///< template plane, CV_32F
     double movingSpacingUm = 100;
-    double movingOriginUm = 0; ///< physical position of moving pixel (0,0)'s centre
+    double movingOriginUm = 0;       ///< physical position of moving pixel (0,0)'s centre
     std::vector<cv::Point2d> points; ///< section pixels to map
 };
 

@@ -27,7 +27,8 @@ int main(int argc, char** argv) {
     app.add_option("--shared", shared, "Path of ../shared (real atlas)");
     app.add_option("--size", sizeText, "Image size WxH");
     app.add_option("--plane", plane, "Atlas plane, 0 = front")->check(CLI::NonNegativeNumber);
-    app.add_option("--plane-count", planeCount, "Planes spread over the brain (48, as the benchmark)")
+    app.add_option("--plane-count", planeCount,
+                   "Planes spread over the brain (48, as the benchmark)")
         ->check(CLI::Range(1, 400));
     app.add_option("--seed", seed, "Generator seed");
     app.add_flag("--tear", tear, "Tear the section");
@@ -45,7 +46,8 @@ int main(int argc, char** argv) {
     app.add_option("--elastix-dir", elastixDir,
                    "Also write elastix's inputs here (fixed.mha, moving.mha, affine.txt, "
                    "bspline.txt, points.txt) for timing elastix as a process");
-    app.add_option("--output-dir", out, "Where to write section.tif, atlas.tif, points.csv, truth.csv");
+    app.add_option("--output-dir", out,
+                   "Where to write section.tif, atlas.tif, points.csv, truth.csv");
     CLI11_PARSE(app, argc, argv);
     int w = 0, h = 0;
     if (std::sscanf(sizeText.c_str(), "%dx%d", &w, &h) != 2) {
@@ -63,7 +65,7 @@ int main(int argc, char** argv) {
     }
     bench::BenchCase c;
     c.plane = plane;
-    c.family = family == "1" ? bench::Family::First
+    c.family = family == "1"   ? bench::Family::First
                : family == "2" ? bench::Family::Second
                                : bench::Family::Template;
     c.options.seed = c.optionsB.seed = seed;
@@ -122,11 +124,13 @@ int main(int argc, char** argv) {
         }
         in.fixed = *grey;
         const auto& A = gen->truth.affineAtlasFromImage;
-        in.fixedSpacingUm = atlas->umPerPx * std::sqrt(std::abs(A(0, 0) * A(1, 1) - A(0, 1) * A(1, 0)));
+        in.fixedSpacingUm =
+            atlas->umPerPx * std::sqrt(std::abs(A(0, 0) * A(1, 1) - A(0, 1) * A(1, 0)));
         in.moving = bench::templatePlane100(*atlas, plane);
         in.movingSpacingUm = 100;
         in.movingOriginUm = 37.5;
-        for (const auto& l : gen->truth.landmarks) in.points.push_back(l.image);
+        for (const auto& l : gen->truth.landmarks)
+            in.points.push_back(l.image);
         bench::writeElastixInputs(in, elastixDir);
     }
     std::cout << "wrote " << (dir / "section.tif").string() << " (" << w << "x" << h << "), atlas "

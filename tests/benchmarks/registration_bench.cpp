@@ -42,8 +42,10 @@ struct DamageRow {
 /// RMS distance (atlas px) of the true landmark positions from the best affine fit to them: how
 /// much of the true map no affine can explain.
 double nonAffineRms(const std::vector<sim::Landmark>& lms) {
-    if (lms.size() < 3) return 0;
-    cv::Mat A(int(lms.size()), 3, CV_64F), bx(int(lms.size()), 1, CV_64F), by(int(lms.size()), 1, CV_64F);
+    if (lms.size() < 3)
+        return 0;
+    cv::Mat A(int(lms.size()), 3, CV_64F), bx(int(lms.size()), 1, CV_64F),
+        by(int(lms.size()), 1, CV_64F);
     for (int i = 0; i < A.rows; ++i) {
         A.at<double>(i, 0) = lms[size_t(i)].image.x;
         A.at<double>(i, 1) = lms[size_t(i)].image.y;
@@ -69,7 +71,8 @@ struct Row {
 };
 
 double median(std::vector<double> v) {
-    if (v.empty()) return 0;
+    if (v.empty())
+        return 0;
     std::sort(v.begin(), v.end());
     return v[v.size() / 2];
 }
@@ -87,7 +90,8 @@ Summary summarise(const std::vector<const Row*>& g) {
         s.med += r->err.median;
         s.mx += r->err.max;
         s.worst = std::max(s.worst, r->err.max);
-        if (r->failed || r->err.max > 25) ++s.gross;
+        if (r->failed || r->err.max > 25)
+            ++s.gross;
         secs.push_back(r->seconds);
     }
     s.n = int(g.size());
@@ -110,13 +114,14 @@ void printTable(const std::vector<Row>& rows) {
             families.push_back(r.family);
     }
     std::printf("\n%-8s %-8s | %-56s | %-56s\n", "", "", "slicestation", "elastix");
-    std::printf("%-8s %-8s |%4s %6s %6s %6s %6s %5s %8s |%4s %6s %6s %6s %6s %5s %8s\n",
-                "family", "sections", "n", "RMSE", "median", "max", "worst", "gross", "med s",
-                "n", "RMSE", "median", "max", "worst", "gross", "med s");
+    std::printf("%-8s %-8s |%4s %6s %6s %6s %6s %5s %8s |%4s %6s %6s %6s %6s %5s %8s\n", "family",
+                "sections", "n", "RMSE", "median", "max", "worst", "gross", "med s", "n", "RMSE",
+                "median", "max", "worst", "gross", "med s");
     for (const auto& f : families)
         for (bool damaged : {false, true}) {
             const auto ours = groups.find({f, damaged, "ours"});
-            if (ours == groups.end()) continue;
+            if (ours == groups.end())
+                continue;
             const Summary a = summarise(ours->second);
             std::printf("%-8s %-8s |%4d %6.2f %6.2f %6.2f %6.2f %5d %8.3f |", f.c_str(),
                         damaged ? "damaged" : "clean", a.n, a.rmse, a.med, a.mx, a.worst, a.gross,
@@ -139,7 +144,8 @@ void printTable(const std::vector<Row>& rows) {
 /// Fills `polygon` (pixel coordinates, rounded) into `mask` with 255.
 void fillPolygon(cv::Mat& mask, const std::vector<cv::Point2f>& polygon) {
     std::vector<cv::Point> rounded;
-    for (const cv::Point2f& p : polygon) rounded.emplace_back(cvRound(p.x), cvRound(p.y));
+    for (const cv::Point2f& p : polygon)
+        rounded.emplace_back(cvRound(p.x), cvRound(p.y));
     cv::fillPoly(mask, std::vector<std::vector<cv::Point>>{rounded}, cv::Scalar(255));
 }
 
@@ -148,13 +154,15 @@ void fillPolygon(cv::Mat& mask, const std::vector<cv::Point2f>& polygon) {
 /// thickness (twice the largest inscribed radius).
 bool damagedByRule(const sim::GroundTruth& truth) {
     const std::vector<cv::Point2f> all = pipeline::outerContourPoints(truth.tissueMask);
-    if (all.empty()) return false;
+    if (all.empty())
+        return false;
     const cv::RotatedRect box = cv::minAreaRect(all);
     const double width = std::max(box.size.width, box.size.height);
     const double tissue = std::max(1, cv::countNonZero(truth.tissueMask));
     std::vector<pipeline::DamageRegion> regions;
     for (const auto& t : truth.damage) {
-        if (t.polygon.size() < 3) continue;
+        if (t.polygon.size() < 3)
+            continue;
         pipeline::DamageRegion r;
         r.kind = t.kind == sim::DamageKind::Tear      ? pipeline::DamageKind::Tear
                  : t.kind == sim::DamageKind::Missing ? pipeline::DamageKind::Missing
@@ -201,7 +209,8 @@ void printDamage(const std::vector<DamageRow>& d, const std::vector<Row>& rows) 
     double clean = 0, damaged = 0;
     int nc = 0, nd = 0;
     for (const auto& r : rows) {
-        if (r.method != "ours") continue;
+        if (r.method != "ours")
+            continue;
         (r.damaged ? damaged : clean) += r.err.rmse;
         ++(r.damaged ? nd : nc);
     }
@@ -233,11 +242,13 @@ int main(int argc, char** argv) {
     app.add_option("--work", workDir, "Scratch directory for elastix");
     app.add_option("--csv", csvPath, "Write per-case rows here");
     std::vector<int> only;
-    app.add_option("--only", only, "Run only these case indices of the --cases set (to look into them)");
+    app.add_option("--only", only,
+                   "Run only these case indices of the --cases set (to look into them)");
     std::string overlayDir, refineMode = "on";
     app.add_option("--refine", refineMode, "Dense refinement of ours: on | off")
         ->check(CLI::IsMember({"on", "off"}));
-    app.add_option("--overlays", overlayDir, "Write each case's overlay (ours, damage in red) here");
+    app.add_option("--overlays", overlayDir,
+                   "Write each case's overlay (ours, damage in red) here");
     std::string familyText = "all", labelsText = "major";
     app.add_option("--family", familyText,
                    "Generator family: 1 (first), 2 (second, written apart), template (second "
@@ -280,10 +291,12 @@ int main(int argc, char** argv) {
     if (allLabels) {
         const pipeline::RegistrationOptions defaults;
         regOptions.ventricleIds.clear();
-        for (auto& part : regOptions.separateParts) part.clear();
+        for (auto& part : regOptions.separateParts)
+            part.clear();
         for (const auto& st : atlas->ontology.structures()) {
             const auto id = static_cast<std::int32_t>(st.id);
-            if (atlas->ontology.isDescendantOf(st.id, 73)) regOptions.ventricleIds.push_back(id);
+            if (atlas->ontology.isDescendantOf(st.id, 73))
+                regOptions.ventricleIds.push_back(id);
             for (size_t p = 0; p < defaults.separateParts.size(); ++p)
                 for (std::int32_t top : defaults.separateParts[p])
                     if (atlas->ontology.isDescendantOf(st.id, std::uint32_t(top)))
@@ -293,15 +306,19 @@ int main(int argc, char** argv) {
     std::vector<bench::BenchCase> all;
     const int planeCount = static_cast<int>(atlas->planes.size());
     if (familyText == "1" || familyText == "all")
-        for (auto& c : bench::makeCases(cases, planeCount, {w, h})) all.push_back(c);
+        for (auto& c : bench::makeCases(cases, planeCount, {w, h}))
+            all.push_back(c);
     if (familyText == "2" || familyText == "all")
-        for (auto& c : bench::makeCasesB(cases, planeCount, {w, h})) all.push_back(c);
+        for (auto& c : bench::makeCasesB(cases, planeCount, {w, h}))
+            all.push_back(c);
     if ((familyText == "template" || familyText == "all")) {
         if (atlas->templatePlanes.empty()) {
             std::cerr << "the template family needs average_template_100.nrrd under --shared\n";
-            if (familyText == "template") return 1;
+            if (familyText == "template")
+                return 1;
         } else {
-            for (auto& c : bench::makeCasesTemplate(cases, planeCount, {w, h})) all.push_back(c);
+            for (auto& c : bench::makeCasesTemplate(cases, planeCount, {w, h}))
+                all.push_back(c);
         }
     }
     std::printf("atlas: %s, %zu planes; %d cases per family of %dx%d px; families: %s; labels "
@@ -318,17 +335,19 @@ int main(int argc, char** argv) {
     std::vector<Row> rows;
     std::map<std::string, std::vector<DamageRow>> damageRows;
     for (const auto& c : all) {
-        if (!only.empty() && std::find(only.begin(), only.end(), c.index) == only.end()) continue;
+        if (!only.empty() && std::find(only.begin(), only.end(), c.index) == only.end())
+            continue;
         const std::string family = bench::familyName(c.family);
-        const cv::Mat& plane = allLabels ? atlas->fullPlanes[size_t(c.plane)]
-                                         : atlas->planes[size_t(c.plane)];
+        const cv::Mat& plane =
+            allLabels ? atlas->fullPlanes[size_t(c.plane)] : atlas->planes[size_t(c.plane)];
         auto gen = bench::generate(c, *atlas);
         if (!gen) {
             std::cerr << c.describe() << ": generator failed: " << gen.error().message << "\n";
             return 1;
         }
         std::vector<cv::Point2d> pts;
-        for (const auto& l : gen->truth.landmarks) pts.push_back(l.image);
+        for (const auto& l : gen->truth.landmarks)
+            pts.push_back(l.image);
 
         Row ours;
         ours.truthNonAffine = nonAffineRms(gen->truth.landmarks);
@@ -342,7 +361,8 @@ int main(int argc, char** argv) {
         ours.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
         if (reg) {
             std::vector<cv::Point2d> mapped;
-            for (const auto& p : pts) mapped.push_back(reg->atlasFromImage(p));
+            for (const auto& p : pts)
+                mapped.push_back(reg->atlasFromImage(p));
             ours.err = bench::landmarkErrors(gen->truth.landmarks, mapped);
         } else {
             ours.failed = true;
@@ -359,7 +379,8 @@ int main(int argc, char** argv) {
             d.truth = c.damaged();
             d.flagged = reg->damaged;
             for (const auto& [name, ms] : reg->timingsMs)
-                if (name.rfind("damage", 0) == 0) d.ms += ms;
+                if (name.rfind("damage", 0) == 0)
+                    d.ms += ms;
             cv::Mat reported = cv::Mat::zeros(gen->image.size(), CV_8U);
             for (const auto& r : reg->damage) {
                 fillPolygon(reported, r.polygon);
@@ -372,7 +393,8 @@ int main(int argc, char** argv) {
                 fillPolygon(truthMask, t.polygon);
                 const int area = std::max(1, cv::countNonZero(truthMask));
                 ++d.trueRegions;
-                if (cv::countNonZero(truthMask & reported) >= 0.1 * area) ++d.overlapped;
+                if (cv::countNonZero(truthMask & reported) >= 0.1 * area)
+                    ++d.overlapped;
             }
             damageRows[family].push_back(d);
             if (!overlayDir.empty()) {
@@ -406,8 +428,9 @@ int main(int argc, char** argv) {
             in.movingSpacingUm = 100;
             in.movingOriginUm = 37.5; // centre of 100-um voxel 0 is 25-um pixel 1.5
             in.points = pts;
-            const auto out = bench::runElastix(in, std::filesystem::path(workDir) /
-                                                       ("f" + family + "case" + std::to_string(c.index)));
+            const auto out =
+                bench::runElastix(in, std::filesystem::path(workDir) /
+                                          ("f" + family + "case" + std::to_string(c.index)));
             Row el;
             el.family = family;
             el.method = "elastix";
@@ -415,7 +438,8 @@ int main(int argc, char** argv) {
             el.seconds = out.seconds;
             if (out.ok) {
                 std::vector<cv::Point2d> mapped;
-                for (const auto& m : out.mappedUm) mapped.push_back(m * (1.0 / atlas->umPerPx));
+                for (const auto& m : out.mappedUm)
+                    mapped.push_back(m * (1.0 / atlas->umPerPx));
                 el.err = bench::landmarkErrors(gen->truth.landmarks, mapped);
             } else {
                 el.failed = true;
@@ -426,11 +450,12 @@ int main(int argc, char** argv) {
                          c.describe().c_str(), el.err.rmse, el.err.max, el.seconds);
         }
         if (csv) {
-            for (auto it = rows.end() - (rows.back().method == "elastix" ? 2 : 1); it != rows.end(); ++it)
+            for (auto it = rows.end() - (rows.back().method == "elastix" ? 2 : 1); it != rows.end();
+                 ++it)
                 csv << family << ',' << c.index << ',' << it->method << ',' << it->damaged << ','
-                    << (c.brightfield() ? "brightfield" : "fluorescence")
-                    << ',' << it->err.rmse << ',' << it->err.median << ',' << it->err.max << ','
-                    << it->seconds << ',' << it->failed << '\n';
+                    << (c.brightfield() ? "brightfield" : "fluorescence") << ',' << it->err.rmse
+                    << ',' << it->err.median << ',' << it->err.max << ',' << it->seconds << ','
+                    << it->failed << '\n';
         }
     }
     printTable(rows);
@@ -442,12 +467,14 @@ int main(int argc, char** argv) {
         }
     std::printf("non-linear part of the true maps (RMS distance of the true landmark positions "
                 "from their best affine fit, atlas px), average per family:");
-    for (const auto& [f, v] : nonAffine) std::printf(" %s %.2f", f.c_str(), v.first / v.second);
+    for (const auto& [f, v] : nonAffine)
+        std::printf(" %s %.2f", f.c_str(), v.first / v.second);
     std::printf("\n");
     for (const auto& [family, d] : damageRows) {
         std::vector<Row> familyRows;
         for (const auto& r : rows)
-            if (r.family == family) familyRows.push_back(r);
+            if (r.family == family)
+                familyRows.push_back(r);
         std::printf("\n-- family %s --", family.c_str());
         printDamage(d, familyRows);
     }

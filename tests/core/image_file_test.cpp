@@ -1,18 +1,18 @@
 #include "slicestation/core/image_file.hpp"
 
 #include <gtest/gtest.h>
-#include <zlib.h>
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
+#include <zlib.h>
 
 #include <unistd.h>
 
 #include <algorithm>
 #include <cmath>
-#include <limits>
 #include <cstdint>
 #include <filesystem>
 #include <fstream>
+#include <limits>
 #include <random>
 #include <string>
 #include <vector>
@@ -680,7 +680,8 @@ std::vector<std::uint8_t> hugeDeflateTiff(std::uint32_t width, std::uint32_t hei
     TiffPage page;
     page.entries = baseEntries(width, height, samples, 8, /*minisblack*/ 1);
     for (auto& e : page.entries) {
-        if (e.tag == kCompression) e.values = {8}; // adobe deflate
+        if (e.tag == kCompression)
+            e.values = {8}; // adobe deflate
     }
     page.tiled = tileSide > 0;
     if (page.tiled) {
@@ -727,7 +728,8 @@ TEST_F(ImageFileTest, RefusesATileLargerThanTheLimit) {
 // Found by fuzz_image: within the size limits, a few hundred bytes could still claim gigabytes
 // and have them allocated before the data was found missing (3.4 GB for a 1 KB TIFF).
 TEST_F(ImageFileTest, RefusesATinyTiffWhoseDataCannotHoldTheImageItClaims) {
-    const std::vector<std::uint8_t> bytes = hugeDeflateTiff(30000, 30000); // 900 MB: within the limits
+    const std::vector<std::uint8_t> bytes =
+        hugeDeflateTiff(30000, 30000); // 900 MB: within the limits
     ASSERT_LT(bytes.size(), 1000u);
     writeBytes(file("claims.tif"), bytes);
     const Result<cv::Mat> read = readImage(file("claims.tif"));
@@ -759,14 +761,16 @@ TEST_F(ImageFileTest, ReadsAHighlyCompressedTiffThatReallyHoldsItsImage) {
 std::vector<std::uint8_t> hugePng(std::uint32_t width, std::uint32_t height) {
     std::vector<std::uint8_t> out{0x89, 'P', 'N', 'G', '\r', '\n', 0x1A, '\n'};
     const auto put32 = [](std::vector<std::uint8_t>& v, std::uint32_t x) {
-        for (int shift = 24; shift >= 0; shift -= 8) v.push_back(static_cast<std::uint8_t>(x >> shift));
+        for (int shift = 24; shift >= 0; shift -= 8)
+            v.push_back(static_cast<std::uint8_t>(x >> shift));
     };
     const auto chunk = [&](const char* type, const std::vector<std::uint8_t>& data) {
         put32(out, static_cast<std::uint32_t>(data.size()));
         std::vector<std::uint8_t> body(type, type + 4);
         body.insert(body.end(), data.begin(), data.end());
         out.insert(out.end(), body.begin(), body.end());
-        put32(out, static_cast<std::uint32_t>(crc32(0, body.data(), static_cast<uInt>(body.size()))));
+        put32(out,
+              static_cast<std::uint32_t>(crc32(0, body.data(), static_cast<uInt>(body.size()))));
     };
     std::vector<std::uint8_t> ihdr;
     put32(ihdr, width);
@@ -812,13 +816,14 @@ TEST_F(ImageFileTest, RefusesATinyPngOrJpegWhoseDataCannotHoldTheImageItClaims) 
     read = readImage(file("claims.jpg"));
     ASSERT_FALSE(read.ok());
     EXPECT_EQ(read.error().code, ErrorCode::IoError) << read.error().message;
-    EXPECT_NE(read.error().message.find("30000 x 30000"), std::string::npos) << read.error().message;
+    EXPECT_NE(read.error().message.find("30000 x 30000"), std::string::npos)
+        << read.error().message;
 }
 
 TEST_F(ImageFileTest, RefusesNanAndInfinityInFloatImagesNamingTheFile) {
-    for (const float bad : {std::numeric_limits<float>::quiet_NaN(),
-                            std::numeric_limits<float>::infinity(),
-                            -std::numeric_limits<float>::infinity()}) {
+    for (const float bad :
+         {std::numeric_limits<float>::quiet_NaN(), std::numeric_limits<float>::infinity(),
+          -std::numeric_limits<float>::infinity()}) {
         cv::Mat image(40, 50, CV_32FC2, cv::Scalar(1.0f, 2.0f));
         image.at<cv::Vec2f>(7, 11)[1] = bad;
         ASSERT_TRUE(writeImage(file("float.tif"), image).ok());

@@ -41,35 +41,45 @@ Rig& rig() {
         sim::SimStageConfig sc;
         sc.clock = std::make_shared<core::VirtualClock>();
         auto stage = sim::SimStage::create(sc);
-        if (!stage) die(stage.error().message);
+        if (!stage)
+            die(stage.error().message);
         sim::VirtualSlideSpec spec;
         spec.columns = 1;
         spec.umPerPx = 20;
         spec.sections.push_back({0.5, "", 7});
         auto slide = sim::makeVirtualSlide(spec);
-        if (!slide) die(slide.error().message);
+        if (!slide)
+            die(slide.error().message);
         sim::SimCameraConfig cc;
         cc.sensorUmPerPx = 10;
         cc.stagePosition = [] { return hw::StagePosition{}; };
         auto camera = sim::SimCamera::create(*slide, cc);
-        if (!camera) die(camera.error().message);
-        auto doc = daemon::parseDocument("[daemon]\ntoken = \"fuzz-token-0123456789\"\n[scan]\num_per_px = 10\n",
-                                         daemon::DocumentFormat::Toml, "station.toml");
-        if (!doc) die(doc.error().message);
+        if (!camera)
+            die(camera.error().message);
+        auto doc = daemon::parseDocument(
+            "[daemon]\ntoken = \"fuzz-token-0123456789\"\n[scan]\num_per_px = 10\n",
+            daemon::DocumentFormat::Toml, "station.toml");
+        if (!doc)
+            die(doc.error().message);
         auto settings = daemon::parseDaemonSettings(*doc, "station.toml");
-        if (!settings) die(settings.error().message);
+        if (!settings)
+            die(settings.error().message);
         daemon::StationParts parts;
         parts.stage = std::move(*stage);
         parts.camera = std::move(*camera);
         parts.simulatedStage = parts.simulatedCamera = true;
         parts.settings = *settings;
         parts.stateDir = fuzz::scratchDir() / "state";
-        parts.freeSpace = [](const std::filesystem::path&) -> core::Result<std::uint64_t> { return 100ull << 30; };
+        parts.freeSpace = [](const std::filesystem::path&) -> core::Result<std::uint64_t> {
+            return 100ull << 30;
+        };
         auto st = daemon::Station::create(std::move(parts));
-        if (!st) die(st.error().message);
+        if (!st)
+            die(st.error().message);
         rig->station = std::move(*st);
         auto api = daemon::HttpApi::start(*rig->station, "127.0.0.1", 0, "fuzz-token-0123456789");
-        if (!api) die(api.error().message);
+        if (!api)
+            die(api.error().message);
         rig->api = std::move(*api);
         return rig;
     }();
@@ -81,7 +91,8 @@ Rig& rig() {
 extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size) {
     const int port = rig().api->port();
     const int fd = ::socket(AF_INET, SOCK_STREAM | SOCK_CLOEXEC, 0);
-    if (fd < 0) die("socket");
+    if (fd < 0)
+        die("socket");
     timeval tv{5, 0};
     ::setsockopt(fd, SOL_SOCKET, SO_RCVTIMEO, &tv, sizeof tv);
     ::setsockopt(fd, SOL_SOCKET, SO_SNDTIMEO, &tv, sizeof tv);
@@ -89,11 +100,13 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
     addr.sin_family = AF_INET;
     addr.sin_port = htons(static_cast<std::uint16_t>(port));
     addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-    if (::connect(fd, reinterpret_cast<sockaddr*>(&addr), sizeof addr) != 0) die("connect");
+    if (::connect(fd, reinterpret_cast<sockaddr*>(&addr), sizeof addr) != 0)
+        die("connect");
     std::size_t sent = 0;
     while (sent < size) {
         const auto n = ::send(fd, data + sent, size - sent, MSG_NOSIGNAL);
-        if (n <= 0) break; // the server may answer and close before reading everything
+        if (n <= 0)
+            break; // the server may answer and close before reading everything
         sent += static_cast<std::size_t>(n);
     }
     ::shutdown(fd, SHUT_WR);

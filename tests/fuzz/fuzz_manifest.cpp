@@ -7,6 +7,7 @@ using namespace slicestation;
 extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size) {
     const auto file = fuzz::inputFile(data, size, "manifest.json");
     auto stack = daemon::readStack(file);
-    (void)stack; // slices name files anywhere (/dev/zero too): reading them is not the manifest's test
+    (void)stack; // slices name files anywhere (/dev/zero too): reading them is not the manifest's
+                 // test
     return 0;
 }

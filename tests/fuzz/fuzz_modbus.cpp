@@ -41,9 +41,11 @@ bool readExactly(int fd, std::uint8_t* out, std::size_t n, int ms) {
     std::size_t got = 0;
     while (got < n) {
         pollfd p{fd, POLLIN, 0};
-        if (::poll(&p, 1, ms) <= 0) return false;
+        if (::poll(&p, 1, ms) <= 0)
+            return false;
         const ssize_t r = ::recv(fd, out + got, n - got, 0);
-        if (r <= 0) return false;
+        if (r <= 0)
+            return false;
         got += static_cast<std::size_t>(r);
     }
     return true;
@@ -53,7 +55,8 @@ void sendAll(int fd, const std::vector<std::uint8_t>& bytes) {
     std::size_t sent = 0;
     while (sent < bytes.size()) {
         const ssize_t w = ::send(fd, bytes.data() + sent, bytes.size() - sent, MSG_NOSIGNAL);
-        if (w <= 0) return;
+        if (w <= 0)
+            return;
         sent += static_cast<std::size_t>(w);
     }
 }
@@ -64,14 +67,17 @@ class ScriptedServer {
 public:
     ScriptedServer() {
         listenFd_ = ::socket(AF_INET, SOCK_STREAM, 0);
-        if (listenFd_ < 0) die("socket");
+        if (listenFd_ < 0)
+            die("socket");
         const int one = 1;
         ::setsockopt(listenFd_, SOL_SOCKET, SO_REUSEADDR, &one, sizeof one);
         sockaddr_in a{};
         a.sin_family = AF_INET;
         a.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-        if (::bind(listenFd_, reinterpret_cast<sockaddr*>(&a), sizeof a) != 0) die("bind");
-        if (::listen(listenFd_, 8) != 0) die("listen");
+        if (::bind(listenFd_, reinterpret_cast<sockaddr*>(&a), sizeof a) != 0)
+            die("bind");
+        if (::listen(listenFd_, 8) != 0)
+            die("listen");
         socklen_t len = sizeof a;
         ::getsockname(listenFd_, reinterpret_cast<sockaddr*>(&a), &len);
         port_ = ntohs(a.sin_port);
@@ -103,7 +109,8 @@ private:
     void serve() {
         for (;;) {
             const int fd = ::accept(listenFd_, nullptr, nullptr);
-            if (fd < 0) continue;
+            if (fd < 0)
+                continue;
             const std::uint64_t gen = generation();
             handle(fd, gen);
             ::close(fd);
@@ -114,15 +121,21 @@ private:
         for (;;) {
             std::uint8_t head[7];
             // The driver sends its next request at once; a quiet second means it is gone.
-            if (!readExactly(fd, head, 7, 1000)) return;
-            if (generation() != gen) return;
+            if (!readExactly(fd, head, 7, 1000))
+                return;
+            if (generation() != gen)
+                return;
             const int length = head[4] << 8 | head[5];
-            if (length < 2 || length > 260) return;
+            if (length < 2 || length > 260)
+                return;
             std::vector<std::uint8_t> pdu(static_cast<std::size_t>(length - 1));
-            if (!readExactly(fd, pdu.data(), pdu.size(), 1000)) return;
+            if (!readExactly(fd, pdu.data(), pdu.size(), 1000))
+                return;
             const int step = next();
-            if (step < 0) return; // the script is over: close
-            if (!answer(fd, head, pdu, step)) return;
+            if (step < 0)
+                return; // the script is over: close
+            if (!answer(fd, head, pdu, step))
+                return;
         }
     }
 
@@ -131,7 +144,10 @@ private:
         const std::uint8_t fc = pdu[0];
         std::vector<std::uint8_t> body; // unit id onwards
         body.push_back(head[6]);
-        const auto byte = [this] { const int b = next(); return static_cast<std::uint8_t>(b < 0 ? 0 : b); };
+        const auto byte = [this] {
+            const int b = next();
+            return static_cast<std::uint8_t>(b < 0 ? 0 : b);
+        };
         switch (step % 6) {
         case 0: // a well-framed reply with fuzzed values
             body.push_back(fc);
@@ -139,9 +155,11 @@ private:
                 const int qty = pdu.size() >= 5 ? (pdu[3] << 8 | pdu[4]) : 1;
                 const int n = std::min(qty, 125);
                 body.push_back(static_cast<std::uint8_t>(2 * n));
-                for (int i = 0; i < 2 * n; ++i) body.push_back(byte());
+                for (int i = 0; i < 2 * n; ++i)
+                    body.push_back(byte());
             } else {
-                for (std::size_t i = 1; i < std::min<std::size_t>(pdu.size(), 5); ++i) body.push_back(pdu[i]);
+                for (std::size_t i = 1; i < std::min<std::size_t>(pdu.size(), 5); ++i)
+                    body.push_back(pdu[i]);
             }
             break;
         case 1: // an exception
@@ -150,13 +168,15 @@ private:
             break;
         case 2: { // the right header, a fuzzed body
             const int n = byte() % 40;
-            for (int i = 0; i < n; ++i) body.push_back(byte());
+            for (int i = 0; i < n; ++i)
+                body.push_back(byte());
             break;
         }
         case 3: { // raw bytes, no framing at all
             const int n = byte() % 40;
             std::vector<std::uint8_t> raw;
-            for (int i = 0; i < n; ++i) raw.push_back(byte());
+            for (int i = 0; i < n; ++i)
+                raw.push_back(byte());
             sendAll(fd, raw);
             return true;
         }
@@ -207,7 +227,8 @@ void driveTheStage(const std::uint8_t* data, std::size_t size) {
     cfg.responseTimeout = std::chrono::milliseconds(5);
     cfg.retries = 1;
     auto stage = drivers::ModbusStage::create(cfg);
-    if (!stage) return; // connection refused is a legitimate answer
+    if (!stage)
+        return; // connection refused is a legitimate answer
     using std::chrono::milliseconds;
     check((*stage)->position(milliseconds(30)));
     (void)(*stage)->alarm(milliseconds(30));
@@ -221,24 +242,30 @@ void driveTheStage(const std::uint8_t* data, std::size_t size) {
 } // namespace
 
 extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size) {
-    if (size == 0) return 0;
+    if (size == 0)
+        return 0;
     if (data[0] % 2 == 0) {
         const std::string_view text(reinterpret_cast<const char*>(data + 1), size - 1);
         auto map = drivers::parseRegisterMap(text, "fuzz.toml");
-        if (!map) return 0;
+        if (!map)
+            return 0;
         // A map that parses encodes every move the station file allows (speeds 1e-15..1e13
         // steps/s, accelerations 1e-15..1e15 steps/s^2) into a value that fits its register or
         // an OutOfRange error, never an overflow.
-        const drivers::MoveQuantities moves[] = {
-            {0, 1, 1}, {-2'000'000'000, 1e-15, 1e-15}, {2'000'000'000, 1e13, 1e15}, {123'456, 2e5, 4e5}};
+        const drivers::MoveQuantities moves[] = {{0, 1, 1},
+                                                 {-2'000'000'000, 1e-15, 1e-15},
+                                                 {2'000'000'000, 1e13, 1e15},
+                                                 {123'456, 2e5, 4e5}};
         for (const auto* steps : {&map->moveAbs, &map->home, &map->stop, &map->alarmReset})
             for (const auto& step : *steps)
                 for (const auto& v : step.values)
                     for (const auto& q : moves)
                         for (bool wide : {false, true}) {
                             auto e = drivers::encodeChecked(*map, v, q, wide);
-                            if (e && (*e < (wide ? -2147483648LL : 0) || *e > (wide ? 4294967295LL : 65535))) {
-                                std::fprintf(stderr, "encoded %lld does not fit\n", static_cast<long long>(*e));
+                            if (e && (*e < (wide ? -2147483648LL : 0) ||
+                                      *e > (wide ? 4294967295LL : 65535))) {
+                                std::fprintf(stderr, "encoded %lld does not fit\n",
+                                             static_cast<long long>(*e));
                                 std::abort();
                             }
                         }

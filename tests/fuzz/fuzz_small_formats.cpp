@@ -1,7 +1,7 @@
 // Small text formats from outside: the points CSV of `slicectl register --points` (first byte
 // even) and the OME-XML block of an OME-TIFF (first byte odd).
-#include "slicestation/daemon/storage/ome_tiff.hpp"
 #include "slicestation/daemon/cli/points_csv.hpp"
+#include "slicestation/daemon/storage/ome_tiff.hpp"
 
 #include <cstddef>
 #include <cstdint>
@@ -10,7 +10,8 @@
 using namespace slicestation;
 
 extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size) {
-    if (size == 0) return 0;
+    if (size == 0)
+        return 0;
     const std::string_view text(reinterpret_cast<const char*>(data + 1), size - 1);
     if (data[0] % 2 == 0)
         (void)daemon::parsePointsCsv(text);

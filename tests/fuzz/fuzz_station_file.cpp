@@ -14,6 +14,7 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
     const std::string_view text(reinterpret_cast<const char*>(data), size);
     (void)daemon::parseStationConfig(text, "station.toml");
     auto doc = daemon::parseDocument(text, daemon::DocumentFormat::Toml, "station.toml");
-    if (doc) (void)daemon::parseDaemonSettings(*doc, "station.toml");
+    if (doc)
+        (void)daemon::parseDaemonSettings(*doc, "station.toml");
     return 0;
 }

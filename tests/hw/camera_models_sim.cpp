@@ -27,8 +27,10 @@ SimRig makeSimRig(bool faulty) {
     cc.focusTiltX = cc.focusTiltY = 0;
     auto cam = sim::SimCamera::create(cc).value();
     r.simCamera = cam.get();
-    if (faulty) r.camera = sim::FaultyCamera::create(std::move(cam), r.clock).value();
-    else r.camera = std::move(cam);
+    if (faulty)
+        r.camera = sim::FaultyCamera::create(std::move(cam), r.clock).value();
+    else
+        r.camera = std::move(cam);
     return r;
 }
 

@@ -27,7 +27,11 @@ CameraUnderTest makeV4l2(std::vector<std::uint32_t> formats) {
 
 std::vector<CameraModel> cameraModels() {
     return {
-        {"V4l2EmulatedAllFormats", [] { return makeV4l2({V4L2_PIX_FMT_GREY, V4L2_PIX_FMT_Y16, V4L2_PIX_FMT_YUYV, V4L2_PIX_FMT_RGB24, V4L2_PIX_FMT_MJPEG}); }},
+        {"V4l2EmulatedAllFormats",
+         [] {
+             return makeV4l2({V4L2_PIX_FMT_GREY, V4L2_PIX_FMT_Y16, V4L2_PIX_FMT_YUYV,
+                              V4L2_PIX_FMT_RGB24, V4L2_PIX_FMT_MJPEG});
+         }},
         {"V4l2EmulatedYuyvOnly", [] { return makeV4l2({V4L2_PIX_FMT_YUYV}); }},
         {"V4l2EmulatedMjpegOnly", [] { return makeV4l2({V4L2_PIX_FMT_MJPEG}); }},
     };

@@ -16,7 +16,9 @@ using namespace std::chrono_literals;
 using core::ErrorCode;
 using Rig = SimRig;
 
-Rig makeRig(bool faulty) { return makeSimRig(faulty); }
+Rig makeRig(bool faulty) {
+    return makeSimRig(faulty);
+}
 
 const cv::Mat& slide() {
     static const cv::Mat s = sim::makeGeneratedSlide(2, {600, 500}, 7).value();
@@ -87,11 +89,13 @@ TEST(FaultyCamera, TimeoutsCorruptionAndDisconnect) {
 
 TEST(FaultyCamera, StopPreemptsAWait) {
     auto rig = makeRig(false);
-    auto f = sim::FaultyCamera::create(std::move(rig.camera), std::make_shared<core::SteadyClock>()).value();
+    auto f = sim::FaultyCamera::create(std::move(rig.camera), std::make_shared<core::SteadyClock>())
+                 .value();
     f->timeoutNext(1);
     auto* raw = f.get();
     auto fut = std::async(std::launch::async, [raw] { return raw->capture(60s); });
-    while (fut.wait_for(10ms) != std::future_status::ready) raw->stop();
+    while (fut.wait_for(10ms) != std::future_status::ready)
+        raw->stop();
     EXPECT_EQ(fut.get().error().code, ErrorCode::Cancelled);
 }
 

@@ -102,7 +102,8 @@ TEST(FaultyStage, StallTimesOutAndStopPreempts) {
     g->stallMoves(true);
     auto* raw = g.get();
     auto fut = std::async(std::launch::async, [raw] { return raw->moveTo({100, 100, 0}, 60s); });
-    while (fut.wait_for(10ms) != std::future_status::ready) raw->stop();
+    while (fut.wait_for(10ms) != std::future_status::ready)
+        raw->stop();
     auto s = fut.get();
     ASSERT_FALSE(s);
     EXPECT_EQ(s.error().code, ErrorCode::Cancelled);

@@ -16,7 +16,9 @@ protected:
         ::setenv("LIBCAMERA_LOG_LEVELS", "*:ERROR", 0);
         auto ids = drivers::LibcameraCamera::listCameras();
         ASSERT_TRUE(ids) << ids.error().message;
-        if (!ids->empty()) GTEST_SKIP() << "a camera is attached (" << ids->front() << "): the no-camera path cannot run";
+        if (!ids->empty())
+            GTEST_SKIP() << "a camera is attached (" << ids->front()
+                         << "): the no-camera path cannot run";
     }
 };
 

@@ -15,8 +15,8 @@ struct ModbusRig {
     std::unique_ptr<drivers::ModbusStage> stage;
 };
 
-inline drivers::ModbusStageConfig rigConfig(const std::string& preset, const sim::ModbusStageServer& s,
-                                            bool tcp, bool slow) {
+inline drivers::ModbusStageConfig rigConfig(const std::string& preset,
+                                            const sim::ModbusStageServer& s, bool tcp, bool slow) {
     drivers::ModbusStageConfig cfg;
     if (tcp) {
         cfg.transport = drivers::ModbusStageConfig::Transport::Tcp;
@@ -44,11 +44,13 @@ inline ModbusRig makeRig(const std::string& preset, bool tcp, bool slow = false)
     sc.tcp = tcp;
     auto server = sim::ModbusStageServer::create(sc);
     EXPECT_TRUE(server) << (server ? "" : server.error().message);
-    if (!server) return rig;
+    if (!server)
+        return rig;
     rig.server = std::move(server).value();
     auto stage = drivers::ModbusStage::create(rigConfig(preset, *rig.server, tcp, slow));
     EXPECT_TRUE(stage) << (stage ? "" : stage.error().message);
-    if (stage) rig.stage = std::move(stage).value();
+    if (stage)
+        rig.stage = std::move(stage).value();
     return rig;
 }
 

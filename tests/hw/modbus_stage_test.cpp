@@ -138,7 +138,8 @@ TEST_P(ModbusStageProtocol, ATruncatedReplyDoesNotHoldTheDriverPastItsDeadline) 
     auto r = stage().position(150ms);
     const auto took = std::chrono::steady_clock::now() - t0;
     ASSERT_FALSE(r);
-    EXPECT_TRUE(r.error().code == ErrorCode::Timeout || r.error().code == ErrorCode::IoError) << r.error().message;
+    EXPECT_TRUE(r.error().code == ErrorCode::Timeout || r.error().code == ErrorCode::IoError)
+        << r.error().message;
     EXPECT_LT(took, 400ms) << "the 150 ms deadline was overrun";
     server().clearReplyFaults();
     EXPECT_TRUE(stage().position(1s)) << "the driver recovers once the replies are whole again";
@@ -174,24 +175,26 @@ TEST_P(ModbusStageProtocol, ServerGoneIsReported) {
     EXPECT_EQ(r.error().code, ErrorCode::Disconnected) << r.error().message;
 }
 
-INSTANTIATE_TEST_SUITE_P(
-    PresetsAndTransports, ModbusStageProtocol,
-    ::testing::Values(Case{"oriental-az", true}, Case{"oriental-az", false}, Case{"leadshine-pr", true},
-                      Case{"leadshine-pr", false}, Case{"applied-motion-q", true},
-                      Case{"applied-motion-q", false}),
-    [](const auto& i) {
-        std::string n = i.param.preset + (i.param.tcp ? "_tcp" : "_rtu");
-        for (auto& c : n)
-            if (c == '-') c = '_';
-        return n;
-    });
+INSTANTIATE_TEST_SUITE_P(PresetsAndTransports, ModbusStageProtocol,
+                         ::testing::Values(Case{"oriental-az", true}, Case{"oriental-az", false},
+                                           Case{"leadshine-pr", true}, Case{"leadshine-pr", false},
+                                           Case{"applied-motion-q", true},
+                                           Case{"applied-motion-q", false}),
+                         [](const auto& i) {
+                             std::string n = i.param.preset + (i.param.tcp ? "_tcp" : "_rtu");
+                             for (auto& c : n)
+                                 if (c == '-')
+                                     c = '_';
+                             return n;
+                         });
 
 TEST(ModbusStage, TcpReconnectsAfterTheConnectionDrops) {
     // A server restarted on the same port: the driver reconnects by itself.
     sim::StageServerConfig sc;
     auto first = sim::ModbusStageServer::create(sc).value();
     const int port = first->tcpPort();
-    auto stage = drivers::ModbusStage::create(rigConfig("oriental-az", *first, true, false)).value();
+    auto stage =
+        drivers::ModbusStage::create(rigConfig("oriental-az", *first, true, false)).value();
     ASSERT_TRUE(stage->position(1s));
     first->stop();
     first.reset();
@@ -220,7 +223,8 @@ TEST(ModbusStage, AClientHangingUpBeforeItsRepliesLeavesTheServerServing) {
     // Two reads of holding registers 0..1 of unit 1 (MBAP: transaction 1 and 2, length 6).
     const unsigned char requests[] = {0, 1, 0, 0, 0, 6, 1, 3, 0, 0, 0, 2,
                                       0, 2, 0, 0, 0, 6, 1, 3, 0, 0, 0, 2};
-    ASSERT_EQ(::send(fd, requests, sizeof requests, MSG_NOSIGNAL), static_cast<ssize_t>(sizeof requests));
+    ASSERT_EQ(::send(fd, requests, sizeof requests, MSG_NOSIGNAL),
+              static_cast<ssize_t>(sizeof requests));
     ::close(fd);
     const auto deadline = std::chrono::steady_clock::now() + 3s;
     while (server->requestCount() < 2 && std::chrono::steady_clock::now() < deadline)
@@ -302,7 +306,8 @@ TEST(RegisterMap, MapFileErrorsNameTheKey) {
     bad.replace(bad.find("\"{pos}\""), 7, "\"{where}\"");
     r = drivers::parseRegisterMap(bad, "my.toml");
     ASSERT_FALSE(r);
-    EXPECT_NE(r.error().message.find("move_abs[0].values[2]"), std::string::npos) << r.error().message;
+    EXPECT_NE(r.error().message.find("move_abs[0].values[2]"), std::string::npos)
+        << r.error().message;
     r = drivers::parseRegisterMap("name = [", "broken.toml");
     ASSERT_FALSE(r);
     EXPECT_EQ(r.error().code, ErrorCode::InvalidArgument);
@@ -323,7 +328,8 @@ TEST(RegisterMap, LiteralsThatDoNotFitTheirRegisterAreRefused) {
     az.replace(az.find("1000, 1]"), 8, "5000000000, 1]");
     r = drivers::parseRegisterMap(az, "my.toml");
     ASSERT_FALSE(r);
-    EXPECT_NE(r.error().message.find("move_abs[0].values[6]"), std::string::npos) << r.error().message;
+    EXPECT_NE(r.error().message.find("move_abs[0].values[6]"), std::string::npos)
+        << r.error().message;
     auto neg = drivers::presetToml("leadshine-pr").value();
     neg.replace(neg.find("value = 0x0001"), 14, "value = -1");
     EXPECT_FALSE(drivers::parseRegisterMap(neg, "my.toml"));

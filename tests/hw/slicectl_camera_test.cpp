@@ -27,10 +27,12 @@ Run slicectl(const std::string& args) {
     const std::string cmd = std::string(SLICECTL_PATH) + " " + args + " 2>&1";
     Run r;
     FILE* p = ::popen(cmd.c_str(), "r");
-    if (!p) return r;
+    if (!p)
+        return r;
     char buf[4096];
     size_t n;
-    while ((n = std::fread(buf, 1, sizeof buf, p)) > 0) r.out.append(buf, n);
+    while ((n = std::fread(buf, 1, sizeof buf, p)) > 0)
+        r.out.append(buf, n);
     const int status = ::pclose(p);
     r.exitCode = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
     return r;
@@ -56,18 +58,20 @@ std::filesystem::path writeFile(const std::string& name, const std::string& text
     return f;
 }
 
-const std::string kStage = "[stage]\ndriver = \"sim\"\nsettle_ms = 0\nspeed_um_per_s = 1000000\naccel_um_per_s2 = 10000000\n"
+const std::string kStage = "[stage]\ndriver = \"sim\"\nsettle_ms = 0\nspeed_um_per_s = "
+                           "1000000\naccel_um_per_s2 = 10000000\n"
                            "[stage.axes.x]\nmin_um = 0\nmax_um = 75000\n"
                            "[stage.axes.y]\nmin_um = 0\nmax_um = 25000\n"
                            "[stage.axes.z]\nmin_um = 0\nmax_um = 5000\n";
 
 // One small generated section at (1000 + 200 + 1200, 500 + 200 + 1200) = (2400, 1900) µm.
-const std::string kSimCamera = "[camera]\ndriver = \"sim\"\nformat = \"mono16\"\nwidth = 320\nheight = 240\n"
-                               "exposure_us = 20000\ngain = 2.0\ncapture_timeout_s = 2\n"
-                               "[camera.sim]\nsensor_um_per_px = 4.0\nfocus_z_um = 0\nslide_um_per_px = 8\n"
-                               "slide_origin_x_um = 1000\nslide_origin_y_um = 500\nsection_pitch_um = 2400\n"
-                               "section_width_um = 2400\nmargin_um = 200\ncolumns = 1\n"
-                               "[[camera.sim.sections]]\nap_fraction = 0.5\ndamage = \"tear\"\nseed = 3\n";
+const std::string kSimCamera =
+    "[camera]\ndriver = \"sim\"\nformat = \"mono16\"\nwidth = 320\nheight = 240\n"
+    "exposure_us = 20000\ngain = 2.0\ncapture_timeout_s = 2\n"
+    "[camera.sim]\nsensor_um_per_px = 4.0\nfocus_z_um = 0\nslide_um_per_px = 8\n"
+    "slide_origin_x_um = 1000\nslide_origin_y_um = 500\nsection_pitch_um = 2400\n"
+    "section_width_um = 2400\nmargin_um = 200\ncolumns = 1\n"
+    "[[camera.sim.sections]]\nap_fraction = 0.5\ndamage = \"tear\"\nseed = 3\n";
 
 core::Result<daemon::StationConfig> parse(const std::string& toml) {
     return daemon::parseStationConfig(toml, dir() / "station.toml");
@@ -78,7 +82,8 @@ TEST(CameraConfig, StageOnlyFilesStillParse) {
     ASSERT_TRUE(c) << c.error().message;
     EXPECT_TRUE(c->camera.driver.empty());
     bool simulated = true;
-    auto cam = daemon::openCamera(c->camera, [] { return hw::StagePosition{}; }, simulated);
+    auto cam = daemon::openCamera(
+        c->camera, [] { return hw::StagePosition{}; }, simulated);
     ASSERT_FALSE(cam);
     EXPECT_EQ(cam.error().code, ErrorCode::InvalidArgument);
     EXPECT_NE(cam.error().message.find("[camera]"), std::string::npos);
@@ -100,7 +105,8 @@ TEST(CameraConfig, EveryKeyIsRead) {
     EXPECT_EQ(cc.sim.slide.sections[0].seed, 3u);
     EXPECT_DOUBLE_EQ(cc.sim.slide.originXUm, 1000);
 
-    auto v = parse(kStage + "[camera]\ndriver = \"v4l2\"\ndevice = \"/dev/video7\"\nformat = \"rgb8\"\nred_gain = 1.5\nsettle_frames = 5\n");
+    auto v = parse(kStage + "[camera]\ndriver = \"v4l2\"\ndevice = \"/dev/video7\"\nformat = "
+                            "\"rgb8\"\nred_gain = 1.5\nsettle_frames = 5\n");
     ASSERT_TRUE(v) << v.error().message;
     EXPECT_EQ(v->camera.device, "/dev/video7");
     EXPECT_DOUBLE_EQ(v->camera.settings.redGain, 1.5);
@@ -125,25 +131,32 @@ TEST(CameraConfig, ErrorsNameTheKey) {
         {"[camera]\ndriver = \"sim\"\ncapture_timeout_s = 0\n", "camera.capture_timeout_s"},
         {"[camera]\ndriver = \"v4l2\"\ndevice = 7\n", "camera.device"},
         {"[camera]\ndriver = \"v4l2\"\n[camera.sim]\ncolumns = 2\n", "camera.sim"},
-        {"[camera]\ndriver = \"sim\"\n[camera.sim]\nsensor_um_per_px = 0\n", "camera.sim.sensor_um_per_px"},
+        {"[camera]\ndriver = \"sim\"\n[camera.sim]\nsensor_um_per_px = 0\n",
+         "camera.sim.sensor_um_per_px"},
         {"[camera]\ndriver = \"sim\"\n[camera.sim]\ncolumns = 0\n", "camera.sim.columns"},
-        {"[camera]\ndriver = \"sim\"\n[camera.sim]\nsection_width_um = 20000\n", "camera.sim.section_width_um"},
+        {"[camera]\ndriver = \"sim\"\n[camera.sim]\nsection_width_um = 20000\n",
+         "camera.sim.section_width_um"},
         {"[camera]\ndriver = \"sim\"\n[camera.sim]\nbrightfield = 1\n", "camera.sim.brightfield"},
         {"[camera]\ndriver = \"sim\"\n[camera.sim]\nimages = []\n", "camera.sim.images"},
-        {"[camera]\ndriver = \"sim\"\n[[camera.sim.sections]]\nap_fraction = 0.5\n[[camera.sim.sections]]\nap_fraction = 0.5\ndamage = \"burnt\"\n",
+        {"[camera]\ndriver = \"sim\"\n[[camera.sim.sections]]\nap_fraction = "
+         "0.5\n[[camera.sim.sections]]\nap_fraction = 0.5\ndamage = \"burnt\"\n",
          "camera.sim.sections[1].damage"},
-        {"[camera]\ndriver = \"sim\"\n[[camera.sim.sections]]\nap_fraction = 1.5\n", "camera.sim.sections[0].ap_fraction"},
-        {"[camera]\ndriver = \"sim\"\n[[camera.sim.sections]]\ndamage = \"tear\"\n", "camera.sim.sections[0].ap_fraction"},
+        {"[camera]\ndriver = \"sim\"\n[[camera.sim.sections]]\nap_fraction = 1.5\n",
+         "camera.sim.sections[0].ap_fraction"},
+        {"[camera]\ndriver = \"sim\"\n[[camera.sim.sections]]\ndamage = \"tear\"\n",
+         "camera.sim.sections[0].ap_fraction"},
     };
     for (const auto& [toml, key] : cases) {
         auto c = parse(kStage + toml);
         ASSERT_FALSE(c) << toml;
         EXPECT_EQ(c.error().code, ErrorCode::InvalidArgument);
-        EXPECT_NE(c.error().message.find(key), std::string::npos) << "want " << key << " in: " << c.error().message;
+        EXPECT_NE(c.error().message.find(key), std::string::npos)
+            << "want " << key << " in: " << c.error().message;
     }
     auto c = parse("camera = 3\n" + kStage);
     ASSERT_FALSE(c);
-    EXPECT_NE(c.error().message.find("camera: expected a table"), std::string::npos) << c.error().message;
+    EXPECT_NE(c.error().message.find("camera: expected a table"), std::string::npos)
+        << c.error().message;
 }
 
 TEST(OpenCamera, SimLooksWhereTheStagePositionSays) {
@@ -151,7 +164,8 @@ TEST(OpenCamera, SimLooksWhereTheStagePositionSays) {
     ASSERT_TRUE(c);
     hw::StagePosition where{2400, 1900, 0}; // the section centre
     bool simulated = false;
-    auto cam = daemon::openCamera(c->camera, [&where] { return where; }, simulated);
+    auto cam = daemon::openCamera(
+        c->camera, [&where] { return where; }, simulated);
     ASSERT_TRUE(cam) << cam.error().message;
     EXPECT_TRUE(simulated);
     ASSERT_TRUE((*cam)->configure(c->camera.settings, 1s));
@@ -160,7 +174,8 @@ TEST(OpenCamera, SimLooksWhereTheStagePositionSays) {
     auto glass = (*cam)->capture(1s).value();
     auto mean = [](const hw::Frame& f) {
         double s = 0;
-        for (std::size_t i = 0; i + 1 < f.bytes().size(); i += 2) s += f.bytes()[i + 1]; // high bytes
+        for (std::size_t i = 0; i + 1 < f.bytes().size(); i += 2)
+            s += f.bytes()[i + 1]; // high bytes
         return s / (f.bytes().size() / 2.0);
     };
     EXPECT_GT(mean(tissue), mean(glass) + 10);
@@ -173,7 +188,8 @@ TEST(OpenCamera, SimFaultsFromTheConfig) {
     auto c = parse(kStage + toml);
     ASSERT_TRUE(c) << c.error().message;
     bool simulated = false;
-    auto cam = daemon::openCamera(c->camera, [] { return hw::StagePosition{}; }, simulated);
+    auto cam = daemon::openCamera(
+        c->camera, [] { return hw::StagePosition{}; }, simulated);
     ASSERT_TRUE(cam);
     EXPECT_TRUE((*cam)->capture(1s));
     EXPECT_EQ((*cam)->capture(1s).error().code, ErrorCode::Disconnected);
@@ -189,24 +205,38 @@ TEST(OpenCamera, DriverErrorsPassThrough) {
     EXPECT_EQ(cam.error().code, ErrorCode::NotFound);
     EXPECT_NE(cam.error().message.find("/dev/video-none-here"), std::string::npos);
     auto s = parse(kStage + kSimCamera);
-    EXPECT_EQ(daemon::openCamera(s->camera, nullptr, simulated).error().code, ErrorCode::InvalidArgument);
-    auto i = parse(kStage + "[camera]\ndriver = \"sim\"\n[camera.sim]\nimages = [\"missing.tif\"]\n");
+    EXPECT_EQ(daemon::openCamera(s->camera, nullptr, simulated).error().code,
+              ErrorCode::InvalidArgument);
+    auto i =
+        parse(kStage + "[camera]\ndriver = \"sim\"\n[camera.sim]\nimages = [\"missing.tif\"]\n");
     ASSERT_TRUE(i) << i.error().message;
-    auto m = daemon::openCamera(i->camera, [] { return hw::StagePosition{}; }, simulated);
+    auto m = daemon::openCamera(
+        i->camera, [] { return hw::StagePosition{}; }, simulated);
     ASSERT_FALSE(m);
     EXPECT_EQ(m.error().code, ErrorCode::NotFound);
     EXPECT_NE(m.error().message.find("camera.sim"), std::string::npos);
 }
 
 TEST(OpenCamera, RealSectionImagesAsTheSlide) {
-    const auto f = std::filesystem::path(SLST_SHARED_DIR) / "sections" / "abba-mouse-series" / "Section-08.tif";
-    if (!std::filesystem::exists(f)) GTEST_SKIP() << "no ../shared/sections";
-    auto c = parse(kStage + "[camera]\ndriver = \"sim\"\nwidth = 256\nheight = 256\n[camera.sim]\nimages = [\"" + f.string() +
-                   "\"]\nimages_um_per_px = 20\nsection_pitch_um = 14000\nslide_origin_x_um = 3000\nslide_origin_y_um = 3000\n"
-                   "sensor_um_per_px = 20\nfocus_z_um = 0\n");
+    const auto f = std::filesystem::path(SLST_SHARED_DIR) / "sections" / "abba-mouse-series" /
+                   "Section-08.tif";
+    if (!std::filesystem::exists(f))
+        GTEST_SKIP() << "no ../shared/sections";
+    auto c =
+        parse(kStage +
+              "[camera]\ndriver = \"sim\"\nwidth = 256\nheight = 256\n[camera.sim]\nimages = [\"" +
+              f.string() +
+              "\"]\nimages_um_per_px = 20\nsection_pitch_um = 14000\nslide_origin_x_um = "
+              "3000\nslide_origin_y_um = 3000\n"
+              "sensor_um_per_px = 20\nfocus_z_um = 0\n");
     ASSERT_TRUE(c) << c.error().message;
     bool simulated = false;
-    auto cam = daemon::openCamera(c->camera, [] { return hw::StagePosition{10'000, 10'000, 0}; }, simulated);
+    auto cam = daemon::openCamera(
+        c->camera,
+        [] {
+            return hw::StagePosition{10'000, 10'000, 0};
+        },
+        simulated);
     ASSERT_TRUE(cam) << cam.error().message;
     ASSERT_TRUE((*cam)->configure(c->camera.settings, 1s));
     EXPECT_TRUE((*cam)->capture(1s));
@@ -251,36 +281,46 @@ TEST(SlicectlCamera, RgbFramesAndPng) {
 
 TEST(SlicectlCamera, BadInputsExitNonZeroWithTheReason) {
     const auto noCamera = writeFile("stage_only.toml", kStage);
-    auto r = slicectl("camera --config " + noCamera.string() + " capture --output " + (dir() / "x.tif").string());
+    auto r = slicectl("camera --config " + noCamera.string() + " capture --output " +
+                      (dir() / "x.tif").string());
     EXPECT_EQ(r.exitCode, 2);
     EXPECT_NE(r.out.find("[camera]"), std::string::npos) << r.out;
 
-    const auto badWidth = writeFile("bad_width.toml", kStage + "[camera]\ndriver = \"sim\"\nwidth = -5\n");
-    r = slicectl("camera --config " + badWidth.string() + " capture --output " + (dir() / "x.tif").string());
+    const auto badWidth =
+        writeFile("bad_width.toml", kStage + "[camera]\ndriver = \"sim\"\nwidth = -5\n");
+    r = slicectl("camera --config " + badWidth.string() + " capture --output " +
+                 (dir() / "x.tif").string());
     EXPECT_EQ(r.exitCode, 2);
     EXPECT_NE(r.out.find("camera.width"), std::string::npos) << r.out;
 
-    const auto v4l2 = writeFile("v4l2_missing.toml", kStage + "[camera]\ndriver = \"v4l2\"\ndevice = \"/dev/video-none-here\"\n");
-    r = slicectl("camera --config " + v4l2.string() + " capture --output " + (dir() / "x.tif").string());
+    const auto v4l2 =
+        writeFile("v4l2_missing.toml",
+                  kStage + "[camera]\ndriver = \"v4l2\"\ndevice = \"/dev/video-none-here\"\n");
+    r = slicectl("camera --config " + v4l2.string() + " capture --output " +
+                 (dir() / "x.tif").string());
     EXPECT_NE(r.exitCode, 0);
     EXPECT_NE(r.out.find("/dev/video-none-here"), std::string::npos) << r.out;
 
     const auto libcam = writeFile("libcamera.toml", kStage + "[camera]\ndriver = \"libcamera\"\n");
-    r = slicectl("camera --config " + libcam.string() + " capture --output " + (dir() / "x.tif").string());
+    r = slicectl("camera --config " + libcam.string() + " capture --output " +
+                 (dir() / "x.tif").string());
     EXPECT_NE(r.exitCode, 0);
     EXPECT_NE(r.out.find("no camera found"), std::string::npos) << r.out;
 
     const auto sim = writeFile("sim_ok.toml", kStage + kSimCamera);
-    r = slicectl("camera --config " + sim.string() + " capture --output " + (dir() / "frame.jpg").string());
+    r = slicectl("camera --config " + sim.string() + " capture --output " +
+                 (dir() / "frame.jpg").string());
     EXPECT_EQ(r.exitCode, 2);
     EXPECT_NE(r.out.find("lossless"), std::string::npos) << r.out;
-    r = slicectl("camera --config " + sim.string() + " capture --output /nonexistent-dir/frame.tif");
+    r = slicectl("camera --config " + sim.string() +
+                 " capture --output /nonexistent-dir/frame.tif");
     EXPECT_NE(r.exitCode, 0);
-    r = slicectl("camera --config " + sim.string() + " capture --output " + (dir() / "y.tif").string() +
-                 " --x-um 999999 --y-um 0");
+    r = slicectl("camera --config " + sim.string() + " capture --output " +
+                 (dir() / "y.tif").string() + " --x-um 999999 --y-um 0");
     EXPECT_EQ(r.exitCode, 2);
     EXPECT_NE(r.out.find("soft limits"), std::string::npos) << r.out;
-    r = slicectl("camera --config " + (dir() / "missing.toml").string() + " capture --output x.tif");
+    r = slicectl("camera --config " + (dir() / "missing.toml").string() +
+                 " capture --output x.tif");
     EXPECT_NE(r.exitCode, 0);
 }
 

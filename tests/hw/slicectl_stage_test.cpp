@@ -25,10 +25,12 @@ Run slicectl(const std::string& args) {
     const std::string cmd = std::string(SLICECTL_PATH) + " " + args + " 2>&1";
     Run r;
     FILE* p = ::popen(cmd.c_str(), "r");
-    if (!p) return r;
+    if (!p)
+        return r;
     char buf[4096];
     size_t n;
-    while ((n = std::fread(buf, 1, sizeof buf, p)) > 0) r.out.append(buf, n);
+    while ((n = std::fread(buf, 1, sizeof buf, p)) > 0)
+        r.out.append(buf, n);
     const int status = ::pclose(p);
     r.exitCode = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
     return r;
@@ -64,7 +66,9 @@ protected:
         config_ = writeConfig("station_" + std::to_string(server_->tcpPort()) + ".toml",
                               modbusToml(server_->tcpPort(), "oriental-az"));
     }
-    std::string stage(const std::string& rest) { return "stage --config " + config_.string() + " " + rest; }
+    std::string stage(const std::string& rest) {
+        return "stage --config " + config_.string() + " " + rest;
+    }
     std::unique_ptr<sim::ModbusStageServer> server_;
     std::filesystem::path config_;
 };
@@ -113,9 +117,9 @@ TEST_F(SlicectlStage, HomeStopAndResetAlarm) {
 }
 
 TEST(SlicectlStageConfig, SimulationIsAnnounced) {
-    const auto f = writeConfig("station_sim.toml",
-                               "[stage]\ndriver = \"sim\"\n[stage.axes.x]\nmin_um = 0\nmax_um = 1000\n"
-                               "[stage.axes.y]\nmin_um = 0\nmax_um = 1000\n");
+    const auto f = writeConfig(
+        "station_sim.toml", "[stage]\ndriver = \"sim\"\n[stage.axes.x]\nmin_um = 0\nmax_um = 1000\n"
+                            "[stage.axes.y]\nmin_um = 0\nmax_um = 1000\n");
     auto r = slicectl("stage --config " + f.string() + " move --x-um 100 --y-um 200");
     ASSERT_EQ(r.exitCode, 0) << r.out;
     EXPECT_NE(r.out.find("SIMULATED"), std::string::npos) << r.out;

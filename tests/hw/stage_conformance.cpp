@@ -109,7 +109,8 @@ TEST_P(StageConformance, StopPreemptsAMoveInProgress) {
     const auto l = s->limits();
     auto* raw = s.get();
     const auto t0 = std::chrono::steady_clock::now();
-    auto fut = std::async(std::launch::async, [raw, l] { return raw->moveTo(inside(l, 0.9, 0.9), 60s); });
+    auto fut =
+        std::async(std::launch::async, [raw, l] { return raw->moveTo(inside(l, 0.9, 0.9), 60s); });
     // Keep asking to stop until the move returns; waits on the future, never sleeps.
     while (fut.wait_for(20ms) != std::future_status::ready) {
         raw->stop();

@@ -2,5 +2,7 @@
 
 namespace slicestation::test {
 std::vector<StageModel> modbusStageModels();
-std::vector<StageModel> stageModels() { return modbusStageModels(); }
+std::vector<StageModel> stageModels() {
+    return modbusStageModels();
+}
 } // namespace slicestation::test

@@ -10,14 +10,23 @@ class RiggedStage final : public hw::Stage {
 public:
     explicit RiggedStage(ModbusRig rig) : rig_(std::move(rig)) {}
     hw::StageLimits limits() const override { return rig_.stage->limits(); }
-    core::Result<hw::StagePosition> position(std::chrono::milliseconds t) override { return rig_.stage->position(t); }
-    core::Result<hw::StagePosition> moveTo(const hw::StagePosition& p, std::chrono::milliseconds t) override {
+    core::Result<hw::StagePosition> position(std::chrono::milliseconds t) override {
+        return rig_.stage->position(t);
+    }
+    core::Result<hw::StagePosition> moveTo(const hw::StagePosition& p,
+                                           std::chrono::milliseconds t) override {
         return rig_.stage->moveTo(p, t);
     }
-    core::Result<hw::StagePosition> home(std::chrono::milliseconds t) override { return rig_.stage->home(t); }
+    core::Result<hw::StagePosition> home(std::chrono::milliseconds t) override {
+        return rig_.stage->home(t);
+    }
     void stop() noexcept override { rig_.stage->stop(); }
-    core::Result<hw::StageAlarm> alarm(std::chrono::milliseconds t) override { return rig_.stage->alarm(t); }
-    core::Result<void> resetAlarm(std::chrono::milliseconds t) override { return rig_.stage->resetAlarm(t); }
+    core::Result<hw::StageAlarm> alarm(std::chrono::milliseconds t) override {
+        return rig_.stage->alarm(t);
+    }
+    core::Result<void> resetAlarm(std::chrono::milliseconds t) override {
+        return rig_.stage->resetAlarm(t);
+    }
 
 private:
     ModbusRig rig_;
@@ -26,7 +35,8 @@ private:
 StageModel modbusModel(const std::string& name, const std::string& preset, bool tcp) {
     return {name, [preset, tcp](bool slow) -> std::unique_ptr<hw::Stage> {
                 auto rig = makeRig(preset, tcp, slow);
-                if (!rig.stage) return nullptr;
+                if (!rig.stage)
+                    return nullptr;
                 return std::make_unique<RiggedStage>(std::move(rig));
             }};
 }

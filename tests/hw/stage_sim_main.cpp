@@ -2,5 +2,7 @@
 
 namespace slicestation::test {
 std::vector<StageModel> simStageModels();
-std::vector<StageModel> stageModels() { return simStageModels(); }
+std::vector<StageModel> stageModels() {
+    return simStageModels();
+}
 } // namespace slicestation::test

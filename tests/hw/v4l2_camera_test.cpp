@@ -30,7 +30,9 @@ struct Bench {
         config.settleFrames = 0;
         config.staleFrames = 0;
     }
-    core::Result<std::unique_ptr<drivers::V4l2Camera>> create() { return drivers::V4l2Camera::create(config); }
+    core::Result<std::unique_ptr<drivers::V4l2Camera>> create() {
+        return drivers::V4l2Camera::create(config);
+    }
     std::unique_ptr<drivers::V4l2Camera> camera() {
         auto c = create();
         EXPECT_TRUE(c) << c.error().message;
@@ -121,7 +123,8 @@ TEST(V4l2Configure, AcceptsWhatTheDriverAdjusts) {
     ASSERT_EQ(f->width(), 1280);
     const auto seq = static_cast<std::uint32_t>(b.dev->framesProduced() - 1);
     for (int y : {0, 1, 719})
-        for (int x : {0, 5, 1279}) EXPECT_EQ(f->row(y)[x], EmulatedV4l2Device::pattern(x, y, seq)) << x << "," << y;
+        for (int x : {0, 5, 1279})
+            EXPECT_EQ(f->row(y)[x], EmulatedV4l2Device::pattern(x, y, seq)) << x << "," << y;
 }
 
 TEST(V4l2Configure, ManualExposureGainAndWhiteBalanceAreSetAndReadBack) {
@@ -207,10 +210,14 @@ TEST(V4l2Configure, IoctlAndMmapFailures) {
         int err;
         ErrorCode code;
     };
-    for (const Case& c : {Case{VIDIOC_S_FMT, EBUSY, ErrorCode::IoError}, Case{VIDIOC_S_CTRL, EIO, ErrorCode::IoError},
-                          Case{VIDIOC_G_CTRL, EIO, ErrorCode::IoError}, Case{VIDIOC_REQBUFS, ENOMEM, ErrorCode::IoError},
-                          Case{VIDIOC_REQBUFS, EINVAL, ErrorCode::Unsupported}, Case{VIDIOC_QUERYBUF, EINVAL, ErrorCode::IoError},
-                          Case{VIDIOC_QBUF, EIO, ErrorCode::IoError}, Case{VIDIOC_STREAMON, EIO, ErrorCode::IoError},
+    for (const Case& c : {Case{VIDIOC_S_FMT, EBUSY, ErrorCode::IoError},
+                          Case{VIDIOC_S_CTRL, EIO, ErrorCode::IoError},
+                          Case{VIDIOC_G_CTRL, EIO, ErrorCode::IoError},
+                          Case{VIDIOC_REQBUFS, ENOMEM, ErrorCode::IoError},
+                          Case{VIDIOC_REQBUFS, EINVAL, ErrorCode::Unsupported},
+                          Case{VIDIOC_QUERYBUF, EINVAL, ErrorCode::IoError},
+                          Case{VIDIOC_QBUF, EIO, ErrorCode::IoError},
+                          Case{VIDIOC_STREAMON, EIO, ErrorCode::IoError},
                           Case{VIDIOC_S_FMT, ENODEV, ErrorCode::Disconnected}}) {
         Bench b;
         auto cam = b.camera();
@@ -265,12 +272,16 @@ TEST_P(V4l2Conversion, PixelsMatchThePattern) {
     for (int y = 0; y < 64; y += 7)
         for (int x = 0; x < 96; x += 5) {
             int want = EmulatedV4l2Device::pattern(x, y, seq);
-            if (c.fourcc == V4L2_PIX_FMT_YUYV && c.target == hw::PixelFormat::Rgb8) // BT.601 limited range
-                want = std::clamp(static_cast<int>(std::lround((want - 16) * 255.0 / 219.0)), 0, 255);
+            if (c.fourcc == V4L2_PIX_FMT_YUYV &&
+                c.target == hw::PixelFormat::Rgb8) // BT.601 limited range
+                want =
+                    std::clamp(static_cast<int>(std::lround((want - 16) * 255.0 / 219.0)), 0, 255);
             int got = 0;
             const std::uint8_t* row = f->row(y);
             switch (c.target) {
-            case hw::PixelFormat::Mono8: got = row[x]; break;
+            case hw::PixelFormat::Mono8:
+                got = row[x];
+                break;
             case hw::PixelFormat::Mono16: {
                 std::uint16_t v;
                 std::memcpy(&v, row + 2 * x, 2);
@@ -289,23 +300,28 @@ TEST_P(V4l2Conversion, PixelsMatchThePattern) {
 
 std::vector<ConversionCase> conversionCases() {
     std::vector<ConversionCase> v;
-    for (auto fcc : {V4L2_PIX_FMT_GREY, V4L2_PIX_FMT_Y16, V4L2_PIX_FMT_YUYV, V4L2_PIX_FMT_RGB24, V4L2_PIX_FMT_MJPEG})
+    for (auto fcc : {V4L2_PIX_FMT_GREY, V4L2_PIX_FMT_Y16, V4L2_PIX_FMT_YUYV, V4L2_PIX_FMT_RGB24,
+                     V4L2_PIX_FMT_MJPEG})
         for (auto t : {hw::PixelFormat::Mono8, hw::PixelFormat::Mono16, hw::PixelFormat::Rgb8}) {
             int tol = fcc == V4L2_PIX_FMT_MJPEG ? 4 : 0;
-            if (fcc == V4L2_PIX_FMT_YUYV && t == hw::PixelFormat::Rgb8) tol = 3; // limited-range YUV
+            if (fcc == V4L2_PIX_FMT_YUYV && t == hw::PixelFormat::Rgb8)
+                tol = 3; // limited-range YUV
             v.push_back({fcc, t, tol});
         }
     return v;
 }
 
-INSTANTIATE_TEST_SUITE_P(AllPairs, V4l2Conversion, ::testing::ValuesIn(conversionCases()), [](const auto& i) {
-    std::string n;
-    for (int k = 0; k < 4; ++k) {
-        const char ch = static_cast<char>((i.param.fourcc >> (8 * k)) & 0xff);
-        if (std::isalnum(static_cast<unsigned char>(ch))) n += ch;
-    }
-    return n + "_to_" + hw::toString(i.param.target);
-});
+INSTANTIATE_TEST_SUITE_P(AllPairs, V4l2Conversion, ::testing::ValuesIn(conversionCases()),
+                         [](const auto& i) {
+                             std::string n;
+                             for (int k = 0; k < 4; ++k) {
+                                 const char ch =
+                                     static_cast<char>((i.param.fourcc >> (8 * k)) & 0xff);
+                                 if (std::isalnum(static_cast<unsigned char>(ch)))
+                                     n += ch;
+                             }
+                             return n + "_to_" + hw::toString(i.param.target);
+                         });
 
 // ---- capture --------------------------------------------------------------------------------
 
@@ -348,7 +364,8 @@ TEST(V4l2Capture, CorruptBuffersAreIoErrorAndRequeued) {
         ASSERT_FALSE(f);
         EXPECT_EQ(f.error().code, ErrorCode::IoError);
         EXPECT_NE(f.error().message.find("frame"), std::string::npos) << f.error().message;
-        for (int i = 0; i < 6; ++i) EXPECT_TRUE(cam->capture(1s)) << "buffers still cycle, " << i;
+        for (int i = 0; i < 6; ++i)
+            EXPECT_TRUE(cam->capture(1s)) << "buffers still cycle, " << i;
     }
     Bench j(only(V4L2_PIX_FMT_MJPEG));
     auto cam = j.camera();
@@ -390,7 +407,8 @@ TEST(V4l2Capture, UnplugIsAFullReinitialisation) {
     EXPECT_EQ(cam->reinitCount(), 1);
     EXPECT_EQ(b.dev->opens() - opensBefore, 3);
     EXPECT_EQ(b.dev->openFds(), 1) << "the stale fd was closed";
-    EXPECT_EQ(b.dev->control(V4L2_CID_EXPOSURE_AUTO), V4L2_EXPOSURE_MANUAL) << "controls re-applied";
+    EXPECT_EQ(b.dev->control(V4L2_CID_EXPOSURE_AUTO), V4L2_EXPOSURE_MANUAL)
+        << "controls re-applied";
 }
 
 TEST(V4l2Capture, UnplugAfterFramesAndEnodevFromDqbuf) {
@@ -398,7 +416,8 @@ TEST(V4l2Capture, UnplugAfterFramesAndEnodevFromDqbuf) {
     auto cam = b.camera();
     ASSERT_TRUE(cam->configure(settings(), 1s));
     b.dev->unplugAfterFrames(2, 0);
-    for (int i = 0; i < 4; ++i) ASSERT_TRUE(cam->capture(5s)) << i;
+    for (int i = 0; i < 4; ++i)
+        ASSERT_TRUE(cam->capture(5s)) << i;
     EXPECT_EQ(cam->reinitCount(), 1);
     b.dev->failIoctl(VIDIOC_DQBUF, ENODEV);
     ASSERT_TRUE(cam->capture(5s));
@@ -445,7 +464,8 @@ TEST(V4l2Capture, StopPreemptsAWaitAndAReinitialisation) {
     auto* raw = cam.get();
     int polls = 0;
     b.dev->onPoll([&] {
-        if (++polls == 3) raw->stop(); // as if from another thread, mid-wait
+        if (++polls == 3)
+            raw->stop(); // as if from another thread, mid-wait
     });
     b.dev->timeoutPolls(1'000'000);
     auto f = cam->capture(3600s);

@@ -16,11 +16,16 @@ namespace slicestation::test {
 namespace {
 std::uint32_t bytesPerPixel(std::uint32_t fcc) {
     switch (fcc) {
-    case V4L2_PIX_FMT_GREY: return 1;
-    case V4L2_PIX_FMT_Y16: return 2;
-    case V4L2_PIX_FMT_YUYV: return 2;
-    case V4L2_PIX_FMT_RGB24: return 3;
-    default: return 0;
+    case V4L2_PIX_FMT_GREY:
+        return 1;
+    case V4L2_PIX_FMT_Y16:
+        return 2;
+    case V4L2_PIX_FMT_YUYV:
+        return 2;
+    case V4L2_PIX_FMT_RGB24:
+        return 3;
+    default:
+        return 0;
     }
 }
 constexpr std::int64_t kFrameNs = 33'000'000;
@@ -30,8 +35,10 @@ constexpr off_t kOffsetStep = 1 << 20;
 EmulatedV4l2Device::EmulatedV4l2Device(EmulatedV4l2Options options) : o_(std::move(options)) {
     assert(o_.clock);
     controls_[V4L2_CID_EXPOSURE_AUTO] = V4L2_EXPOSURE_APERTURE_PRIORITY; // like a UVC webcam
-    if (o_.hasExposure) controls_[V4L2_CID_EXPOSURE_ABSOLUTE] = 100;
-    if (o_.hasGain) controls_[V4L2_CID_GAIN] = 100;
+    if (o_.hasExposure)
+        controls_[V4L2_CID_EXPOSURE_ABSOLUTE] = 100;
+    if (o_.hasGain)
+        controls_[V4L2_CID_GAIN] = 100;
     if (o_.hasWhiteBalance) {
         controls_[V4L2_CID_AUTO_WHITE_BALANCE] = 1;
         controls_[V4L2_CID_RED_BALANCE] = 1000;
@@ -53,7 +60,8 @@ void EmulatedV4l2Device::unplug(int failedOpens) {
     failedOpensLeft_ = failedOpens;
     streaming_ = false;
     done_.clear();
-    for (auto& b : buffers_) orphans_.push_back(std::move(b));
+    for (auto& b : buffers_)
+        orphans_.push_back(std::move(b));
     buffers_.clear();
     liveFd_ = -1; // every fd open now is stale
 }
@@ -64,13 +72,16 @@ void EmulatedV4l2Device::unplugAfterFrames(int frames, int failedOpens) {
 }
 
 void EmulatedV4l2Device::corruptNext(Corruption kind, int count) {
-    for (int i = 0; i < count; ++i) corruptions_.push_back(kind);
+    for (int i = 0; i < count; ++i)
+        corruptions_.push_back(kind);
 }
 
 int EmulatedV4l2Device::mappedBuffers() const {
     int n = 0;
-    for (const auto& b : buffers_) n += b->mapped;
-    for (const auto& b : orphans_) n += b->mapped;
+    for (const auto& b : buffers_)
+        n += b->mapped;
+    for (const auto& b : orphans_)
+        n += b->mapped;
     return n;
 }
 
@@ -85,7 +96,8 @@ int EmulatedV4l2Device::open(const char* path, int) {
         --openFaults_;
         return fail(openErr_);
     }
-    if (o_.path != path) return fail(ENOENT);
+    if (o_.path != path)
+        return fail(ENOENT);
     if (!present_) {
         if (failedOpensLeft_ > 0) {
             --failedOpensLeft_;
@@ -101,7 +113,8 @@ int EmulatedV4l2Device::open(const char* path, int) {
 
 int EmulatedV4l2Device::close(int fd) {
     auto it = std::find(fds_.begin(), fds_.end(), fd);
-    if (it == fds_.end()) return fail(EBADF);
+    if (it == fds_.end())
+        return fail(EBADF);
     fds_.erase(it);
     if (fd == liveFd_) { // closing frees the queue, as in the kernel
         streaming_ = false;
@@ -114,7 +127,8 @@ int EmulatedV4l2Device::close(int fd) {
 void EmulatedV4l2Device::freeBuffers() {
     done_.clear();
     for (auto& b : buffers_)
-        if (b->mapped) orphans_.push_back(std::move(b));
+        if (b->mapped)
+            orphans_.push_back(std::move(b));
     buffers_.clear();
 }
 
@@ -134,14 +148,20 @@ int EmulatedV4l2Device::setFormat(v4l2_format& f) {
 
 int EmulatedV4l2Device::setControl(v4l2_control& c) {
     auto it = controls_.find(c.id);
-    if (it == controls_.end()) return fail(EINVAL);
+    if (it == controls_.end())
+        return fail(EINVAL);
     std::int32_t lo = 0, hi = 10'000;
-    if (c.id == V4L2_CID_EXPOSURE_AUTO) hi = 3;
-    if (c.id == V4L2_CID_EXPOSURE_ABSOLUTE) lo = 1;
-    if (c.id == V4L2_CID_GAIN) hi = 1'000;
-    if (c.id == V4L2_CID_AUTO_WHITE_BALANCE) hi = 1;
+    if (c.id == V4L2_CID_EXPOSURE_AUTO)
+        hi = 3;
+    if (c.id == V4L2_CID_EXPOSURE_ABSOLUTE)
+        lo = 1;
+    if (c.id == V4L2_CID_GAIN)
+        hi = 1'000;
+    if (c.id == V4L2_CID_AUTO_WHITE_BALANCE)
+        hi = 1;
     if (c.value < lo || c.value > hi) {
-        if (o_.rangeErrors) return fail(ERANGE);
+        if (o_.rangeErrors)
+            return fail(ERANGE);
         c.value = std::clamp(c.value, lo, hi);
     }
     it->second = c.value;
@@ -154,9 +174,12 @@ bool EmulatedV4l2Device::produceFrame() {
         unplug(unplugFailedOpens_);
         return false;
     }
-    auto it = std::find_if(buffers_.begin(), buffers_.end(), [](const auto& b) { return b->queued; });
-    if (it == buffers_.end()) return false;
-    if (unplugInFrames_ > 0) --unplugInFrames_;
+    auto it =
+        std::find_if(buffers_.begin(), buffers_.end(), [](const auto& b) { return b->queued; });
+    if (it == buffers_.end())
+        return false;
+    if (unplugInFrames_ > 0)
+        --unplugInFrames_;
     o_.clock->advance(std::chrono::nanoseconds(kFrameNs));
     Buffer& b = **it;
     b.queued = false;
@@ -166,7 +189,8 @@ bool EmulatedV4l2Device::produceFrame() {
     switch (fmt_.pixelformat) {
     case V4L2_PIX_FMT_GREY:
         for (std::uint32_t y = 0; y < h; ++y)
-            for (std::uint32_t x = 0; x < w; ++x) m[y * bpl + x] = pattern(x, y, seq);
+            for (std::uint32_t x = 0; x < w; ++x)
+                m[y * bpl + x] = pattern(x, y, seq);
         break;
     case V4L2_PIX_FMT_Y16:
         for (std::uint32_t y = 0; y < h; ++y)
@@ -185,9 +209,11 @@ bool EmulatedV4l2Device::produceFrame() {
     case V4L2_PIX_FMT_RGB24:
         for (std::uint32_t y = 0; y < h; ++y)
             for (std::uint32_t x = 0; x < w; ++x)
-                for (int c = 0; c < 3; ++c) m[y * bpl + 3 * x + static_cast<std::uint32_t>(c)] = pattern(x, y, seq);
+                for (int c = 0; c < 3; ++c)
+                    m[y * bpl + 3 * x + static_cast<std::uint32_t>(c)] = pattern(x, y, seq);
         break;
-    default: break; // MJPEG: encoded at DQBUF
+    default:
+        break; // MJPEG: encoded at DQBUF
     }
     done_.push_back(static_cast<std::uint32_t>(it - buffers_.begin()));
     ++sequence_;
@@ -196,8 +222,10 @@ bool EmulatedV4l2Device::produceFrame() {
 }
 
 int EmulatedV4l2Device::ioctl(int fd, unsigned long request, void* arg) {
-    if (std::find(fds_.begin(), fds_.end(), fd) == fds_.end()) return fail(EBADF);
-    if (fd != liveFd_) return fail(ENODEV); // opened before an unplug
+    if (std::find(fds_.begin(), fds_.end(), fd) == fds_.end())
+        return fail(EBADF);
+    if (fd != liveFd_)
+        return fail(ENODEV); // opened before an unplug
     if (auto it = ioctlFaults_.find(request); it != ioctlFaults_.end() && it->second.count > 0) {
         --it->second.count;
         return fail(it->second.err);
@@ -213,8 +241,10 @@ int EmulatedV4l2Device::ioctl(int fd, unsigned long request, void* arg) {
     }
     case VIDIOC_S_FMT: {
         auto* f = static_cast<v4l2_format*>(arg);
-        if (f->type != V4L2_BUF_TYPE_VIDEO_CAPTURE) return fail(EINVAL);
-        if (streaming_ || !buffers_.empty()) return fail(EBUSY);
+        if (f->type != V4L2_BUF_TYPE_VIDEO_CAPTURE)
+            return fail(EINVAL);
+        if (streaming_ || !buffers_.empty())
+            return fail(EBUSY);
         return setFormat(*f);
     }
     case VIDIOC_G_FMT: {
@@ -224,8 +254,10 @@ int EmulatedV4l2Device::ioctl(int fd, unsigned long request, void* arg) {
     }
     case VIDIOC_REQBUFS: {
         auto* r = static_cast<v4l2_requestbuffers*>(arg);
-        if (r->memory != V4L2_MEMORY_MMAP) return fail(EINVAL);
-        if (streaming_) return fail(EBUSY);
+        if (r->memory != V4L2_MEMORY_MMAP)
+            return fail(EINVAL);
+        if (streaming_)
+            return fail(EBUSY);
         freeBuffers();
         r->count = std::min({r->count, o_.maxBuffers, grantLimit_});
         for (std::uint32_t i = 0; i < r->count; ++i) {
@@ -236,22 +268,27 @@ int EmulatedV4l2Device::ioctl(int fd, unsigned long request, void* arg) {
     }
     case VIDIOC_QUERYBUF: {
         auto* b = static_cast<v4l2_buffer*>(arg);
-        if (b->index >= buffers_.size()) return fail(EINVAL);
+        if (b->index >= buffers_.size())
+            return fail(EINVAL);
         b->length = static_cast<std::uint32_t>(buffers_[b->index]->memory.size());
         b->m.offset = static_cast<std::uint32_t>(b->index * kOffsetStep);
         return 0;
     }
     case VIDIOC_QBUF: {
         auto* b = static_cast<v4l2_buffer*>(arg);
-        if (b->index >= buffers_.size() || buffers_[b->index]->queued) return fail(EINVAL);
-        if (std::find(done_.begin(), done_.end(), b->index) != done_.end()) return fail(EINVAL);
+        if (b->index >= buffers_.size() || buffers_[b->index]->queued)
+            return fail(EINVAL);
+        if (std::find(done_.begin(), done_.end(), b->index) != done_.end())
+            return fail(EINVAL);
         buffers_[b->index]->queued = true;
         return 0;
     }
     case VIDIOC_DQBUF: {
         auto* b = static_cast<v4l2_buffer*>(arg);
-        if (!streaming_) return fail(EINVAL);
-        if (done_.empty()) return fail(EAGAIN);
+        if (!streaming_)
+            return fail(EINVAL);
+        if (done_.empty())
+            return fail(EAGAIN);
         const std::uint32_t index = done_.front();
         done_.pop_front();
         Buffer& buf = *buffers_[index];
@@ -266,7 +303,8 @@ int EmulatedV4l2Device::ioctl(int fd, unsigned long request, void* arg) {
             cv::Mat img(static_cast<int>(fmt_.height), static_cast<int>(fmt_.width), CV_8UC1);
             for (int y = 0; y < img.rows; ++y)
                 for (int x = 0; x < img.cols; ++x)
-                    img.at<std::uint8_t>(y, x) = pattern(static_cast<std::uint32_t>(x), static_cast<std::uint32_t>(y), b->sequence);
+                    img.at<std::uint8_t>(y, x) = pattern(
+                        static_cast<std::uint32_t>(x), static_cast<std::uint32_t>(y), b->sequence);
             std::vector<std::uint8_t> jpeg;
             cv::imencode(".jpg", img, jpeg, {cv::IMWRITE_JPEG_QUALITY, 98});
             assert(jpeg.size() <= buf.memory.size());
@@ -277,9 +315,15 @@ int EmulatedV4l2Device::ioctl(int fd, unsigned long request, void* arg) {
             const Corruption c = corruptions_.front();
             corruptions_.pop_front();
             switch (c) {
-            case Corruption::ShortBytesUsed: b->bytesused = fmt_.pixelformat == V4L2_PIX_FMT_MJPEG ? 0 : 10; break;
-            case Corruption::ErrorFlag: b->flags |= V4L2_BUF_FLAG_ERROR; break;
-            case Corruption::BadIndex: b->index = 99; break;
+            case Corruption::ShortBytesUsed:
+                b->bytesused = fmt_.pixelformat == V4L2_PIX_FMT_MJPEG ? 0 : 10;
+                break;
+            case Corruption::ErrorFlag:
+                b->flags |= V4L2_BUF_FLAG_ERROR;
+                break;
+            case Corruption::BadIndex:
+                b->index = 99;
+                break;
             case Corruption::GarbageJpeg:
                 std::memset(buf.memory.data(), 0x5a, 200);
                 b->bytesused = 200;
@@ -289,32 +333,39 @@ int EmulatedV4l2Device::ioctl(int fd, unsigned long request, void* arg) {
         return 0;
     }
     case VIDIOC_STREAMON:
-        if (buffers_.empty()) return fail(EINVAL);
+        if (buffers_.empty())
+            return fail(EINVAL);
         streaming_ = true;
         sequence_ = 0;
         return 0;
     case VIDIOC_STREAMOFF:
         streaming_ = false;
         done_.clear();
-        for (auto& b : buffers_) b->queued = false;
+        for (auto& b : buffers_)
+            b->queued = false;
         return 0;
-    case VIDIOC_S_CTRL: return setControl(*static_cast<v4l2_control*>(arg));
+    case VIDIOC_S_CTRL:
+        return setControl(*static_cast<v4l2_control*>(arg));
     case VIDIOC_G_CTRL: {
         auto* c = static_cast<v4l2_control*>(arg);
         auto it = controls_.find(c->id);
-        if (it == controls_.end()) return fail(EINVAL);
+        if (it == controls_.end())
+            return fail(EINVAL);
         c->value = it->second;
         return 0;
     }
-    default: return fail(ENOTTY);
+    default:
+        return fail(ENOTTY);
     }
 }
 
 int EmulatedV4l2Device::poll(struct pollfd* fds, nfds_t count, int timeoutMs) {
     assert(count == 1);
     (void)count;
-    if (pollHook_) pollHook_();
-    if (pollErr_) return fail(std::exchange(pollErr_, 0));
+    if (pollHook_)
+        pollHook_();
+    if (pollErr_)
+        return fail(std::exchange(pollErr_, 0));
     pollfd& p = fds[0];
     p.revents = 0;
     if (std::find(fds_.begin(), fds_.end(), p.fd) == fds_.end()) {
@@ -353,7 +404,8 @@ void* EmulatedV4l2Device::mmap(void*, std::size_t length, int, int, int fd, off_
         return MAP_FAILED;
     }
     const auto index = static_cast<std::size_t>(offset / kOffsetStep);
-    if (offset % kOffsetStep || index >= buffers_.size() || length > buffers_[index]->memory.size()) {
+    if (offset % kOffsetStep || index >= buffers_.size() ||
+        length > buffers_[index]->memory.size()) {
         errno = EINVAL;
         return MAP_FAILED;
     }

@@ -50,8 +50,13 @@ public:
     /// unplug(failedOpens) instead of producing frame number `frames` from now.
     void unplugAfterFrames(int frames, int failedOpens);
     void corruptNext(Corruption kind, int count = 1);
-    void failIoctl(unsigned long request, int err, int count = 1) { ioctlFaults_[request] = {err, count}; }
-    void failOpen(int err, int count = 1) { openErr_ = err; openFaults_ = count; }
+    void failIoctl(unsigned long request, int err, int count = 1) {
+        ioctlFaults_[request] = {err, count};
+    }
+    void failOpen(int err, int count = 1) {
+        openErr_ = err;
+        openFaults_ = count;
+    }
     void failMmap(int count = 1) { mmapFaults_ = count; }
     void failPoll(int err) { pollErr_ = err; }
     void grantBuffers(std::uint32_t count) { grantLimit_ = count; }

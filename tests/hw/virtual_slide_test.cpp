@@ -37,7 +37,8 @@ const sim::VirtualSlide& smallSlide() {
 
 double meanAround(const cv::Mat& img, cv::Point2d px, int r) {
     cv::Mat g;
-    img(cv::Rect(static_cast<int>(px.x) - r, static_cast<int>(px.y) - r, 2 * r, 2 * r)).convertTo(g, CV_64F);
+    img(cv::Rect(static_cast<int>(px.x) - r, static_cast<int>(px.y) - r, 2 * r, 2 * r))
+        .convertTo(g, CV_64F);
     return cv::mean(g)[0];
 }
 
@@ -56,8 +57,10 @@ TEST(VirtualSlide, GeneratedSectionsSitWhereTheSlideSays) {
     EXPECT_DOUBLE_EQ(v.sections[2].apFraction, 0.7);
     EXPECT_NEAR(v.sections[0].widthUm, 2'600, 8);
     for (const auto& s : v.sections) { // tissue at each centre, glass between the cells
-        const cv::Point2d c((s.centre.xUm - v.originXUm) / v.umPerPx, (s.centre.yUm - v.originYUm) / v.umPerPx);
-        EXPECT_GT(meanAround(v.image, c, 20), meanAround(v.image, {c.x, c.y - 180}, 5) + 2000) << s.index;
+        const cv::Point2d c((s.centre.xUm - v.originXUm) / v.umPerPx,
+                            (s.centre.yUm - v.originYUm) / v.umPerPx);
+        EXPECT_GT(meanAround(v.image, c, 20), meanAround(v.image, {c.x, c.y - 180}, 5) + 2000)
+            << s.index;
     }
     // The empty fourth cell is plain glass.
     EXPECT_LT(meanAround(v.image, {(500 + 4'500) / 8.0, (500 + 4'500) / 8.0}, 50),
@@ -79,7 +82,8 @@ TEST(VirtualSlide, Brightfield) {
     spec.sections.resize(1);
     auto v = sim::makeVirtualSlide(spec).value();
     ASSERT_EQ(v.image.type(), CV_8UC3);
-    const cv::Point2d c((v.sections[0].centre.xUm - v.originXUm) / 8, (v.sections[0].centre.yUm - v.originYUm) / 8);
+    const cv::Point2d c((v.sections[0].centre.xUm - v.originXUm) / 8,
+                        (v.sections[0].centre.yUm - v.originYUm) / 8);
     cv::Mat g;
     cv::cvtColor(v.image, g, cv::COLOR_BGR2GRAY);
     EXPECT_LT(meanAround(g, c, 20) + 20, meanAround(g, {5, 5}, 4)) << "tissue darker than glass";
@@ -118,8 +122,10 @@ std::filesystem::path sectionFile(int i) {
 }
 
 TEST(VirtualSlide, LoadsRealSectionsOnAGrid) {
-    if (!std::filesystem::exists(sectionFile(1))) GTEST_SKIP() << "no ../shared/sections";
-    auto v = sim::loadVirtualSlide({sectionFile(5), sectionFile(10), sectionFile(15)}, 20.0, 2, 14'000);
+    if (!std::filesystem::exists(sectionFile(1)))
+        GTEST_SKIP() << "no ../shared/sections";
+    auto v =
+        sim::loadVirtualSlide({sectionFile(5), sectionFile(10), sectionFile(15)}, 20.0, 2, 14'000);
     ASSERT_TRUE(v) << v.error().message;
     EXPECT_EQ(v->image.type(), CV_16UC1); // two-channel uint16: channel 0 kept
     EXPECT_EQ(v->image.cols, 1400);
@@ -130,7 +136,8 @@ TEST(VirtualSlide, LoadsRealSectionsOnAGrid) {
     EXPECT_DOUBLE_EQ(v->sections[0].widthUm, 655 * 20.0);
     EXPECT_LT(v->sections[0].apFraction, 0);
     const cv::Point2d c(350, 350);
-    EXPECT_GT(meanAround(v->image, c, 30), meanAround(v->image, {700, 700}, 10)) << "tissue over the gap";
+    EXPECT_GT(meanAround(v->image, c, 30), meanAround(v->image, {700, 700}, 10))
+        << "tissue over the gap";
 }
 
 TEST(VirtualSlide, LoadErrors) {
@@ -139,9 +146,12 @@ TEST(VirtualSlide, LoadErrors) {
     EXPECT_EQ(r.error().code, ErrorCode::NotFound);
     EXPECT_NE(r.error().message.find("/nonexistent/section.tif"), std::string::npos);
     EXPECT_EQ(sim::loadVirtualSlide({}, 20, 2, 14'000).error().code, ErrorCode::InvalidArgument);
-    EXPECT_EQ(sim::loadVirtualSlide({"x.tif"}, 0, 2, 14'000).error().code, ErrorCode::InvalidArgument);
-    EXPECT_EQ(sim::loadVirtualSlide({"x.tif"}, 20, 0, 14'000).error().code, ErrorCode::InvalidArgument);
-    if (!std::filesystem::exists(sectionFile(1))) GTEST_SKIP() << "no ../shared/sections";
+    EXPECT_EQ(sim::loadVirtualSlide({"x.tif"}, 0, 2, 14'000).error().code,
+              ErrorCode::InvalidArgument);
+    EXPECT_EQ(sim::loadVirtualSlide({"x.tif"}, 20, 0, 14'000).error().code,
+              ErrorCode::InvalidArgument);
+    if (!std::filesystem::exists(sectionFile(1)))
+        GTEST_SKIP() << "no ../shared/sections";
     r = sim::loadVirtualSlide({sectionFile(1)}, 20, 2, 5'000); // 13 mm image in a 5 mm cell
     ASSERT_FALSE(r);
     EXPECT_EQ(r.error().code, ErrorCode::InvalidArgument);
@@ -165,7 +175,8 @@ std::unique_ptr<Camera> cameraOn(const sim::VirtualSlide& v, double sensorUmPerP
 }
 
 cv::Mat toMat(const hw::Frame& f) {
-    return cv::Mat(f.height(), f.width(), f.format() == hw::PixelFormat::Mono16 ? CV_16UC1 : CV_8UC1,
+    return cv::Mat(f.height(), f.width(),
+                   f.format() == hw::PixelFormat::Mono16 ? CV_16UC1 : CV_8UC1,
                    const_cast<std::uint8_t*>(f.bytes().data()))
         .clone();
 }
@@ -219,9 +230,10 @@ TEST(SimCameraOnVirtualSlide, LargeDefocusIsBlurred) {
     c->stage.zUm = 2'000; // sigma 300 px: rendered on a coarse grid
     const auto t0 = std::chrono::steady_clock::now();
     auto blurred = toMat(c->camera->capture(1s).value());
-    std::cout << "1024x768 capture at 300 px defocus: "
-              << std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count()
-              << " ms (information, not a limit)\n";
+    std::cout
+        << "1024x768 capture at 300 px defocus: "
+        << std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count()
+        << " ms (information, not a limit)\n";
     cv::Mat l1, l2; // smoothed first: the camera noise is added after the defocus
     cv::GaussianBlur(sharp, sharp, {}, 3);
     cv::GaussianBlur(blurred, blurred, {}, 3);
@@ -231,13 +243,15 @@ TEST(SimCameraOnVirtualSlide, LargeDefocusIsBlurred) {
     cv::meanStdDev(l1, m1, s1);
     cv::meanStdDev(l2, m2, s2);
     EXPECT_GT(s1[0], 2 * s2[0]);
-    EXPECT_NEAR(cv::mean(blurred)[0], cv::mean(sharp)[0], 0.35 * cv::mean(sharp)[0]) << "blur keeps brightness";
+    EXPECT_NEAR(cv::mean(blurred)[0], cv::mean(sharp)[0], 0.35 * cv::mean(sharp)[0])
+        << "blur keeps brightness";
 }
 
 TEST(SimCameraOnVirtualSlide, FaultyCameraDisconnectsAfterNFrames) {
     const auto& v = smallSlide();
     auto c = cameraOn(v, 8.0);
-    auto f = sim::FaultyCamera::create(std::move(c->camera), std::make_shared<core::VirtualClock>()).value();
+    auto f = sim::FaultyCamera::create(std::move(c->camera), std::make_shared<core::VirtualClock>())
+                 .value();
     f->disconnectAfter(2);
     EXPECT_TRUE(f->capture(1s));
     EXPECT_TRUE(f->capture(1s));

@@ -17,8 +17,8 @@ TEST(LabelsFromImage, AcceptsIdsAndColourCodes) {
     EXPECT_EQ(l->at<int>(3, 3), 1000);
 
     cv::Mat rgb(10, 10, CV_8UC3, cv::Scalar(255, 255, 255)); // white outside
-    rgb(cv::Rect(2, 2, 3, 3)).setTo(cv::Scalar(0, 0, 255));   // BGR red
-    rgb(cv::Rect(5, 2, 3, 3)).setTo(cv::Scalar(0, 0, 0));     // black region inside
+    rgb(cv::Rect(2, 2, 3, 3)).setTo(cv::Scalar(0, 0, 255));  // BGR red
+    rgb(cv::Rect(5, 2, 3, 3)).setTo(cv::Scalar(0, 0, 0));    // black region inside
     auto c = labelsFromImage(rgb);
     ASSERT_TRUE(c.ok());
     EXPECT_EQ(c->at<int>(0, 0), 0);
@@ -38,7 +38,8 @@ TEST(CoronalPlane, AllenAndQuickNiiAxes) {
     core::Volume v;
     v.sizes = {4, 3, 5}; // Allen: AP, DV, LR
     v.data.resize(60);
-    for (size_t i = 0; i < v.data.size(); ++i) v.data[i] = static_cast<std::uint32_t>(i);
+    for (size_t i = 0; i < v.data.size(); ++i)
+        v.data[i] = static_cast<std::uint32_t>(i);
     auto p = coronalPlane(v, VolumeAxes::Allen, 2);
     ASSERT_TRUE(p.ok());
     EXPECT_EQ(p->size(), cv::Size(5, 3));
@@ -55,13 +56,14 @@ TEST(CollapseLabels, DeepestListedAncestorWins) {
     const auto dir = std::filesystem::temp_directory_path() / "slst_atlas_test";
     std::filesystem::create_directories(dir);
     const auto csv = dir / "tree.csv";
-    std::ofstream(csv) << "id,name,acronym,parent_structure_id,structure_id_path,color_hex_triplet\n"
-                          "997,root,root,,/997/,FFFFFF\n"
-                          "549,Thalamus,TH,997,/997/549/,FF7080\n"
-                          "958,Epithalamus,EPI,549,/997/549/958/,FF8084\n"
-                          "10,\"Child, of epi\",CE,958,/997/549/958/10/,FF8084\n"
-                          "11,Other thal,OT,549,/997/549/11/,FF8084\n"
-                          "12,Elsewhere,EW,997,/997/12/,FF8084\n";
+    std::ofstream(csv)
+        << "id,name,acronym,parent_structure_id,structure_id_path,color_hex_triplet\n"
+           "997,root,root,,/997/,FFFFFF\n"
+           "549,Thalamus,TH,997,/997/549/,FF7080\n"
+           "958,Epithalamus,EPI,549,/997/549/958/,FF8084\n"
+           "10,\"Child, of epi\",CE,958,/997/549/958/10/,FF8084\n"
+           "11,Other thal,OT,549,/997/549/11/,FF8084\n"
+           "12,Elsewhere,EW,997,/997/12/,FF8084\n";
     auto onto = core::readOntologyCsv(csv);
     ASSERT_TRUE(onto.ok()) << onto.error().message;
     cv::Mat labels = (cv::Mat_<int>(1, 5) << 0, 10, 11, 12, 99999);

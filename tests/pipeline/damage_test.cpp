@@ -23,8 +23,7 @@ cv::Mat ellipseMask(cv::Size size, cv::Point c, cv::Size axes) {
 } // namespace
 
 TEST(MedialAxis, MarksInsideAndOutsideFaces) {
-    const ExteriorTriangulation convex =
-        exteriorMedialAxis({{0, 0}, {100, 0}, {100, 80}, {0, 80}});
+    const ExteriorTriangulation convex = exteriorMedialAxis({{0, 0}, {100, 0}, {100, 80}, {0, 80}});
     EXPECT_EQ(convex.insideFaces, 2);
     EXPECT_EQ(convex.exteriorFaces, 0); // a convex outline has nothing outside within its hull
     const ExteriorTriangulation notched = exteriorMedialAxis(notchedSquare(80));
@@ -34,9 +33,11 @@ TEST(MedialAxis, MarksInsideAndOutsideFaces) {
 
 TEST(MedialAxis, BranchLengthFollowsTheNotchDepth) {
     double shallow = 0, deep = 0;
-    for (const auto& b : exteriorMedialAxis(notchedSquare(20)).branches) shallow = std::max(shallow, b.length);
-    for (const auto& b : exteriorMedialAxis(notchedSquare(120)).branches) deep = std::max(deep, b.length);
-    EXPECT_GT(deep, 60.0);      // the axis runs most of the way down a 120 px wedge
+    for (const auto& b : exteriorMedialAxis(notchedSquare(20)).branches)
+        shallow = std::max(shallow, b.length);
+    for (const auto& b : exteriorMedialAxis(notchedSquare(120)).branches)
+        deep = std::max(deep, b.length);
+    EXPECT_GT(deep, 60.0); // the axis runs most of the way down a 120 px wedge
     EXPECT_GT(deep, 3 * shallow);
 }
 
@@ -65,9 +66,9 @@ TEST(Damage, SymmetricNotchesAreAnatomyAndALoneOneIsNot) {
     const auto cut = [&](std::vector<cv::Point> tri) {
         cv::fillPoly(mask, std::vector<std::vector<cv::Point>>{tri}, cv::Scalar(0));
     };
-    cut({{40, 150}, {150, 160}, {40, 170}});  // left
+    cut({{40, 150}, {150, 160}, {40, 170}});   // left
     cut({{560, 150}, {450, 160}, {560, 170}}); // its mirror
-    cut({{80, 285}, {200, 240}, {100, 325}}); // lone tear, open to the outside
+    cut({{80, 285}, {200, 240}, {100, 325}});  // lone tear, open to the outside
     const Outline outline = tissueOutline(mask);
     auto concavities = deepConcavities(outline, 40.0);
     ASSERT_GE(concavities.size(), 3u);
@@ -76,7 +77,8 @@ TEST(Damage, SymmetricNotchesAreAnatomyAndALoneOneIsNot) {
     int symmetric = 0, lone = 0;
     for (const auto& c : concavities) {
         cv::Point2f centre(0, 0);
-        for (const auto& p : c.points) centre += p;
+        for (const auto& p : c.points)
+            centre += p;
         centre *= 1.0f / float(c.points.size());
         if (centre.y > 230 && centre.x < 250) {
             EXPECT_FALSE(c.symmetric);
@@ -89,15 +91,15 @@ TEST(Damage, SymmetricNotchesAreAnatomyAndALoneOneIsNot) {
     EXPECT_EQ(lone, 1);
     EXPECT_EQ(symmetric, 2);
     const cv::Mat excluded = concavityExclusion(concavities, mask.size(), 5);
-    EXPECT_GT(excluded.at<uchar>(265, 150), 0);  // around the lone tear
-    EXPECT_EQ(excluded.at<uchar>(160, 100), 0);  // not around the symmetric ones
+    EXPECT_GT(excluded.at<uchar>(265, 150), 0); // around the lone tear
+    EXPECT_EQ(excluded.at<uchar>(160, 100), 0); // not around the symmetric ones
 }
 
 TEST(Damage, GapsTearsAndFragmentsAgainstTheExpectedTissue) {
     const cv::Mat expected = ellipseMask({600, 400}, {300, 200}, {250, 160});
     cv::Mat tissue = expected.clone();
-    cv::circle(tissue, {300, 120}, 30, cv::Scalar(0), cv::FILLED);              // missing chunk
-    cv::line(tissue, {420, 200}, {520, 260}, cv::Scalar(0), 4);                 // thin crack
+    cv::circle(tissue, {300, 120}, 30, cv::Scalar(0), cv::FILLED); // missing chunk
+    cv::line(tissue, {420, 200}, {520, 260}, cv::Scalar(0), 4);    // thin crack
     cv::ellipse(tissue, {60, 60}, {25, 15}, 0, 0, 360, cv::Scalar(255), cv::FILLED); // fragment
     const auto regions = tissueDamage(tissue, {expected, expected, {}}, 500, DamageParams{});
     int missing = 0, tears = 0, fragments = 0;

@@ -27,7 +27,8 @@ TEST(MlsEdgePoints, NormalsOfANoisyCircleAreRadialAndPointsAreSmoothed) {
         worstDeg = std::max(worstDeg, std::acos(std::min(1.0, c)) * 180 / CV_PI);
         mlsErr += std::abs(r - 150);
     }
-    for (const auto& p : raw) rawErr += std::abs(std::hypot(p.x - 300, p.y - 300) - 150);
+    for (const auto& p : raw)
+        rawErr += std::abs(std::hypot(p.x - 300, p.y - 300) - 150);
     EXPECT_LT(worstDeg, 6.0);
     EXPECT_LT(mlsErr / double(e.size()), 0.5 * rawErr / double(raw.size()));
 }
@@ -40,7 +41,8 @@ TEST(MlsEdgePoints, IsolatedSpecksAreDropped) {
 TEST(PointGrid, FindsExactlyThePointsWithinTheRadius) {
     std::vector<cv::Point2f> pts;
     for (int y = 0; y < 20; ++y)
-        for (int x = 0; x < 20; ++x) pts.emplace_back(float(x), float(y));
+        for (int x = 0; x < 20; ++x)
+            pts.emplace_back(float(x), float(y));
     const PointGrid g(pts, 3.0f);
     int n = 0;
     g.forEachWithin({10, 10}, 2.0f, [&](int, float d2) {

@@ -26,7 +26,8 @@ TEST(DominantEdges, FindsTheStrongCircleAndNotTheNoise) {
     ASSERT_GT(px.size(), 400u); // circumference ~ 628 px
     int onCircle = 0;
     for (const auto& p : px)
-        if (std::abs(std::hypot(p.x - 200, p.y - 150) - 100) < 3) ++onCircle;
+        if (std::abs(std::hypot(p.x - 200, p.y - 150) - 100) < 3)
+            ++onCircle;
     EXPECT_GT(onCircle, 0.95 * px.size());
 }
 
@@ -58,6 +59,7 @@ TEST(AtlasEdges, MarksOuterAndInnerBoundaries) {
     // Sub-pixel midpoints: the 1|2 boundary lies at x = 24.5.
     int mid = 0;
     for (const auto& s : samples)
-        if (s.x == 24.5f) ++mid;
+        if (s.x == 24.5f)
+            ++mid;
     EXPECT_EQ(mid, 30);
 }

@@ -47,16 +47,19 @@ TEST(IcpAffine, FitAffineIsExactOnExactMatches) {
     const cv::Matx23d t(0.9, 0.1, 5, -0.2, 1.1, -3);
     std::vector<cv::Point2f> src{{0, 0}, {10, 0}, {0, 10}, {7, 3}, {2, 9}};
     std::vector<Match> m;
-    for (int i = 0; i < 5; ++i) m.push_back({i, apply(t, src[i])});
+    for (int i = 0; i < 5; ++i)
+        m.push_back({i, apply(t, src[i])});
     cv::Matx23d out;
     ASSERT_TRUE(fitAffine(src, m, out));
-    for (int i = 0; i < 6; ++i) EXPECT_NEAR(out.val[i], t.val[i], 1e-9);
+    for (int i = 0; i < 6; ++i)
+        EXPECT_NEAR(out.val[i], t.val[i], 1e-9);
 }
 
 TEST(IcpAffine, FitAffineRefusesCollinearPoints) {
     std::vector<cv::Point2f> src{{0, 0}, {1, 1}, {2, 2}, {3, 3}};
     std::vector<Match> m;
-    for (int i = 0; i < 4; ++i) m.push_back({i, {double(i), 0.0}});
+    for (int i = 0; i < 4; ++i)
+        m.push_back({i, {double(i), 0.0}});
     cv::Matx23d out(1, 2, 3, 4, 5, 6);
     EXPECT_FALSE(fitAffine(src, m, out));
     EXPECT_EQ(out(0, 1), 2);
@@ -78,6 +81,7 @@ TEST(IcpAffine, ConsistencyCheckDropsAnOutlierMatch) {
     mn.emplace_back(0.f, 1.f);
     const PointGrid grid(target.points, 4.0f);
     const auto kept = findMatches(mp, mn, target, grid, 6.0, 10.0, true);
-    for (const auto& m : kept) EXPECT_NE(m.source, 50);
+    for (const auto& m : kept)
+        EXPECT_NE(m.source, 50);
     EXPECT_GT(kept.size(), 40u);
 }

@@ -14,7 +14,8 @@ TEST(LaplaceWarp, ConstantBoundaryGivesConstantField) {
         disp.emplace_back(3.0, -2.0);
     }
     const auto f = solveLaplaceWarp({1000, 800}, pts, disp);
-    for (const cv::Point2d p : {cv::Point2d(500, 400), cv::Point2d(10, 10), cv::Point2d(990, 790)}) {
+    for (const cv::Point2d p :
+         {cv::Point2d(500, 400), cv::Point2d(10, 10), cv::Point2d(990, 790)}) {
         EXPECT_NEAR(f.at(p).x, 3.0, 0.05);
         EXPECT_NEAR(f.at(p).y, -2.0, 0.05);
     }

@@ -26,7 +26,8 @@ TEST(OrientedBox, RecoversARotatedEllipse) {
 TEST(OrientedBox, InteriorPointsDoNotBiasTheAxes) {
     // A rectangle plus a dense cluster of "damage" points inside: the hull ignores them.
     std::vector<cv::Point2f> pts{{0, 0}, {400, 0}, {400, 100}, {0, 100}};
-    for (int i = 0; i < 5000; ++i) pts.emplace_back(50.f + i % 50, 10.f + float(i % 80));
+    for (int i = 0; i < 5000; ++i)
+        pts.emplace_back(50.f + i % 50, 10.f + float(i % 80));
     const OrientedBox b = orientedBox(pts);
     EXPECT_NEAR(std::abs(b.major[0]), 1.0, 1e-4);
     EXPECT_NEAR(b.halfMajor, 200, 0.01);

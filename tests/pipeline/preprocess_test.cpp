@@ -17,8 +17,10 @@ cv::Mat tissueOnGlass(bool brightGlass, int depth, int channels) {
     const double full = depth == CV_8U ? 255.0 : depth == CV_16U ? 65535.0 : 1.0;
     cv::Mat out;
     img.convertTo(out, depth, full);
-    if (channels == 3) cv::cvtColor(out, out, cv::COLOR_GRAY2BGR);
-    if (channels == 2) cv::merge(std::vector<cv::Mat>{out, cv::Mat::zeros(out.size(), out.type())}, out);
+    if (channels == 3)
+        cv::cvtColor(out, out, cv::COLOR_GRAY2BGR);
+    if (channels == 2)
+        cv::merge(std::vector<cv::Mat>{out, cv::Mat::zeros(out.size(), out.type())}, out);
     return out;
 }
 } // namespace

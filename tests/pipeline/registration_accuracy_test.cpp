@@ -33,10 +33,12 @@ Score registerAndScore(const cv::Mat& atlas, const sim::GeneratorOptions& o,
                        const pipeline::RegistrationOptions& ro = {}) {
     auto gen = sim::generateSection(atlas, o);
     EXPECT_TRUE(gen.ok());
-    if (!gen) return {1e9, 1e9};
+    if (!gen)
+        return {1e9, 1e9};
     auto reg = pipeline::registerSection(gen->image, atlas, ro);
     EXPECT_TRUE(reg.ok()) << reg.error().message;
-    if (!reg) return {1e9, 1e9};
+    if (!reg)
+        return {1e9, 1e9};
     Score s;
     double ss = 0;
     for (const auto& l : gen->truth.landmarks) {
@@ -62,9 +64,11 @@ const core::Result<core::Volume>& annotation50() {
 cv::Mat realPlane(int ap25) {
     static const auto vol = core::readNrrd(kAtlasDir / "annotation_25_quicknii.nrrd");
     const auto& onto = ontology();
-    if (!vol || !onto) return {};
+    if (!vol || !onto)
+        return {};
     auto p = pipeline::coronalPlane(*vol, pipeline::VolumeAxes::QuickNii, ap25);
-    if (!p) return {};
+    if (!p)
+        return {};
     return pipeline::collapseLabels(*p, *onto, pipeline::majorRegionIds(), 8);
 }
 
@@ -81,18 +85,22 @@ RealRegistration registerRealSection(const std::string& name, double positionUm)
     const auto& vol = annotation50();
     const auto& onto = ontology();
     EXPECT_TRUE(vol.ok() && onto.ok());
-    if (!vol || !onto) return {};
+    if (!vol || !onto)
+        return {};
     auto img = core::readImage(kSeriesDir / name);
     EXPECT_TRUE(img.ok()) << name << ": " << img.error().message;
-    if (!img) return {};
-    auto geometry = pipeline::planeGeometry(
-        *vol, pipeline::VolumeAxes::Allen,
-        {pipeline::PlaneOrientation::Coronal, positionUm, 0, 0, 25});
+    if (!img)
+        return {};
+    auto geometry =
+        pipeline::planeGeometry(*vol, pipeline::VolumeAxes::Allen,
+                                {pipeline::PlaneOrientation::Coronal, positionUm, 0, 0, 25});
     EXPECT_TRUE(geometry.ok());
-    if (!geometry) return {};
+    if (!geometry)
+        return {};
     auto raw = pipeline::sampleLabels(*vol, pipeline::VolumeAxes::Allen, *geometry);
     EXPECT_TRUE(raw.ok());
-    if (!raw) return {};
+    if (!raw)
+        return {};
     RealRegistration out;
     out.labels = pipeline::collapseLabels(*raw, *onto, pipeline::majorRegionIds(), 8);
     pipeline::RegistrationOptions ro;
@@ -100,12 +108,14 @@ RealRegistration registerRealSection(const std::string& name, double positionUm)
     ro.atlasUmPerPx = 25;
     auto reg = pipeline::registerSection(*img, out.labels, ro);
     EXPECT_TRUE(reg.ok()) << name << ": " << reg.error().message;
-    if (reg) out.reg = std::move(*reg);
+    if (reg)
+        out.reg = std::move(*reg);
     return out;
 }
 
 bool haveRealSeries() {
-    return fs::exists(kSeriesDir / "Section-20.tif") && fs::exists(kAtlasDir / "annotation_50.nrrd");
+    return fs::exists(kSeriesDir / "Section-20.tif") &&
+           fs::exists(kAtlasDir / "annotation_50.nrrd");
 }
 
 } // namespace
@@ -158,7 +168,8 @@ TEST(DamageGroundTruth, EachKindIsFlaggedLocatedAndKeptOutOfTheFit) {
         bool kindSeen = false;
         for (const auto& r : reg->damage) {
             std::vector<cv::Point> poly;
-            for (const auto& p : r.polygon) poly.emplace_back(cvRound(p.x), cvRound(p.y));
+            for (const auto& p : r.polygon)
+                poly.emplace_back(cvRound(p.x), cvRound(p.y));
             cv::fillPoly(reported, std::vector<std::vector<cv::Point>>{poly}, cv::Scalar(255));
             kindSeen |= r.kind == c.kind;
         }
@@ -166,7 +177,8 @@ TEST(DamageGroundTruth, EachKindIsFlaggedLocatedAndKeptOutOfTheFit) {
         for (const auto& t : gen->truth.damage) {
             cv::Mat truth = cv::Mat::zeros(gen->image.size(), CV_8U);
             std::vector<cv::Point> poly;
-            for (const auto& p : t.polygon) poly.emplace_back(cvRound(p.x), cvRound(p.y));
+            for (const auto& p : t.polygon)
+                poly.emplace_back(cvRound(p.x), cvRound(p.y));
             cv::fillPoly(truth, std::vector<std::vector<cv::Point>>{poly}, cv::Scalar(255));
             EXPECT_GE(cv::countNonZero(truth & reported), 0.1 * cv::countNonZero(truth)) << c.name;
         }
@@ -288,7 +300,8 @@ TEST(DamageGroundTruth, SmallLobesCutApartAreNotMissingTissue) {
     auto reg = pipeline::registerSection(gen->image, plane);
     ASSERT_TRUE(reg.ok()) << reg.error().message;
     EXPECT_FALSE(reg->damaged) << reg->damageSummary;
-    for (const auto& d : reg->damage) EXPECT_LT(d.share, 0.005) << reg->damageSummary;
+    for (const auto& d : reg->damage)
+        EXPECT_LT(d.share, 0.005) << reg->damageSummary;
 }
 
 TEST(DamageGroundTruth, ACrackNarrowingUnderAPixelIsFollowedAlongItsDarkLine) {
@@ -336,16 +349,18 @@ TEST(RegistrationAccuracy, RealSectionsFarFromTheirPlanesShapeGetTheOutlinePulle
     // the 25 um slice the series match gives it. Without the outline pairs the mapped atlas
     // brain overlapped their tissue 0.87 and 0.84, and the misfit showed as damage on both
     // (gaps of 2.5% and 1.2% of the tissue).
-    if (!haveRealSeries()) GTEST_SKIP() << "../shared is absent: real sections not tested";
-    for (const auto& [name, positionUm] : {std::pair{"Section-02.tif", 2800.0},
-                                           std::pair{"Section-19.tif", 9100.0}}) {
+    if (!haveRealSeries())
+        GTEST_SKIP() << "../shared is absent: real sections not tested";
+    for (const auto& [name, positionUm] :
+         {std::pair{"Section-02.tif", 2800.0}, std::pair{"Section-19.tif", 9100.0}}) {
         const auto [labels, reg] = registerRealSection(name, positionUm);
         ASSERT_FALSE(labels.empty()) << name;
         // Overlap of the whole map (affine and warp): the mapped atlas brain against the tissue
         // with its holes filled.
         const cv::Mat tissue = pipeline::fillHoles(reg.workingTissueMask);
         const cv::Mat brain = reg.warpedLabels(labels, tissue.size()) != 0;
-        const double iou = cv::countNonZero(tissue & brain) / double(cv::countNonZero(tissue | brain));
+        const double iou =
+            cv::countNonZero(tissue & brain) / double(cv::countNonZero(tissue | brain));
         EXPECT_GT(iou, 0.9) << name;
         // The misfit gaps are gone or smaller.
         EXPECT_LT(reg.damageFraction, 0.01) << name << ": " << reg.damageSummary;
@@ -384,9 +399,10 @@ TEST(DamageRealSeries, TornSectionsAreFlaggedAndCleanOnesAreNot) {
     // either way: 11 (a crack that shows as a bright line) is missed, the clean 01 (a cleft
     // between bulb and frontal pole) and 07 (an enlarged ventricle) are flagged, and 19 keeps
     // a gap of 0.79% of the tissue against the 0.8% of the decision. 10 and 13 are unclear.
-    if (!haveRealSeries()) GTEST_SKIP() << "../shared is absent: real sections not tested";
+    if (!haveRealSeries())
+        GTEST_SKIP() << "../shared is absent: real sections not tested";
     const std::pair<int, double> torn[] = {{9, 5600}, {14, 7400}, {15, 7700}};
-    const std::pair<int, double> clean[] = {{2, 2800},  {3, 3200},  {4, 4600}, {5, 4700},
+    const std::pair<int, double> clean[] = {{2, 2800},  {3, 3200},  {4, 4600},  {5, 4700},
                                             {6, 4800},  {8, 5100},  {12, 6500}, {16, 7800},
                                             {17, 8300}, {18, 9000}, {20, 10100}};
     const auto name = [](int n) {
@@ -487,8 +503,8 @@ TEST(RegistrationAccuracy, ConfidenceIsLowWhereTheSectionDisagreesWithTheAtlas) 
     cv::Mat tissue;
     cv::resize(gen->truth.tissueMask, tissue, reg->confidence.size(), 0, 0, cv::INTER_NEAREST);
     cv::erode(tissue, tissue, cv::Mat(), cv::Point(-1, -1), 5);
-    cv::circle(tissue, cv::Point(cvRound(w.x), cvRound(w.y)), cvRound(45 * reg->workingScale * 3), 0,
-               cv::FILLED);
+    cv::circle(tissue, cv::Point(cvRound(w.x), cvRound(w.y)), cvRound(45 * reg->workingScale * 3),
+               0, cv::FILLED);
     const double elsewhere = cv::mean(reg->confidence, tissue)[0];
     EXPECT_LT(atBlot, 0.5 * elsewhere) << "blot " << atBlot << ", elsewhere " << elsewhere;
     EXPECT_GT(elsewhere, 0.5);
@@ -505,10 +521,12 @@ TEST(RegistrationAccuracy, AnAtlasIntensityPlaneHelpsOnTemplateLikeSections) {
     ASSERT_TRUE(templ.ok());
     for (int ap : {260, 300}) {
         const cv::Mat plane = realPlane(ap);
-        const int ap100 = std::clamp(static_cast<int>(std::lround((ap + 0.5) / 4 - 0.5)), 0, templ->sizes[0] - 1);
+        const int ap100 =
+            std::clamp(static_cast<int>(std::lround((ap + 0.5) / 4 - 0.5)), 0, templ->sizes[0] - 1);
         cv::Mat t100(templ->sizes[1], templ->sizes[2], CV_32F);
         for (int r = 0; r < t100.rows; ++r)
-            for (int c = 0; c < t100.cols; ++c) t100.at<float>(r, c) = float(templ->at(ap100, r, c));
+            for (int c = 0; c < t100.cols; ++c)
+                t100.at<float>(r, c) = float(templ->at(ap100, r, c));
         double mx = 0;
         cv::minMaxLoc(t100, nullptr, &mx);
         t100 /= mx;
@@ -520,7 +538,8 @@ TEST(RegistrationAccuracy, AnAtlasIntensityPlaneHelpsOnTemplateLikeSections) {
         auto gen = sim::generateSection(plane, o);
         ASSERT_TRUE(gen.ok());
         cv::Mat img;
-        cv::remap(t25, img, gen->truth.atlasX, gen->truth.atlasY, cv::INTER_LINEAR, cv::BORDER_CONSTANT, 0);
+        cv::remap(t25, img, gen->truth.atlasX, gen->truth.atlasY, cv::INTER_LINEAR,
+                  cv::BORDER_CONSTANT, 0);
         cv::Mat noise(img.size(), CV_32F);
         cv::RNG(ap).fill(noise, cv::RNG::NORMAL, 0.03, 0.02);
         img = img * 0.9 + noise;

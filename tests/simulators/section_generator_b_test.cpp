@@ -37,13 +37,15 @@ sim::GeneratorOptionsB quick(std::uint64_t seed) {
 }
 
 bool sameBytes(const cv::Mat& a, const cv::Mat& b) {
-    if (a.size() != b.size() || a.type() != b.type()) return false;
+    if (a.size() != b.size() || a.type() != b.type())
+        return false;
     return cv::norm(a, b, cv::NORM_INF) == 0;
 }
 
 int atlasLabelAt(const cv::Point2d& atlasPx) {
     const long x = std::lround(atlasPx.x), y = std::lround(atlasPx.y);
-    if (x < 0 || y < 0 || x >= atlas().cols || y >= atlas().rows) return -1;
+    if (x < 0 || y < 0 || x >= atlas().cols || y >= atlas().rows)
+        return -1;
     return atlas().at<std::int32_t>(int(y), int(x));
 }
 
@@ -79,7 +81,8 @@ TEST(SectionGeneratorB, MapIsTheAffinePlusASmoothFoldFreeField) {
     double maxOff = 0;
     for (int y = 0; y < kQuick.height; y += 7)
         for (int x = 0; x < kQuick.width; x += 7) {
-            if (!g.truth.tissueMask.at<std::uint8_t>(y, x)) continue;
+            if (!g.truth.tissueMask.at<std::uint8_t>(y, x))
+                continue;
             const cv::Point2d aff(A(0, 0) * x + A(0, 1) * y + A(0, 2),
                                   A(1, 0) * x + A(1, 1) * y + A(1, 2));
             maxOff = std::max(maxOff, cv::norm(aff - cv::Point2d(g.truth.atlasX.at<float>(y, x),
@@ -113,17 +116,20 @@ TEST(SectionGeneratorB, EveryDamageKindIsPaintedAndMasked) {
         // The region given was tissue before the damage and carries its code in the mask.
         cv::Mat region = cv::Mat::zeros(kQuick, CV_8U);
         std::vector<cv::Point> poly;
-        for (const auto& p : d.polygon) poly.emplace_back(cvRound(p.x), cvRound(p.y));
+        for (const auto& p : d.polygon)
+            poly.emplace_back(cvRound(p.x), cvRound(p.y));
         cv::fillPoly(region, std::vector<std::vector<cv::Point>>{poly}, cv::Scalar(255));
         const cv::Mat was = region & intact.truth.tissueMask;
         EXPECT_GT(cv::countNonZero(was), 0.5 * d.areaPx);
         const cv::Mat coded = (g.truth.damageMask == code[g.damageKinds[i]]) & region;
         EXPECT_GT(cv::countNonZero(coded), 0.5 * cv::countNonZero(was));
-        if (g.damageKinds[i] == sim::DamageKindB::Crack || g.damageKinds[i] == sim::DamageKindB::Bite) {
+        if (g.damageKinds[i] == sim::DamageKindB::Crack ||
+            g.damageKinds[i] == sim::DamageKindB::Bite) {
             // Removed: no tissue left where the crack or bite was (outline pixels aside).
             cv::Mat inner;
             cv::erode(region, inner, cv::Mat());
-            EXPECT_EQ(cv::countNonZero(inner & g.truth.tissueMask & (g.truth.damageMask == code[g.damageKinds[i]])),
+            EXPECT_EQ(cv::countNonZero(inner & g.truth.tissueMask &
+                                       (g.truth.damageMask == code[g.damageKinds[i]])),
                       0);
         }
         if (g.damageKinds[i] == sim::DamageKindB::Fragment) {
@@ -141,7 +147,8 @@ TEST(SectionGeneratorB, EveryDamageKindIsPaintedAndMasked) {
     EXPECT_LE(2 * widest, 8.0);
     // The landmarks avoid all of it.
     for (const auto& l : g.truth.landmarks)
-        EXPECT_EQ(g.truth.damageMask.at<std::uint8_t>(cv::Point(int(l.image.x), int(l.image.y))), 0);
+        EXPECT_EQ(g.truth.damageMask.at<std::uint8_t>(cv::Point(int(l.image.x), int(l.image.y))),
+                  0);
 }
 
 TEST(SectionGeneratorB, FoldDoublesTheBandBrighterInFluorescence) {
@@ -178,7 +185,8 @@ TEST(SectionGeneratorB, VentriclesAreEmptyAndStainsFollowTheRegions) {
     cv::Mat inner;
     for (const auto& r : sim::builtinRegions()) {
         cv::erode(g.truth.labelsInImage == r.id, inner, cv::Mat(), {-1, -1}, 3);
-        if (cv::countNonZero(inner) < 200) continue;
+        if (cv::countNonZero(inner) < 200)
+            continue;
         cv::Scalar mean, sd;
         cv::meanStdDev(g.image, mean, sd, inner);
         EXPECT_LT(sd[0], 0.12 * mean[0] + 300) << r.name;
@@ -201,14 +209,16 @@ TEST(SectionGeneratorB, BrightfieldTissueIsDarkerThanGlass) {
     ASSERT_EQ(g.image.type(), CV_8UC3);
     const cv::Scalar tissue = cv::mean(g.image, g.truth.tissueMask);
     const cv::Scalar glass = cv::mean(g.image, g.truth.tissueMask == 0);
-    for (int c = 0; c < 3; ++c) EXPECT_LT(tissue[c], glass[c] - 20) << "channel " << c;
+    for (int c = 0; c < 3; ++c)
+        EXPECT_LT(tissue[c], glass[c] - 20) << "channel " << c;
 }
 
 TEST(SectionGeneratorB, TemplateStainRendersTheTemplateThroughTheMap) {
     // A template with a smooth gradient: the rendering must follow it through the true map.
     cv::Mat templ(atlas().size(), CV_32F);
     for (int y = 0; y < templ.rows; ++y)
-        for (int x = 0; x < templ.cols; ++x) templ.at<float>(y, x) = float(100 + x + 2 * y);
+        for (int x = 0; x < templ.cols; ++x)
+            templ.at<float>(y, x) = float(100 + x + 2 * y);
     auto o = quick(9);
     o.stain = sim::StainB::Template;
     o.templatePlane = templ;
@@ -224,7 +234,8 @@ TEST(SectionGeneratorB, TemplateStainRendersTheTemplateThroughTheMap) {
         for (int x = 0; x < kQuick.width; x += 5)
             if (inner.at<std::uint8_t>(y, x)) {
                 a.push_back(g.image.at<std::uint16_t>(y, x));
-                b.push_back(100 + g.truth.atlasX.at<float>(y, x) + 2 * g.truth.atlasY.at<float>(y, x));
+                b.push_back(100 + g.truth.atlasX.at<float>(y, x) +
+                            2 * g.truth.atlasY.at<float>(y, x));
             }
     ASSERT_GT(a.size(), 1000u);
     cv::Mat ca(a), cb(b), corr;
@@ -232,7 +243,8 @@ TEST(SectionGeneratorB, TemplateStainRendersTheTemplateThroughTheMap) {
     cv::meanStdDev(ca, ma, sa);
     cv::meanStdDev(cb, mb, sb);
     double c = 0;
-    for (size_t i = 0; i < a.size(); ++i) c += (a[i] - ma[0]) * (b[i] - mb[0]);
+    for (size_t i = 0; i < a.size(); ++i)
+        c += (a[i] - ma[0]) * (b[i] - mb[0]);
     c /= double(a.size()) * sa[0] * sb[0];
     EXPECT_GT(c, 0.9);
 }

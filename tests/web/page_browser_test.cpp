@@ -17,7 +17,8 @@ using namespace std::chrono_literals;
 
 namespace {
 
-const std::filesystem::path kArtefacts = std::filesystem::path(SLST_BINARY_DIR) / "test-artefacts" / "web";
+const std::filesystem::path kArtefacts =
+    std::filesystem::path(SLST_BINARY_DIR) / "test-artefacts" / "web";
 
 class PageTest : public StationTest {
 protected:
@@ -25,20 +26,23 @@ protected:
     static bool waitFor(const std::function<bool()>& ready, std::chrono::seconds limit = 60s) {
         const auto deadline = std::chrono::steady_clock::now() + limit;
         while (std::chrono::steady_clock::now() < deadline) {
-            if (ready()) return true;
+            if (ready())
+                return true;
             std::this_thread::sleep_for(100ms);
         }
         return ready();
     }
     /// data-state of the grid cell of a section (cells are redrawn: looked up each time).
     static nlohmann::json cellState(webdriver::Session& b, std::int64_t sectionId) {
-        return b.execute("const e = document.querySelector('#grid .cell[data-section-id=\"' + arguments[0] + '\"]'); "
+        return b.execute("const e = document.querySelector('#grid .cell[data-section-id=\"' + "
+                         "arguments[0] + '\"]'); "
                          "return e ? e.dataset.state : null;",
                          {std::to_string(sectionId)});
     }
     static std::string expectedCell(const SectionRecord& s) {
         const std::string st = toString(s.state);
-        if (s.state == SectionState::Registered && s.attempts > 1) return "rescanned";
+        if (s.state == SectionState::Registered && s.attempts > 1)
+            return "rescanned";
         return st;
     }
 };
@@ -70,13 +74,15 @@ TEST_F(PageTest, TechnicianWatchesARunSeesTheTornSectionAndAcknowledgesItsAlert)
     const std::string tornCell = "#grid .cell[data-section-id=\"" + std::to_string(torn) + "\"]";
     ASSERT_TRUE(waitFor([&] { return cellState(browser, torn) == "damaged"; }))
         << "the torn section turns damaged in the grid";
-    const auto colour = browser.execute("return getComputedStyle(document.querySelector(arguments[0])).backgroundColor;",
-                                        {tornCell});
+    const auto colour = browser.execute(
+        "return getComputedStyle(document.querySelector(arguments[0])).backgroundColor;",
+        {tornCell});
     EXPECT_EQ(colour, "rgb(212, 60, 60)") << "damaged cells are red";
 
     // The alert banner names the damage (the most urgent open alert) and offers both answers.
     ASSERT_TRUE(waitFor([&] {
-        return browser.execute("return document.getElementById('banner').classList.contains('shown');") == true;
+        return browser.execute(
+                   "return document.getElementById('banner').classList.contains('shown');") == true;
     }));
     auto damageAlerts = alertsOf("damaged");
     ASSERT_EQ(damageAlerts.size(), 1u);
@@ -92,25 +98,29 @@ TEST_F(PageTest, TechnicianWatchesARunSeesTheTornSectionAndAcknowledgesItsAlert)
     auto showSection = [&](std::int64_t id) {
         browser.clickCss("#grid .cell[data-section-id=\"" + std::to_string(id) + "\"]");
         return waitFor([&] {
-            return browser.execute("const i = document.getElementById('overlay'); return i.complete && i.naturalWidth > 0 && "
+            return browser.execute("const i = document.getElementById('overlay'); return "
+                                   "i.complete && i.naturalWidth > 0 && "
                                    "i.dataset.sectionId === arguments[0];",
                                    {std::to_string(id)}) == true;
         });
     };
     auto redShare = [&] {
-        return browser.execute(R"(
+        return browser
+            .execute(R"(
             const i = document.getElementById('overlay');
             const c = document.createElement('canvas'); c.width = i.naturalWidth; c.height = i.naturalHeight;
             const g = c.getContext('2d'); g.drawImage(i, 0, 0);
             const d = g.getImageData(0, 0, c.width, c.height).data;
             let n = 0; for (let k = 0; k < d.length; k += 4) if (d[k] > 150 && d[k + 1] < 90 && d[k + 2] < 90) ++n;
-            return n / (c.width * c.height);)").get<double>();
+            return n / (c.width * c.height);)")
+            .get<double>();
     };
     ASSERT_TRUE(showSection((*secs)[0].id)) << "the overlay of a clean section is shown";
     EXPECT_LT(redShare(), 1e-4) << "no red on a clean section";
     ASSERT_TRUE(showSection(torn)) << "the overlay of the torn section is shown";
     EXPECT_GT(redShare(), 4e-4) << "damage is filled in red on the overlay";
-    ASSERT_TRUE(waitFor([&] { return browser.find("#regions") && browser.find("#detail table").has_value(); }));
+    ASSERT_TRUE(waitFor(
+        [&] { return browser.find("#regions") && browser.find("#detail table").has_value(); }));
     const std::string detail = browser.text(*browser.find("#detail"));
     EXPECT_NE(detail.find("damaged"), std::string::npos) << detail;
     EXPECT_NE(detail.find("Atlas slice"), std::string::npos) << detail;
@@ -119,13 +129,21 @@ TEST_F(PageTest, TechnicianWatchesARunSeesTheTornSectionAndAcknowledgesItsAlert)
     // Hovering the centre of the overlay names the atlas region there, the one the API gives.
     auto overlay = browser.find("#overlay");
     browser.hover(*overlay, 0, 0);
-    ASSERT_TRUE(waitFor([&] { return browser.execute("return getComputedStyle(document.getElementById('region-tip')).display;") == "block"; }, 10s));
+    ASSERT_TRUE(waitFor(
+        [&] {
+            return browser.execute(
+                       "return getComputedStyle(document.getElementById('region-tip')).display;") ==
+                   "block";
+        },
+        10s));
     const std::string tip = browser.text(*browser.find("#region-tip"));
     httplib::Client cli("127.0.0.1", rig_.api->port());
-    const auto natural = browser.execute("const i = document.getElementById('overlay'); return [i.naturalWidth, i.naturalHeight];");
+    const auto natural = browser.execute(
+        "const i = document.getElementById('overlay'); return [i.naturalWidth, i.naturalHeight];");
     const int nw = natural[0].get<int>(), nh = natural[1].get<int>();
-    auto region = cli.Get("/api/sections/" + std::to_string(torn) + "/region?x=" + std::to_string(nw / 2) +
-                          "&y=" + std::to_string(nh / 2) + "&of_width=" + std::to_string(nw));
+    auto region =
+        cli.Get("/api/sections/" + std::to_string(torn) + "/region?x=" + std::to_string(nw / 2) +
+                "&y=" + std::to_string(nh / 2) + "&of_width=" + std::to_string(nw));
     ASSERT_TRUE(region);
     const auto rj = nlohmann::json::parse(region->body);
     ASSERT_GT(rj["id"].get<int>(), 0) << "the centre of the section is brain";
@@ -136,8 +154,7 @@ TEST_F(PageTest, TechnicianWatchesARunSeesTheTornSectionAndAcknowledgesItsAlert)
     secs = rig_.station->journal().sections(*runId);
     ASSERT_TRUE(secs);
     for (const auto& s : *secs) {
-        EXPECT_EQ(cellState(browser, s.id), expectedCell(s))
-            << s.name;
+        EXPECT_EQ(cellState(browser, s.id), expectedCell(s)) << s.name;
     }
 
     // Acknowledge from the banner: without the token the page asks for it, then it goes through.
@@ -146,7 +163,13 @@ TEST_F(PageTest, TechnicianWatchesARunSeesTheTornSectionAndAcknowledgesItsAlert)
                std::to_string(damageAlerts[0].id);
     }));
     browser.clickCss("#ack-rescan");
-    ASSERT_TRUE(waitFor([&] { return browser.execute("return document.getElementById('token-row').classList.contains('shown');") == true; }, 10s))
+    ASSERT_TRUE(waitFor(
+        [&] {
+            return browser.execute(
+                       "return "
+                       "document.getElementById('token-row').classList.contains('shown');") == true;
+        },
+        10s))
         << "a 401 asks for the control token";
     auto still = rig_.station->journal().alert(damageAlerts[0].id);
     ASSERT_TRUE(still);
@@ -154,16 +177,23 @@ TEST_F(PageTest, TechnicianWatchesARunSeesTheTornSectionAndAcknowledgesItsAlert)
     browser.type(*browser.find("#token"), kToken);
     browser.clickCss("#token-save");
     browser.clickCss("#ack-rescan");
-    ASSERT_TRUE(waitFor([&] {
-        auto a = rig_.station->journal().alert(damageAlerts[0].id);
-        return a && a->acknowledgedUtc.has_value();
-    }, 10s)) << "the alert is acknowledged from the page";
+    ASSERT_TRUE(waitFor(
+        [&] {
+            auto a = rig_.station->journal().alert(damageAlerts[0].id);
+            return a && a->acknowledgedUtc.has_value();
+        },
+        10s))
+        << "the alert is acknowledged from the page";
     EXPECT_EQ(rig_.station->journal().alert(damageAlerts[0].id)->ackAction, "rescan");
     // The rescan captures the section again (the simulated slide still holds a torn section).
-    ASSERT_TRUE(waitFor([&] {
-        auto s = rig_.station->journal().section(torn);
-        return s && s->attempts == 2 && (s->state == SectionState::Damaged || s->state == SectionState::Registered);
-    }, 120s)) << "the rescan ran";
+    ASSERT_TRUE(waitFor(
+        [&] {
+            auto s = rig_.station->journal().section(torn);
+            return s && s->attempts == 2 &&
+                   (s->state == SectionState::Damaged || s->state == SectionState::Registered);
+        },
+        120s))
+        << "the rescan ran";
     ASSERT_TRUE(waitFor([&] {
         return browser.execute("const li = [...document.querySelectorAll('#alerts li')]; "
                                "return li.some(e => e.textContent.includes('[rescan]'));") == true;
@@ -172,10 +202,16 @@ TEST_F(PageTest, TechnicianWatchesARunSeesTheTornSectionAndAcknowledgesItsAlert)
 
     // A phone-sized screen: one column, nothing wider than the screen.
     browser.resize(390, 844);
-    ASSERT_TRUE(waitFor([&] { return browser.execute("return window.innerWidth;").get<int>() <= 420; }, 10s));
-    EXPECT_EQ(browser.execute("return document.documentElement.scrollWidth <= window.innerWidth;"), true)
+    ASSERT_TRUE(waitFor(
+        [&] { return browser.execute("return window.innerWidth;").get<int>() <= 420; }, 10s));
+    EXPECT_EQ(browser.execute("return document.documentElement.scrollWidth <= window.innerWidth;"),
+              true)
         << "no horizontal scrolling on a phone";
-    EXPECT_EQ(browser.execute("return getComputedStyle(document.querySelector('main')).gridTemplateColumns.split(' ').length;"), 1);
+    EXPECT_EQ(
+        browser.execute(
+            "return getComputedStyle(document.querySelector('main')).gridTemplateColumns.split(' "
+            "').length;"),
+        1);
     browser.screenshot(kArtefacts / "page-phone.png");
 }
 
@@ -188,11 +224,13 @@ TEST_F(PageTest, TheLiveViewShowsCameraFramesDuringARun) {
     webdriver::Session browser(1280, 900);
     browser.navigate("http://127.0.0.1:" + std::to_string(rig_.api->port()) + "/");
     ASSERT_TRUE(waitFor([&] { return browser.text(*browser.find("#state")) == "idle"; }));
-    EXPECT_EQ(browser.execute("return document.getElementById('live').naturalWidth;"), 0) << "no frame before a run";
+    EXPECT_EQ(browser.execute("return document.getElementById('live').naturalWidth;"), 0)
+        << "no frame before a run";
     auto runId = rig_.station->submitPlan(planFor({0, 1, 2, 3}), "live-run");
     ASSERT_TRUE(runId);
     ASSERT_TRUE(waitFor([&] {
-        return browser.execute("const i = document.getElementById('live'); return i.src.startsWith('blob:') && i.naturalWidth === 800;") == true;
+        return browser.execute("const i = document.getElementById('live'); return "
+                               "i.src.startsWith('blob:') && i.naturalWidth === 800;") == true;
     })) << "the live view shows a frame scaled to 800 px";
     waitRun(*runId, RunState::Finished);
 }

@@ -4,8 +4,8 @@
 
 #include <algorithm>
 #include <cmath>
-#include <iomanip>
 #include <fstream>
+#include <iomanip>
 #include <sstream>
 
 namespace slicestation::drivers {
@@ -95,33 +95,43 @@ core::Error bad(std::string_view origin, const std::string& key, const std::stri
 
 core::Result<std::uint16_t> address(const toml::node* n, std::string_view origin,
                                     const std::string& key) {
-    if (!n || !n->is_integer()) return bad(origin, key, "expected an integer register address");
+    if (!n || !n->is_integer())
+        return bad(origin, key, "expected an integer register address");
     const auto v = n->as_integer()->get();
-    if (v < 0 || v > 0xFFFF) return bad(origin, key, "register address outside 0..0xFFFF");
+    if (v < 0 || v > 0xFFFF)
+        return bad(origin, key, "register address outside 0..0xFFFF");
     return static_cast<std::uint16_t>(v);
 }
 
 core::Result<MapValue> value(const toml::node* n, std::string_view origin, const std::string& key) {
-    if (n && n->is_integer()) return MapValue{MapValue::Kind::Literal, n->as_integer()->get()};
+    if (n && n->is_integer())
+        return MapValue{MapValue::Kind::Literal, n->as_integer()->get()};
     if (n && n->is_string()) {
         const std::string s = n->as_string()->get();
-        if (s == "{pos}") return MapValue{MapValue::Kind::Position, 0};
-        if (s == "{speed}") return MapValue{MapValue::Kind::Speed, 0};
-        if (s == "{accel}") return MapValue{MapValue::Kind::Accel, 0};
-        if (s == "{decel}") return MapValue{MapValue::Kind::Decel, 0};
-        return bad(origin, key, "unknown placeholder '" + s + "' (use {pos}, {speed}, {accel}, {decel})");
+        if (s == "{pos}")
+            return MapValue{MapValue::Kind::Position, 0};
+        if (s == "{speed}")
+            return MapValue{MapValue::Kind::Speed, 0};
+        if (s == "{accel}")
+            return MapValue{MapValue::Kind::Accel, 0};
+        if (s == "{decel}")
+            return MapValue{MapValue::Kind::Decel, 0};
+        return bad(origin, key,
+                   "unknown placeholder '" + s + "' (use {pos}, {speed}, {accel}, {decel})");
     }
     return bad(origin, key, "expected an integer or a placeholder string");
 }
 
 /// A literal must fit the register it is written to (0..65535; 32-bit: signed or unsigned).
-core::Result<void> literalFits(const MapValue& v, bool register32, std::string_view origin, const std::string& key) {
-    if (v.kind != MapValue::Kind::Literal) return {};
+core::Result<void> literalFits(const MapValue& v, bool register32, std::string_view origin,
+                               const std::string& key) {
+    if (v.kind != MapValue::Kind::Literal)
+        return {};
     const std::int64_t lo = register32 ? -2147483648LL : 0, hi = register32 ? 4294967295LL : 65535;
     if (v.literal < lo || v.literal > hi)
         return bad(origin, key,
-                   std::to_string(v.literal) + " does not fit a " + (register32 ? "32" : "16") + "-bit register (" +
-                       std::to_string(lo) + ".." + std::to_string(hi) + ")");
+                   std::to_string(v.literal) + " does not fit a " + (register32 ? "32" : "16") +
+                       "-bit register (" + std::to_string(lo) + ".." + std::to_string(hi) + ")");
     return {};
 }
 
@@ -130,50 +140,63 @@ core::Result<std::vector<MapStep>> steps(const toml::table& t, const char* name,
     std::vector<MapStep> out;
     const toml::node* n = t.get(name);
     if (!n) {
-        if (required) return bad(origin, name, "missing");
+        if (required)
+            return bad(origin, name, "missing");
         return out;
     }
     const toml::array* arr = n->as_array();
-    if (!arr || arr->empty()) return bad(origin, name, "expected a non-empty array of steps");
+    if (!arr || arr->empty())
+        return bad(origin, name, "expected a non-empty array of steps");
     for (std::size_t i = 0; i < arr->size(); ++i) {
         const std::string key = std::string(name) + "[" + std::to_string(i) + "]";
         const toml::table* st = arr->get(i)->as_table();
-        if (!st) return bad(origin, key, "expected an inline table");
+        if (!st)
+            return bad(origin, key, "expected an inline table");
         MapStep step;
         if (st->contains("write16") || st->contains("write32")) {
             const bool w32 = st->contains("write32");
             step.kind = w32 ? MapStep::Kind::Write32 : MapStep::Kind::Write16;
             auto a = address(st->get(w32 ? "write32" : "write16"), origin, key);
-            if (!a) return a.error();
+            if (!a)
+                return a.error();
             step.address = *a;
             auto v = value(st->get("value"), origin, key + ".value");
-            if (!v) return v.error();
-            if (auto fits = literalFits(*v, w32, origin, key + ".value"); !fits) return fits.error();
+            if (!v)
+                return v.error();
+            if (auto fits = literalFits(*v, w32, origin, key + ".value"); !fits)
+                return fits.error();
             step.values.push_back(*v);
         } else if (st->contains("write32_block")) {
             step.kind = MapStep::Kind::Write32Block;
             auto a = address(st->get("write32_block"), origin, key);
-            if (!a) return a.error();
+            if (!a)
+                return a.error();
             step.address = *a;
             const toml::array* vals = st->get("values") ? st->get("values")->as_array() : nullptr;
             if (!vals || vals->empty() || vals->size() > 61)
                 return bad(origin, key + ".values", "expected 1..61 values");
             for (std::size_t j = 0; j < vals->size(); ++j) {
                 auto v = value(vals->get(j), origin, key + ".values[" + std::to_string(j) + "]");
-                if (!v) return v.error();
-                if (auto fits = literalFits(*v, true, origin, key + ".values[" + std::to_string(j) + "]"); !fits)
+                if (!v)
+                    return v.error();
+                if (auto fits =
+                        literalFits(*v, true, origin, key + ".values[" + std::to_string(j) + "]");
+                    !fits)
                     return fits.error();
                 step.values.push_back(*v);
             }
         } else if (st->contains("pulse_bit")) {
             step.kind = MapStep::Kind::PulseBit;
             const toml::table* pb = st->get("pulse_bit")->as_table();
-            if (!pb) return bad(origin, key + ".pulse_bit", "expected { reg = ..., bit = ... }");
+            if (!pb)
+                return bad(origin, key + ".pulse_bit", "expected { reg = ..., bit = ... }");
             auto a = address(pb->get("reg"), origin, key + ".pulse_bit.reg");
-            if (!a) return a.error();
+            if (!a)
+                return a.error();
             step.address = *a;
             const auto bit = (*pb)["bit"].value<std::int64_t>();
-            if (!bit || *bit < 0 || *bit > 15) return bad(origin, key + ".pulse_bit.bit", "expected 0..15");
+            if (!bit || *bit < 0 || *bit > 15)
+                return bad(origin, key + ".pulse_bit.bit", "expected 0..15");
             step.bit = static_cast<int>(*bit);
         } else {
             return bad(origin, key, "expected write16, write32, write32_block or pulse_bit");
@@ -187,50 +210,62 @@ core::Result<RegisterMap> parseTable(const toml::table& t, std::string_view orig
     RegisterMap m;
     m.name = t["name"].value_or(std::string(origin));
     const std::string order = t["word_order"].value_or(std::string("hi_lo"));
-    if (order == "hi_lo") m.wordOrder = WordOrder::HighFirst;
-    else if (order == "lo_hi") m.wordOrder = WordOrder::LowFirst;
-    else return bad(origin, "word_order", "expected \"hi_lo\" or \"lo_hi\"");
-    for (auto [key, dst] : {std::pair{"speed_scale", &m.speedScale},
-                            std::pair{"accel_scale", &m.accelScale},
-                            std::pair{"accel_inverse", &m.accelInverse}}) {
+    if (order == "hi_lo")
+        m.wordOrder = WordOrder::HighFirst;
+    else if (order == "lo_hi")
+        m.wordOrder = WordOrder::LowFirst;
+    else
+        return bad(origin, "word_order", "expected \"hi_lo\" or \"lo_hi\"");
+    for (auto [key, dst] :
+         {std::pair{"speed_scale", &m.speedScale}, std::pair{"accel_scale", &m.accelScale},
+          std::pair{"accel_inverse", &m.accelInverse}}) {
         if (const toml::node* n = t.get(key)) {
             const auto v = n->value<double>();
-            if (!v || !std::isfinite(*v) || *v < 0) return bad(origin, key, "expected a number >= 0");
+            if (!v || !std::isfinite(*v) || *v < 0)
+                return bad(origin, key, "expected a number >= 0");
             *dst = *v;
         }
     }
     auto move = steps(t, "move_abs", origin, true);
-    if (!move) return move.error();
+    if (!move)
+        return move.error();
     m.moveAbs = std::move(*move);
     auto stop = steps(t, "stop", origin, true);
-    if (!stop) return stop.error();
+    if (!stop)
+        return stop.error();
     m.stop = std::move(*stop);
     auto home = steps(t, "home", origin, false);
-    if (!home) return home.error();
+    if (!home)
+        return home.error();
     m.home = std::move(*home);
     auto reset = steps(t, "alarm_reset", origin, false);
-    if (!reset) return reset.error();
+    if (!reset)
+        return reset.error();
     m.alarmReset = std::move(*reset);
 
     const toml::table* pos = t["position"].as_table();
-    if (!pos) return bad(origin, "position", "missing table { read_s32 = address }");
+    if (!pos)
+        return bad(origin, "position", "missing table { read_s32 = address }");
     auto pa = address(pos->get("read_s32"), origin, "position.read_s32");
-    if (!pa) return pa.error();
+    if (!pa)
+        return pa.error();
     m.positionAddress = *pa;
 
     const toml::table* st = t["status"].as_table();
-    if (!st) return bad(origin, "status", "missing table { read_u16 = address, ... bits }");
+    if (!st)
+        return bad(origin, "status", "missing table { read_u16 = address, ... bits }");
     auto sa = address(st->get("read_u16"), origin, "status.read_u16");
-    if (!sa) return sa.error();
+    if (!sa)
+        return sa.error();
     m.status.address = *sa;
-    for (auto [key, dst] : {std::pair{"ready", &m.status.ready}, std::pair{"moving", &m.status.moving},
-                            std::pair{"in_position", &m.status.inPosition},
-                            std::pair{"alarm", &m.status.alarm},
-                            std::pair{"home_end", &m.status.homeEnd},
-                            std::pair{"homing", &m.status.homing}}) {
+    for (auto [key, dst] :
+         {std::pair{"ready", &m.status.ready}, std::pair{"moving", &m.status.moving},
+          std::pair{"in_position", &m.status.inPosition}, std::pair{"alarm", &m.status.alarm},
+          std::pair{"home_end", &m.status.homeEnd}, std::pair{"homing", &m.status.homing}}) {
         if (const toml::node* n = st->get(key)) {
             const auto v = n->value<std::int64_t>();
-            if (!v || *v < 0 || *v > 15) return bad(origin, std::string("status.") + key, "expected a bit 0..15");
+            if (!v || *v < 0 || *v > 15)
+                return bad(origin, std::string("status.") + key, "expected a bit 0..15");
             *dst = static_cast<int>(*v);
         }
     }
@@ -238,11 +273,13 @@ core::Result<RegisterMap> parseTable(const toml::table& t, std::string_view orig
         return bad(origin, "status", "needs at least one of 'moving' and 'in_position'");
 
     const toml::table* al = t["alarm_code"].as_table();
-    if (!al) return bad(origin, "alarm_code", "missing table { read_u16 | read_u32 = address }");
+    if (!al)
+        return bad(origin, "alarm_code", "missing table { read_u16 | read_u32 = address }");
     m.alarm32 = al->contains("read_u32");
     auto aa = address(al->get(m.alarm32 ? "read_u32" : "read_u16"), origin,
                       m.alarm32 ? "alarm_code.read_u32" : "alarm_code.read_u16");
-    if (!aa) return aa.error();
+    if (!aa)
+        return aa.error();
     m.alarmAddress = *aa;
     return m;
 }
@@ -251,22 +288,26 @@ core::Result<RegisterMap> parseTable(const toml::table& t, std::string_view orig
 
 std::vector<std::string> presetNames() {
     std::vector<std::string> out;
-    for (const auto& p : kPresets) out.emplace_back(p.name);
+    for (const auto& p : kPresets)
+        out.emplace_back(p.name);
     return out;
 }
 
 core::Result<std::string> presetToml(std::string_view name) {
     for (const auto& p : kPresets)
-        if (p.name == name) return std::string(p.toml);
+        if (p.name == name)
+            return std::string(p.toml);
     std::string list;
-    for (const auto& p : kPresets) list += (list.empty() ? "" : ", ") + std::string(p.name);
+    for (const auto& p : kPresets)
+        list += (list.empty() ? "" : ", ") + std::string(p.name);
     return makeError(ErrorCode::NotFound,
                      "unknown stage preset '" + std::string(name) + "' (known: " + list + ")");
 }
 
 core::Result<RegisterMap> presetMap(std::string_view name) {
     auto text = presetToml(name);
-    if (!text) return text.error();
+    if (!text)
+        return text.error();
     return parseRegisterMap(*text, "preset " + std::string(name));
 }
 
@@ -285,7 +326,8 @@ core::Result<RegisterMap> parseRegisterMap(std::string_view tomlText, std::strin
 core::Result<RegisterMap> loadRegisterMap(const std::filesystem::path& file) {
     std::error_code ec;
     if (!std::filesystem::exists(file, ec))
-        return makeError(ErrorCode::NotFound, "register map file " + file.string() + " does not exist");
+        return makeError(ErrorCode::NotFound,
+                         "register map file " + file.string() + " does not exist");
     std::ifstream in(file);
     std::stringstream ss;
     ss << in.rdbuf();
@@ -296,9 +338,12 @@ core::Result<RegisterMap> loadRegisterMap(const std::filesystem::path& file) {
 
 std::int64_t encodeValue(const RegisterMap& map, const MapValue& v, const MoveQuantities& q) {
     switch (v.kind) {
-    case MapValue::Kind::Literal: return v.literal;
-    case MapValue::Kind::Position: return q.positionSteps;
-    case MapValue::Kind::Speed: return std::llround(q.speedStepsPerS * map.speedScale);
+    case MapValue::Kind::Literal:
+        return v.literal;
+    case MapValue::Kind::Position:
+        return q.positionSteps;
+    case MapValue::Kind::Speed:
+        return std::llround(q.speedStepsPerS * map.speedScale);
     case MapValue::Kind::Accel:
     case MapValue::Kind::Decel:
         if (map.accelInverse > 0)
@@ -308,14 +353,22 @@ std::int64_t encodeValue(const RegisterMap& map, const MapValue& v, const MoveQu
     return 0;
 }
 
-core::Result<std::int64_t> encodeChecked(const RegisterMap& map, const MapValue& v, const MoveQuantities& q,
-                                         bool register32) {
+core::Result<std::int64_t> encodeChecked(const RegisterMap& map, const MapValue& v,
+                                         const MoveQuantities& q, bool register32) {
     double x = 0;
     const char* what = "value";
     switch (v.kind) {
-    case MapValue::Kind::Literal: x = static_cast<double>(v.literal); break;
-    case MapValue::Kind::Position: x = static_cast<double>(q.positionSteps); what = "position"; break;
-    case MapValue::Kind::Speed: x = q.speedStepsPerS * map.speedScale; what = "speed"; break;
+    case MapValue::Kind::Literal:
+        x = static_cast<double>(v.literal);
+        break;
+    case MapValue::Kind::Position:
+        x = static_cast<double>(q.positionSteps);
+        what = "position";
+        break;
+    case MapValue::Kind::Speed:
+        x = q.speedStepsPerS * map.speedScale;
+        what = "speed";
+        break;
     case MapValue::Kind::Accel:
     case MapValue::Kind::Decel:
         x = map.accelInverse > 0 ? map.accelInverse / std::max(q.accelStepsPerS2, 1e-9)

@@ -1,7 +1,7 @@
 #include "slicestation/drivers/v4l2_camera.hpp"
 
-#include <linux/videodev2.h>
 #include <fcntl.h>
+#include <linux/videodev2.h>
 #include <sys/mman.h>
 
 #include <opencv2/core.hpp>
@@ -38,7 +38,8 @@ public:
     ~SeamFd() { reset(); }
     int get() const noexcept { return fd_; }
     void reset() noexcept {
-        if (fd_ >= 0) calls_->close(fd_);
+        if (fd_ >= 0)
+            calls_->close(fd_);
         fd_ = -1;
     }
 
@@ -57,7 +58,8 @@ public:
     MappedBuffer& operator=(MappedBuffer&&) = delete;
     MappedBuffer(const MappedBuffer&) = delete;
     ~MappedBuffer() {
-        if (addr_) calls_->munmap(addr_, length_);
+        if (addr_)
+            calls_->munmap(addr_, length_);
     }
     const std::uint8_t* data() const noexcept { return static_cast<const std::uint8_t*>(addr_); }
     std::size_t length() const noexcept { return length_; }
@@ -73,13 +75,15 @@ constexpr std::uint32_t kDecodable[] = {V4L2_PIX_FMT_GREY, V4L2_PIX_FMT_Y16, V4L
 
 bool decodable(std::uint32_t fcc) {
     for (auto f : kDecodable)
-        if (f == fcc) return true;
+        if (f == fcc)
+            return true;
     return false;
 }
 
 std::string fourccName(std::uint32_t f) {
     std::string s(4, ' ');
-    for (int i = 0; i < 4; ++i) s[static_cast<std::size_t>(i)] = static_cast<char>((f >> (8 * i)) & 0xff);
+    for (int i = 0; i < 4; ++i)
+        s[static_cast<std::size_t>(i)] = static_cast<char>((f >> (8 * i)) & 0xff);
     return s;
 }
 
@@ -87,22 +91,30 @@ std::string fourccName(std::uint32_t f) {
 std::vector<std::uint32_t> candidates(hw::PixelFormat f) {
     switch (f) {
     case hw::PixelFormat::Mono8:
-        return {V4L2_PIX_FMT_GREY, V4L2_PIX_FMT_Y16, V4L2_PIX_FMT_YUYV, V4L2_PIX_FMT_RGB24, V4L2_PIX_FMT_MJPEG};
+        return {V4L2_PIX_FMT_GREY, V4L2_PIX_FMT_Y16, V4L2_PIX_FMT_YUYV, V4L2_PIX_FMT_RGB24,
+                V4L2_PIX_FMT_MJPEG};
     case hw::PixelFormat::Mono16:
-        return {V4L2_PIX_FMT_Y16, V4L2_PIX_FMT_GREY, V4L2_PIX_FMT_YUYV, V4L2_PIX_FMT_RGB24, V4L2_PIX_FMT_MJPEG};
+        return {V4L2_PIX_FMT_Y16, V4L2_PIX_FMT_GREY, V4L2_PIX_FMT_YUYV, V4L2_PIX_FMT_RGB24,
+                V4L2_PIX_FMT_MJPEG};
     case hw::PixelFormat::Rgb8:
-        return {V4L2_PIX_FMT_RGB24, V4L2_PIX_FMT_YUYV, V4L2_PIX_FMT_MJPEG, V4L2_PIX_FMT_GREY, V4L2_PIX_FMT_Y16};
+        return {V4L2_PIX_FMT_RGB24, V4L2_PIX_FMT_YUYV, V4L2_PIX_FMT_MJPEG, V4L2_PIX_FMT_GREY,
+                V4L2_PIX_FMT_Y16};
     }
     return {};
 }
 
 int packedBytesPerPixel(std::uint32_t fcc) {
     switch (fcc) {
-    case V4L2_PIX_FMT_GREY: return 1;
-    case V4L2_PIX_FMT_Y16: return 2;
-    case V4L2_PIX_FMT_YUYV: return 2;
-    case V4L2_PIX_FMT_RGB24: return 3;
-    default: return 0; // compressed
+    case V4L2_PIX_FMT_GREY:
+        return 1;
+    case V4L2_PIX_FMT_Y16:
+        return 2;
+    case V4L2_PIX_FMT_YUYV:
+        return 2;
+    case V4L2_PIX_FMT_RGB24:
+        return 3;
+    default:
+        return 0; // compressed
     }
 }
 
@@ -110,7 +122,7 @@ int packedBytesPerPixel(std::uint32_t fcc) {
 
 struct V4l2Camera::Device {
     std::shared_ptr<V4l2Syscalls> calls;
-    SeamFd fd;                          // declared before buffers: unmapped before the close
+    SeamFd fd; // declared before buffers: unmapped before the close
     std::vector<MappedBuffer> buffers;
     bool streaming = false;
     bool buffersRequested = false; // REQBUFS granted some: S_FMT is refused until they are freed
@@ -128,7 +140,8 @@ struct V4l2Camera::Device {
 namespace {
 
 core::Error sysError(const std::string& device, const std::string& what, int err) {
-    const ErrorCode code = (err == ENODEV || err == ENXIO) ? ErrorCode::Disconnected : ErrorCode::IoError;
+    const ErrorCode code =
+        (err == ENODEV || err == ENXIO) ? ErrorCode::Disconnected : ErrorCode::IoError;
     return makeError(code, "v4l2 " + device + ": " + what + ": " + std::strerror(err), err);
 }
 
@@ -139,40 +152,59 @@ core::Result<hw::Frame> convert(const std::uint8_t* data, std::size_t bytesUsed,
         cv::Mat src;
         auto* p = const_cast<std::uint8_t*>(data); // wrapped read-only
         switch (fcc) {
-        case V4L2_PIX_FMT_GREY: src = cv::Mat(h, w, CV_8UC1, p, bpl); break;
-        case V4L2_PIX_FMT_Y16: src = cv::Mat(h, w, CV_16UC1, p, bpl); break; // little-endian host
-        case V4L2_PIX_FMT_YUYV: src = cv::Mat(h, w, CV_8UC2, p, bpl); break;
-        case V4L2_PIX_FMT_RGB24: src = cv::Mat(h, w, CV_8UC3, p, bpl); break;
+        case V4L2_PIX_FMT_GREY:
+            src = cv::Mat(h, w, CV_8UC1, p, bpl);
+            break;
+        case V4L2_PIX_FMT_Y16:
+            src = cv::Mat(h, w, CV_16UC1, p, bpl);
+            break; // little-endian host
+        case V4L2_PIX_FMT_YUYV:
+            src = cv::Mat(h, w, CV_8UC2, p, bpl);
+            break;
+        case V4L2_PIX_FMT_RGB24:
+            src = cv::Mat(h, w, CV_8UC3, p, bpl);
+            break;
         case V4L2_PIX_FMT_MJPEG: {
             const cv::Mat raw(1, static_cast<int>(bytesUsed), CV_8UC1, p);
-            src = cv::imdecode(raw, target == hw::PixelFormat::Rgb8 ? cv::IMREAD_COLOR : cv::IMREAD_GRAYSCALE);
-            if (src.empty()) return makeError(ErrorCode::IoError, "MJPEG frame cannot be decoded");
+            src = cv::imdecode(raw, target == hw::PixelFormat::Rgb8 ? cv::IMREAD_COLOR
+                                                                    : cv::IMREAD_GRAYSCALE);
+            if (src.empty())
+                return makeError(ErrorCode::IoError, "MJPEG frame cannot be decoded");
             if (src.cols != w || src.rows != h)
-                return makeError(ErrorCode::IoError, "MJPEG frame is " + std::to_string(src.cols) + "x" +
-                                                         std::to_string(src.rows) + ", not the negotiated size");
-            if (src.channels() == 3) cv::cvtColor(src, src, cv::COLOR_BGR2RGB);
+                return makeError(ErrorCode::IoError, "MJPEG frame is " + std::to_string(src.cols) +
+                                                         "x" + std::to_string(src.rows) +
+                                                         ", not the negotiated size");
+            if (src.channels() == 3)
+                cv::cvtColor(src, src, cv::COLOR_BGR2RGB);
             break;
         }
-        default: return makeError(ErrorCode::IoError, "unexpected pixel format " + fourccName(fcc));
+        default:
+            return makeError(ErrorCode::IoError, "unexpected pixel format " + fourccName(fcc));
         }
         cv::Mat out;
         const bool wantRgb = target == hw::PixelFormat::Rgb8;
         if (src.type() == CV_8UC2) {
             cv::cvtColor(src, out, wantRgb ? cv::COLOR_YUV2RGB_YUYV : cv::COLOR_YUV2GRAY_YUYV);
         } else if (src.channels() == 3) {
-            if (wantRgb) out = src;
-            else cv::cvtColor(src, out, cv::COLOR_RGB2GRAY);
+            if (wantRgb)
+                out = src;
+            else
+                cv::cvtColor(src, out, cv::COLOR_RGB2GRAY);
         } else if (wantRgb) {
             cv::Mat g8 = src;
-            if (src.depth() == CV_16U) src.convertTo(g8, CV_8U, 1.0 / 256);
+            if (src.depth() == CV_16U)
+                src.convertTo(g8, CV_8U, 1.0 / 256);
             cv::cvtColor(g8, out, cv::COLOR_GRAY2RGB);
         } else {
             out = src;
         }
-        if (target == hw::PixelFormat::Mono16 && out.depth() == CV_8U) out.convertTo(out, CV_16U, 257);
-        if (target == hw::PixelFormat::Mono8 && out.depth() == CV_16U) out.convertTo(out, CV_8U, 1.0 / 256);
+        if (target == hw::PixelFormat::Mono16 && out.depth() == CV_8U)
+            out.convertTo(out, CV_16U, 257);
+        if (target == hw::PixelFormat::Mono8 && out.depth() == CV_16U)
+            out.convertTo(out, CV_8U, 1.0 / 256);
         hw::Frame f(target, w, h);
-        for (int y = 0; y < h; ++y) std::memcpy(f.row(y), out.ptr(y), f.stride());
+        for (int y = 0; y < h; ++y)
+            std::memcpy(f.row(y), out.ptr(y), f.stride());
         return f;
     } catch (const cv::Exception& e) {
         return makeError(ErrorCode::IoError, std::string("frame conversion failed: ") + e.what());
@@ -199,15 +231,20 @@ V4l2Camera::~V4l2Camera() {
 }
 
 core::Result<std::unique_ptr<V4l2Camera>> V4l2Camera::create(V4l2CameraConfig config) {
-    if (config.device.empty()) return makeError(ErrorCode::InvalidArgument, "v4l2: camera.device is empty");
-    if (config.bufferCount < 1 || config.bufferCount > 32 || config.settleFrames < 0 || config.staleFrames < 0 ||
-        config.maxReinitAttempts < 1 || config.pollSlice.count() < 1 || !(config.gainUnitsPerX > 0) ||
-        !(config.wbUnitsPerX > 0))
-        return makeError(ErrorCode::InvalidArgument, "v4l2 " + config.device + ": bad driver parameters");
-    if (!config.syscalls) config.syscalls = libcV4l2Syscalls();
-    if (!config.clock) config.clock = std::make_shared<core::SteadyClock>();
+    if (config.device.empty())
+        return makeError(ErrorCode::InvalidArgument, "v4l2: camera.device is empty");
+    if (config.bufferCount < 1 || config.bufferCount > 32 || config.settleFrames < 0 ||
+        config.staleFrames < 0 || config.maxReinitAttempts < 1 || config.pollSlice.count() < 1 ||
+        !(config.gainUnitsPerX > 0) || !(config.wbUnitsPerX > 0))
+        return makeError(ErrorCode::InvalidArgument,
+                         "v4l2 " + config.device + ": bad driver parameters");
+    if (!config.syscalls)
+        config.syscalls = libcV4l2Syscalls();
+    if (!config.clock)
+        config.clock = std::make_shared<core::SteadyClock>();
     std::unique_ptr<V4l2Camera> cam(new V4l2Camera(std::move(config)));
-    if (auto r = cam->openDevice(); !r) return r.error();
+    if (auto r = cam->openDevice(); !r)
+        return r.error();
     return cam;
 }
 
@@ -224,7 +261,8 @@ core::Result<void> V4l2Camera::openDevice() {
     if (fd < 0) {
         const int err = errno;
         if (err == ENOENT || err == ENODEV || err == ENXIO)
-            return makeError(ErrorCode::NotFound, "v4l2: no device " + path + " (" + std::strerror(err) + ")", err);
+            return makeError(ErrorCode::NotFound,
+                             "v4l2: no device " + path + " (" + std::strerror(err) + ")", err);
         return sysError(path, "open", err);
     }
     dev->fd = SeamFd(dev->calls.get(), fd);
@@ -232,14 +270,18 @@ core::Result<void> V4l2Camera::openDevice() {
     if (dev->xioctl(VIDIOC_QUERYCAP, &cap) < 0) {
         const int err = errno;
         if (err == ENOTTY || err == EINVAL)
-            return makeError(ErrorCode::Unsupported, "v4l2: " + path + " is not a V4L2 device", err);
+            return makeError(ErrorCode::Unsupported, "v4l2: " + path + " is not a V4L2 device",
+                             err);
         return sysError(path, "VIDIOC_QUERYCAP", err);
     }
-    const std::uint32_t caps = (cap.capabilities & V4L2_CAP_DEVICE_CAPS) ? cap.device_caps : cap.capabilities;
+    const std::uint32_t caps =
+        (cap.capabilities & V4L2_CAP_DEVICE_CAPS) ? cap.device_caps : cap.capabilities;
     if (!(caps & V4L2_CAP_VIDEO_CAPTURE)) {
         if (caps & V4L2_CAP_VIDEO_CAPTURE_MPLANE)
-            return makeError(ErrorCode::Unsupported, "v4l2: " + path + " is multi-planar only (not supported)");
-        return makeError(ErrorCode::Unsupported, "v4l2: " + path + " is not a video capture device");
+            return makeError(ErrorCode::Unsupported,
+                             "v4l2: " + path + " is multi-planar only (not supported)");
+        return makeError(ErrorCode::Unsupported,
+                         "v4l2: " + path + " is not a video capture device");
     }
     if (!(caps & V4L2_CAP_STREAMING))
         return makeError(ErrorCode::Unsupported, "v4l2: " + path + " has no streaming I/O");
@@ -248,7 +290,8 @@ core::Result<void> V4l2Camera::openDevice() {
 }
 
 void V4l2Camera::stopStreaming() noexcept {
-    if (!dev_) return;
+    if (!dev_)
+        return;
     if (dev_->streaming) {
         int type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
         dev_->xioctl(VIDIOC_STREAMOFF, &type); // best effort: the device may be gone
@@ -281,30 +324,36 @@ core::Result<hw::CameraSettings> V4l2Camera::setUp(const hw::CameraSettings& wan
         f.fmt.pix.field = V4L2_FIELD_NONE;
         if (d.xioctl(VIDIOC_S_FMT, &f) < 0) {
             const int err = errno;
-            if (err == EINVAL) continue; // some drivers refuse instead of adjusting
+            if (err == EINVAL)
+                continue; // some drivers refuse instead of adjusting
             return sysError(path, "VIDIOC_S_FMT " + fourccName(fcc), err);
         }
         if (f.fmt.pix.pixelformat == fcc) {
             chosen = f;
             break;
         }
-        if (!substitute && decodable(f.fmt.pix.pixelformat)) substitute = f;
+        if (!substitute && decodable(f.fmt.pix.pixelformat))
+            substitute = f;
     }
     if (!chosen && substitute) {
         v4l2_format f = *substitute;
-        if (d.xioctl(VIDIOC_S_FMT, &f) < 0) return sysError(path, "VIDIOC_S_FMT", errno);
-        if (decodable(f.fmt.pix.pixelformat)) chosen = f;
+        if (d.xioctl(VIDIOC_S_FMT, &f) < 0)
+            return sysError(path, "VIDIOC_S_FMT", errno);
+        if (decodable(f.fmt.pix.pixelformat))
+            chosen = f;
     }
     if (!chosen)
         return makeError(ErrorCode::Unsupported,
-                         "v4l2 " + path + ": offers none of the formats GREY, Y16, YUYV, RGB3, MJPG");
+                         "v4l2 " + path +
+                             ": offers none of the formats GREY, Y16, YUYV, RGB3, MJPG");
     const v4l2_pix_format& pix = chosen->fmt.pix;
     if (pix.width < 1 || pix.height < 1)
         return makeError(ErrorCode::IoError, "v4l2 " + path + ": driver returned an empty format");
     d.fourcc = pix.pixelformat;
     d.width = pix.width;
     d.height = pix.height;
-    const std::uint32_t minBpl = pix.width * static_cast<std::uint32_t>(packedBytesPerPixel(d.fourcc));
+    const std::uint32_t minBpl =
+        pix.width * static_cast<std::uint32_t>(packedBytesPerPixel(d.fourcc));
     d.bytesPerLine = std::max(pix.bytesperline, minBpl); // compressed formats may say 0
     d.sizeImage = pix.sizeimage;
 
@@ -313,46 +362,74 @@ core::Result<hw::CameraSettings> V4l2Camera::setUp(const hw::CameraSettings& wan
     used.height = static_cast<int>(d.height);
 
     // Controls: everything automatic off so tiles match (capture-apis.md §5.2 step 4).
-    auto setCtrl = [&](std::uint32_t id, std::int32_t value, const char* name) -> core::Result<std::optional<std::int32_t>> {
+    auto setCtrl = [&](std::uint32_t id, std::int32_t value,
+                       const char* name) -> core::Result<std::optional<std::int32_t>> {
         v4l2_control c{};
         c.id = id;
         c.value = value;
         if (d.xioctl(VIDIOC_S_CTRL, &c) < 0) {
             const int err = errno;
-            if (err == EINVAL) return std::optional<std::int32_t>(); // no such control
+            if (err == EINVAL)
+                return std::optional<std::int32_t>(); // no such control
             if (err == ERANGE)
-                return makeError(ErrorCode::InvalidArgument, "v4l2 " + path + ": " + name + " = " +
-                                                                 std::to_string(value) + " is outside the device's range", err);
+                return makeError(ErrorCode::InvalidArgument,
+                                 "v4l2 " + path + ": " + name + " = " + std::to_string(value) +
+                                     " is outside the device's range",
+                                 err);
             return sysError(path, std::string("VIDIOC_S_CTRL ") + name, err);
         }
-        if (d.xioctl(VIDIOC_G_CTRL, &c) < 0) return sysError(path, std::string("VIDIOC_G_CTRL ") + name, errno);
+        if (d.xioctl(VIDIOC_G_CTRL, &c) < 0)
+            return sysError(path, std::string("VIDIOC_G_CTRL ") + name, errno);
         return std::optional<std::int32_t>(c.value);
     };
-    if (auto r = setCtrl(V4L2_CID_EXPOSURE_AUTO, V4L2_EXPOSURE_MANUAL, "auto_exposure"); !r) return r.error();
-    const auto units100 = static_cast<std::int32_t>(std::max<std::int64_t>(1, (wanted.exposureUs + 50) / 100));
+    if (auto r = setCtrl(V4L2_CID_EXPOSURE_AUTO, V4L2_EXPOSURE_MANUAL, "auto_exposure"); !r)
+        return r.error();
+    const auto units100 =
+        static_cast<std::int32_t>(std::max<std::int64_t>(1, (wanted.exposureUs + 50) / 100));
     auto exp = setCtrl(V4L2_CID_EXPOSURE_ABSOLUTE, units100, "exposure_time_absolute");
-    if (!exp) return exp.error();
+    if (!exp)
+        return exp.error();
     if (!*exp)
-        return makeError(ErrorCode::Unsupported, "v4l2 " + path + ": no manual exposure control (exposure_time_absolute)");
+        return makeError(ErrorCode::Unsupported,
+                         "v4l2 " + path + ": no manual exposure control (exposure_time_absolute)");
     used.exposureUs = std::int64_t{**exp} * 100;
-    auto gain = setCtrl(V4L2_CID_GAIN, static_cast<std::int32_t>(std::lround(wanted.analogueGain * config_.gainUnitsPerX)), "gain");
-    if (!gain) return gain.error();
+    auto gain =
+        setCtrl(V4L2_CID_GAIN,
+                static_cast<std::int32_t>(std::lround(wanted.analogueGain * config_.gainUnitsPerX)),
+                "gain");
+    if (!gain)
+        return gain.error();
     if (*gain) {
         used.analogueGain = **gain / config_.gainUnitsPerX;
     } else if (wanted.analogueGain != 1.0) {
-        return makeError(ErrorCode::Unsupported, "v4l2 " + path + ": no gain control, so gain must be 1");
+        return makeError(ErrorCode::Unsupported,
+                         "v4l2 " + path + ": no gain control, so gain must be 1");
     }
-    if (auto r = setCtrl(V4L2_CID_AUTO_WHITE_BALANCE, 0, "white_balance_automatic"); !r) return r.error();
+    if (auto r = setCtrl(V4L2_CID_AUTO_WHITE_BALANCE, 0, "white_balance_automatic"); !r)
+        return r.error();
     used.redGain = used.blueGain = 1.0;
     if (wanted.format == hw::PixelFormat::Rgb8) {
-        auto red = setCtrl(V4L2_CID_RED_BALANCE, static_cast<std::int32_t>(std::lround(wanted.redGain * config_.wbUnitsPerX)), "red_balance");
-        if (!red) return red.error();
-        auto blue = setCtrl(V4L2_CID_BLUE_BALANCE, static_cast<std::int32_t>(std::lround(wanted.blueGain * config_.wbUnitsPerX)), "blue_balance");
-        if (!blue) return blue.error();
+        auto red =
+            setCtrl(V4L2_CID_RED_BALANCE,
+                    static_cast<std::int32_t>(std::lround(wanted.redGain * config_.wbUnitsPerX)),
+                    "red_balance");
+        if (!red)
+            return red.error();
+        auto blue =
+            setCtrl(V4L2_CID_BLUE_BALANCE,
+                    static_cast<std::int32_t>(std::lround(wanted.blueGain * config_.wbUnitsPerX)),
+                    "blue_balance");
+        if (!blue)
+            return blue.error();
         if ((!*red || !*blue) && (wanted.redGain != 1.0 || wanted.blueGain != 1.0))
-            return makeError(ErrorCode::Unsupported, "v4l2 " + path + ": no red/blue balance controls, so white balance gains must be 1");
-        if (*red) used.redGain = **red / config_.wbUnitsPerX;
-        if (*blue) used.blueGain = **blue / config_.wbUnitsPerX;
+            return makeError(
+                ErrorCode::Unsupported,
+                "v4l2 " + path +
+                    ": no red/blue balance controls, so white balance gains must be 1");
+        if (*red)
+            used.redGain = **red / config_.wbUnitsPerX;
+        if (*blue)
+            used.blueGain = **blue / config_.wbUnitsPerX;
     }
 
     // Buffers (step 5): the driver may grant fewer than asked.
@@ -362,24 +439,31 @@ core::Result<hw::CameraSettings> V4l2Camera::setUp(const hw::CameraSettings& wan
     rb.memory = V4L2_MEMORY_MMAP;
     if (d.xioctl(VIDIOC_REQBUFS, &rb) < 0) {
         const int err = errno;
-        if (err == EINVAL) return makeError(ErrorCode::Unsupported, "v4l2 " + path + ": no MMAP streaming", err);
+        if (err == EINVAL)
+            return makeError(ErrorCode::Unsupported, "v4l2 " + path + ": no MMAP streaming", err);
         return sysError(path, "VIDIOC_REQBUFS", err);
     }
-    if (rb.count < 1) return makeError(ErrorCode::IoError, "v4l2 " + path + ": REQBUFS granted no buffers");
+    if (rb.count < 1)
+        return makeError(ErrorCode::IoError, "v4l2 " + path + ": REQBUFS granted no buffers");
     d.buffersRequested = true;
     for (std::uint32_t i = 0; i < rb.count; ++i) {
         v4l2_buffer b{};
         b.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
         b.memory = V4L2_MEMORY_MMAP;
         b.index = i;
-        if (d.xioctl(VIDIOC_QUERYBUF, &b) < 0) return sysError(path, "VIDIOC_QUERYBUF", errno);
-        void* a = d.calls->mmap(nullptr, b.length, PROT_READ | PROT_WRITE, MAP_SHARED, d.fd.get(), b.m.offset);
-        if (a == MAP_FAILED) return sysError(path, "mmap of buffer " + std::to_string(i), errno);
+        if (d.xioctl(VIDIOC_QUERYBUF, &b) < 0)
+            return sysError(path, "VIDIOC_QUERYBUF", errno);
+        void* a = d.calls->mmap(nullptr, b.length, PROT_READ | PROT_WRITE, MAP_SHARED, d.fd.get(),
+                                b.m.offset);
+        if (a == MAP_FAILED)
+            return sysError(path, "mmap of buffer " + std::to_string(i), errno);
         d.buffers.emplace_back(d.calls.get(), a, b.length);
-        if (d.xioctl(VIDIOC_QBUF, &b) < 0) return sysError(path, "VIDIOC_QBUF", errno);
+        if (d.xioctl(VIDIOC_QBUF, &b) < 0)
+            return sysError(path, "VIDIOC_QBUF", errno);
     }
     int type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
-    if (d.xioctl(VIDIOC_STREAMON, &type) < 0) return sysError(path, "VIDIOC_STREAMON", errno);
+    if (d.xioctl(VIDIOC_STREAMON, &type) < 0)
+        return sysError(path, "VIDIOC_STREAMON", errno);
     d.streaming = true;
     dropRemaining_ = config_.settleFrames;
     sequenceBase_ = lastSequence_ + 1; // the driver's sequence restarts at STREAMON
@@ -388,17 +472,20 @@ core::Result<hw::CameraSettings> V4l2Camera::setUp(const hw::CameraSettings& wan
 
 core::Result<hw::CameraSettings> V4l2Camera::configure(const hw::CameraSettings& settings,
                                                        std::chrono::milliseconds) {
-    if (auto v = validateSettings(settings); !v) return v.error();
+    if (auto v = validateSettings(settings); !v)
+        return v.error();
     wanted_ = settings;
     configured_ = false;
     if (!dev_) {
-        if (auto r = openDevice(); !r) return r.error();
+        if (auto r = openDevice(); !r)
+            return r.error();
     }
     stopStreaming();
     auto used = setUp(settings);
     if (!used) {
         stopStreaming();
-        if (used.error().code == ErrorCode::Disconnected) dev_.reset(); // the next capture re-opens
+        if (used.error().code == ErrorCode::Disconnected)
+            dev_.reset(); // the next capture re-opens
         return used.error();
     }
     inForce_ = *used;
@@ -418,8 +505,10 @@ core::Result<void> V4l2Camera::reinitialise(core::TimePoint deadline, const std:
             if (!config_.clock->sleepUntil(wake, stop_))
                 return makeError(ErrorCode::Cancelled, "v4l2 " + config_.device + ": stopped");
         }
-        if (stop_.raised()) return makeError(ErrorCode::Cancelled, "v4l2 " + config_.device + ": stopped");
-        if (config_.clock->now() >= deadline) break;
+        if (stop_.raised())
+            return makeError(ErrorCode::Cancelled, "v4l2 " + config_.device + ": stopped");
+        if (config_.clock->now() >= deadline)
+            break;
         if (auto r = openDevice(); !r) {
             last = r.error();
             continue;
@@ -429,16 +518,17 @@ core::Result<void> V4l2Camera::reinitialise(core::TimePoint deadline, const std:
             last = used.error();
             stopStreaming();
             dev_.reset();
-            if (last.code == ErrorCode::Disconnected || last.code == ErrorCode::IoError) continue;
+            if (last.code == ErrorCode::Disconnected || last.code == ErrorCode::IoError)
+                continue;
             return last; // another device answered (format or controls no longer fit)
         }
         inForce_ = *used;
         ++reinitCount_;
         return {};
     }
-    return makeError(ErrorCode::Disconnected, "v4l2 " + config_.device + ": device lost (" + why +
-                                                  ") and not back after " + std::to_string(config_.maxReinitAttempts) +
-                                                  " attempts: " + last.message,
+    return makeError(ErrorCode::Disconnected,
+                     "v4l2 " + config_.device + ": device lost (" + why + ") and not back after " +
+                         std::to_string(config_.maxReinitAttempts) + " attempts: " + last.message,
                      last.sysErrno);
 }
 
@@ -447,13 +537,17 @@ core::Result<hw::Frame> V4l2Camera::capture(std::chrono::milliseconds timeout) {
     const core::TimePoint deadline = config_.clock->now() + timeout;
     if (!configured_) {
         auto r = configure(wanted_, timeout);
-        if (!r && r.error().code != ErrorCode::Disconnected && r.error().code != ErrorCode::NotFound) return r.error();
+        if (!r && r.error().code != ErrorCode::Disconnected &&
+            r.error().code != ErrorCode::NotFound)
+            return r.error();
         if (!r) {
-            if (auto re = reinitialise(deadline, r.error().message); !re) return re.error();
+            if (auto re = reinitialise(deadline, r.error().message); !re)
+                return re.error();
             configured_ = true;
         }
     } else if (!dev_) {
-        if (auto r = reinitialise(deadline, "device was gone at the last capture"); !r) return r.error();
+        if (auto r = reinitialise(deadline, "device was gone at the last capture"); !r)
+            return r.error();
     }
     // Drain frames completed before this call: they may show the slide before the last move.
     Device* d = dev_.get();
@@ -463,9 +557,11 @@ core::Result<hw::Frame> V4l2Camera::capture(std::chrono::milliseconds timeout) {
         b.memory = V4L2_MEMORY_MMAP;
         if (d->xioctl(VIDIOC_DQBUF, &b) < 0) {
             const int err = errno;
-            if (err == EAGAIN) break;
+            if (err == EAGAIN)
+                break;
             if (err == ENODEV) {
-                if (auto r = reinitialise(deadline, "DQBUF: ENODEV"); !r) return r.error();
+                if (auto r = reinitialise(deadline, "DQBUF: ENODEV"); !r)
+                    return r.error();
                 d = dev_.get();
                 break;
             }
@@ -481,43 +577,55 @@ core::Result<hw::Frame> V4l2Camera::capture(std::chrono::milliseconds timeout) {
 core::Result<hw::Frame> V4l2Camera::waitFrame(core::TimePoint deadline) {
     const std::string& path = config_.device;
     for (;;) {
-        if (stop_.raised()) return makeError(ErrorCode::Cancelled, "v4l2 " + path + ": stopped");
+        if (stop_.raised())
+            return makeError(ErrorCode::Cancelled, "v4l2 " + path + ": stopped");
         if (!dev_) { // a requeue met ENODEV
-            if (auto r = reinitialise(deadline, "QBUF: ENODEV"); !r) return r.error();
+            if (auto r = reinitialise(deadline, "QBUF: ENODEV"); !r)
+                return r.error();
             continue;
         }
         const auto now = config_.clock->now();
-        if (now >= deadline) return makeError(ErrorCode::Timeout, "v4l2 " + path + ": no frame before the deadline");
+        if (now >= deadline)
+            return makeError(ErrorCode::Timeout, "v4l2 " + path + ": no frame before the deadline");
         const auto left = std::chrono::ceil<std::chrono::milliseconds>(deadline - now);
-        const int sliceMs = static_cast<int>(std::max<std::int64_t>(1, std::min(left, config_.pollSlice).count()));
+        const int sliceMs =
+            static_cast<int>(std::max<std::int64_t>(1, std::min(left, config_.pollSlice).count()));
         Device& d = *dev_;
         pollfd p{d.fd.get(), POLLIN, 0};
         const int n = d.calls->poll(&p, 1, sliceMs);
         if (n < 0) {
-            if (errno == EINTR) continue;
+            if (errno == EINTR)
+                continue;
             return sysError(path, "poll", errno);
         }
-        if (n == 0) continue;
+        if (n == 0)
+            continue;
         if (p.revents & (POLLERR | POLLHUP | POLLNVAL)) {
-            if (auto r = reinitialise(deadline, "poll: POLLERR/POLLHUP"); !r) return r.error();
+            if (auto r = reinitialise(deadline, "poll: POLLERR/POLLHUP"); !r)
+                return r.error();
             continue;
         }
-        if (!(p.revents & POLLIN)) continue;
+        if (!(p.revents & POLLIN))
+            continue;
         v4l2_buffer b{};
         b.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
         b.memory = V4L2_MEMORY_MMAP;
         if (d.xioctl(VIDIOC_DQBUF, &b) < 0) {
             const int err = errno;
-            if (err == EAGAIN) continue;
+            if (err == EAGAIN)
+                continue;
             if (err == ENODEV) {
-                if (auto r = reinitialise(deadline, "DQBUF: ENODEV"); !r) return r.error();
+                if (auto r = reinitialise(deadline, "DQBUF: ENODEV"); !r)
+                    return r.error();
                 continue;
             }
             return sysError(path, "VIDIOC_DQBUF", err);
         }
         if (b.index >= d.buffers.size())
-            return makeError(ErrorCode::IoError, "v4l2 " + path + ": corrupt frame: DQBUF returned unknown buffer index " +
-                                                     std::to_string(b.index));
+            return makeError(ErrorCode::IoError,
+                             "v4l2 " + path +
+                                 ": corrupt frame: DQBUF returned unknown buffer index " +
+                                 std::to_string(b.index));
         auto requeue = [&]() -> core::Result<void> {
             if (d.xioctl(VIDIOC_QBUF, &b) < 0) {
                 const int err = errno;
@@ -530,34 +638,45 @@ core::Result<hw::Frame> V4l2Camera::waitFrame(core::TimePoint deadline) {
             return {};
         };
         const int bpp = packedBytesPerPixel(d.fourcc);
-        const std::size_t needed = bpp ? std::size_t{d.bytesPerLine} * (d.height - 1) + std::size_t{d.width} * static_cast<std::size_t>(bpp)
+        const std::size_t needed = bpp ? std::size_t{d.bytesPerLine} * (d.height - 1) +
+                                             std::size_t{d.width} * static_cast<std::size_t>(bpp)
                                        : 1;
         std::string corrupt;
-        if (b.flags & V4L2_BUF_FLAG_ERROR) corrupt = "buffer flagged V4L2_BUF_FLAG_ERROR";
+        if (b.flags & V4L2_BUF_FLAG_ERROR)
+            corrupt = "buffer flagged V4L2_BUF_FLAG_ERROR";
         else if (b.bytesused < needed || b.bytesused > d.buffers[b.index].length())
-            corrupt = "bytesused " + std::to_string(b.bytesused) + " (expected " + std::to_string(needed) +
-                      " .. " + std::to_string(d.buffers[b.index].length()) + ")";
+            corrupt = "bytesused " + std::to_string(b.bytesused) + " (expected " +
+                      std::to_string(needed) + " .. " +
+                      std::to_string(d.buffers[b.index].length()) + ")";
         if (!corrupt.empty()) {
-            if (auto r = requeue(); !r) return r.error();
+            if (auto r = requeue(); !r)
+                return r.error();
             return makeError(ErrorCode::IoError, "v4l2 " + path + ": corrupt frame: " + corrupt);
         }
         if (dropRemaining_ > 0) {
             --dropRemaining_;
-            if (auto r = requeue(); !r) return r.error();
+            if (auto r = requeue(); !r)
+                return r.error();
             continue;
         }
-        auto frame = convert(d.buffers[b.index].data(), b.bytesused, d.fourcc, static_cast<int>(d.width),
-                             static_cast<int>(d.height), d.bytesPerLine, wanted_.format);
-        if (auto r = requeue(); !r) return r.error();
-        if (!frame) return makeError(ErrorCode::IoError, "v4l2 " + path + ": corrupt frame: " + frame.error().message);
+        auto frame =
+            convert(d.buffers[b.index].data(), b.bytesused, d.fourcc, static_cast<int>(d.width),
+                    static_cast<int>(d.height), d.bytesPerLine, wanted_.format);
+        if (auto r = requeue(); !r)
+            return r.error();
+        if (!frame)
+            return makeError(ErrorCode::IoError,
+                             "v4l2 " + path + ": corrupt frame: " + frame.error().message);
         auto& m = frame->metadata;
         m.exposureUs = inForce_.exposureUs;
         m.analogueGain = inForce_.analogueGain;
         m.redGain = inForce_.redGain;
         m.blueGain = inForce_.blueGain;
-        m.timestampNs = std::int64_t{b.timestamp.tv_sec} * 1'000'000'000 + std::int64_t{b.timestamp.tv_usec} * 1'000;
+        m.timestampNs = std::int64_t{b.timestamp.tv_sec} * 1'000'000'000 +
+                        std::int64_t{b.timestamp.tv_usec} * 1'000;
         m.sequence = sequenceBase_ + b.sequence;
-        if (m.sequence <= lastSequence_) m.sequence = lastSequence_ + 1;
+        if (m.sequence <= lastSequence_)
+            m.sequence = lastSequence_ + 1;
         lastSequence_ = m.sequence;
         return frame;
     }

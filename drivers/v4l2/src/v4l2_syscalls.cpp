@@ -12,7 +12,9 @@ class LibcSyscalls final : public V4l2Syscalls {
 public:
     int open(const char* path, int flags) override { return ::open(path, flags); }
     int close(int fd) override { return ::close(fd); }
-    int ioctl(int fd, unsigned long request, void* arg) override { return ::ioctl(fd, request, arg); }
+    int ioctl(int fd, unsigned long request, void* arg) override {
+        return ::ioctl(fd, request, arg);
+    }
     int poll(struct pollfd* fds, nfds_t count, int timeoutMs) override {
         return ::poll(fds, count, timeoutMs);
     }

@@ -66,16 +66,21 @@ std::chrono::milliseconds scaled(std::chrono::duration<Rep, Period> d) {
 constexpr const char* kToken = "process-test-token-0123";
 constexpr int kSections = 6; // two slides of three
 const double kAp[kSections] = {0.30, 0.38, 0.46, 0.54, 0.62, 0.70};
-constexpr int kTorn = 1;     // the second section is torn
+constexpr int kTorn = 1; // the second section is torn
 
-double centreX(int i) { return 5'000 + 1'000 + (i % 3 + 0.5) * 14'000; }
-double centreY(int i) { return 5'000 + 1'000 + (i / 3 + 0.5) * 14'000; }
+double centreX(int i) {
+    return 5'000 + 1'000 + (i % 3 + 0.5) * 14'000;
+}
+double centreY(int i) {
+    return 5'000 + 1'000 + (i / 3 + 0.5) * 14'000;
+}
 
 std::string stationToml(int stagePort, const std::string& scanExtra, const std::string& daemonExtra,
                         int moveTimeoutS) {
     std::ostringstream t;
-    t << "[stage]\ndriver = \"modbus\"\ntransport = \"tcp\"\nhost = \"127.0.0.1\"\nport = " << stagePort
-      << "\npreset = \"oriental-az\"\nmove_timeout_s = " << moveTimeoutS << "\nspeed_um_per_s = 40000\naccel_um_per_s2 = 200000\n"
+    t << "[stage]\ndriver = \"modbus\"\ntransport = \"tcp\"\nhost = \"127.0.0.1\"\nport = "
+      << stagePort << "\npreset = \"oriental-az\"\nmove_timeout_s = " << moveTimeoutS
+      << "\nspeed_um_per_s = 40000\naccel_um_per_s2 = 200000\n"
          "settle_ms = 20\nresponse_timeout_ms = 200\nretries = 2\n"
          "[stage.axes.x]\nslave = 1\nsteps_per_um = 2.0\nmin_um = 0\nmax_um = 75000\n"
          "[stage.axes.y]\nslave = 2\nsteps_per_um = 2.0\nmin_um = 0\nmax_um = 50000\n"
@@ -87,8 +92,10 @@ std::string stationToml(int stagePort, const std::string& scanExtra, const std::
     for (int i = 0; i < kSections; ++i)
         t << "[[camera.sim.sections]]\nap_fraction = " << kAp[i] << "\nseed = " << 40 + i
           << (i == kTorn ? "\ndamage = \"tear\"\n" : "\n");
-    t << "[daemon]\natlas = \"builtin\"\nhttp_port = 0\ntoken = \"" << kToken << "\"\n" << daemonExtra
-      << "[scan]\nobjective = \"sim\"\nwidth = 640\nheight = 512\nstart_z_um = 2500\nmin_free_mb = 50\n"
+    t << "[daemon]\natlas = \"builtin\"\nhttp_port = 0\ntoken = \"" << kToken << "\"\n"
+      << daemonExtra
+      << "[scan]\nobjective = \"sim\"\nwidth = 640\nheight = 512\nstart_z_um = 2500\nmin_free_mb = "
+         "50\n"
          "atlas_mismatch_tolerance = 80\nmove_timeout_s = "
       << moveTimeoutS << "\n"
       << scanExtra << "[scan.objectives.sim]\num_per_px = 20.0\n";
@@ -99,9 +106,10 @@ std::string planToml() {
     std::ostringstream t;
     t << "name = \"process-test\"\n";
     for (int i = 0; i < kSections; ++i) {
-        if (i % 3 == 0) t << "[[slides]]\nname = \"slide-0" << i / 3 + 1 << "\"\n";
-        t << "[[slides.sections]]\nname = \"s" << i + 1 << "\"\nx_um = " << centreX(i) << "\ny_um = " << centreY(i)
-          << "\natlas_slice = " << std::lround(kAp[i] * 80) << "\n";
+        if (i % 3 == 0)
+            t << "[[slides]]\nname = \"slide-0" << i / 3 + 1 << "\"\n";
+        t << "[[slides.sections]]\nname = \"s" << i + 1 << "\"\nx_um = " << centreX(i)
+          << "\ny_um = " << centreY(i) << "\natlas_slice = " << std::lround(kAp[i] * 80) << "\n";
     }
     return t.str();
 }
@@ -134,19 +142,22 @@ public:
         std::vector<std::string> argv{SLICESTATIOND_PATH};
         argv.insert(argv.end(), args_.begin(), args_.end());
         std::vector<char*> av;
-        for (auto& a : argv) av.push_back(a.data());
+        for (auto& a : argv)
+            av.push_back(a.data());
         av.push_back(nullptr);
         // The test's environment without systemd's variables, plus what this process gets.
         std::vector<std::string> envs;
         for (char** e = environ; *e; ++e) {
             const std::string v = *e;
-            if (v.starts_with("NOTIFY_SOCKET=") || v.starts_with("WATCHDOG_") || v.starts_with("STATE_DIRECTORY="))
+            if (v.starts_with("NOTIFY_SOCKET=") || v.starts_with("WATCHDOG_") ||
+                v.starts_with("STATE_DIRECTORY="))
                 continue;
             envs.push_back(v);
         }
         envs.insert(envs.end(), env_.begin(), env_.end());
         std::vector<char*> ev;
-        for (auto& e : envs) ev.push_back(e.data());
+        for (auto& e : envs)
+            ev.push_back(e.data());
         ev.push_back(nullptr);
         posix_spawn_file_actions_t fa;
         posix_spawn_file_actions_init(&fa);
@@ -161,16 +172,19 @@ public:
     void signal(int sig) { ::kill(pid_, sig); }
     /// True when the process has ended (status in `status`).
     bool poll() {
-        if (exited_) return true;
+        if (exited_)
+            return true;
         const pid_t r = ::waitpid(pid_, &status_, WNOHANG);
-        if (r == pid_) exited_ = true;
+        if (r == pid_)
+            exited_ = true;
         return exited_;
     }
     /// Waits for the exit (bounded). \return the exit status, or -1 when still running.
     int waitExit(std::chrono::seconds limit) {
         const auto deadline = Clock::now() + scaled(limit);
         while (!poll()) {
-            if (Clock::now() > deadline) return -1;
+            if (Clock::now() > deadline)
+                return -1;
             std::this_thread::sleep_for(20ms); // polling a child's exit
         }
         return WIFEXITED(status_) ? WEXITSTATUS(status_) : 128 + WTERMSIG(status_);
@@ -196,7 +210,8 @@ public:
         thread_ = std::thread([this] {
             while (!stop_) {
                 auto m = socket_.receive(100ms);
-                if (!m) continue;
+                if (!m)
+                    continue;
                 std::lock_guard lock(mutex_);
                 messages_.push_back({Clock::now(), *m});
             }
@@ -217,19 +232,23 @@ public:
         return messages_;
     }
     /// Waits (bounded) for a datagram containing `needle` that arrived at or after `since`.
-    std::optional<Message> waitFor(const std::string& needle, Clock::time_point since, std::chrono::seconds limit) {
+    std::optional<Message> waitFor(const std::string& needle, Clock::time_point since,
+                                   std::chrono::seconds limit) {
         const auto deadline = Clock::now() + scaled(limit);
         for (;;) {
             for (const auto& m : messages())
-                if (m.at >= since && m.text.find(needle) != std::string::npos) return m;
-            if (Clock::now() > deadline) return std::nullopt;
+                if (m.at >= since && m.text.find(needle) != std::string::npos)
+                    return m;
+            if (Clock::now() > deadline)
+                return std::nullopt;
             std::this_thread::sleep_for(20ms); // polling the recorder
         }
     }
     int count(const std::string& needle, Clock::time_point from, Clock::time_point to) {
         int n = 0;
         for (const auto& m : messages())
-            if (m.at >= from && m.at <= to && m.text.find(needle) != std::string::npos) ++n;
+            if (m.at >= from && m.at <= to && m.text.find(needle) != std::string::npos)
+                ++n;
         return n;
     }
 
@@ -244,8 +263,9 @@ private:
 class DaemonProcessTest : public ::testing::Test {
 protected:
     void SetUp() override {
-        dir_ = fs::temp_directory_path() / ("slst-daemon-" + std::to_string(::getpid()) + "-" +
-                                             ::testing::UnitTest::GetInstance()->current_test_info()->name());
+        dir_ = fs::temp_directory_path() /
+               ("slst-daemon-" + std::to_string(::getpid()) + "-" +
+                ::testing::UnitTest::GetInstance()->current_test_info()->name());
         fs::remove_all(dir_);
         fs::create_directories(dir_);
         sim::StageServerConfig sc;
@@ -257,16 +277,20 @@ protected:
     }
     void TearDown() override {
         daemon_.reset();
-        if (server_) server_->stop();
+        if (server_)
+            server_->stop();
         if (HasFailure()) {
-            std::cerr << "---- daemon log ----\n" << readText(dir_ / "daemon.log") << "--------------------\n";
+            std::cerr << "---- daemon log ----\n"
+                      << readText(dir_ / "daemon.log") << "--------------------\n";
             return; // keep the state directory for a look
         }
         fs::remove_all(dir_);
     }
 
-    void writeStation(const std::string& scanExtra = "", const std::string& daemonExtra = "", int moveTimeoutS = 60) {
-        writeText(dir_ / "station.toml", stationToml(server_->tcpPort(), scanExtra, daemonExtra, moveTimeoutS));
+    void writeStation(const std::string& scanExtra = "", const std::string& daemonExtra = "",
+                      int moveTimeoutS = 60) {
+        writeText(dir_ / "station.toml",
+                  stationToml(server_->tcpPort(), scanExtra, daemonExtra, moveTimeoutS));
     }
     fs::path state() const { return dir_ / "state"; }
 
@@ -274,9 +298,12 @@ protected:
     void startDaemon(bool withPlan, std::vector<std::string> env = {}, bool exitWhenIdle = false) {
         std::error_code ec;
         fs::remove(state() / "http.port", ec);
-        std::vector<std::string> args{"--config", (dir_ / "station.toml").string(), "--state-dir", state().string()};
-        if (withPlan) args.insert(args.end(), {"--plan", (dir_ / "plan.toml").string()});
-        if (exitWhenIdle) args.push_back("--exit-when-idle");
+        std::vector<std::string> args{"--config", (dir_ / "station.toml").string(), "--state-dir",
+                                      state().string()};
+        if (withPlan)
+            args.insert(args.end(), {"--plan", (dir_ / "plan.toml").string()});
+        if (exitWhenIdle)
+            args.push_back("--exit-when-idle");
         daemon_ = std::make_unique<DaemonProcess>(args, std::move(env), dir_ / "daemon.log");
         ASSERT_TRUE(daemon_->start());
     }
@@ -285,8 +312,10 @@ protected:
         const auto deadline = Clock::now() + scaled(60s);
         while (Clock::now() < deadline) {
             const std::string t = readText(state() / "http.port");
-            if (!t.empty() && t.back() == '\n') return std::stoi(t);
-            if (daemon_->poll()) break;
+            if (!t.empty() && t.back() == '\n')
+                return std::stoi(t);
+            if (daemon_->poll())
+                break;
             std::this_thread::sleep_for(20ms); // polling for the daemon's port file
         }
         ADD_FAILURE() << "the daemon did not start its HTTP API";
@@ -308,7 +337,8 @@ protected:
         httplib::Client cli("127.0.0.1", port);
         cli.set_read_timeout(10, 0);
         auto r = cli.Get("/api/runs/1");
-        if (!r || r->status == 404) return nullptr;
+        if (!r || r->status == 404)
+            return nullptr;
         if (r->status != 200) {
             ADD_FAILURE() << "GET /api/runs/1: " << r->status << " " << r->body;
             return nullptr;
@@ -316,12 +346,14 @@ protected:
         return nlohmann::json::parse(r->body);
     }
     /// Waits (bounded) until run 1 is in one of `states`; returns its record.
-    nlohmann::json waitRun(int port, const std::set<std::string>& states, std::chrono::seconds limit = 180s) {
+    nlohmann::json waitRun(int port, const std::set<std::string>& states,
+                           std::chrono::seconds limit = 180s) {
         const auto deadline = Clock::now() + scaled(limit);
         nlohmann::json run;
         while (Clock::now() < deadline) {
             run = runOne(port);
-            if (run.is_object() && states.count(run.value("state", "")) != 0) return run;
+            if (run.is_object() && states.count(run.value("state", "")) != 0)
+                return run;
             std::this_thread::sleep_for(100ms); // polling the daemon's API
         }
         ADD_FAILURE() << "run 1 did not reach the expected state: " << run.dump();
@@ -333,7 +365,8 @@ protected:
     }
     void waitDone(int port, int n) {
         const auto deadline = Clock::now() + scaled(120s);
-        while (doneCount(port) < n && Clock::now() < deadline) std::this_thread::sleep_for(50ms);
+        while (doneCount(port) < n && Clock::now() < deadline)
+            std::this_thread::sleep_for(50ms);
         ASSERT_GE(doneCount(port), n);
     }
 
@@ -369,7 +402,8 @@ protected:
                 auto regs = (*j)->registrations(s.id);
                 ASSERT_TRUE(regs);
                 ASSERT_LE(regs->size(), 1u) << "registered twice";
-                for (const auto& r : *regs) EXPECT_TRUE(fs::exists(state() / r.overlayPath)) << r.overlayPath;
+                for (const auto& r : *regs)
+                    EXPECT_TRUE(fs::exists(state() / r.overlayPath)) << r.overlayPath;
                 if (final) {
                     ASSERT_EQ(regs->size(), 1u) << "every capture registered";
                 }
@@ -381,7 +415,8 @@ protected:
             }
         }
         if (final) {
-            EXPECT_EQ(std::string(daemon::toString(runs->front().state)), "finished"); // a const char*: compare the text, not the address
+            EXPECT_EQ(std::string(daemon::toString(runs->front().state)),
+                      "finished"); // a const char*: compare the text, not the address
             // No temporary file left, and no complete image that the journal does not know.
             for (const auto& e : fs::recursive_directory_iterator(state() / "runs")) {
                 const std::string n = e.path().filename().string();
@@ -389,7 +424,8 @@ protected:
                              n.find(".tmp-") != std::string::npos)
                     << e.path();
                 if (n.ends_with(".ome.tif")) {
-                    EXPECT_TRUE(referenced.count(fs::relative(e.path(), state())) == 1) << "orphan " << e.path();
+                    EXPECT_TRUE(referenced.count(fs::relative(e.path(), state())) == 1)
+                        << "orphan " << e.path();
                 }
             }
         }
@@ -409,14 +445,17 @@ TEST_F(DaemonProcessTest, KilledAtRandomMomentsItResumesWithoutLosingOrDuplicati
     for (int round = 0; round < 10; ++round) {
         startDaemon(round == 0);
         const int delay = delayMs(rng);
-        std::this_thread::sleep_for(scaled(std::chrono::milliseconds(delay))); // the random moment of the kill
-        if (daemon_->poll()) break; // it finished on its own: nothing left to kill
+        std::this_thread::sleep_for(
+            scaled(std::chrono::milliseconds(delay))); // the random moment of the kill
+        if (daemon_->poll())
+            break; // it finished on its own: nothing left to kill
         daemon_->killHard();
         ++kills;
-        SCOPED_TRACE("after kill " + std::to_string(kills) + " at " + std::to_string(delay) + " ms (seed " +
-                     std::to_string(seed) + ")");
+        SCOPED_TRACE("after kill " + std::to_string(kills) + " at " + std::to_string(delay) +
+                     " ms (seed " + std::to_string(seed) + ")");
         checkStored(false);
-        if (HasFatalFailure()) return;
+        if (HasFatalFailure())
+            return;
     }
     EXPECT_GE(kills, 5);
     // Restarted for good: it finishes the run and exits.
@@ -469,7 +508,8 @@ TEST_F(DaemonProcessTest, NotifiesSystemdAndStopsWatchdogPingsWhileAMoveHangs) {
     // the move hangs: from 3 s to 7 s after the move began, not one ping.
     const auto quietFrom = moving->at + 3s;
     std::this_thread::sleep_for(quietFrom + 4s - Clock::now()); // observing the 4 s window
-    EXPECT_EQ(notify.count("WATCHDOG=1", quietFrom, quietFrom + 4s), 0) << "a hung move must stop the pings";
+    EXPECT_EQ(notify.count("WATCHDOG=1", quietFrom, quietFrom + 4s), 0)
+        << "a hung move must stop the pings";
     EXPECT_EQ(get(port, "/api/runs/1").value("state", ""), "running");
 
     // The drive is fixed; the hung move times out (8 s) and its retry settles: progress, pings.
@@ -493,7 +533,8 @@ TEST_F(DaemonProcessTest, NotifiesSystemdAndStopsWatchdogPingsWhileAMoveHangs) {
     auto alerts = (*j)->alerts(false);
     ASSERT_TRUE(alerts);
     const std::vector<daemon::AlertRecord> all = *alerts;
-    for (const auto& a : all) EXPECT_NE(a.kind, "restarted") << a.message;
+    for (const auto& a : all)
+        EXPECT_NE(a.kind, "restarted") << a.message;
 }
 
 TEST_F(DaemonProcessTest, AStageAlarmPausesTheRunUntilTheTechnicianAsksForTheReset) {
@@ -528,7 +569,8 @@ TEST_F(DaemonProcessTest, AStageAlarmPausesTheRunUntilTheTechnicianAsksForTheRes
     EXPECT_NE(run.value("reason", "").find("stage_fault"), std::string::npos) << run.dump();
     auto alerts = get(port, "/api/alerts?open=1");
     int faults = 0;
-    for (const auto& a : alerts) faults += a.value("kind", "") == "stage_fault";
+    for (const auto& a : alerts)
+        faults += a.value("kind", "") == "stage_fault";
     EXPECT_EQ(faults, 1);
     EXPECT_NE(server_->axisState(1).alarmCode, 0u);
 
@@ -558,10 +600,15 @@ TEST_F(DaemonProcessTest, AStageAlarmPausesTheRunUntilTheTechnicianAsksForTheRes
     hook.stop();
     hookThread.join();
     std::multiset<std::string> expected, byHook, byCommand;
-    for (const auto& a : journalled) expected.insert(std::to_string(a["id"].get<std::int64_t>()) + " " + a["kind"].get<std::string>());
-    for (const auto& a : hooked) byHook.insert(std::to_string(a["id"].get<std::int64_t>()) + " " + a["kind"].get<std::string>());
+    for (const auto& a : journalled)
+        expected.insert(std::to_string(a["id"].get<std::int64_t>()) + " " +
+                        a["kind"].get<std::string>());
+    for (const auto& a : hooked)
+        byHook.insert(std::to_string(a["id"].get<std::int64_t>()) + " " +
+                      a["kind"].get<std::string>());
     std::ifstream in(commandOut);
-    for (std::string line; std::getline(in, line);) byCommand.insert(line);
+    for (std::string line; std::getline(in, line);)
+        byCommand.insert(line);
     EXPECT_GE(journalled.size(), 4u) << "stage_fault, two pauses, finished";
     EXPECT_EQ(byHook, expected);
     EXPECT_EQ(byCommand, expected);
@@ -605,7 +652,8 @@ TEST_F(DaemonProcessTest, HostileStationFilesAndPlansAreRefusedWithAMessageAndNe
     std::string station = stationToml(server_->tcpPort(), "", "", 60);
     station.replace(station.find("speed_um_per_s"), 14, "speeed_um_per_s");
     writeText(dir_ / "station.toml", station);
-    expectRefusedAtStart("stage: unknown key \"speeed_um_per_s\"; did you mean \"speed_um_per_s\"?");
+    expectRefusedAtStart(
+        "stage: unknown key \"speeed_um_per_s\"; did you mean \"speed_um_per_s\"?");
     writeStation("min_free_mbb = 3\n");
     expectRefusedAtStart("scan: unknown key \"min_free_mbb\"; did you mean \"min_free_mb\"?");
     writeStation("", "http_bnd = \"0.0.0.0\"\n");
@@ -614,13 +662,14 @@ TEST_F(DaemonProcessTest, HostileStationFilesAndPlansAreRefusedWithAMessageAndNe
     writeStation();
     std::string deep = R"({"name": "deep", "slides": )";
     deep += std::string(300'000, '[') + std::string(300'000, ']') + "}";
-    const std::string overflow = R"({"name": "big", "slides": [{"sections": [{"x_um": 1e400, "y_um": 0}]}]})";
+    const std::string overflow =
+        R"({"name": "big", "slides": [{"sections": [{"x_um": 1e400, "y_um": 0}]}]})";
     for (const auto& [text, needle] : {std::pair{deep, std::string("nested deeper than 64 levels")},
                                        std::pair{overflow, std::string("number overflow")}}) {
         writeText(dir_ / "plan.json", text);
         daemon_ = std::make_unique<DaemonProcess>(
-            std::vector<std::string>{"--config", (dir_ / "station.toml").string(), "--state-dir", state().string(),
-                                     "--plan", (dir_ / "plan.json").string()},
+            std::vector<std::string>{"--config", (dir_ / "station.toml").string(), "--state-dir",
+                                     state().string(), "--plan", (dir_ / "plan.json").string()},
             std::vector<std::string>{}, dir_ / "daemon.log");
         ASSERT_TRUE(daemon_->start());
         EXPECT_EQ(daemon_->waitExit(120s), 2) << needle;
@@ -640,16 +689,18 @@ TEST_F(DaemonProcessTest, HostileStationFilesAndPlansAreRefusedWithAMessageAndNe
         auto r = cli.Post("/api/runs", auth, body, type);
         return r ? std::pair{r->status, r->body} : std::pair{-1, std::string("(no reply)")};
     };
-    const std::string wide =
-        "name = \"wide\"\n[[slides]]\n[[slides.sections]]\nname = \"w\"\nx_um = 10000\ny_um = 45000\nheight_um = 12000\n";
-    const std::string longName = "name = \"long\"\n[[slides]]\n[[slides.sections]]\nname = \"" + std::string(300, 'n') +
-                                 "\"\nx_um = 10000\ny_um = 10000\n";
-    const std::string typo = "name = \"typo\"\n[[slides]]\n[[slides.sections]]\nx_um = 10000\ny_um = 10000\nwidht_um = 5\n";
+    const std::string wide = "name = \"wide\"\n[[slides]]\n[[slides.sections]]\nname = \"w\"\nx_um "
+                             "= 10000\ny_um = 45000\nheight_um = 12000\n";
+    const std::string longName = "name = \"long\"\n[[slides]]\n[[slides.sections]]\nname = \"" +
+                                 std::string(300, 'n') + "\"\nx_um = 10000\ny_um = 10000\n";
+    const std::string typo = "name = \"typo\"\n[[slides]]\n[[slides.sections]]\nx_um = 10000\ny_um "
+                             "= 10000\nwidht_um = 5\n";
     for (const auto& [body, type, needle] :
          {std::tuple{deep, "application/json", std::string("nested deeper than 64 levels")},
           std::tuple{overflow, "application/json", std::string("number overflow")},
           std::tuple{wide, "application/toml",
-                     std::string("slides[0].sections[0].y_um: section \\\"w\\\" on slide-1 reaches Y 39000 .. 51000 um")},
+                     std::string("slides[0].sections[0].y_um: section \\\"w\\\" on slide-1 reaches "
+                                 "Y 39000 .. 51000 um")},
           std::tuple{longName, "application/toml", std::string("300 bytes is longer than the 64")},
           std::tuple{typo, "application/toml", std::string("did you mean \\\"width_um\\\"?")}}) {
         const auto [status, reply] = submit(body, type);

@@ -491,11 +491,14 @@ TEST(OmeXml, OtherWritersUnitsAreConverted) {
                   .code,
               ErrorCode::IoError);
     // Found by fuzz_small_formats: a size an int cannot hold was cast anyway (undefined).
-    for (const char* size : {"16222222222222222222222222222222222222222222222222222222", "-3", "0", "2.5", "nan"}) {
-        const auto refused = daemon::parseOmeXml(std::string("<OME><Image><Pixels SizeX=\"") + size +
-                                                 "\" SizeY=\"1\" PhysicalSizeX=\"1\"/></Image></OME>");
+    for (const char* size :
+         {"16222222222222222222222222222222222222222222222222222222", "-3", "0", "2.5", "nan"}) {
+        const auto refused =
+            daemon::parseOmeXml(std::string("<OME><Image><Pixels SizeX=\"") + size +
+                                "\" SizeY=\"1\" PhysicalSizeX=\"1\"/></Image></OME>");
         ASSERT_FALSE(refused) << size;
-        EXPECT_NE(refused.error().message.find("SizeX"), std::string::npos) << refused.error().message;
+        EXPECT_NE(refused.error().message.find("SizeX"), std::string::npos)
+            << refused.error().message;
     }
     EXPECT_FALSE(daemon::parseOmeXml("<NotOme/>"));
     EXPECT_FALSE(daemon::parseOmeXml("<OME><Image></OME>"));

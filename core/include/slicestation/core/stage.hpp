@@ -50,13 +50,14 @@ public:
     /// Soft limits, fixed after create().
     virtual StageLimits limits() const = 0;
     /// Feedback position. Blocks for at most `timeout`.
-    [[nodiscard]] virtual core::Result<StagePosition> position(std::chrono::milliseconds timeout) = 0;
+    [[nodiscard]] virtual core::Result<StagePosition>
+    position(std::chrono::milliseconds timeout) = 0;
     /// Moves every axis and blocks until settled: the drive says in position and not moving,
     /// AND the feedback is within the position window of the target, AND that held for the
     /// settle time. Soft limits are checked first: OutOfRange means nothing was sent or moved.
     /// \return the settled feedback position; OutOfRange, Timeout, Alarm, Cancelled, ...
-    [[nodiscard]] virtual core::Result<StagePosition>
-    moveTo(const StagePosition& target, std::chrono::milliseconds timeout) = 0;
+    [[nodiscard]] virtual core::Result<StagePosition> moveTo(const StagePosition& target,
+                                                             std::chrono::milliseconds timeout) = 0;
     /// Runs the drives' homing and blocks until done. \return the position after homing.
     [[nodiscard]] virtual core::Result<StagePosition> home(std::chrono::milliseconds timeout) = 0;
     /// Halts every axis now and preempts any wait in progress (which returns Cancelled).

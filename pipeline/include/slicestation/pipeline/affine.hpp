@@ -27,7 +27,9 @@ inline cv::Matx23d invert(const cv::Matx23d& a) {
 }
 
 /// Determinant of the linear part.
-inline double det(const cv::Matx23d& a) { return a(0, 0) * a(1, 1) - a(0, 1) * a(1, 0); }
+inline double det(const cv::Matx23d& a) {
+    return a(0, 0) * a(1, 1) - a(0, 1) * a(1, 0);
+}
 
 /// Maps a normal through the linear part (inverse transpose) and renormalises.
 inline cv::Point2d mapNormal(const cv::Matx23d& a, cv::Point2d n) {
@@ -38,6 +40,8 @@ inline cv::Point2d mapNormal(const cv::Matx23d& a, cv::Point2d n) {
 }
 
 /// Uniform scale s about the origin, then translation.
-inline cv::Matx23d scaling(double s) { return {s, 0, 0, 0, s, 0}; }
+inline cv::Matx23d scaling(double s) {
+    return {s, 0, 0, 0, s, 0};
+}
 
 } // namespace slicestation::pipeline

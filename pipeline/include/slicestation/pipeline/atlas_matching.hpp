@@ -31,7 +31,7 @@ struct SliceFeatures {
     int regionCount = 0;
     OrientedBox box;
     double areaPx = 0;
-    double heightPx = 0;    ///< brain extent along its minor axis (sets the ICP reach)
+    double heightPx = 0; ///< brain extent along its minor axis (sets the ICP reach)
 };
 
 /// Features of one slice. `labels` CV_32S (0 outside) at `umPerPx`; the working pixel size is
@@ -60,14 +60,13 @@ struct SectionFeatures {
 /// slice from the areas).
 /// \return the errors of prepareSection (InvalidArgument, NoTissue); NoTissue when too few edges.
 [[nodiscard]] core::Result<SectionFeatures> sectionFeatures(const cv::Mat& image,
-                                                            double imageUmPerPx,
-                                                            double workUmPerPx,
+                                                            double imageUmPerPx, double workUmPerPx,
                                                             int unknownScaleMaxSide = 256);
 
 struct MatchOptions {
-    int first = 0;       ///< first slice index searched
-    int last = -1;       ///< last slice index searched, -1 = the last slice
-    int shortlist = 14;  ///< slices, by tissue overlap, that get the edge alignment and score
+    int first = 0;            ///< first slice index searched
+    int last = -1;            ///< last slice index searched, -1 = the last slice
+    int shortlist = 14;       ///< slices, by tissue overlap, that get the edge alignment and score
     bool allowMirror = false; ///< also try mirrored placements (section mounted face down)
     /// Tilt is estimated from the positions the two halves of the section match best, when the
     /// stack is at most this far apart (micrometres); 0 disables it.
@@ -76,21 +75,21 @@ struct MatchOptions {
 
 struct MatchCandidate {
     int index = 0;
-    double score = 0;          ///< 0..1, the product of the three agreements below
-    double overlap = 0;        ///< tissue IoU after the alignment
-    double edgeAgreement = 0;  ///< 0..1, two-way soft agreement of edges and slice boundaries
-    double regionAgreement = 0; ///< 0..1, how well the slice's regions explain the grey levels
+    double score = 0;             ///< 0..1, the product of the three agreements below
+    double overlap = 0;           ///< tissue IoU after the alignment
+    double edgeAgreement = 0;     ///< 0..1, two-way soft agreement of edges and slice boundaries
+    double regionAgreement = 0;   ///< 0..1, how well the slice's regions explain the grey levels
     cv::Matx23d sliceFromSection; ///< working px -> slice working px
 };
 
 struct SectionMatch {
-    int index = -1;         ///< best slice
-    double positionUm = 0;  ///< refined between neighbours (parabola through the scores)
+    int index = -1;        ///< best slice
+    double positionUm = 0; ///< refined between neighbours (parabola through the scores)
     double score = 0;
     double tiltColumnsDeg = 0; ///< normal leaning toward the slice columns (coronal: LR)
     double tiltRowsDeg = 0;    ///< toward the rows (coronal: DV)
     bool tiltEstimated = false;
-    std::vector<MatchCandidate> candidates; ///< scored slices, best first
+    std::vector<MatchCandidate> candidates;                ///< scored slices, best first
     std::vector<std::pair<std::string, double>> timingsMs; ///< step name -> milliseconds
 };
 
@@ -117,8 +116,8 @@ struct SeriesOptions {
     MatchOptions match;
     int minStep = 1; ///< slices between consecutive sections, at least
 };
-[[nodiscard]] core::Result<std::vector<SectionMatch>> matchSeries(
-    const std::vector<SectionFeatures>& sections, const std::vector<SliceFeatures>& slices,
-    const SeriesOptions& options = {});
+[[nodiscard]] core::Result<std::vector<SectionMatch>>
+matchSeries(const std::vector<SectionFeatures>& sections, const std::vector<SliceFeatures>& slices,
+            const SeriesOptions& options = {});
 
 } // namespace slicestation::pipeline

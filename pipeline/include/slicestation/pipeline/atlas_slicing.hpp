@@ -41,11 +41,11 @@ struct CuttingPlane {
 
 /// Where a slice image lies in the atlas frame (micrometres, (AP, DV, LR)).
 struct SliceGeometry {
-    cv::Size size;       ///< image size in pixels
-    cv::Vec3d originUm;  ///< centre of pixel (0, 0)
-    cv::Vec3d columnUm;  ///< one pixel step to the right
-    cv::Vec3d rowUm;     ///< one pixel step down
-    cv::Vec3d normal;    ///< unit normal, the tilted direction of increasing position
+    cv::Size size;         ///< image size in pixels
+    cv::Vec3d originUm;    ///< centre of pixel (0, 0)
+    cv::Vec3d columnUm;    ///< one pixel step to the right
+    cv::Vec3d rowUm;       ///< one pixel step down
+    cv::Vec3d normal;      ///< unit normal, the tilted direction of increasing position
     double positionUm = 0; ///< as in CuttingPlane
 
     /// Atlas-frame point of a pixel (pixel centres at integers).
@@ -63,8 +63,8 @@ cv::Vec3d volumeExtentUm(const core::Volume& volume, VolumeAxes axes);
 /// plane's pixels are exactly the voxels of that plane.
 /// \return InvalidArgument (umPerPx <= 0 or not finite, volume without spacing, tilt beyond 60
 ///         degrees), OutOfRange (position outside the volume along the normal).
-[[nodiscard]] core::Result<SliceGeometry> planeGeometry(const core::Volume& volume,
-                                                        VolumeAxes axes, const CuttingPlane& plane);
+[[nodiscard]] core::Result<SliceGeometry> planeGeometry(const core::Volume& volume, VolumeAxes axes,
+                                                        const CuttingPlane& plane);
 
 /// Labels along `geometry` by nearest neighbour (each pixel centre takes the voxel it falls
 /// in), 0 outside the volume. CV_32S.
@@ -103,8 +103,7 @@ struct AtlasSlice {
 /// Every plane of `plan`. \return as planeGeometry (OutOfRange when firstUm lies outside),
 ///         InvalidArgument for intervalUm <= 0 or a plan beyond the stack budget
 ///         (checkStackBudget), before anything is sampled.
-[[nodiscard]] core::Result<std::vector<AtlasSlice>> sliceVolume(const core::Volume& volume,
-                                                                VolumeAxes axes,
-                                                                const CuttingPlan& plan);
+[[nodiscard]] core::Result<std::vector<AtlasSlice>>
+sliceVolume(const core::Volume& volume, VolumeAxes axes, const CuttingPlan& plan);
 
 } // namespace slicestation::pipeline

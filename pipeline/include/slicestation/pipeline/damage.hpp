@@ -27,7 +27,7 @@ struct DamageRegion {
 /// Lengths are fractions of the brain width (the OBB's major extent of the section), so the rule
 /// means the same at every resolution; alpha in particular is a length, never a hop count.
 struct DamageParams {
-    double alphaFrac = 0.05;          ///< medial-axis pieces at least this long are deep concavities
+    double alphaFrac = 0.05; ///< medial-axis pieces at least this long are deep concavities
     double symmetryRadiusFrac = 0.03; ///< how far a mirrored vertex may be from its partner
     double symmetryAngleDeg = 30;     ///< and how far its normal may turn
     double symmetricShare = 0.6;      ///< anatomy: at least this share of vertices has a partner
@@ -41,14 +41,14 @@ struct DamageParams {
     double threadDarkness = 0.4;
     /// and a valley at least this share of that span deeper than the tissue on both sides.
     double threadDepth = 0.25;
-    double tearElongation = 3.0;      ///< length / mean width from which a gap is a tear
-    double alongOutlineShare = 0.3;   ///< a gap with more of its rim on the outside glass lies
-                                      ///< along the outline
-    double shallowFrac = 0.05;        ///< gaps along the outline thinner than this are slack
-    double bandElongation = 5.0;      ///< gaps along the outline this much longer than thick
-                                      ///< are an outline that did not fit, not a bite
-    double fissureRingFrac = 0.03;    ///< how far around a gap the parts beside it are looked for
-    double fissurePurity = 0.6;       ///< share of one part on a side for that side to be it
+    double tearElongation = 3.0;    ///< length / mean width from which a gap is a tear
+    double alongOutlineShare = 0.3; ///< a gap with more of its rim on the outside glass lies
+                                    ///< along the outline
+    double shallowFrac = 0.05;      ///< gaps along the outline thinner than this are slack
+    double bandElongation = 5.0;    ///< gaps along the outline this much longer than thick
+                                    ///< are an outline that did not fit, not a bite
+    double fissureRingFrac = 0.03;  ///< how far around a gap the parts beside it are looked for
+    double fissurePurity = 0.6;     ///< share of one part on a side for that side to be it
 };
 
 /// The outermost outline of the tissue as a polygon with unit normals (unoriented).
@@ -70,7 +70,7 @@ struct Concavity {
     std::vector<cv::Point2f> points;  ///< outline vertices around the pocket
     std::vector<cv::Point2f> normals; ///< their unit normals (unoriented)
     double axisLength = 0;
-    bool symmetric = false;           ///< a mirrored partner exists: anatomy
+    bool symmetric = false; ///< a mirrored partner exists: anatomy
 };
 
 /// Algorithm 2, lines 1-4: the exterior medial axis of the outline, the pieces at least alpha
@@ -90,8 +90,8 @@ cv::Mat concavityExclusion(const std::vector<Concavity>& concavities, cv::Size s
 
 /// What the registered atlas expects in the section frame: CV_8U masks of the tissue mask's size.
 struct AtlasExpectation {
-    cv::Mat tissue;   ///< the atlas brain minus ventricles
-    cv::Mat brain;    ///< the atlas brain
+    cv::Mat tissue; ///< the atlas brain minus ventricles
+    cv::Mat brain;  ///< the atlas brain
     /// The parts of the brain that lie apart across natural fissures (such as the cerebrum and
     /// the brain stem), numbered 1.. (0 = none; see partMap), or empty. Sectioning often opens
     /// those fissures.

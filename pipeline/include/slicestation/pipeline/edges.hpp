@@ -10,9 +10,9 @@ namespace slicestation::pipeline {
 /// behaves the same at every resolution; the paper's values (w_m = 20, w_g = 12, sigma_g = 2 at
 /// 8000 px, s = 12, k = 5) are the defaults' origin.
 struct DominantEdgeParams {
-    double medianFrac = 0.01;   ///< median window / long side (odd, at least 5 px)
-    double sigmaFrac = 0.003;   ///< Gaussian sigma / long side (at least 1 px)
-    int stableBins = 5;         ///< k: consecutive histogram bins that must be stable
+    double medianFrac = 0.01; ///< median window / long side (odd, at least 5 px)
+    double sigmaFrac = 0.003; ///< Gaussian sigma / long side (at least 1 px)
+    int stableBins = 5;       ///< k: consecutive histogram bins that must be stable
     /// s: allowed count change between adjacent bins, as a fraction of the histogram's peak
     /// count. The paper's absolute s = 12 belongs to its 40-megapixel images; relative to the
     /// peak the rule means the same at every size.

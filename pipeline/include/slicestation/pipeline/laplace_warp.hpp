@@ -31,11 +31,11 @@ private:
 };
 
 struct LaplaceOptions {
-    double cellPx = 4.0;        ///< finest node spacing, domain pixels
-    int coarsestNodes = 12;     ///< stop coarsening when the short side has this few nodes
-    int sweepsCoarsest = 400;   ///< SOR sweeps on the coarsest grid
-    int sweepsPerLevel = 40;    ///< SOR sweeps after each refinement
-    double relaxation = 1.85;   ///< SOR factor
+    double cellPx = 4.0;      ///< finest node spacing, domain pixels
+    int coarsestNodes = 12;   ///< stop coarsening when the short side has this few nodes
+    int sweepsCoarsest = 400; ///< SOR sweeps on the coarsest grid
+    int sweepsPerLevel = 40;  ///< SOR sweeps after each refinement
+    double relaxation = 1.85; ///< SOR factor
 };
 
 /// Solves for the field that equals `displacements[k]` at `points[k]` (domain pixels; several

@@ -11,7 +11,7 @@ namespace slicestation::pipeline {
 /// A connected piece of the exterior medial axis: the Voronoi vertices (circumcentres of kept
 /// exterior triangles) joined by Voronoi edges that cross no outline edge.
 struct MedialBranch {
-    double length = 0;             ///< longest path through the piece (its depth into a pocket)
+    double length = 0;                ///< longest path through the piece (its depth into a pocket)
     std::vector<int> outlineVertices; ///< outline vertices of the triangles on this piece
     std::vector<cv::Point2d> axis;    ///< the Voronoi vertices (for drawing and tests)
 };

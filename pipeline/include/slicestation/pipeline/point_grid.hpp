@@ -25,7 +25,8 @@ public:
                     const int i = order_[k];
                     const float dx = points_[i].x - p.x, dy = points_[i].y - p.y;
                     const float d2 = dx * dx + dy * dy;
-                    if (d2 <= r2) fn(i, d2);
+                    if (d2 <= r2)
+                        fn(i, d2);
                 }
             }
         }

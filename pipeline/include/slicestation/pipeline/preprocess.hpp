@@ -30,7 +30,8 @@ struct PreparedSection {
 /// around the tissue, and segments the tissue.
 /// \return InvalidArgument (empty image, unsupported type, side < 32 px), NoTissue (blank
 ///         image, or tissue covering almost all or almost none of it).
-[[nodiscard]] core::Result<PreparedSection> prepareSection(const cv::Mat& image, int workingMaxSide);
+[[nodiscard]] core::Result<PreparedSection> prepareSection(const cv::Mat& image,
+                                                           int workingMaxSide);
 
 /// Grey float copy of `image` (same size), channel rules as above, not normalised.
 [[nodiscard]] core::Result<cv::Mat> toGreyFloat(const cv::Mat& image);

@@ -20,11 +20,11 @@
 namespace slicestation::pipeline {
 
 struct RegistrationOptions {
-    int workingMaxSide = 1024;   ///< the section is reduced to this longer side for the work
-    double imageUmPerPx = 0;     ///< section pixel size, 0 = unknown (scale is then found)
-    double atlasUmPerPx = 0;     ///< atlas pixel size, 0 = unknown
-    bool nonLinear = true;       ///< add the Laplace warp after the affine
-    bool allowMirror = false;    ///< also try mirrored placements (section mounted face down)
+    int workingMaxSide = 1024; ///< the section is reduced to this longer side for the work
+    double imageUmPerPx = 0;   ///< section pixel size, 0 = unknown (scale is then found)
+    double atlasUmPerPx = 0;   ///< atlas pixel size, 0 = unknown
+    bool nonLinear = true;     ///< add the Laplace warp after the affine
+    bool allowMirror = false;  ///< also try mirrored placements (section mounted face down)
     /// Section pixels (full resolution, CV_8U, non-zero = exclude) whose edges must not take
     /// part in the matching, e.g. damaged tissue. Empty = none.
     cv::Mat excludeMask;
@@ -42,7 +42,7 @@ struct RegistrationOptions {
     /// Optional atlas intensity plane (CV_32F, the size of the atlas labels, e.g. a plane of the
     /// Allen average template): a second term of the dense refinement. Empty = none.
     cv::Mat atlasIntensity;
-    bool detectDamage = true;    ///< find damage and keep its edges out of the matching
+    bool detectDamage = true; ///< find damage and keep its edges out of the matching
     DamageParams damage;
     /// Atlas ids that are ventricles (empty like glass in a section): the major-region id 73.
     std::vector<std::int32_t> ventricleIds{73};
@@ -78,17 +78,17 @@ struct RegistrationQuality {
 /// The result: maps full-resolution section pixels to atlas pixels (pixel centres at integers,
 /// origin top-left, x right, y down, in both images).
 struct Registration {
-    cv::Size imageSize;            ///< full-resolution section size
-    double workingScale = 1.0;     ///< working px per full-resolution px
-    cv::Matx23d atlasFromWorking;  ///< the ICP affine, working px -> atlas px
-    DisplacementField warp;        ///< atlas px, over the working image domain
+    cv::Size imageSize;           ///< full-resolution section size
+    double workingScale = 1.0;    ///< working px per full-resolution px
+    cv::Matx23d atlasFromWorking; ///< the ICP affine, working px -> atlas px
+    DisplacementField warp;       ///< atlas px, over the working image domain
     Contrast contrast = Contrast::Fluorescence;
     RegistrationQuality quality;
     std::vector<std::pair<std::string, double>> timingsMs; ///< step name -> milliseconds
-    cv::Mat workingGrey;           ///< CV_32F [0,1] tissue bright, working resolution
-    cv::Mat workingTissueMask;     ///< CV_8U, working resolution
-    EdgePoints sectionEdges;       ///< working px, after exclusions
-    EdgePoints atlasEdges;         ///< atlas px
+    cv::Mat workingGrey;       ///< CV_32F [0,1] tissue bright, working resolution
+    cv::Mat workingTissueMask; ///< CV_8U, working resolution
+    EdgePoints sectionEdges;   ///< working px, after exclusions
+    EdgePoints atlasEdges;     ///< atlas px
     /// The affine (working px -> atlas px) after each stage: "obb", "outline", "icp"; for
     /// diagnosis and tests.
     std::vector<std::pair<std::string, cv::Matx23d>> stageAffines;
@@ -100,9 +100,9 @@ struct Registration {
     /// largest region first.
     std::vector<std::pair<std::int32_t, double>> regionConfidence;
 
-    bool damaged = false;              ///< the decision of isDamaged()
-    std::vector<DamageRegion> damage;  ///< full-resolution pixels, largest first
-    double damageFraction = 0;         ///< damaged area / tissue area
+    bool damaged = false;             ///< the decision of isDamaged()
+    std::vector<DamageRegion> damage; ///< full-resolution pixels, largest first
+    double damageFraction = 0;        ///< damaged area / tissue area
     std::string damageSummary;
     std::vector<Concavity> concavities; ///< deep outline concavities (working px), for diagnosis
 

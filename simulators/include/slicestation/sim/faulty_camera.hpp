@@ -18,7 +18,8 @@ public:
     void corruptNext(int captures) { corrupt_ = captures; }
     void disconnectAfter(int frames) { framesLeft_ = frames; }
 
-    core::Result<hw::CameraSettings> configure(const hw::CameraSettings& s, std::chrono::milliseconds t) override;
+    core::Result<hw::CameraSettings> configure(const hw::CameraSettings& s,
+                                               std::chrono::milliseconds t) override;
     core::Result<hw::Frame> capture(std::chrono::milliseconds timeout) override;
     void stop() noexcept override;
 

@@ -76,13 +76,13 @@ struct GeneratorOptionsB {
                                       ///< width; in [0, 0.05]
     double swelling = 0.05;           ///< local and gradient scale change (+/-); in [0, 0.2]
     StainB stain = StainB::Immuno;
-    bool brightfield = false;         ///< RGB (CV_8UC3, BGR), tissue darker than glass
-    double noise = 1.0;               ///< scales shot and read noise; in [0, 10]
-    double texture = 1.0;             ///< scales cell and density texture; in [0, 3]
-    bool tiles = true;                ///< scanner tiles (gain, gradient, seams)
-    int bubbles = -1;                 ///< air bubbles; -1 = 0 to 2 at random; in [-1, 20]
-    int landmarkCount = 200;          ///< in [0, 100000]
-    double atlasUmPerPx = 25;         ///< atlas pixel size, sets the cell size; in [1, 200]
+    bool brightfield = false; ///< RGB (CV_8UC3, BGR), tissue darker than glass
+    double noise = 1.0;       ///< scales shot and read noise; in [0, 10]
+    double texture = 1.0;     ///< scales cell and density texture; in [0, 3]
+    bool tiles = true;        ///< scanner tiles (gain, gradient, seams)
+    int bubbles = -1;         ///< air bubbles; -1 = 0 to 2 at random; in [-1, 20]
+    int landmarkCount = 200;  ///< in [0, 100000]
+    double atlasUmPerPx = 25; ///< atlas pixel size, sets the cell size; in [1, 200]
     DamageOptionsB damage;
     /// Template stain only: the average template on the atlas plane's grid (CV_32F, the size of
     /// the labels, any positive range; it is normalised by its 99.5th percentile in the brain).

@@ -21,7 +21,7 @@ struct AxisState {
     bool moving = false;
     bool inPosition = true; ///< the last move or homing finished at its target
     bool homing = false;
-    bool homeEnd = false;   ///< homing has completed since power-up / last move
+    bool homeEnd = false; ///< homing has completed since power-up / last move
     std::uint32_t alarmCode = 0;
 };
 
@@ -52,11 +52,11 @@ private:
     void start(double target, double speed, double accel, core::TimePoint now, bool homing);
     void update(core::TimePoint now);
 
-    double p0_ = 0, p1_ = 0;     // start and target of the current profile
-    core::TimePoint t0_{};       // profile start
+    double p0_ = 0, p1_ = 0; // start and target of the current profile
+    core::TimePoint t0_{};   // profile start
     double durationS_ = 0, rampS_ = 0, peakSpeed_ = 0, accel_ = 1;
     bool active_ = false, homing_ = false, homeEnd_ = false, inPosition_ = true;
-    double frozenAt_ = 0;        // where a stalled/alarmed/halted axis stopped
+    double frozenAt_ = 0; // where a stalled/alarmed/halted axis stopped
     bool frozen_ = false;
     bool stall_ = false;
     bool faultThisMove_ = false; // stall or alarm applies to the current profile

@@ -23,15 +23,15 @@
 namespace slicestation::sim {
 
 struct SimCameraConfig {
-    cv::Mat slide;              ///< CV_8UC1, CV_16UC1 or CV_8UC3 (BGR); tissue on glass
-    double slideUmPerPx = 2.0;  ///< pixel size of `slide`
-    double slideOriginXUm = 0;  ///< stage position of the slide image's top-left corner
+    cv::Mat slide;             ///< CV_8UC1, CV_16UC1 or CV_8UC3 (BGR); tissue on glass
+    double slideUmPerPx = 2.0; ///< pixel size of `slide`
+    double slideOriginXUm = 0; ///< stage position of the slide image's top-left corner
     double slideOriginYUm = 0;
-    double sensorUmPerPx = 2.0; ///< pixel size of the camera at the sample
+    double sensorUmPerPx = 2.0;                       ///< pixel size of the camera at the sample
     std::function<hw::StagePosition()> stagePosition; ///< where the stage is now (required)
-    double focusZUm = 2'500;          ///< focal surface: z = focusZUm + tiltX*x + tiltY*y
+    double focusZUm = 2'500; ///< focal surface: z = focusZUm + tiltX*x + tiltY*y
     double focusTiltX = 0.002, focusTiltY = -0.001;
-    double blurSigmaPxPerUm = 0.15;   ///< Gaussian sigma per µm of defocus
+    double blurSigmaPxPerUm = 0.15;            ///< Gaussian sigma per µm of defocus
     std::int64_t referenceExposureUs = 10'000; ///< exposure at which the slide's values show
 };
 
@@ -45,7 +45,8 @@ public:
     /// or stagePosition is missing.
     static core::Result<std::unique_ptr<SimCamera>> create(SimCameraConfig config);
     /// The same, looking at `slide` (its image, pixel size and origin replace config's).
-    static core::Result<std::unique_ptr<SimCamera>> create(const VirtualSlide& slide, SimCameraConfig config);
+    static core::Result<std::unique_ptr<SimCamera>> create(const VirtualSlide& slide,
+                                                           SimCameraConfig config);
 
     core::Result<hw::CameraSettings> configure(const hw::CameraSettings& settings,
                                                std::chrono::milliseconds timeout) override;

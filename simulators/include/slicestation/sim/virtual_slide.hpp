@@ -23,29 +23,30 @@
 namespace slicestation::sim {
 
 struct SlideSectionSpec {
-    double apFraction = 0.5;  ///< built-in atlas plane, 0 (front) .. 1 (back)
-    std::string damage;       ///< "", "tear", "missing", "fragment"
-    std::uint64_t seed = 1;   ///< generator seed (deformation, stain, damage placement)
+    double apFraction = 0.5; ///< built-in atlas plane, 0 (front) .. 1 (back)
+    std::string damage;      ///< "", "tear", "missing", "fragment"
+    std::uint64_t seed = 1;  ///< generator seed (deformation, stain, damage placement)
 };
 
 struct VirtualSlideSpec {
     std::vector<SlideSectionSpec> sections;
     int columns = 4;
-    double sectionPitchUm = 12'000;  ///< centre-to-centre spacing
-    double sectionWidthUm = 10'000;  ///< nominal size of a generated section (its image patch;
-                                     ///< the tissue spans about 75% of it)
-    double umPerPx = 8.0;            ///< pixel size of the slide image
-    double originXUm = 5'000, originYUm = 5'000; ///< stage position of the slide image's top-left corner
-    bool brightfield = false;        ///< false: fluorescence, CV_16UC1; true: CV_8UC3 BGR
-    double marginUm = 1'000;         ///< glass around the grid
+    double sectionPitchUm = 12'000; ///< centre-to-centre spacing
+    double sectionWidthUm = 10'000; ///< nominal size of a generated section (its image patch;
+                                    ///< the tissue spans about 75% of it)
+    double umPerPx = 8.0;           ///< pixel size of the slide image
+    double originXUm = 5'000,
+           originYUm = 5'000; ///< stage position of the slide image's top-left corner
+    bool brightfield = false; ///< false: fluorescence, CV_16UC1; true: CV_8UC3 BGR
+    double marginUm = 1'000;  ///< glass around the grid
 };
 
 struct SlideSection {
-    int index;                 ///< position in the spec / image list
-    hw::StagePosition centre;  ///< stage position of the section's cell centre (z = 0)
-    double widthUm, heightUm;  ///< extent of its image patch
-    double apFraction;         ///< the atlas plane it was generated from; -1 for a loaded image
-    std::string damage;        ///< as requested; "" for a loaded image (unknown)
+    int index;                ///< position in the spec / image list
+    hw::StagePosition centre; ///< stage position of the section's cell centre (z = 0)
+    double widthUm, heightUm; ///< extent of its image patch
+    double apFraction;        ///< the atlas plane it was generated from; -1 for a loaded image
+    std::string damage;       ///< as requested; "" for a loaded image (unknown)
 };
 
 struct VirtualSlide {

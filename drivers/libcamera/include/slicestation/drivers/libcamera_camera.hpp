@@ -31,7 +31,7 @@
 namespace slicestation::drivers {
 
 struct LibcameraCameraConfig {
-    std::string cameraId;   ///< empty: the first camera libcamera lists
+    std::string cameraId; ///< empty: the first camera libcamera lists
     int bufferCount = 3;
     int settleFrames = 2;
     std::chrono::milliseconds frameTimeout{2000}; ///< plus 5 x the exposure

@@ -85,7 +85,7 @@ std::int64_t encodeValue(const RegisterMap& map, const MapValue& v, const MoveQu
 /// 32-bit one -2^31..2^32-1 (signed or unsigned, as the drive reads it). OutOfRange says which
 /// quantity and value did not fit (a speed scaled beyond the register, a position beyond the
 /// drive's range), so that a caller sends nothing rather than a clipped or wrapped value.
-core::Result<std::int64_t> encodeChecked(const RegisterMap& map, const MapValue& v, const MoveQuantities& q,
-                                         bool register32);
+core::Result<std::int64_t> encodeChecked(const RegisterMap& map, const MapValue& v,
+                                         const MoveQuantities& q, bool register32);
 
 } // namespace slicestation::drivers

@@ -50,8 +50,8 @@ struct V4l2CameraConfig {
     int maxReinitAttempts = 3;
     std::chrono::milliseconds reinitDelay{500};
     std::chrono::milliseconds pollSlice{100}; ///< longest single poll (bounds stop() latency)
-    double gainUnitsPerX = 100;             ///< V4L2_CID_GAIN value for analogue gain 1.0 is 100
-    double wbUnitsPerX = 1000;              ///< V4L2_CID_RED/BLUE_BALANCE per unit gain
+    double gainUnitsPerX = 100;               ///< V4L2_CID_GAIN value for analogue gain 1.0 is 100
+    double wbUnitsPerX = 1000;                ///< V4L2_CID_RED/BLUE_BALANCE per unit gain
 };
 
 class V4l2Camera final : public hw::Camera {
@@ -84,8 +84,8 @@ private:
 
     V4l2CameraConfig config_;
     std::unique_ptr<Device> dev_;
-    hw::CameraSettings wanted_;   ///< what the caller asked (re-applied after an unplug)
-    hw::CameraSettings inForce_;  ///< what the device reported
+    hw::CameraSettings wanted_;  ///< what the caller asked (re-applied after an unplug)
+    hw::CameraSettings inForce_; ///< what the device reported
     bool configured_ = false;
     int dropRemaining_ = 0;
     std::uint64_t sequenceBase_ = 0, lastSequence_ = 0;
