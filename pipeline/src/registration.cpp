@@ -5,6 +5,7 @@
 #include "slicestation/pipeline/mask_ops.hpp"
 #include "slicestation/pipeline/obb.hpp"
 #include "slicestation/pipeline/point_grid.hpp"
+#include "slicestation/pipeline/smooth_warp.hpp"
 
 #include <opencv2/imgproc.hpp>
 
@@ -49,6 +50,12 @@ double overlap(const cv::Mat& tissueFilled, const cv::Mat& atlasMask, const cv::
 }
 
 /// atlas = cA + L (p - cI): the linear part L with the section's OBB centre on the atlas's.
+/// The rotation (degrees, in (-180, 180]) of an affine's linear part: the angle of its closest
+/// rotation (polar decomposition).
+double turnDegrees(const cv::Matx23d& t) {
+    return std::atan2(t(1, 0) - t(0, 1), t(0, 0) + t(1, 1)) * 180 / CV_PI;
+}
+
 cv::Matx23d centreOnCentre(const cv::Matx22d& L, const OrientedBox& img, const OrientedBox& atl) {
     const cv::Vec2d c =
         cv::Vec2d(atl.centre.x, atl.centre.y) - L * cv::Vec2d(img.centre.x, img.centre.y);
@@ -356,6 +363,14 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         return makeError(ErrorCode::InvalidArgument, "working size must be at least 128 px");
     if (options.imageUmPerPx < 0 || options.atlasUmPerPx < 0)
         return makeError(ErrorCode::InvalidArgument, "pixel sizes must be positive");
+    if (!(options.maxTurnDeg >= 0 && options.maxTurnDeg <= 180))
+        return makeError(ErrorCode::InvalidArgument,
+                         "the largest turn of a section on the slide must be 0 to 180 degrees");
+    if (options.smoothWarp && !(options.smooth.nodeSpacing > 0 && options.smooth.stiffness >= 0 &&
+                                options.smooth.robustK > 0))
+        return makeError(ErrorCode::InvalidArgument,
+                         "smooth warp options: node spacing and robustness must be positive, "
+                         "stiffness not negative");
     if (!options.atlasIntensity.empty() && (options.atlasIntensity.type() != CV_32F ||
                                             options.atlasIntensity.size() != atlasLabels.size()))
         return makeError(ErrorCode::InvalidArgument,
@@ -506,6 +521,15 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     }
     std::sort(placed.begin(), placed.end(),
               [](const Placed& a, const Placed& b) { return a.overlap > b.overlap; });
+    if (options.maxTurnDeg < 180) {
+        // The lab's mounting rule: placements turned further than it allows are dropped,
+        // unless none is within it.
+        const auto turned = [&](const Placed& p) {
+            return std::abs(turnDegrees(p.t)) > options.maxTurnDeg;
+        };
+        if (!std::all_of(placed.begin(), placed.end(), turned))
+            placed.erase(std::remove_if(placed.begin(), placed.end(), turned), placed.end());
+    }
     const cv::Matx23d bestInit = placed.front().init;
     cv::Matx23d best = placed.front().t;
     reg.stageAffines.emplace_back("obb", bestInit);
@@ -636,6 +660,35 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         }
         const double outlineReach = atlasH * options.outlinePullReach;
         const PointGrid atlasOuterGrid(atlasOuter.points, float(outlineReach / 2));
+        // The smooth stage: a B-spline field fitted to the edges and the tissue outline
+        // (outside damaged concavities) at once; the Laplace warp then adds local corrections.
+        DisplacementField base;
+        if (options.smoothWarp) {
+            EdgePoints smoothOutline;
+            for (size_t i = 0; i < imgOuter.size(); ++i) {
+                const cv::Point p(std::clamp(cvRound(imgOuter.points[i].x), 0, mei.cols - 1),
+                                  std::clamp(cvRound(imgOuter.points[i].y), 0, mei.rows - 1));
+                if (!damagedOutline.empty() && damagedOutline.at<std::uint8_t>(p))
+                    continue;
+                smoothOutline.points.push_back(imgOuter.points[i]);
+                smoothOutline.normals.push_back(imgOuter.normals[i]);
+            }
+            const PointGrid outerGrid(atlasOuter.points, float(atlasH / 40));
+            SmoothWarpOptions so = options.smooth;
+
+            if (so.levels.empty())
+                so.levels = {{atlasH / 15, 20, 3}, {atlasH / 25, 15, 3}, {atlasH / 40, 10, 3}};
+            const SmoothWarp sw =
+                fitSmoothWarp(reg.workingGrey.size(), reg.atlasFromWorking,
+                              {{&reg.sectionEdges, &reg.atlasEdges, &atlasGrid, 1.0},
+                               {&smoothOutline, &atlasOuter, &outerGrid, 1.0}},
+                              lo.cellPx, so);
+            base = sw.field;
+            reg.warp = base;
+            reg.quality.smoothBefore = sw.rmsBefore;
+            reg.quality.smoothAfter = sw.rmsAfter;
+            reg.quality.smoothMatches = sw.matches;
+        }
         for (const auto& [dist, ang] : rounds) {
             std::vector<cv::Point2d> pts, disp;
             addWarpConditions(reg.sectionEdges, reg.atlasFromWorking, reg.warp, reg.atlasEdges,
@@ -645,7 +698,10 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
             if (pullOutline)
                 addWarpConditions(outline, reg.atlasFromWorking, reg.warp, atlasOuter,
                                   atlasOuterGrid, std::max(dist, outlineReach), 15, pts, disp);
-            reg.warp = solveLaplaceWarp(reg.workingGrey.size(), pts, disp, lo);
+            // The Laplace warp interpolates what the smooth field leaves at the conditions.
+            for (size_t k = 0; k < pts.size(); ++k)
+                disp[k] -= base.at(pts[k]);
+            reg.warp = addFields(solveLaplaceWarp(reg.workingGrey.size(), pts, disp, lo), base);
         }
     }
     timer.lap("warp");

@@ -14,9 +14,11 @@
 #include "slicestation/pipeline/atlas.hpp"
 #include "slicestation/pipeline/atlas_matching.hpp"
 #include "slicestation/pipeline/atlas_slicing.hpp"
+#include "slicestation/pipeline/overlay.hpp"
 #include "slicestation/pipeline/registration.hpp"
 
 #include <CLI/CLI.hpp>
+#include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
 #include <algorithm>
@@ -69,7 +71,7 @@ struct Warp {
 /// larger so the turned section stays inside.
 /// With `shiftOnly`, a whole-pixel shift into the larger image and nothing else: a check of the
 /// benchmark itself (the registration should then agree with itself almost exactly).
-Warp randomWarp(std::mt19937_64& rng, cv::Size size, bool shiftOnly) {
+Warp randomWarp(std::mt19937_64& rng, cv::Size size, bool shiftOnly, double fieldScale) {
     auto U = [&](double a, double b) { return std::uniform_real_distribution<double>(a, b)(rng); };
     Warp w;
     w.size = cv::Size(int(size.width * 1.15), int(size.height * 1.15));
@@ -103,7 +105,7 @@ Warp randomWarp(std::mt19937_64& rng, cv::Size size, bool shiftOnly) {
         cv::GaussianBlur(*m, *m, cv::Size(), sigma, sigma, cv::BORDER_REFLECT);
         cv::Scalar mean, sd;
         cv::meanStdDev(*m, mean, sd);
-        *m = (*m - mean[0]) * (0.01 * side / std::max(1e-9, sd[0]));
+        *m = (*m - mean[0]) * (fieldScale * 0.01 * side / std::max(1e-9, sd[0]));
     }
     return w;
 }
@@ -247,13 +249,24 @@ core::Result<std::vector<RealSection>> gerbiSeries(const fs::path& shared) {
 
 int main(int argc, char** argv) {
     CLI::App app{"Real-tissue consistency of the registration under known warps"};
-    std::string shared = SLST_SHARED_DIR, seriesText = "all", csvPath;
+    std::string shared = SLST_SHARED_DIR, seriesText = "all", csvPath, overlayDir;
     int warps = 10, sectionsPerSeries = 1000;
     std::uint64_t seed = 17;
     std::vector<int> only;
     bool shiftOnly = false;
+    double fieldScale = 1.0, maxTurnDeg = 180;
+    std::string smoothMode = "on";
     app.add_flag("--shift-only", shiftOnly,
                  "Warps are whole-pixel shifts only (checks the benchmark: RMS near 0 expected)");
+    app.add_option("--field-scale", fieldScale,
+                   "Scale of the warps' smooth field (1 = 1% of the longer side, s.d.; 0 = none)")
+        ->check(CLI::Range(0.0, 10.0));
+    app.add_option("--max-turn", maxTurnDeg,
+                   "The registration's mounting rule: sections turned at most this far (degrees; "
+                   "180 = any way, the default)")
+        ->check(CLI::Range(0.0, 180.0));
+    app.add_option("--smooth", smoothMode, "The registration's smooth (B-spline) warp: on | off")
+        ->check(CLI::IsMember({"on", "off"}));
     app.add_option("--shared", shared, "Path of ../shared");
     app.add_option("--series", seriesText, "mouse | gerbi | all")
         ->check(CLI::IsMember({"mouse", "gerbi", "all"}));
@@ -263,6 +276,8 @@ int main(int argc, char** argv) {
     app.add_option("--only", only, "Only these section numbers (1-based) of each series");
     app.add_option("--seed", seed, "Seed of the warps");
     app.add_option("--csv", csvPath, "Per (section, warp) rows here");
+    app.add_option("--overlays", overlayDir,
+                   "Write the overlay of each original and warped registration here (PNG)");
     CLI11_PARSE(app, argc, argv);
     const fs::path sh(shared);
     if (!fs::exists(sh / "sections" / "abba-mouse-series") ||
@@ -307,6 +322,8 @@ int main(int argc, char** argv) {
             pipeline::RegistrationOptions ro;
             ro.imageUmPerPx = s.umPerPx;
             ro.atlasUmPerPx = 25;
+            ro.maxTurnDeg = maxTurnDeg;
+            ro.smoothWarp = smoothMode == "on";
             const auto t0 = std::chrono::steady_clock::now();
             auto reg0 = pipeline::registerSection(s.image, s.atlas, ro);
             const double sec0 =
@@ -317,13 +334,31 @@ int main(int argc, char** argv) {
                 ++res.failed;
                 continue;
             }
+            auto writeOverlay = [&](const pipeline::Registration& r, const std::string& tag) {
+                if (overlayDir.empty())
+                    return;
+                fs::create_directories(overlayDir);
+                const fs::path path =
+                    fs::path(overlayDir) /
+                    (series + "-" + fs::path(s.name).stem().string() + "-" + tag + ".png");
+                cv::imwrite(path.string(), pipeline::renderOverlay(r, s.atlas));
+            };
+            writeOverlay(*reg0, "original");
+            if (!overlayDir.empty()) {
+                cv::Mat grey;
+                cv::Mat(s.atlas != 0).convertTo(grey, CV_32F, 0.5 / 255);
+                cv::imwrite((fs::path(overlayDir) /
+                             (series + "-" + fs::path(s.name).stem().string() + "-atlas.png"))
+                                .string(),
+                            pipeline::renderOverlay(grey, s.atlas));
+            }
             // The original's tissue at full resolution.
             cv::Mat tissue;
             cv::resize(reg0->workingTissueMask, tissue, s.image.size(), 0, 0, cv::INTER_NEAREST);
             double sq = 0, worstWarp = 0, worstPoint = 0;
             long n = 0;
             for (int k = 0; k < warps; ++k) {
-                const Warp w = randomWarp(rng, s.image.size(), shiftOnly);
+                const Warp w = randomWarp(rng, s.image.size(), shiftOnly, fieldScale);
                 const cv::Mat warped = applyWarp(s.image, w);
                 const auto t1 = std::chrono::steady_clock::now();
                 auto reg1 = pipeline::registerSection(warped, s.atlas, ro);
@@ -335,6 +370,7 @@ int main(int argc, char** argv) {
                     ++res.failed;
                     continue;
                 }
+                writeOverlay(*reg1, "warp" + std::to_string(k));
                 // A dense grid of tissue points of the warped image (about 150 per side).
                 const int step = std::max(2, std::max(w.size.width, w.size.height) / 150);
                 double wsq = 0, wmax = 0;

@@ -244,7 +244,13 @@ int main(int argc, char** argv) {
     std::vector<int> only;
     app.add_option("--only", only,
                    "Run only these case indices of the --cases set (to look into them)");
-    std::string overlayDir, refineMode = "on";
+    std::string overlayDir, refineMode = "on", nonLinearMode = "on", smoothMode = "on";
+    app.add_option("--nonlinear", nonLinearMode,
+                   "Ours with its non-linear stages (Laplace warp, dense refinement): on | off "
+                   "(off: the affine alone)")
+        ->check(CLI::IsMember({"on", "off"}));
+    app.add_option("--smooth", smoothMode, "The smooth (B-spline) warp of ours: on | off")
+        ->check(CLI::IsMember({"on", "off"}));
     app.add_option("--refine", refineMode, "Dense refinement of ours: on | off")
         ->check(CLI::IsMember({"on", "off"}));
     app.add_option("--overlays", overlayDir,
@@ -356,7 +362,9 @@ int main(int argc, char** argv) {
         ours.damaged = c.damaged();
         const auto t0 = std::chrono::steady_clock::now();
         pipeline::RegistrationOptions ro = regOptions;
-        ro.denseRefine = refineMode == "on";
+        ro.denseRefine = refineMode == "on" && nonLinearMode == "on";
+        ro.nonLinear = nonLinearMode == "on";
+        ro.smoothWarp = smoothMode == "on";
         auto reg = pipeline::registerSection(gen->image, plane, ro);
         ours.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
         if (reg) {

@@ -9,6 +9,7 @@
 #include "slicestation/pipeline/edges.hpp"
 #include "slicestation/pipeline/laplace_warp.hpp"
 #include "slicestation/pipeline/preprocess.hpp"
+#include "slicestation/pipeline/smooth_warp.hpp"
 
 #include <opencv2/core.hpp>
 
@@ -25,6 +26,10 @@ struct RegistrationOptions {
     double atlasUmPerPx = 0;   ///< atlas pixel size, 0 = unknown
     bool nonLinear = true;     ///< add the Laplace warp after the affine
     bool allowMirror = false;  ///< also try mirrored placements (section mounted face down)
+    /// How far (degrees) a section may be turned on the slide relative to the atlas's
+    /// orientation; 180 = any way. A lab that mounts every section dorsal side up sets e.g. 45:
+    /// placements turned further are then not considered (unless none is within it).
+    double maxTurnDeg = 180;
     /// Section pixels (full resolution, CV_8U, non-zero = exclude) whose edges must not take
     /// part in the matching, e.g. damaged tissue. Empty = none.
     cv::Mat excludeMask;
@@ -39,6 +44,12 @@ struct RegistrationOptions {
     /// section's own contrast inside the tissue (dense_refine.hpp, docs/registration.md).
     bool denseRefine = true;
     DenseRefineOptions dense;
+    /// A smooth B-spline field fitted to every edge and outline match before the Laplace warp
+    /// (`smooth_warp.hpp`): deformations of the whole section beyond the Laplace warp's reach.
+    /// Its matching levels are set from the atlas height in registerSection; these options set
+    /// the spacing, stiffness and robustness.
+    bool smoothWarp = true;
+    SmoothWarpOptions smooth;
     /// Optional atlas intensity plane (CV_32F, the size of the atlas labels, e.g. a plane of the
     /// Allen average template): a second term of the dense refinement. Empty = none.
     cv::Mat atlasIntensity;
@@ -73,6 +84,10 @@ struct RegistrationQuality {
     /// dense refinement (0 when it did not run).
     double explainedBeforeRefine = 0, explainedAfterRefine = 0;
     bool refined = false; ///< the dense refinement ran and was kept
+    /// The smooth stage: RMS point-to-line distance (atlas px) of its first matches before and
+    /// after the fitted field, and how many matches its last iteration had (0 = not run).
+    double smoothBefore = 0, smoothAfter = 0;
+    int smoothMatches = 0;
 };
 
 /// The result: maps full-resolution section pixels to atlas pixels (pixel centres at integers,
