@@ -151,6 +151,27 @@ TEST_F(PageTest, TechnicianWatchesARunSeesTheTornSectionAndAcknowledgesItsAlert)
     EXPECT_EQ(tip, rj["name"].get<std::string>() + " (" + rj["acronym"].get<std::string>() + ")");
     browser.screenshot(kArtefacts / "page-damaged-section.png");
 
+    // The zoomed view of the torn section: read at full resolution, magnified around the tear.
+    browser.clickCss("#zoom-open");
+    ASSERT_TRUE(waitFor(
+        [&] {
+            return browser.execute("const i = document.getElementById('zoom-img'); return "
+                                   "i.complete && i.dataset.fitted === 'yes' && i.naturalWidth >= "
+                                   "arguments[0];",
+                                   {nw}) == true;
+        },
+        10s))
+        << "the zoom reads at least the view's pixels; it has "
+        << browser.execute("return document.getElementById('zoom-img').naturalWidth;")
+        << " (the view " << nw << ")";
+    std::cout << "zoom: "
+              << browser.execute("return document.getElementById('zoom-img').naturalWidth;")
+              << " px wide, the view " << nw << " px\n";
+    browser.clickCss("#zoom-in");
+    browser.clickCss("#zoom-in");
+    browser.screenshot(kArtefacts / "page-zoom.png");
+    browser.clickCss("#zoom-close");
+
     // The grid agrees with the journal, cell by cell.
     secs = rig_.station->journal().sections(*runId);
     ASSERT_TRUE(secs);
