@@ -54,16 +54,19 @@ CommandRunner addAtlasCommands(CLI::App& app) {
         if (!*atlas)
             return -1;
         if (*slice) {
-            Progress progress("atlas slice");
-            AtlasSliceRequest rq = *sliceRq;
-            if (progress.enabled())
-                rq.progress = [&progress, last = std::string()](const std::string& phase, int done,
-                                                                int total) mutable {
-                    if (phase != last)
-                        progress.phase(last = phase, total);
-                    progress.advance(done);
-                };
-            auto r = runAtlasSlice(rq);
+            // The progress line is erased (its object ends) before the result is printed.
+            auto r = [&] {
+                Progress progress("atlas slice");
+                AtlasSliceRequest rq = *sliceRq;
+                if (progress.enabled())
+                    rq.progress = [&progress, last = std::string()](const std::string& phase,
+                                                                    int done, int total) mutable {
+                        if (phase != last)
+                            progress.phase(last = phase, total);
+                        progress.advance(done);
+                    };
+                return runAtlasSlice(rq);
+            }();
             if (!r)
                 return reportError("atlas slice", r.error());
             std::cout << "wrote " << (*r)["slices"].get<int>() << " slices ("
