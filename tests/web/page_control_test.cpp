@@ -294,4 +294,18 @@ TEST_F(PageControl, RunControlsAndWhatTheTechnicianLooksAt) {
     EXPECT_FALSE(station_.called("cancel 7")) << "one click does not cancel a run";
     browser.clickCss("#ctl-cancel-confirm");
     ASSERT_TRUE(waitFor([&] { return station_.called("cancel 7"); }));
+
+    // On a phone nothing is wider than the page (the history table and the banners included).
+    browser.resize(390, 844);
+    ASSERT_TRUE(
+        waitFor([&] { return browser.execute("return window.innerWidth;").get<int>() <= 420; }));
+    EXPECT_EQ(browser.execute(
+                  "const d = document.documentElement; return d.scrollWidth <= d.clientWidth;"),
+              true)
+        << browser.execute(
+               "const d = document.documentElement; return [d.scrollWidth, d.clientWidth, "
+               "[...document.querySelectorAll('body *')].filter(e => "
+               "e.getBoundingClientRect().right > d.clientWidth + 0.5).slice(0, 8)"
+               ".map(e => e.tagName + '#' + e.id + '.' + e.className + ' ' + "
+               "Math.round(e.getBoundingClientRect().right))];");
 }
