@@ -50,7 +50,7 @@ echo "demo: open $url/ in a browser on this machine to watch the run"
 # Follow the run until it ends (bounded).
 state=""
 for _ in $(seq 600); do
-    state=$("$slicectl" runs --url "$url" | sed -n 's/^    "state": "\(.*\)",\{0,1\}$/\1/p' | head -1)
+    state=$("$slicectl" runs --json --url "$url" | sed -n 's/^    "state": "\(.*\)",\{0,1\}$/\1/p' | head -1)
     case "$state" in finished|paused|failed|cancelled) break ;; esac
     kill -0 "$daemon" 2>/dev/null || { cat "$out/slicestationd.log" >&2; exit 1; }
     sleep 1
@@ -58,7 +58,7 @@ done
 echo "demo: run 1 is $state"
 echo
 echo "== alerts (open) =="
-"$slicectl" alerts --url "$url" | sed -n 's/^    "message": "\(.*\)",$/  \1/p'
+"$slicectl" alerts --json --url "$url" | sed -n 's/^    "message": "\(.*\)",$/  \1/p'
 echo
 echo "== run 1, per section (also in $out/run-1.csv) =="
 "$slicectl" export 1 --format csv --url "$url" --output "$out/run-1.csv"

@@ -31,6 +31,11 @@ namespace {
 /// regions", so the brain keeps its outline where no major region claims a voxel.
 constexpr std::int32_t kOtherId = 8;
 
+void report(const AtlasSliceRequest& rq, const char* phase, int done, int total) {
+    if (rq.progress)
+        rq.progress(phase, done, total);
+}
+
 /// InvalidArgument naming `option` unless `value` is finite and within [min, max].
 core::Result<void> checkRange(const char* option, double value, double min, double max) {
     if (std::isfinite(value) && value >= min && value <= max)
@@ -61,6 +66,7 @@ core::Result<void> sliceVolumeFile(const AtlasSliceRequest& rq,
     if (rq.regions == "major" && rq.ontology.empty())
         return makeError(ErrorCode::InvalidArgument,
                          "--regions major needs --ontology (structure_id_path)");
+    report(rq, "reading the volume", 0, 0);
     auto volume = core::readNrrd(rq.volume);
     if (!volume)
         return volume.error();
@@ -73,15 +79,20 @@ core::Result<void> sliceVolumeFile(const AtlasSliceRequest& rq,
     }
     const pipeline::CuttingPlan plan{*orientation, rq.firstUm,   rq.intervalUm,
                                      rq.tiltLrDeg, rq.tiltDvDeg, rq.umPerPx};
+    report(rq, "cutting slices", 0, 0);
     auto cut = pipeline::sliceVolume(*volume, axes, plan);
     if (!cut)
         return makeError(cut.error().code, rq.volume.string() + ": " + cut.error().message);
     slices = std::move(*cut);
     std::set<std::uint32_t> ids;
     if (rq.regions == "major") {
-        for (auto& s : slices)
+        const int n = static_cast<int>(slices.size());
+        for (int i = 0; i < n; ++i) {
+            report(rq, "collapsing regions", i, n);
+            auto& s = slices[static_cast<std::size_t>(i)];
             s.labels =
                 pipeline::collapseLabels(s.labels, ontology, pipeline::majorRegionIds(), kOtherId);
+        }
         ids.insert(pipeline::majorRegionIds().begin(), pipeline::majorRegionIds().end());
         ids.insert(kOtherId);
     } else {
@@ -150,6 +161,7 @@ core::Result<json> runAtlasSlice(const AtlasSliceRequest& rq) {
         return r.error();
     }
     source["um_per_px"] = rq.builtin ? kBuiltinUmPerPx : rq.umPerPx;
+    report(rq, "writing the stack", 0, 0);
     auto stack = writeStack(rq.output, slices, std::move(regions), source);
     if (!stack)
         return stack.error();

@@ -1,5 +1,6 @@
 #include "slicestation/daemon/cli/atlas_command.hpp"
 #include "slicestation/daemon/cli/cli.hpp"
+#include "slicestation/daemon/cli/cli_output.hpp"
 
 #include <iostream>
 #include <memory>
@@ -53,7 +54,19 @@ CommandRunner addAtlasCommands(CLI::App& app) {
         if (!*atlas)
             return -1;
         if (*slice) {
-            auto r = runAtlasSlice(*sliceRq);
+            // The progress line is erased (its object ends) before the result is printed.
+            auto r = [&] {
+                Progress progress("atlas slice");
+                AtlasSliceRequest rq = *sliceRq;
+                if (progress.enabled())
+                    rq.progress = [&progress, last = std::string()](const std::string& phase,
+                                                                    int done, int total) mutable {
+                        if (phase != last)
+                            progress.phase(last = phase, total);
+                        progress.advance(done);
+                    };
+                return runAtlasSlice(rq);
+            }();
             if (!r)
                 return reportError("atlas slice", r.error());
             std::cout << "wrote " << (*r)["slices"].get<int>() << " slices ("
@@ -65,7 +78,11 @@ CommandRunner addAtlasCommands(CLI::App& app) {
         AtlasMatchRequest rq = *matchRq;
         if (*expected >= 0)
             rq.expectedIndex = *expected;
-        auto r = runAtlasMatch(rq);
+        core::Result<nlohmann::json> r = [&] {
+            Progress progress("atlas match");
+            progress.phase("matching the section against the stack");
+            return runAtlasMatch(rq);
+        }();
         if (!r)
             return reportError("atlas match", r.error());
         std::cout << "matched " << rq.image.string() << ": slice " << (*r)["index"].get<int>()

@@ -1,14 +1,17 @@
 // slicectl commands that talk to a running slicestationd over its HTTP API: scan submit, status,
 // runs, sections, section, pause, resume, cancel, rescan, alerts, export.
 #include "slicestation/daemon/cli/cli.hpp"
+#include "slicestation/daemon/cli/cli_output.hpp"
 #include "slicestation/daemon/config/config_document.hpp"
 #include "slicestation/daemon/config/daemon_settings.hpp"
 
 #include <httplib.h>
 #include <nlohmann/json.hpp>
 
+#include <cmath>
 #include <cstdlib>
 #include <fstream>
+#include <functional>
 #include <iostream>
 #include <memory>
 #include <sstream>
@@ -80,24 +83,130 @@ core::Result<Reply> request(Connection c, const std::string& method, const std::
     return Reply{res->status, res->body};
 }
 
-/// Prints the body (JSON pretty) on success; the daemon's message on failure. Exit code.
-int finish(const char* name, const core::Result<Reply>& r, bool raw = false) {
+/// The exit code of a daemon reply: 2xx ok; 400, 404, 413 the input; 409 a conflict with the
+/// run's state; 401, 403 and 5xx the daemon refused.
+int exitCodeOf(int status) {
+    if (status >= 200 && status < 300)
+        return kExitOk;
+    if (status == 409)
+        return kExitConflict;
+    if (status == 400 || status == 404 || status == 413 || status == 422)
+        return kExitInput;
+    return kExitUnreachable;
+}
+
+using Printer = std::function<void(const nlohmann::json&)>;
+
+/// On success prints the reply: `print` for people, or the JSON (pretty) with --json or without
+/// a printer; `raw` prints the body as it came. On failure the daemon's message. Exit code.
+int finish(const char* name, const core::Result<Reply>& r, bool json, const Printer& print = {},
+           bool raw = false) {
     if (!r)
         return reportError(name, r.error());
     if (r->status >= 200 && r->status < 300) {
         if (raw) {
             std::cout << r->body;
-        } else {
-            auto j = nlohmann::json::parse(r->body, nullptr, false);
-            std::cout << (j.is_discarded() ? r->body : j.dump(2)) << "\n";
+            return kExitOk;
         }
-        return 0;
+        auto j = nlohmann::json::parse(r->body, nullptr, false);
+        if (j.is_discarded())
+            std::cout << r->body << "\n";
+        else if (json || !print)
+            std::cout << j.dump(2) << "\n";
+        else
+            print(j);
+        return kExitOk;
     }
     auto j = nlohmann::json::parse(r->body, nullptr, false);
-    const std::string msg =
-        !j.is_discarded() && j.contains("error") ? j["error"].get<std::string>() : r->body;
+    const std::string msg = !j.is_discarded() && j.contains("error") && j["error"].is_string()
+                                ? j["error"].get<std::string>()
+                                : r->body;
     std::cerr << "slicectl " << name << ": error: " << msg << " (HTTP " << r->status << ")\n";
-    return r->status == 400 || r->status == 404 || r->status == 409 ? 2 : 1;
+    return exitCodeOf(r->status);
+}
+
+std::string text(const nlohmann::json& j, const char* key) {
+    if (!j.contains(key) || j[key].is_null())
+        return "";
+    const auto& v = j[key];
+    if (v.is_string())
+        return v.get<std::string>();
+    if (v.is_number_float())
+        return plainNumber(v.get<double>());
+    if (v.is_boolean())
+        return v.get<bool>() ? "yes" : "no";
+    return v.dump();
+}
+
+void printStatus(const nlohmann::json& j) {
+    std::vector<std::vector<std::string>> rows{{"state", text(j, "state")},
+                                               {"step", text(j, "activity")}};
+    if (j.contains("run") && j["run"].is_object()) {
+        const auto& r = j["run"];
+        rows.push_back({"run", "#" + text(r, "id") + " " + text(r, "name") + ", " +
+                                   text(r, "state") + ", " + text(r, "done") + "/" +
+                                   text(r, "sections") + " sections"});
+    } else {
+        rows.push_back({"run", "none active"});
+    }
+    rows.push_back({"open alerts", text(j, "open_alerts")});
+    if (j.contains("free_mb") && j["free_mb"].is_number())
+        rows.push_back({"free space", plainNumber(std::round(j["free_mb"].get<double>())) + " MB"});
+    if (j.contains("simulated") && j["simulated"].is_object()) {
+        std::string sim;
+        if (j["simulated"].value("stage", false))
+            sim += "stage ";
+        if (j["simulated"].value("camera", false))
+            sim += "camera";
+        rows.push_back({"simulated", sim.empty() ? "nothing" : sim});
+    }
+    if (j.contains("atlas") && j["atlas"].is_object())
+        rows.push_back(
+            {"atlas", text(j["atlas"], "slices") + " slices in " + text(j["atlas"], "dir")});
+    rows.push_back({"state dir", text(j, "state_dir")});
+    std::cout << formatTable({"STATUS", ""}, rows);
+}
+
+void printRuns(const nlohmann::json& j) {
+    std::vector<std::vector<std::string>> rows;
+    for (const auto& r : j)
+        rows.push_back(
+            {text(r, "id"), text(r, "name"),
+             text(r, "state") + (text(r, "reason").empty() ? "" : " (" + text(r, "reason") + ")"),
+             text(r, "done") + "/" + text(r, "sections"), localTime(text(r, "created_utc")),
+             localTime(text(r, "started_utc")), localTime(text(r, "ended_utc"))});
+    std::cout << formatTable({"ID", "NAME", "STATE", "DONE", "CREATED", "STARTED", "ENDED"}, rows)
+              << "(" << localZoneLabel() << ")\n";
+}
+
+void printSections(const nlohmann::json& j) {
+    std::vector<std::vector<std::string>> rows;
+    for (const auto& s : j)
+        rows.push_back({text(s, "id"), text(s, "slide"), text(s, "name"), text(s, "state"),
+                        text(s, "attempts"), text(s, "expected_slice"), text(s, "reason")});
+    std::cout << formatTable(
+        {"ID", "SLIDE", "SECTION", "STATE", "ATTEMPTS", "PLANNED SLICE", "REASON"}, rows);
+}
+
+void printAlerts(const nlohmann::json& j) {
+    std::vector<std::vector<std::string>> rows;
+    for (const auto& a : j)
+        rows.push_back({text(a, "id"), localTime(text(a, "raised_utc")), text(a, "severity"),
+                        text(a, "kind"), text(a, "section_id"),
+                        a.value("open", false) ? "open" : "answered: " + text(a, "ack_action"),
+                        text(a, "message")});
+    if (rows.empty()) {
+        std::cout << "no alerts\n";
+        return;
+    }
+    std::cout << formatTable({"ID", "RAISED", "SEVERITY", "KIND", "SECTION", "STATE", "MESSAGE"},
+                             rows)
+              << "(" << localZoneLabel() << ")\n";
+}
+
+/// A control's answer for people: one line.
+Printer saying(std::string what) {
+    return [what = std::move(what)](const nlohmann::json&) { std::cout << what << "\n"; };
 }
 
 /// The options of the daemon client commands.
@@ -107,6 +216,7 @@ struct DaemonOpts {
     std::int64_t id = 0;
     bool all = false;
     std::string action = "accept";
+    bool json = false;
     std::string format = "json";
     std::string output;
     bool resetAlarm = false;
@@ -123,7 +233,7 @@ CommandRunner addDaemonCommands(CLI::App& app) {
     addConnectionOptions(submit, o->c);
     scan->require_subcommand(1);
 
-    auto* status = app.add_subcommand("status", "The daemon's status (JSON)");
+    auto* status = app.add_subcommand("status", "The daemon's status");
     auto* runs = app.add_subcommand("runs", "List runs");
     auto* sections = app.add_subcommand("sections", "List the sections of a run");
     sections->add_option("RUN", o->id, "Run id")->required();
@@ -148,7 +258,8 @@ CommandRunner addDaemonCommands(CLI::App& app) {
     auto* ack = alerts->add_subcommand("ack", "Acknowledge an alert");
     ack->add_option("ALERT", o->id, "Alert id")->required();
     ack->add_option("--action", o->action,
-                    "\"rescan\" (re-mounted: capture again) or \"accept\" (as is)");
+                    "rescan (re-mounted: capture again) or accept (as is; the default)")
+        ->check(CLI::IsMember({"rescan", "accept"}));
     addConnectionOptions(ack, o->c);
     auto* exp = app.add_subcommand("export",
                                    "Export a run: per section image, stage position, atlas slice, "
@@ -158,45 +269,62 @@ CommandRunner addDaemonCommands(CLI::App& app) {
     exp->add_option("--output", o->output, "Write to this file instead of stdout");
     for (auto* c : {status, runs, sections, section, pause, resume, cancel, rescan, alerts, exp})
         addConnectionOptions(c, o->c);
+    for (auto* c : {submit, status, runs, sections, pause, resume, cancel, rescan, alerts, ack})
+        c->add_flag("--json", o->json, "Print the daemon's JSON (for scripts) instead of a table");
 
     return [=]() -> int {
         const std::string id = std::to_string(o->id);
+        const bool json = o->json;
         if (*scan && *submit) {
             std::ifstream in(o->plan);
             std::stringstream ss;
             ss << in.rdbuf();
-            const bool json = o->plan.ends_with(".json");
-            return finish("scan submit", request(o->c, "POST", "/api/runs", ss.str(),
-                                                 json ? "application/json" : "application/toml"));
+            const bool isJson = o->plan.ends_with(".json");
+            return finish("scan submit",
+                          request(o->c, "POST", "/api/runs", ss.str(),
+                                  isJson ? "application/json" : "application/toml"),
+                          json, [](const nlohmann::json& j) {
+                              std::cout << "run " << text(j, "run_id") << " queued\n";
+                          });
         }
         if (*status)
-            return finish("status", request(o->c, "GET", "/api/status"));
+            return finish("status", request(o->c, "GET", "/api/status"), json, printStatus);
         if (*runs)
-            return finish("runs", request(o->c, "GET", "/api/runs"));
+            return finish("runs", request(o->c, "GET", "/api/runs"), json, printRuns);
         if (*sections)
-            return finish("sections", request(o->c, "GET", "/api/runs/" + id + "/sections"));
-        if (*section)
-            return finish("section", request(o->c, "GET", "/api/sections/" + id));
+            return finish("sections", request(o->c, "GET", "/api/runs/" + id + "/sections"), json,
+                          printSections);
+        if (*section) // the detail is nested: JSON is its readable form
+            return finish("section", request(o->c, "GET", "/api/sections/" + id), true);
         if (*pause)
-            return finish("pause", request(o->c, "POST", "/api/runs/" + id + "/pause"));
+            return finish("pause", request(o->c, "POST", "/api/runs/" + id + "/pause"), json,
+                          saying("run " + id + ": pause requested (it stops between sections)"));
         if (*resume)
-            return finish("resume",
-                          request(o->c, "POST", "/api/runs/" + id + "/resume",
-                                  nlohmann::json{{"reset_stage_alarm", o->resetAlarm}}.dump()));
+            return finish(
+                "resume",
+                request(o->c, "POST", "/api/runs/" + id + "/resume",
+                        nlohmann::json{{"reset_stage_alarm", o->resetAlarm}}.dump()),
+                json,
+                saying("run " + id + " resumed" + (o->resetAlarm ? " (stage alarm reset)" : "")));
         if (*cancel)
-            return finish("cancel", request(o->c, "POST", "/api/runs/" + id + "/cancel"));
+            return finish("cancel", request(o->c, "POST", "/api/runs/" + id + "/cancel"), json,
+                          saying("run " + id + " cancelled"));
         if (*rescan)
-            return finish("rescan", request(o->c, "POST", "/api/sections/" + id + "/rescan"));
+            return finish("rescan", request(o->c, "POST", "/api/sections/" + id + "/rescan"), json,
+                          saying("section " + id + ": rescan requested"));
         if (*alerts && *ack)
-            return finish("alerts ack", request(o->c, "POST", "/api/alerts/" + id + "/ack",
-                                                nlohmann::json{{"action", o->action}}.dump()));
+            return finish("alerts ack",
+                          request(o->c, "POST", "/api/alerts/" + id + "/ack",
+                                  nlohmann::json{{"action", o->action}}.dump()),
+                          json, saying("alert " + id + " acknowledged (" + o->action + ")"));
         if (*alerts)
             return finish("alerts",
-                          request(o->c, "GET", o->all ? "/api/alerts" : "/api/alerts?open=1"));
+                          request(o->c, "GET", o->all ? "/api/alerts" : "/api/alerts?open=1"), json,
+                          printAlerts);
         if (*exp) {
             auto r = request(o->c, "GET", "/api/runs/" + id + "/export?format=" + o->format);
             if (o->output.empty() || !r || r->status != 200)
-                return finish("export", r, true);
+                return finish("export", r, false, {}, true);
             std::ofstream out(o->output, std::ios::binary);
             out << r->body;
             out.close();

@@ -1,5 +1,6 @@
 #include "slicestation/daemon/cli/atlas_command.hpp"
 #include "slicestation/daemon/cli/cli.hpp"
+#include "slicestation/daemon/cli/cli_output.hpp"
 #include "slicestation/daemon/cli/demo_command.hpp"
 #include "slicestation/daemon/cli/register_command.hpp"
 #include "slicestation/pipeline/atlas_slicing.hpp"
@@ -12,9 +13,7 @@
 namespace slicestation::daemon {
 
 CLI::Validator finiteRange(double min, double max) {
-    std::ostringstream range;
-    range << "[" << min << ", " << max << "]";
-    const std::string text = range.str();
+    const std::string text = "[" + plainNumber(min) + ", " + plainNumber(max) + "]";
     return CLI::Validator(
         [min, max, text](std::string& value) -> std::string {
             double v = 0;
@@ -27,7 +26,15 @@ CLI::Validator finiteRange(double min, double max) {
 
 int reportError(const char* command, const core::Error& e) {
     std::cerr << "slicectl " << command << ": error: " << e.message << "\n";
-    return e.code == core::ErrorCode::Internal ? 1 : 2;
+    switch (e.code) {
+    case core::ErrorCode::Disconnected:
+    case core::ErrorCode::Timeout:
+    case core::ErrorCode::Alarm:
+    case core::ErrorCode::Cancelled:
+        return kExitUnreachable;
+    default:
+        return kExitInput;
+    }
 }
 
 CommandRunner addRegisterCommand(CLI::App& app) {
@@ -67,7 +74,11 @@ CommandRunner addRegisterCommand(CLI::App& app) {
             rq.warpedLabels = o->warped;
         if (auto s = useStackSlice(rq, o->slice); !s)
             return reportError("register", s.error());
-        auto r = runRegister(rq);
+        auto r = [&] {
+            Progress progress("register");
+            progress.phase("registering " + rq.image.filename().string());
+            return runRegister(rq);
+        }();
         if (!r)
             return reportError("register", r.error());
         std::cout << "registered " << rq.image.string() << " -> " << rq.output.string()

@@ -17,8 +17,16 @@ void addPageRoutes(httplib::Server& srv, StationApi& st) {
         const auto page = webPage();
         res.set_content(page.data(), page.size(), "text/html; charset=utf-8");
     });
-    srv.Get("/api/status",
-            [&st](const httplib::Request&, httplib::Response& res) { sendJson(res, st.status()); });
+    // The station's status, plus "stage": where the stage was at the latest camera frame (the
+    // page's live position; absent before the first frame or when the camera model does not know).
+    srv.Get("/api/status", [&st](const httplib::Request&, httplib::Response& res) {
+        nlohmann::json j = st.status();
+        if (auto frame = st.liveFrame(); frame && frame->metadata.stage) {
+            const auto& p = *frame->metadata.stage;
+            j["stage"] = {{"x_um", p.xUm}, {"y_um", p.yUm}, {"z_um", p.zUm}};
+        }
+        sendJson(res, j);
+    });
     // The latest camera frame, scaled to ?width= (16..4096).
     srv.Get("/api/live.jpg", [&st](const httplib::Request& req, httplib::Response& res) {
         auto width = intQuery(req, res, "width", 16, 4096, 1024);

@@ -11,6 +11,7 @@
 #include "slicestation/daemon/http/http_api.hpp"
 #include "slicestation/daemon/service/systemd_notifier.hpp"
 #include "slicestation/daemon/station/station.hpp"
+#include "slicestation/daemon/version.hpp"
 
 #include <CLI/CLI.hpp>
 
@@ -123,6 +124,8 @@ struct Options {
 /// The command line. \return an exit code when the program should end (--help, bad usage).
 std::optional<int> parseOptions(int argc, char** argv, Options& o) {
     CLI::App app{"slicestationd: the slide-scanning station daemon"};
+    app.set_version_flag("--version",
+                         std::string("slicestationd ") + slicestation::daemon::kVersion);
     app.add_option("--config", o.configFile,
                    "Station file (TOML): [stage], [camera], [daemon], [scan]")
         ->required();

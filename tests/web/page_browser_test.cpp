@@ -79,18 +79,19 @@ TEST_F(PageTest, TechnicianWatchesARunSeesTheTornSectionAndAcknowledgesItsAlert)
         {tornCell});
     EXPECT_EQ(colour, "rgb(212, 60, 60)") << "damaged cells are red";
 
-    // The alert banner names the damage (the most urgent open alert) and offers both answers.
+    // The damage alert has its banner (one per open alert), naming the damage, with both answers.
     ASSERT_TRUE(waitFor([&] {
-        return browser.execute(
-                   "return document.getElementById('banner').classList.contains('shown');") == true;
+        return browser.execute("return document.querySelector('#banners .banner') !== null;") ==
+               true;
     }));
     auto damageAlerts = alertsOf("damaged");
     ASSERT_EQ(damageAlerts.size(), 1u);
-    ASSERT_TRUE(waitFor([&] {
-        return browser.execute("return document.getElementById('banner').dataset.alertId;") ==
-               std::to_string(damageAlerts[0].id);
-    })) << "the banner shows the damage alert";
-    EXPECT_NE(browser.text(*browser.find("#banner-text")).find("damaged"), std::string::npos);
+    const std::string damageBanner =
+        "#banners .banner[data-alert-id=\"" + std::to_string(damageAlerts[0].id) + "\"]";
+    ASSERT_TRUE(waitFor([&] { return browser.find(damageBanner).has_value(); }))
+        << "the banner shows the damage alert";
+    EXPECT_NE(browser.text(*browser.find(damageBanner + " .banner-text")).find("damaged"),
+              std::string::npos);
 
     // Clicking a section opens its detail and shows its overlay: the torn one has its damage
     // filled in red, a clean one has no red at all.
@@ -150,6 +151,27 @@ TEST_F(PageTest, TechnicianWatchesARunSeesTheTornSectionAndAcknowledgesItsAlert)
     EXPECT_EQ(tip, rj["name"].get<std::string>() + " (" + rj["acronym"].get<std::string>() + ")");
     browser.screenshot(kArtefacts / "page-damaged-section.png");
 
+    // The zoomed view of the torn section: read at full resolution, magnified around the tear.
+    browser.clickCss("#zoom-open");
+    ASSERT_TRUE(waitFor(
+        [&] {
+            return browser.execute("const i = document.getElementById('zoom-img'); return "
+                                   "i.complete && i.dataset.fitted === 'yes' && i.naturalWidth >= "
+                                   "arguments[0];",
+                                   {nw}) == true;
+        },
+        10s))
+        << "the zoom reads at least the view's pixels; it has "
+        << browser.execute("return document.getElementById('zoom-img').naturalWidth;")
+        << " (the view " << nw << ")";
+    std::cout << "zoom: "
+              << browser.execute("return document.getElementById('zoom-img').naturalWidth;")
+              << " px wide, the view " << nw << " px\n";
+    browser.clickCss("#zoom-in");
+    browser.clickCss("#zoom-in");
+    browser.screenshot(kArtefacts / "page-zoom.png");
+    browser.clickCss("#zoom-close");
+
     // The grid agrees with the journal, cell by cell.
     secs = rig_.station->journal().sections(*runId);
     ASSERT_TRUE(secs);
@@ -158,11 +180,8 @@ TEST_F(PageTest, TechnicianWatchesARunSeesTheTornSectionAndAcknowledgesItsAlert)
     }
 
     // Acknowledge from the banner: without the token the page asks for it, then it goes through.
-    ASSERT_TRUE(waitFor([&] {
-        return browser.execute("return document.getElementById('banner').dataset.alertId;") ==
-               std::to_string(damageAlerts[0].id);
-    }));
-    browser.clickCss("#ack-rescan");
+    ASSERT_TRUE(waitFor([&] { return browser.find(damageBanner).has_value(); }));
+    browser.clickCss(damageBanner + " button.ack-rescan");
     ASSERT_TRUE(waitFor(
         [&] {
             return browser.execute(
@@ -176,7 +195,7 @@ TEST_F(PageTest, TechnicianWatchesARunSeesTheTornSectionAndAcknowledgesItsAlert)
     EXPECT_FALSE(still->acknowledgedUtc) << "nothing acknowledged without the token";
     browser.type(*browser.find("#token"), kToken);
     browser.clickCss("#token-save");
-    browser.clickCss("#ack-rescan");
+    browser.clickCss(damageBanner + " button.ack-rescan");
     ASSERT_TRUE(waitFor(
         [&] {
             auto a = rig_.station->journal().alert(damageAlerts[0].id);
@@ -204,7 +223,8 @@ TEST_F(PageTest, TechnicianWatchesARunSeesTheTornSectionAndAcknowledgesItsAlert)
     browser.resize(390, 844);
     ASSERT_TRUE(waitFor(
         [&] { return browser.execute("return window.innerWidth;").get<int>() <= 420; }, 10s));
-    EXPECT_EQ(browser.execute("return document.documentElement.scrollWidth <= window.innerWidth;"),
+    EXPECT_EQ(browser.execute(
+                  "const d = document.documentElement; return d.scrollWidth <= d.clientWidth;"),
               true)
         << "no horizontal scrolling on a phone";
     EXPECT_EQ(

@@ -66,7 +66,8 @@ public:
         calls.push_back(openOnly ? "alerts open" : "alerts all");
         return std::vector<AlertRecord>{};
     }
-    std::shared_ptr<const hw::Frame> liveFrame() const override { return nullptr; }
+    std::shared_ptr<const hw::Frame> frame; ///< the live frame; none until a test sets one
+    std::shared_ptr<const hw::Frame> liveFrame() const override { return frame; }
     core::Result<cv::Mat> sectionImage(std::int64_t id, bool overlay) override {
         if (auto e = failing("sectionImage"))
             return *e;
@@ -160,6 +161,21 @@ TEST_F(HttpRoutes, ReadsAnswerFromTheStation) {
     EXPECT_EQ(client_->Get("/api/alerts?open=1")->status, 200);
     EXPECT_EQ(station_.calls.back(), "alerts open");
     EXPECT_EQ(nlohmann::json::parse(client_->Get("/api/status")->body)["state"], "idle");
+}
+
+TEST_F(HttpRoutes, StatusCarriesTheStagePositionOfTheLatestFrame) {
+    auto status = nlohmann::json::parse(client_->Get("/api/status")->body);
+    EXPECT_FALSE(status.contains("stage")) << "no frame yet: no position";
+    auto f = std::make_shared<hw::Frame>(hw::PixelFormat::Mono8, 4, 4);
+    station_.frame = f;
+    status = nlohmann::json::parse(client_->Get("/api/status")->body);
+    EXPECT_FALSE(status.contains("stage")) << "a frame whose position the camera did not know";
+    auto g = std::make_shared<hw::Frame>(hw::PixelFormat::Mono8, 4, 4);
+    g->metadata.stage = hw::StagePosition{1.5, -2.25, 300};
+    station_.frame = g;
+    status = nlohmann::json::parse(client_->Get("/api/status")->body);
+    EXPECT_EQ(status["stage"], (nlohmann::json{{"x_um", 1.5}, {"y_um", -2.25}, {"z_um", 300.0}}));
+    EXPECT_EQ(status["state"], "idle");
 }
 
 TEST_F(HttpRoutes, ImagesAreStretchedScaledAndEncoded) {

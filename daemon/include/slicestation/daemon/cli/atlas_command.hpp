@@ -10,6 +10,7 @@
 #include <nlohmann/json.hpp>
 
 #include <filesystem>
+#include <functional>
 #include <optional>
 #include <string>
 #include <vector>
@@ -37,6 +38,9 @@ struct AtlasSliceRequest {
     double umPerPx = 25;
     std::string regions = "major"; ///< major | all
     std::filesystem::path output;  ///< stack directory
+    /// Told each phase ("reading the volume", "cutting slices", "collapsing regions", "writing
+    /// the stack") with done/total (total 0: not counted); may be empty.
+    std::function<void(const std::string& phase, int done, int total)> progress;
 };
 
 /// Reads the volume and ontology, cuts the plan, collapses regions, writes the stack.

@@ -1,7 +1,8 @@
 #pragma once
 /// slicectl's subcommands. Each add*Command registers its options on `app` and returns a
 /// runner that executes the command when the user chose it (returns the exit code).
-/// Exit codes: 0 success, 2 invalid input or usage, 1 other failures.
+/// Exit codes (ExitCode, cli_output.hpp; docs/operation.md): 0 success, 1 usage (unknown
+/// command or option), 2 input error, 3 daemon or device unreachable or refused, 4 conflict.
 
 #include "slicestation/core/result.hpp"
 
@@ -27,7 +28,9 @@ CommandRunner addDaemonCommands(CLI::App& app);
 /// CLI::PositiveNumber let "nan" through (every comparison with NaN is false).
 CLI::Validator finiteRange(double min, double max);
 
-/// Prints "slicectl <command>: error: <message>" on stderr and returns the exit code.
+/// Prints "slicectl <command>: error: <message>" on stderr and returns the exit code: 3 for a
+/// device or daemon that cannot be reached or refuses (Disconnected, Timeout, Alarm, Cancelled),
+/// else 2 (the input: a value, a file, a record).
 int reportError(const char* command, const core::Error& error);
 
 } // namespace slicestation::daemon

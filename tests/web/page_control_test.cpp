@@ -1,0 +1,311 @@
+// The page in headless Chromium against a scripted station (tests/web/scripted_station.hpp): the
+// test publishes each event when it chooses. The section just flagged is shown even when the
+// alert follows its event 2 ms later (the debounce of the old page dropped it); one banner per
+// open alert, newest first, each acting on its own alert and section; a pinned section stays
+// until the technician lets go; the run controls send what the API expects; the stage position,
+// step, focus, damage score, outlines switch, history with local times and the zoomable view.
+#include "scripted_station.hpp"
+#include "slicestation/daemon/http/http_api.hpp"
+#include "webdriver.hpp"
+
+#include <gtest/gtest.h>
+
+#include <cstdlib>
+#include <functional>
+#include <thread>
+
+using namespace slicestation;
+using namespace slicestation::daemon;
+using namespace slicestation::testing_web;
+using namespace std::chrono_literals;
+
+namespace {
+
+constexpr const char* kToken = "page-token-0123";
+const std::filesystem::path kArtefacts =
+    std::filesystem::path(SLST_BINARY_DIR) / "test-artefacts" / "web";
+
+bool waitFor(const std::function<bool()>& ready, std::chrono::milliseconds limit = 10s) {
+    const auto deadline = std::chrono::steady_clock::now() + limit;
+    while (std::chrono::steady_clock::now() < deadline) {
+        if (ready())
+            return true;
+        std::this_thread::sleep_for(20ms);
+    }
+    return ready();
+}
+
+class PageControl : public ::testing::Test {
+protected:
+    void SetUp() override {
+        // The browser's local time zone: not UTC, so local times are told apart from UTC ones.
+        ::setenv("TZ", "Asia/Kolkata", 1);
+        auto api = HttpApi::start(station_, "127.0.0.1", 0, kToken);
+        ASSERT_TRUE(api) << api.error().message;
+        api_ = std::move(*api);
+        base_ = "http://127.0.0.1:" + std::to_string(api_->port()) + "/";
+    }
+    void TearDown() override {
+        if (api_)
+            api_->stop();
+    }
+    std::string overlayShown(webdriver::Session& b) {
+        auto v = b.execute("const i = document.getElementById('overlay'); "
+                           "return i.dataset.sectionId || '';");
+        return v.is_string() ? v.get<std::string>() : "";
+    }
+    /// Publishes a registration event and, `gap` later, the alert the station raises with it.
+    void flag(std::int64_t section, std::int64_t alertId, const std::string& raised,
+              std::chrono::milliseconds gap) {
+        station_.registerSection(section, true, 0.062);
+        const auto alert = makeAlert(alertId, section, "damaged", "critical",
+                                     "slide-01/s0" + std::to_string(section - 100) +
+                                         " is damaged (tear): re-mount it",
+                                     raised);
+        station_.addAlert(alert);
+        station_.publish("section_damaged", {{"section_id", section}, {"run_id", 7}});
+        std::this_thread::sleep_for(gap);
+        station_.publish("alert_raised", toJson(alert));
+    }
+    /// Ids of the banners on the page, top first.
+    static std::vector<std::string> banners(webdriver::Session& b) {
+        return b
+            .execute("return [...document.querySelectorAll('#banners .banner')]"
+                     ".map(e => e.dataset.alertId);")
+            .get<std::vector<std::string>>();
+    }
+    static std::string bannerButton(std::int64_t alertId, const char* cls) {
+        return "#banners .banner[data-alert-id=\"" + std::to_string(alertId) + "\"] " + cls;
+    }
+
+    ScriptedStation station_;
+    std::unique_ptr<HttpApi> api_;
+    std::string base_;
+};
+
+} // namespace
+
+TEST_F(PageControl, TheFlaggedSectionIsShownAndEveryBannerActsOnItsOwnSection) {
+    webdriver::Session browser(1280, 1000);
+    browser.navigate(base_);
+    ASSERT_TRUE(waitFor([&] { return browser.findAll("#grid .cell").size() == 4; }));
+    ASSERT_TRUE(waitFor([&] {
+        return browser.execute("return document.body.dataset.stream;") == "open";
+    })) << "the page is on the event stream";
+
+    // s01 registered: shown.
+    station_.registerSection(101, false);
+    station_.publish("section_registered", {{"section_id", 101}, {"run_id", 7}});
+    ASSERT_TRUE(waitFor([&] { return overlayShown(browser) == "101"; }, 3s));
+
+    // s03 flagged, its alert 2 ms later (as the station sends them): s03 is on screen within 1 s.
+    const auto t0 = std::chrono::steady_clock::now();
+    flag(103, 11, "2026-12-02T09:32:00.000Z", 2ms);
+    ASSERT_TRUE(waitFor([&] { return overlayShown(browser) == "103"; }, 1s))
+        << "the damaged section is shown within a second of its event; shown: "
+        << overlayShown(browser);
+    std::cout << "flagged section shown after "
+              << std::chrono::duration_cast<std::chrono::milliseconds>(
+                     std::chrono::steady_clock::now() - t0)
+                     .count()
+              << " ms\n";
+    EXPECT_NE(browser.text(*browser.find("#overlay-title")).find("DAMAGED"), std::string::npos);
+
+    // A second flagged section (s02): shown in its turn, and there are two banners, newest first.
+    flag(102, 12, "2026-12-02T09:33:00.000Z", 2ms);
+    ASSERT_TRUE(waitFor([&] { return overlayShown(browser) == "102"; }, 1s));
+    ASSERT_TRUE(waitFor([&] {
+        return banners(browser) == std::vector<std::string>{"12", "11"};
+    })) << "one banner per open alert, newest first";
+    // Each banner names its own section and carries its thumbnail.
+    for (std::int64_t a : {11, 12}) {
+        const std::string sec = a == 11 ? "s03" : "s02";
+        const std::string text = browser.text(*browser.find(bannerButton(a, ".banner-text")));
+        EXPECT_NE(text.find(sec), std::string::npos) << text;
+        const std::string thumb = browser
+                                      .execute("return document.querySelector(arguments[0]).src;",
+                                               {bannerButton(a, "img.thumb")})
+                                      .get<std::string>();
+        EXPECT_NE(thumb.find("/api/sections/" + std::to_string(a == 11 ? 103 : 102) + "/"),
+                  std::string::npos)
+            << thumb;
+    }
+    // "Show" on the older banner shows its section (s03), and pins it.
+    browser.clickCss(bannerButton(11, "button.show"));
+    ASSERT_TRUE(waitFor([&] { return overlayShown(browser) == "103"; }, 2s));
+
+    // Acting without the token: the page explains where the token comes from.
+    browser.clickCss(bannerButton(11, "button.ack-accept"));
+    ASSERT_TRUE(waitFor([&] {
+        return browser.execute("return document.getElementById('token-row')"
+                               ".classList.contains('shown');") == true;
+    })) << "a 401 asks for the token";
+    const std::string help = browser.text(*browser.find("#token-help"));
+    EXPECT_NE(help.find("daemon.token"), std::string::npos) << help;
+    EXPECT_TRUE(station_.calls().empty() ||
+                std::none_of(station_.calls().begin(), station_.calls().end(),
+                             [](const std::string& c) { return c.starts_with("ack"); }));
+    browser.type(*browser.find("#token"), kToken);
+    browser.clickCss("#token-save");
+
+    // Each banner's buttons act on their own alert: accept the newer (s02), rescan the older.
+    browser.clickCss(bannerButton(12, "button.ack-accept"));
+    ASSERT_TRUE(waitFor([&] { return station_.called("ack accept 12"); }));
+    ASSERT_TRUE(waitFor([&] { return banners(browser) == std::vector<std::string>{"11"}; }));
+    browser.clickCss(bannerButton(11, "button.ack-rescan"));
+    ASSERT_TRUE(waitFor([&] { return station_.called("ack rescan 11"); }));
+    ASSERT_TRUE(waitFor([&] { return banners(browser).empty(); }));
+    EXPECT_FALSE(station_.called("ack rescan 12"));
+    EXPECT_FALSE(station_.called("ack accept 11"));
+
+    // Pinned: a click on s01 keeps s01 on screen while s04 registers; "follow" lets go.
+    browser.clickCss("#grid .cell[data-section-id=\"101\"]");
+    ASSERT_TRUE(waitFor([&] { return overlayShown(browser) == "101"; }, 2s));
+    station_.registerSection(104, false);
+    station_.publish("section_registered", {{"section_id", 104}, {"run_id", 7}});
+    std::this_thread::sleep_for(700ms);
+    EXPECT_EQ(overlayShown(browser), "101") << "a pinned section stays";
+    browser.clickCss("#follow");
+    ASSERT_TRUE(waitFor([&] { return overlayShown(browser) == "104"; }, 2s))
+        << "following again shows the latest registered";
+    browser.screenshot(kArtefacts / "page-banners-followed.png");
+}
+
+TEST_F(PageControl, RunControlsAndWhatTheTechnicianLooksAt) {
+    station_.registerSection(101, false);
+    station_.registerSection(103, true, 0.062);
+    station_.addAlert(makeAlert(21, 103, "damaged", "critical",
+                                "slide-01/s03 is damaged (tear): re-mount it",
+                                "2026-12-02T09:32:00.000Z"));
+    station_.setStatus("scanning", "moving to s04");
+    webdriver::Session browser(1280, 1000);
+    browser.navigate(base_);
+    browser.execute("localStorage.setItem('slst-token', arguments[0]);", {kToken});
+    browser.navigate(base_);
+    ASSERT_TRUE(waitFor([&] { return browser.findAll("#grid .cell").size() == 4; }));
+    ASSERT_TRUE(
+        waitFor([&] { return browser.execute("return document.body.dataset.stream;") == "open"; }));
+
+    // Live: the stage position of the last frame, the step, the focus of the last capture.
+    ASSERT_TRUE(waitFor([&] {
+        return browser.text(*browser.find("#stage-pos")).find("12345.5") != std::string::npos;
+    })) << browser.text(*browser.find("#stage-pos"));
+    EXPECT_NE(browser.text(*browser.find("#stage-pos")).find("6789.3"), std::string::npos);
+    EXPECT_EQ(browser.text(*browser.find("#step")), "moving to s04");
+    ASSERT_TRUE(waitFor([&] {
+        return browser.text(*browser.find("#focus")).find("found, score 0.750") !=
+               std::string::npos;
+    })) << browser.text(*browser.find("#focus"));
+    station_.publish(
+        "section_captured",
+        {{"section_id", 104}, {"section", "s04"}, {"focus_found", false}, {"focus_score", 0.125}});
+    ASSERT_TRUE(waitFor([&] {
+        return browser.text(*browser.find("#focus")) == "s04: NOT found, score 0.125";
+    })) << browser.text(*browser.find("#focus"));
+
+    // The damage score of the flagged section, in its cell and its detail.
+    const std::string cellTitle =
+        browser
+            .execute("return document.querySelector('#grid .cell[data-section-id=\"103\"]').title;")
+            .get<std::string>();
+    EXPECT_NE(cellTitle.find("damage 6.2%"), std::string::npos) << cellTitle;
+    browser.clickCss("#grid .cell[data-section-id=\"103\"]");
+    ASSERT_TRUE(waitFor([&] {
+        return browser.text(*browser.find("#detail")).find("6.2% of the section") !=
+               std::string::npos;
+    })) << browser.text(*browser.find("#detail"));
+
+    // Outlines off: the plain image; on: the overlay.
+    ASSERT_TRUE(waitFor([&] { return overlayShown(browser) == "103"; }, 2s));
+    auto src = [&] {
+        return browser.execute("return document.getElementById('overlay').src;").get<std::string>();
+    };
+    EXPECT_NE(src().find("/api/sections/103/overlay.png"), std::string::npos) << src();
+    browser.clickCss("#outlines");
+    ASSERT_TRUE(
+        waitFor([&] { return src().find("/api/sections/103/image.jpg") != std::string::npos; }, 2s))
+        << src();
+    browser.clickCss("#outlines");
+    ASSERT_TRUE(waitFor(
+        [&] { return src().find("/api/sections/103/overlay.png") != std::string::npos; }, 2s));
+
+    // Zoom: the full-resolution image (2400 px, not the 1024 px view), magnified by the button.
+    browser.clickCss("#zoom-open");
+    ASSERT_TRUE(waitFor([&] {
+        return browser.execute(
+                   "const i = document.getElementById('zoom-img'); "
+                   "return i.complete && i.dataset.fitted === 'yes' && i.naturalWidth;") == 2400;
+    })) << "the zoomed view reads the image at full resolution";
+    const double scale0 =
+        std::stod(browser.execute("return document.getElementById('zoom-img').dataset.scale;")
+                      .get<std::string>());
+    browser.clickCss("#zoom-in");
+    browser.clickCss("#zoom-in");
+    const double scale2 =
+        std::stod(browser.execute("return document.getElementById('zoom-img').dataset.scale;")
+                      .get<std::string>());
+    EXPECT_NEAR(scale2 / scale0, 2.25, 1e-6) << "each step magnifies 1.5 times";
+    browser.screenshot(kArtefacts / "page-zoom.png");
+    browser.clickCss("#zoom-close");
+
+    // History: both runs, times in the browser's local time zone (UTC+5:30 here), labelled.
+    ASSERT_TRUE(waitFor([&] { return browser.findAll("#history tr[data-run-id]").size() == 2; }));
+    const std::string history = browser.text(*browser.find("#history"));
+    EXPECT_NE(history.find("15:00"), std::string::npos) << "09:30 UTC is 15:00 in Kolkata\n"
+                                                        << history;
+    EXPECT_NE(browser.text(*browser.find("#tz")).find("(UTC+05:30)"), std::string::npos)
+        << browser.text(*browser.find("#tz"));
+    const std::string alertsText = browser.text(*browser.find("#alerts"));
+    EXPECT_NE(alertsText.find("15:02"), std::string::npos) << alertsText;
+
+    // Section controls: rescan; accept answers the section's open alert.
+    browser.clickCss("#sec-accept");
+    ASSERT_TRUE(waitFor([&] { return station_.called("ack accept 21"); }));
+    browser.clickCss("#sec-rescan");
+    ASSERT_TRUE(waitFor([&] { return station_.called("rescan 103"); }));
+
+    // Run controls, each the request the API documents; the buttons follow the run's state.
+    auto enabled = [&](const char* id) {
+        return browser.execute("return !document.getElementById(arguments[0]).disabled;", {id}) ==
+               true;
+    };
+    ASSERT_TRUE(waitFor([&] { return enabled("ctl-pause"); }));
+    EXPECT_FALSE(enabled("ctl-resume"));
+    browser.clickCss("#ctl-pause");
+    ASSERT_TRUE(waitFor([&] { return station_.called("pause 7"); }));
+    station_.publish("run_state", {{"run_id", 7}, {"state", "paused"}});
+    ASSERT_TRUE(waitFor([&] { return enabled("ctl-resume") && !enabled("ctl-pause"); }));
+    browser.clickCss("#ctl-reset-resume");
+    ASSERT_TRUE(waitFor([&] { return station_.called("resume reset 7"); }));
+    station_.publish("run_state", {{"run_id", 7}, {"state", "running"}});
+    ASSERT_TRUE(waitFor([&] { return enabled("ctl-pause"); }));
+    browser.clickCss("#ctl-pause");
+    ASSERT_TRUE(waitFor([&] {
+        auto cs = station_.calls();
+        return std::count(cs.begin(), cs.end(), "pause 7") == 2;
+    }));
+    station_.publish("run_state", {{"run_id", 7}, {"state", "paused"}});
+    ASSERT_TRUE(waitFor([&] { return enabled("ctl-resume"); }));
+    browser.clickCss("#ctl-resume");
+    ASSERT_TRUE(waitFor([&] { return station_.called("resume 7"); }));
+    browser.screenshot(kArtefacts / "page-controls.png");
+    // Cancel asks once more before it goes.
+    browser.clickCss("#ctl-cancel");
+    EXPECT_FALSE(station_.called("cancel 7")) << "one click does not cancel a run";
+    browser.clickCss("#ctl-cancel-confirm");
+    ASSERT_TRUE(waitFor([&] { return station_.called("cancel 7"); }));
+
+    // On a phone nothing is wider than the page (the history table and the banners included).
+    browser.resize(390, 844);
+    ASSERT_TRUE(
+        waitFor([&] { return browser.execute("return window.innerWidth;").get<int>() <= 420; }));
+    EXPECT_EQ(browser.execute(
+                  "const d = document.documentElement; return d.scrollWidth <= d.clientWidth;"),
+              true)
+        << browser.execute(
+               "const d = document.documentElement; return [d.scrollWidth, d.clientWidth, "
+               "[...document.querySelectorAll('body *')].filter(e => "
+               "e.getBoundingClientRect().right > d.clientWidth + 0.5).slice(0, 8)"
+               ".map(e => e.tagName + '#' + e.id + '.' + e.className + ' ' + "
+               "Math.round(e.getBoundingClientRect().right))];");
+}
