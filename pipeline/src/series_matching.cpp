@@ -1,0 +1,140 @@
+#include "slicestation/pipeline/series_matching.hpp"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+
+namespace slicestation::pipeline {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+double msSince(Clock::time_point t) {
+    return std::chrono::duration<double, std::milli>(Clock::now() - t).count();
+}
+
+SeriesObservation observe(const SectionMatch& m) {
+    SeriesObservation o;
+    o.positionUm = m.positionUm;
+    o.score = std::max(m.score, 0.0);
+    o.tiltColumnsDeg = m.tiltColumnsDeg;
+    o.tiltRowsDeg = m.tiltRowsDeg;
+    o.tiltEstimated = m.tiltEstimated;
+    return o;
+}
+
+double medianOf(std::vector<double> v) {
+    if (v.empty())
+        return 0;
+    std::nth_element(v.begin(), v.begin() + long(v.size() / 2), v.end());
+    return v[v.size() / 2];
+}
+
+} // namespace
+
+SeriesMatcher::SeriesMatcher(const std::vector<SliceFeatures>& slices, SeriesMatchOptions options)
+    : slices_(&slices), options_(std::move(options)) {}
+
+int SeriesMatcher::indexAt(double positionUm) const {
+    // Nearest slice by position (the stack's positions increase with the index).
+    const auto& s = *slices_;
+    int best = 0;
+    for (size_t i = 1; i < s.size(); ++i)
+        if (std::abs(s[i].positionUm - positionUm) <
+            std::abs(s[size_t(best)].positionUm - positionUm))
+            best = int(i);
+    return best;
+}
+
+core::Result<void> SeriesMatcher::refit() {
+    std::vector<SeriesObservation> obs;
+    for (const SectionMatch& m : matches_)
+        obs.push_back(observe(m));
+    auto f = fitSeries(obs, options_.model);
+    if (!f)
+        return f.error();
+    fit_ = std::move(*f);
+    return {};
+}
+
+core::Result<SectionMatch> SeriesMatcher::add(const SectionFeatures& section) {
+    const auto t0 = Clock::now();
+    const int n = int(matches_.size());
+    const int lastSlice = options_.match.last < 0 ? int(slices_->size()) - 1 : options_.match.last;
+    SeriesSearch search;
+    MatchOptions o = options_.match;
+    const double spacing = std::abs(fit_.spacingUm);
+    if (n >= options_.fullSearchSections && n > 0 && spacing > 0 && fit_.inliers >= 2) {
+        search.predictedUm = fit_.predictUm(n);
+        const double dir = fit_.spacingUm > 0 ? 1 : -1;
+        const double a = search.predictedUm - dir * options_.windowBeforeSpacings * spacing;
+        const double b = search.predictedUm + dir * options_.windowAfterSpacings * spacing;
+        int first = indexAt(std::min(a, b)), last = indexAt(std::max(a, b));
+        first = std::max(first, options_.match.first);
+        last = std::min(last, lastSlice);
+        if (last - first >= 2) {
+            search.windowed = true;
+            search.first = o.first = first;
+            search.last = o.last = last;
+        }
+    }
+    if (!search.windowed) {
+        search.first = options_.match.first;
+        search.last = lastSlice;
+    }
+    auto m = matchSection(section, *slices_, o);
+    if (!m)
+        return m.error();
+    if (search.windowed && options_.fallbackScoreRatio > 0) {
+        std::vector<double> scores;
+        for (const SectionMatch& p : matches_)
+            scores.push_back(p.score);
+        if (m->score < options_.fallbackScoreRatio * medianOf(scores)) {
+            auto whole = matchSection(section, *slices_, options_.match);
+            if (whole && whole->score > m->score) {
+                m = std::move(whole);
+                search.fellBack = true;
+            }
+        }
+    }
+    search.ms = msSince(t0);
+    matches_.push_back(*m);
+    searches_.push_back(search);
+    if (auto r = refit(); !r) {
+        matches_.pop_back();
+        searches_.pop_back();
+        return r.error();
+    }
+    return m;
+}
+
+core::Result<void> SeriesMatcher::finish(const std::vector<SectionFeatures>& sections) {
+    if (sections.size() != matches_.size())
+        return core::makeError(core::ErrorCode::InvalidArgument,
+                               "finish needs the same sections that were added, in order");
+    const double spacing = std::abs(fit_.spacingUm);
+    if (spacing <= 0 || fit_.inliers < 3)
+        return {};
+    const int lastSlice = options_.match.last < 0 ? int(slices_->size()) - 1 : options_.match.last;
+    for (size_t k = 0; k < matches_.size(); ++k) {
+        const SeriesSectionFit& s = fit_.sections[k];
+        if (s.inlier)
+            continue;
+        // Where the run puts it: the slot between its on-line neighbours.
+        const double predicted = fit_.predictUm(int(k));
+        MatchOptions o = options_.match;
+        o.first = std::max(options_.match.first, indexAt(predicted - spacing));
+        o.last = std::min(lastSlice, indexAt(predicted + spacing));
+        if (o.last - o.first < 2)
+            continue;
+        auto m = matchSection(sections[k], *slices_, o);
+        if (!m)
+            continue;
+        const double tau = options_.model.inlierUm > 0 ? options_.model.inlierUm : 0.4 * spacing;
+        if (std::abs(m->positionUm - predicted) <= tau)
+            matches_[k] = std::move(*m);
+    }
+    return refit();
+}
+
+} // namespace slicestation::pipeline
