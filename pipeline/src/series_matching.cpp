@@ -91,7 +91,7 @@ core::Result<SectionMatch> SeriesMatcher::add(const SectionFeatures& section) {
             scores.push_back(p.score);
         if (m->score < options_.fallbackScoreRatio * medianOf(scores)) {
             auto whole = matchSection(section, *slices_, options_.match);
-            if (whole && whole->score > m->score) {
+            if (whole && whole->score > options_.fallbackGain * m->score) {
                 m = std::move(whole);
                 search.fellBack = true;
             }
@@ -112,29 +112,66 @@ core::Result<void> SeriesMatcher::finish(const std::vector<SectionFeatures>& sec
     if (sections.size() != matches_.size())
         return core::makeError(core::ErrorCode::InvalidArgument,
                                "finish needs the same sections that were added, in order");
-    const double spacing = std::abs(fit_.spacingUm);
-    if (spacing <= 0 || fit_.inliers < 3)
-        return {};
     const int lastSlice = options_.match.last < 0 ? int(slices_->size()) - 1 : options_.match.last;
-    for (size_t k = 0; k < matches_.size(); ++k) {
-        const SeriesSectionFit& s = fit_.sections[k];
-        if (s.inlier)
-            continue;
-        // Where the run puts it: the slot between its on-line neighbours.
-        const double predicted = fit_.predictUm(int(k));
-        MatchOptions o = options_.match;
-        o.first = std::max(options_.match.first, indexAt(predicted - spacing));
-        o.last = std::min(lastSlice, indexAt(predicted + spacing));
-        if (o.last - o.first < 2)
-            continue;
-        auto m = matchSection(sections[k], *slices_, o);
-        if (!m)
-            continue;
+    for (int pass = 0; pass < 2; ++pass) {
+        const double spacing = std::abs(fit_.spacingUm);
+        if (spacing <= 0 || fit_.inliers < 3)
+            return {};
         const double tau = options_.model.inlierUm > 0 ? options_.model.inlierUm : 0.4 * spacing;
-        if (std::abs(m->positionUm - predicted) <= tau)
-            matches_[k] = std::move(*m);
+        const size_t n = matches_.size();
+        // Moves that would make the run regular: a flagged section to the slot after its
+        // on-line predecessor's or before its successor's, and for a skip the section before
+        // it to the slot before its own.
+        struct Move {
+            size_t section;
+            int slot;
+        };
+        std::vector<Move> moves;
+        for (size_t k = 0; k < n; ++k) {
+            const SeriesSectionFit& s = fit_.sections[k];
+            if (s.anomaly == SeriesAnomaly::None)
+                continue;
+            for (size_t j = k; j-- > 0;)
+                if (fit_.sections[j].inlier && fit_.sections[j].anomaly == SeriesAnomaly::None) {
+                    moves.push_back({k, fit_.sections[j].slot + int(k - j)});
+                    break;
+                }
+            for (size_t j = k + 1; j < n; ++j)
+                if (fit_.sections[j].inlier && fit_.sections[j].anomaly == SeriesAnomaly::None) {
+                    moves.push_back({k, fit_.sections[j].slot - int(j - k)});
+                    break;
+                }
+            if (s.anomaly == SeriesAnomaly::Skipped && k > 0)
+                moves.push_back({k - 1, s.slot - 1});
+        }
+        bool changed = false;
+        for (const Move& mv : moves) {
+            SectionMatch& current = matches_[mv.section];
+            const double target = fit_.positionOfSlot(mv.slot);
+            if (std::abs(current.positionUm - target) <= 0.5 * tau)
+                continue;
+            MatchOptions o = options_.match;
+            o.first = std::max(options_.match.first, indexAt(target - 0.6 * spacing));
+            o.last = std::min(lastSlice, indexAt(target + 0.6 * spacing));
+            if (o.last - o.first < 2)
+                continue;
+            auto m = matchSection(sections[mv.section], *slices_, o);
+            if (!m || std::abs(m->positionUm - target) > tau)
+                continue;
+            // Off the line, anything on it is better; otherwise the regular place must score
+            // nearly as well as the section's own.
+            const bool offLine = !fit_.sections[mv.section].inlier;
+            if (offLine || m->score >= options_.regularScoreRatio * current.score) {
+                current = std::move(*m);
+                changed = true;
+            }
+        }
+        if (auto r = refit(); !r)
+            return r;
+        if (!changed)
+            break;
     }
-    return refit();
+    return {};
 }
 
 } // namespace slicestation::pipeline

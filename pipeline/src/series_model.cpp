@@ -121,10 +121,17 @@ std::string_view toString(SeriesAnomaly anomaly) noexcept {
 }
 
 double SeriesFit::predictUm(int index) const {
-    for (int j = std::min(index, int(sections.size()) - 1); j >= 0; --j)
+    // The slot offset (slot - index) of the last five on-line sections before `index`, their
+    // median: one section far off (a wrong match that happens to sit on a slot) does not move
+    // the prediction, a skip does once it is confirmed by the sections after it.
+    std::vector<double> offsets;
+    for (int j = std::min(index, int(sections.size())) - 1; j >= 0 && offsets.size() < 5; --j)
         if (sections[size_t(j)].inlier)
-            return positionOfSlot(double(sections[size_t(j)].slot + (index - j)));
-    return positionOfSlot(double(index));
+            offsets.push_back(double(sections[size_t(j)].slot - j));
+    if (offsets.empty())
+        return positionOfSlot(double(index));
+    std::sort(offsets.begin(), offsets.end());
+    return positionOfSlot(double(index) + offsets[(offsets.size() - 1) / 2]);
 }
 
 core::Result<SeriesFit> fitSeries(const std::vector<SeriesObservation>& obs,
@@ -302,17 +309,19 @@ core::Result<SeriesFit> fitSeries(const std::vector<SeriesObservation>& obs,
         s.anomaly = dup ? SeriesAnomaly::Duplicate : SeriesAnomaly::OutOfOrder;
     }
     // Skips: slots between consecutive sections of the run that no section took, beyond the
-    // off-line sections between them (which may belong there).
+    // sections between them that are off the line or out of order (which may belong there).
     for (size_t r = 1; r < run.size(); ++r) {
         const size_t k1 = online[run[r - 1]], k2 = online[run[r]];
         const int s1 = fit.sections[k1].slot, s2 = fit.sections[k2].slot;
         int missing = 0;
         for (int slot = s1 + 1; slot < s2; ++slot)
             missing += std::count(onlineSlots.begin(), onlineSlots.end(), slot) == 0;
-        int offline = 0;
+        int elsewhere = 0; // sections between them in arrival order but not in the run
         for (size_t k = k1 + 1; k < k2; ++k)
-            offline += fit.sections[k].anomaly == SeriesAnomaly::OffLine;
-        missing -= offline;
+            elsewhere += fit.sections[k].anomaly == SeriesAnomaly::OffLine ||
+                         fit.sections[k].anomaly == SeriesAnomaly::OutOfOrder ||
+                         fit.sections[k].anomaly == SeriesAnomaly::Duplicate;
+        missing -= elsewhere;
         if (missing > 0 && fit.sections[k2].anomaly == SeriesAnomaly::None) {
             fit.sections[k2].anomaly = SeriesAnomaly::Skipped;
             fit.sections[k2].missingBefore = missing;

@@ -17,14 +17,22 @@
 namespace slicestation::pipeline {
 
 struct SeriesMatchOptions {
-    MatchOptions match;                ///< for every search (first/last bound the whole search)
-    SeriesModelOptions model;          ///< intervalUm: the cutting plan's interval (0 = unknown)
-    int fullSearchSections = 3;        ///< sections matched against the whole stack first
-    double windowBeforeSpacings = 1.5; ///< search from this many spacings before the prediction
-    double windowAfterSpacings = 2.5;  ///< to this many after (one skip and some)
+    MatchOptions match;         ///< for every search (first/last bound the whole search)
+    SeriesModelOptions model;   ///< intervalUm: the cutting plan's interval (0 = unknown)
+    int fullSearchSections = 3; ///< sections matched against the whole stack first
+    /// Search from this many spacings before the prediction (a swap puts the second section two
+    /// slots before it) to this many after (a skip one slot after).
+    double windowBeforeSpacings = 2.5;
+    double windowAfterSpacings = 2.5;
     /// A windowed match scoring below this fraction of the series' median score is searched
-    /// again over the whole stack; 0 never.
+    /// again over the whole stack, and the whole stack's answer kept only when it scores at
+    /// least `fallbackGain` times the window's; 0 never.
     double fallbackScoreRatio = 0.5;
+    double fallbackGain = 2.0;
+    /// finish(): a flagged section moves to the slot that makes the run regular when it scores
+    /// there at least this fraction of its own best (off-line sections move to any match on the
+    /// line).
+    double regularScoreRatio = 0.8;
 };
 
 /// How one section was searched.
@@ -46,8 +54,12 @@ public:
     ///         added.
     [[nodiscard]] core::Result<SectionMatch> add(const SectionFeatures& section);
 
-    /// Sections off the line are matched again within a spacing of the model's place for them
-    /// and kept when that puts them on the line; the model is fitted once more.
+    /// Each flagged section (off the line, skip, swap, out of order, duplicate) is matched again
+    /// around the slot that would make the run regular (after its on-line predecessor, before
+    /// its successor; for a skip also the section before it one slot on) and moved there when
+    /// it scores at least `regularScoreRatio` of its own match (off-line: any match on the
+    /// line); the model is fitted again, twice at most. A real skip or swap stays: the regular
+    /// place scores worse.
     /// \return the errors of fitSeries.
     [[nodiscard]] core::Result<void> finish(const std::vector<SectionFeatures>& sections);
 

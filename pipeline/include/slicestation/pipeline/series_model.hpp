@@ -65,7 +65,8 @@ struct SeriesFit {
     std::vector<SeriesSectionFit> sections;
     double positionOfSlot(double slot) const { return originUm + spacingUm * slot; }
     /// Where section `index` (0-based, in arrival order) should lie if the run continues
-    /// regularly after the last inlier before it.
+    /// regularly: its index plus the median slot offset (slot - index) of the last five on-line
+    /// sections before it.
     double predictUm(int index) const;
 };
 
