@@ -164,6 +164,19 @@ core::Result<SeriesFit> fitSeries(const std::vector<SeriesObservation>& obs,
         return options.inlierUm > 0 ? options.inlierUm : 0.4 * std::abs(s);
     };
 
+    // Without a plan, the spacing prior is the Theil-Sen slope of position against arrival
+    // index (the median of the pairwise slopes): the plain "linear in index" reading of the
+    // series, which a few wrong matches do not move. Hypotheses then stay within the slack of
+    // it, as they would of a plan's interval.
+    double prior = options.intervalUm;
+    if (prior <= 0 && n >= 4) {
+        std::vector<double> slopes;
+        for (size_t i = 0; i < n; ++i)
+            for (size_t j = i + 1; j < n; ++j)
+                slopes.push_back((obs[j].positionUm - obs[i].positionUm) / double(j - i));
+        prior = std::abs(median(slopes));
+    }
+
     SeriesFit fit;
     Line best;
     if (n == 1 || (n == 2 && options.intervalUm > 0)) {
@@ -184,8 +197,7 @@ core::Result<SeriesFit> fitSeries(const std::vector<SeriesObservation>& obs,
                     l.s = (obs[j].positionUm - obs[i].positionUm) / d;
                     if (l.s == 0 || !std::isfinite(l.s))
                         continue;
-                    if (options.intervalUm > 0 && std::abs(std::abs(l.s) - options.intervalUm) >
-                                                      options.spacingSlack * options.intervalUm)
+                    if (prior > 0 && std::abs(std::abs(l.s) - prior) > options.spacingSlack * prior)
                         continue;
                     l.a = obs[i].positionUm - l.s * double(i);
                     const double c = cost(obs, w, l, tauOf(l.s));
@@ -197,7 +209,7 @@ core::Result<SeriesFit> fitSeries(const std::vector<SeriesObservation>& obs,
         if (best.s == 0) {
             // No pair gives a spacing near the plan's (every match far off): the plan's line
             // through the median of position - index x interval.
-            best.s = options.intervalUm > 0 ? options.intervalUm : 1;
+            best.s = prior > 0 ? prior : 1;
             std::vector<double> a;
             for (size_t k = 0; k < n; ++k)
                 a.push_back(obs[k].positionUm - best.s * double(k));

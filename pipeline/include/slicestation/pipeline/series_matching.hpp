@@ -32,7 +32,7 @@ struct SeriesMatchOptions {
     /// finish(): a flagged section moves to the slot that makes the run regular when it scores
     /// there at least this fraction of its own best (off-line sections move to any match on the
     /// line).
-    double regularScoreRatio = 0.8;
+    double regularScoreRatio = 0.6;
 };
 
 /// How one section was searched.

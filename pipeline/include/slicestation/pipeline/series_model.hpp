@@ -25,8 +25,9 @@ struct SeriesObservation {
 
 struct SeriesModelOptions {
     /// The cutting plan's interval between consecutive sections, micrometres; 0 = unknown (the
-    /// spacing then comes from the data alone). It is a prior, not a constraint: the fitted
-    /// spacing is the data's, but hypotheses further than `spacingSlack` from it are not tried.
+    /// prior is then the Theil-Sen slope of position against index, from four sections on). It
+    /// is a prior, not a constraint: the fitted spacing is the data's, but hypotheses further
+    /// than `spacingSlack` from it are not tried.
     double intervalUm = 0;
     double spacingSlack = 0.35;
     /// A section further than this from its slot's position is off the line (an outlier);
