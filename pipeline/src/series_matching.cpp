@@ -174,4 +174,72 @@ core::Result<void> SeriesMatcher::finish(const std::vector<SectionFeatures>& sec
     return {};
 }
 
+core::Result<TiltEstimate> searchSeriesTilt(const std::vector<SectionFeatures>& sections,
+                                            const std::vector<SectionMatch>& matches,
+                                            const SeriesFit& fit, const PlaneFeatures& planes,
+                                            const TiltSearchOptions& options) {
+    if (sections.size() != matches.size() || fit.sections.size() != matches.size())
+        return core::makeError(core::ErrorCode::InvalidArgument,
+                               "sections, matches and fit must describe the same series");
+    if (options.sections < 1 || !(options.maxDeg > 0) || !(options.coarseStepDeg > 0) ||
+        !(options.fineStepDeg > 0) || !(options.positionStepUm > 0) || options.maxDeg > 30)
+        return core::makeError(core::ErrorCode::InvalidArgument,
+                               "tilt search: sections >= 1, steps > 0, maxDeg in (0, 30]");
+    std::vector<size_t> chosen;
+    for (size_t k = 0; k < matches.size(); ++k)
+        if (fit.sections[k].inlier && fit.sections[k].anomaly == SeriesAnomaly::None)
+            chosen.push_back(k);
+    if (chosen.size() < 2)
+        return core::makeError(core::ErrorCode::InvalidArgument,
+                               "tilt search needs two sections on the series' line");
+    std::sort(chosen.begin(), chosen.end(),
+              [&](size_t a, size_t b) { return matches[a].score > matches[b].score; });
+    chosen.resize(std::min(chosen.size(), size_t(options.sections)));
+    MatchOptions mo;
+    mo.tiltMaxIntervalUm = 0;
+    mo.shortlist = 3;
+    auto scoreAt = [&](double tc, double tr) -> core::Result<double> {
+        double total = 0;
+        for (size_t k : chosen) {
+            std::vector<SliceFeatures> three;
+            for (int d = -1; d <= 1; ++d) {
+                auto f = planes(matches[k].positionUm + d * options.positionStepUm, tc, tr);
+                if (!f)
+                    return f.error();
+                three.push_back(std::move(*f));
+            }
+            auto m = matchSection(sections[k], three, mo);
+            if (m)
+                total += m->score;
+        }
+        return total;
+    };
+    TiltEstimate best;
+    best.score = -1;
+    auto grid = [&](double c0, double r0, double half, double step) -> core::Result<void> {
+        const int n = int(std::lround(half / step));
+        for (int i = -n; i <= n; ++i)
+            for (int j = -n; j <= n; ++j) {
+                const double tc = c0 + i * step, tr = r0 + j * step;
+                auto sc = scoreAt(tc, tr);
+                if (!sc)
+                    return sc.error();
+                if (*sc > best.score) {
+                    best.score = *sc;
+                    best.tiltColumnsDeg = tc;
+                    best.tiltRowsDeg = tr;
+                }
+            }
+        return {};
+    };
+    if (auto r = grid(0, 0, options.maxDeg, options.coarseStepDeg); !r)
+        return r.error();
+    if (auto r =
+            grid(best.tiltColumnsDeg, best.tiltRowsDeg, options.coarseStepDeg, options.fineStepDeg);
+        !r)
+        return r.error();
+    best.sections = int(chosen.size());
+    return best;
+}
+
 } // namespace slicestation::pipeline

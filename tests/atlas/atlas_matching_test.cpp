@@ -1,6 +1,7 @@
 // Matching sections generated from known planes against a stack (built-in atlas: no data
 // needed, fast and deterministic).
 #include "slicestation/pipeline/atlas_matching.hpp"
+#include "slicestation/pipeline/series_matching.hpp"
 #include "slicestation/sim/builtin_atlas.hpp"
 #include "slicestation/sim/section_generator.hpp"
 
@@ -123,4 +124,48 @@ TEST(AtlasMatching, SeriesModeKeepsTheCuttingOrder) {
     o.minStep = 11;
     EXPECT_EQ(matchSeries(sections, stack, o).error().code, core::ErrorCode::InvalidArgument);
     EXPECT_TRUE(matchSeries({}, stack).ok());
+}
+
+// Live series matching: seven built-in sections 800 um apart with the fifth planned one lost.
+// After three whole-stack searches each section is searched in a window around the model's
+// prediction; the skip is reported and the spacing found.
+TEST(SeriesMatching, WindowsFollowTheModelAndTheSkipIsReported) {
+    double workUm = 0;
+    const auto stack = builtinStack(workUm);
+    const std::vector<double> truth{800, 1600, 2400, 3200, 4800, 5600, 6400};
+    SeriesMatchOptions o;
+    o.model.intervalUm = 800;
+    SeriesMatcher matcher(stack, o);
+    std::vector<SectionFeatures> sections;
+    for (size_t k = 0; k < truth.size(); ++k) {
+        sim::GeneratorOptions go;
+        go.seed = 300 + k;
+        go.imageSize = {600, 440};
+        auto gen = sim::generateSection(sim::builtinAtlasPlane(truth[k] / kLengthUm), go);
+        ASSERT_TRUE(gen.ok()) << gen.error().message;
+        const auto& a = gen->truth.affineAtlasFromImage;
+        const double imageUm =
+            std::sqrt(std::abs(a(0, 0) * a(1, 1) - a(0, 1) * a(1, 0))) * kUmPerPx;
+        auto sec = sectionFeatures(gen->image, imageUm, workUm);
+        ASSERT_TRUE(sec.ok()) << sec.error().message;
+        ASSERT_TRUE(matcher.add(*sec).ok());
+        sections.push_back(std::move(*sec));
+    }
+    ASSERT_TRUE(matcher.finish(sections).ok());
+    ASSERT_EQ(matcher.matches().size(), truth.size());
+    for (size_t k = 0; k < truth.size(); ++k) {
+        EXPECT_LE(std::abs(matcher.matches()[k].positionUm - truth[k]), 2 * kIntervalUm) << k;
+        EXPECT_EQ(matcher.searches()[k].windowed, k >= 3) << k;
+    }
+    // The fourth section's window is centred on the prediction (3200 um) and holds the truth.
+    const SeriesSearch& w = matcher.searches()[3];
+    EXPECT_NEAR(w.predictedUm, 3200, 2 * kIntervalUm);
+    EXPECT_LE(stack[size_t(w.first)].positionUm, 3200);
+    EXPECT_GE(stack[size_t(w.last)].positionUm, 3200);
+    EXPECT_NEAR(matcher.fit().spacingUm, 800, 120);
+    EXPECT_EQ(matcher.fit().sections[4].anomaly, SeriesAnomaly::Skipped);
+    EXPECT_EQ(matcher.fit().sections[4].missingBefore, 1);
+    // finish() needs the same sections.
+    sections.pop_back();
+    EXPECT_EQ(matcher.finish(sections).error().code, core::ErrorCode::InvalidArgument);
 }

@@ -83,6 +83,7 @@ struct RunResult {
     std::vector<pipeline::SeriesSearch> searches;
     pipeline::SeriesFit fit;
     std::vector<double> prepareMs;
+    std::vector<pipeline::SectionFeatures> sections;
 };
 
 core::Result<RunResult> runSeries(const std::vector<cv::Mat>& images,
@@ -110,6 +111,7 @@ core::Result<RunResult> runSeries(const std::vector<cv::Mat>& images,
     out.matches = matcher.matches();
     out.searches = matcher.searches();
     out.fit = matcher.fit();
+    out.sections = std::move(sections);
     return out;
 }
 
@@ -155,7 +157,7 @@ int main(int argc, char** argv) {
     std::string shared = SLST_SHARED_DIR;
     std::string data = "all";
     double intervalUm = 100;
-    bool finish = true, usePrior = true;
+    bool finish = true, usePrior = true, tiltSearch = true;
     std::uint64_t seed = 5;
     app.add_option("--shared", shared, "Shared data directory");
     app.add_option("--data", data, "generated|gerbi|mouse|all");
@@ -164,6 +166,8 @@ int main(int argc, char** argv) {
     app.add_flag("--finish,!--no-finish", finish, "Re-match off-line sections at the end");
     app.add_flag("--prior,!--no-prior", usePrior,
                  "Give the model the series' spacing as the plan's interval");
+    app.add_flag("--tilt-search,!--no-tilt-search", tiltSearch,
+                 "Search the brain's tilt with tilted planes cut from the volume");
     CLI11_PARSE(app, argc, argv);
     const fs::path atlasDir = fs::path(shared) / "atlas" / "allen-ccf-2017";
     if (!fs::exists(atlasDir / "annotation_50.nrrd")) {
@@ -196,6 +200,29 @@ int main(int argc, char** argv) {
     for (size_t i = 0; i < labels.size(); ++i)
         stack.features.push_back(pipeline::sliceFeatures(
             labels[i], stackUmPerPx, (*slices)[i].geometry.positionUm, stack.workUm));
+    const pipeline::PlaneFeatures planes = [&](double pos, double tc,
+                                               double tr) -> core::Result<pipeline::SliceFeatures> {
+        auto g = pipeline::planeGeometry(
+            *volume, pipeline::VolumeAxes::Allen,
+            {pipeline::PlaneOrientation::Coronal, pos, tc, tr, stackUmPerPx});
+        if (!g)
+            return g.error();
+        auto l = pipeline::sampleLabels(*volume, pipeline::VolumeAxes::Allen, *g);
+        if (!l)
+            return l.error();
+        return pipeline::sliceFeatures(collapse(*l), stackUmPerPx, pos, stack.workUm);
+    };
+    auto searchTilt = [&](const RunResult& r) -> core::Result<pipeline::TiltEstimate> {
+        const auto t = Clock::now();
+        auto e = pipeline::searchSeriesTilt(r.sections, r.matches, r.fit, planes);
+        if (e)
+            std::printf("tilt search with tilted planes (%d sections, %.1f s): columns(LR) %.2f "
+                        "rows(DV) %.2f deg\n",
+                        e->sections, msSince(t) / 1000, e->tiltColumnsDeg, e->tiltRowsDeg);
+        else
+            std::printf("tilt search failed: %s\n", e.error().message.c_str());
+        return e;
+    };
     std::printf("stack: 50 um annotation (major regions), %zu coronal slices every %.0f um, "
                 "%.0f ms\n",
                 stack.features.size(), intervalUm, msSince(t0));
@@ -265,6 +292,10 @@ int main(int argc, char** argv) {
                     swap ? "yes" : "NO", falseAlarms, r->fit.spacingUm, spacing,
                     r->fit.tiltColumnsDeg - tiltC, r->fit.tiltRowsDeg - tiltR);
         printTimes(*r);
+        if (tiltSearch)
+            if (auto e = searchTilt(*r))
+                std::printf("generated: tilt error with tilted planes LR %.2f DV %.2f deg\n",
+                            e->tiltColumnsDeg - tiltC, e->tiltRowsDeg - tiltR);
     }
 
     if (data == "gerbi" || data == "all") {
@@ -335,6 +366,11 @@ int main(int argc, char** argv) {
                     "pct %.0f um\n",
                     offset, percentile(shifted, 0.5), percentile(shifted, 0.9));
         printTimes(*r);
+        if (tiltSearch)
+            if (auto e = searchTilt(*r))
+                std::printf("gerbi: |tilt| with tilted planes LR %.2f DV %.2f deg (ABBA %.2f / "
+                            "%.2f)\n",
+                            std::abs(e->tiltColumnsDeg), std::abs(e->tiltRowsDeg), abbaLr, abbaDv);
     }
 
     if (data == "mouse" || data == "all") {

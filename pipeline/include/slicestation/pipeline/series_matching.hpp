@@ -12,6 +12,7 @@
 #include "slicestation/pipeline/atlas_matching.hpp"
 #include "slicestation/pipeline/series_model.hpp"
 
+#include <functional>
 #include <vector>
 
 namespace slicestation::pipeline {
@@ -43,6 +44,37 @@ struct SeriesSearch {
     bool fellBack = false; ///< the window's answer was weak and the whole stack was searched
     double ms = 0;         ///< matching time
 };
+
+/// Matching features of the plane at `positionUm` tilted by the two angles (degrees), cut from
+/// the volume by the caller (atlas_slicing's sampleLabels, collapsed as the stack was) at the
+/// stack's working pixel size.
+using PlaneFeatures = std::function<core::Result<SliceFeatures>(
+    double positionUm, double tiltColumnsDeg, double tiltRowsDeg)>;
+
+struct TiltSearchOptions {
+    int sections = 6;           ///< the best-scoring on-line sections used
+    double maxDeg = 4;          ///< coarse grid within +-maxDeg on both angles
+    double coarseStepDeg = 2;   ///< coarse grid step
+    double fineStepDeg = 0.5;   ///< then a grid of this step within one coarse step of the best
+    double positionStepUm = 50; ///< planes at the section's position and this far either side
+};
+
+struct TiltEstimate {
+    double tiltColumnsDeg = 0;
+    double tiltRowsDeg = 0;
+    double score = 0; ///< summed best score of the sections at that tilt
+    int sections = 0;
+};
+
+/// The brain's cutting angle from tilted planes: the sections on the series' line with the best
+/// scores are matched against planes cut at their positions and each candidate tilt (a coarse
+/// grid, then a fine one around the best); the tilt whose planes the sections match best wins.
+/// \return InvalidArgument (fewer than two on-line sections, bad options), the errors of
+///         `planes`.
+[[nodiscard]] core::Result<TiltEstimate>
+searchSeriesTilt(const std::vector<SectionFeatures>& sections,
+                 const std::vector<SectionMatch>& matches, const SeriesFit& fit,
+                 const PlaneFeatures& planes, const TiltSearchOptions& options = {});
 
 class SeriesMatcher {
 public:
