@@ -325,9 +325,17 @@ core::Result<SeriesFit> fitSeries(const std::vector<SeriesObservation>& obs,
     for (size_t r = 1; r < run.size(); ++r) {
         const size_t k1 = online[run[r - 1]], k2 = online[run[r]];
         const int s1 = fit.sections[k1].slot, s2 = fit.sections[k2].slot;
+        // A slot counts as taken only by a section that arrived next to the gap (from one before
+        // k1 to one after k2: the partner of a swap); a wrong match far away in the run that
+        // happens to sit on the lost slot does not hide the skip.
         int missing = 0;
-        for (int slot = s1 + 1; slot < s2; ++slot)
-            missing += std::count(onlineSlots.begin(), onlineSlots.end(), slot) == 0;
+        for (int slot = s1 + 1; slot < s2; ++slot) {
+            bool taken = false;
+            for (size_t a = 0; a < online.size(); ++a)
+                taken =
+                    taken || (onlineSlots[a] == slot && online[a] + 1 >= k1 && online[a] <= k2 + 1);
+            missing += !taken;
+        }
         int elsewhere = 0; // sections between them in arrival order but not in the run
         for (size_t k = k1 + 1; k < k2; ++k)
             elsewhere += fit.sections[k].anomaly == SeriesAnomaly::OffLine ||

@@ -94,8 +94,11 @@ TEST(SeriesModel, ASectionFarOutOfOrderIsReported) {
     EXPECT_NEAR(f->spacingUm, 250, 6);
     EXPECT_EQ(f->sections[4].anomaly, SeriesAnomaly::OutOfOrder);
     EXPECT_EQ(f->sections[4].slot, 11);
+    // Its own place, before section 12, is reported empty too: from positions alone a section
+    // mounted far away and a wrong match that sits on a lost slot look the same.
+    EXPECT_EQ(f->sections[12].anomaly, SeriesAnomaly::Skipped);
     for (size_t k = 0; k < obs.size(); ++k) {
-        if (k != 4) {
+        if (k != 4 && k != 12) {
             EXPECT_EQ(f->sections[k].anomaly, SeriesAnomaly::None) << k;
         }
     }
@@ -149,4 +152,21 @@ TEST(SeriesModel, FewSectionsAndBadInput) {
     SeriesModelOptions slack;
     slack.spacingSlack = 1.5;
     EXPECT_FALSE(fitSeries(series(range(4), 0, 300, 0, 1), slack).ok());
+}
+
+TEST(SeriesModel, AWrongMatchOnTheLostSlotDoesNotHideTheSkip) {
+    // Slot 8 lost; section 5's match lands on slot 8 (a wrong match that sits on a slot).
+    std::vector<int> slots;
+    for (int s = 0; s < 20; ++s)
+        if (s != 8)
+            slots.push_back(s);
+    auto obs = series(slots, 1800, 300, 15, 6);
+    obs[5].positionUm = 1800 + 300 * 8 + 5;
+    SeriesModelOptions o;
+    o.intervalUm = 300;
+    auto f = fitSeries(obs, o);
+    ASSERT_TRUE(f.ok());
+    EXPECT_EQ(f->sections[5].anomaly, SeriesAnomaly::OutOfOrder);
+    EXPECT_EQ(f->sections[8].anomaly, SeriesAnomaly::Skipped);
+    EXPECT_EQ(f->sections[8].missingBefore, 1);
 }

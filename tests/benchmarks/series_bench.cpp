@@ -159,10 +159,13 @@ int main(int argc, char** argv) {
     double intervalUm = 100;
     bool finish = true, usePrior = true, tiltSearch = true;
     std::uint64_t seed = 5;
+    double genTiltLr = 2.0, genTiltDv = -1.5;
     app.add_option("--shared", shared, "Shared data directory");
     app.add_option("--data", data, "generated|gerbi|mouse|all");
     app.add_option("--interval-um", intervalUm, "Stack interval");
     app.add_option("--seed", seed, "Generated series seed");
+    app.add_option("--tilt-lr", genTiltLr, "Generated series: tilt toward the columns (deg)");
+    app.add_option("--tilt-dv", genTiltDv, "Generated series: tilt toward the rows (deg)");
     app.add_flag("--finish,!--no-finish", finish, "Re-match off-line sections at the end");
     app.add_flag("--prior,!--no-prior", usePrior,
                  "Give the model the series' spacing as the plan's interval");
@@ -229,9 +232,9 @@ int main(int argc, char** argv) {
     int status = 0;
 
     if (data == "generated" || data == "all") {
-        // 22 planned sections from 1800 um every 300 um, tilted 2.0 deg LR and -1.5 deg DV;
+        // 22 planned sections from 1800 um every 300 um, tilted (default 2.0 deg LR, -1.5 DV);
         // the section in slot 8 is lost (skip) and slots 14 and 15 are mounted swapped.
-        const double spacing = 300, start = 1800, tiltC = 2.0, tiltR = -1.5;
+        const double spacing = 300, start = 1800, tiltC = genTiltLr, tiltR = genTiltDv;
         std::vector<int> slots;
         for (int s = 0; s < 22; ++s)
             if (s != 8)
