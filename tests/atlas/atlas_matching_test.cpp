@@ -1,6 +1,11 @@
 // Matching sections generated from known planes against a stack (built-in atlas: no data
 // needed, fast and deterministic).
+#include "slicestation/core/image_file.hpp"
+#include "slicestation/core/nrrd.hpp"
+#include "slicestation/core/ontology.hpp"
+#include "slicestation/pipeline/atlas.hpp"
 #include "slicestation/pipeline/atlas_matching.hpp"
+#include "slicestation/pipeline/atlas_slicing.hpp"
 #include "slicestation/pipeline/series_matching.hpp"
 #include "slicestation/sim/builtin_atlas.hpp"
 #include "slicestation/sim/section_generator.hpp"
@@ -9,6 +14,7 @@
 #include <opencv2/core.hpp>
 
 #include <cmath>
+#include <filesystem>
 
 using namespace slicestation;
 using namespace slicestation::pipeline;
@@ -168,4 +174,54 @@ TEST(SeriesMatching, WindowsFollowTheModelAndTheSkipIsReported) {
     // finish() needs the same sections.
     sections.pop_back();
     EXPECT_EQ(matcher.finish(sections).error().code, core::ErrorCode::InvalidArgument);
+}
+
+// Real tissue: six consecutive sections of the gerbi series (15-20, RGB fluorescence, tile
+// seams) matched live against a 100 um stack of the 50 um annotation with a 300 um plan. Their
+// matches keep the cutting order, at most one is flagged, and the fitted spacing is within 15%
+// of ABBA's 335.8 um. (The absolute positions are compared with ABBA's by slst_bench_series.)
+TEST(SeriesMatching, RealGerbiSectionsFollowTheSeriesLine) {
+    namespace fs = std::filesystem;
+    const fs::path atlas = fs::path(SLST_SHARED_DIR) / "atlas" / "allen-ccf-2017";
+    const fs::path gerbi = fs::path(SLST_SHARED_DIR) / "sections" / "abba-gerbi-series";
+    if (!fs::exists(atlas / "annotation_50.nrrd") || !fs::exists(gerbi / "Section-15.jpg"))
+        GTEST_SKIP() << "no Allen annotation or gerbi series under " << SLST_SHARED_DIR;
+    auto volume = core::readNrrd(atlas / "annotation_50.nrrd");
+    auto onto = core::readOntologyCsv(atlas / "structure_tree_safe_2017.csv");
+    ASSERT_TRUE(volume.ok() && onto.ok());
+    auto slices =
+        sliceVolume(*volume, VolumeAxes::Allen, {PlaneOrientation::Coronal, 0, 100, 0, 0, 25});
+    ASSERT_TRUE(slices.ok()) << slices.error().message;
+    std::vector<cv::Mat> labels;
+    for (auto& sl : *slices)
+        labels.push_back(collapseLabels(sl.labels, *onto, majorRegionIds(), 8));
+    const double workUm = matchWorkUmPerPx(labels, 25);
+    std::vector<SliceFeatures> stack;
+    for (size_t i = 0; i < labels.size(); ++i)
+        stack.push_back(sliceFeatures(labels[i], 25, (*slices)[i].geometry.positionUm, workUm));
+    // Thumbnail pixel sizes from sections.csv.
+    const std::vector<double> umPerPx{10.401, 10.521, 10.838, 10.838, 10.534, 10.531};
+    SeriesMatchOptions o;
+    o.model.intervalUm = 300;
+    SeriesMatcher matcher(stack, o);
+    std::vector<SectionFeatures> sections;
+    for (int n = 15; n <= 20; ++n) {
+        auto image = core::readImage(gerbi / ("Section-" + std::to_string(n) + ".jpg"));
+        ASSERT_TRUE(image.ok()) << image.error().message;
+        auto sec = sectionFeatures(*image, umPerPx[size_t(n - 15)], workUm);
+        ASSERT_TRUE(sec.ok()) << sec.error().message;
+        ASSERT_TRUE(matcher.add(*sec).ok());
+        sections.push_back(std::move(*sec));
+    }
+    ASSERT_TRUE(matcher.finish(sections).ok());
+    const auto& m = matcher.matches();
+    for (size_t k = 1; k < m.size(); ++k)
+        EXPECT_GT(m[k].positionUm, m[k - 1].positionUm) << k;
+    // Section 15 is matched about 150 um anterior of the line the others make (0.44 spacing):
+    // off the line, as the full benchmark also reports it. The other five are regular.
+    int regular = 0;
+    for (size_t k = 0; k < m.size(); ++k)
+        regular += matcher.fit().sections[k].anomaly == SeriesAnomaly::None;
+    EXPECT_GE(regular, 5);
+    EXPECT_NEAR(matcher.fit().spacingUm, 335.8, 0.15 * 335.8);
 }
