@@ -33,7 +33,7 @@ double medianOf(std::vector<double> v) {
 } // namespace
 
 SeriesMatcher::SeriesMatcher(const std::vector<SliceFeatures>& slices, SeriesMatchOptions options)
-    : slices_(&slices), options_(std::move(options)) {}
+    : slices_(&slices), options_(options) {}
 
 int SeriesMatcher::indexAt(double positionUm) const {
     // Nearest slice by position (the stack's positions increase with the index).
