@@ -18,6 +18,7 @@ int main(int argc, char** argv) {
     commands.push_back(addStageCommand(app));
     commands.push_back(addCameraCommand(app));
     commands.push_back(addAtlasCommands(app));
+    commands.insert(commands.begin(), addAtlasSeriesCommand(app));
     commands.push_back(addDaemonCommands(app));
 
     try {

@@ -221,3 +221,50 @@ TEST_F(SlicectlAtlas, HostileVolumesPlansAndOptionsExitTwo) {
         EXPECT_FALSE(fs::exists(p("hostile"))) << c.args;
     }
 }
+
+// A series of six built-in sections 800 um apart, the fourth planned one lost (a skip): the
+// command writes each section's position and the series' spacing and flags the skip. The
+// built-in brain changes slowly, so positions are checked to within two slices.
+TEST_F(SlicectlAtlas, MatchSeriesFindsPositionsSpacingAndASkip) {
+    const std::vector<double> truth{1200, 2000, 2800, 4400, 5200, 6000};
+    std::string images;
+    std::vector<double> umPerPx;
+    for (size_t i = 0; i < truth.size(); ++i) {
+        sim::GeneratorOptions o;
+        o.seed = 40 + i;
+        o.imageSize = {900, 660};
+        auto gen = sim::generateSection(sim::builtinAtlasPlane(truth[i] / kLengthUm), o);
+        ASSERT_TRUE(gen.ok()) << gen.error().message;
+        const std::string name = "series-" + std::to_string(i) + ".tif";
+        ASSERT_TRUE(core::writeImage(dir_ / name, gen->image).ok());
+        images += " " + p(name);
+        const auto& a = gen->truth.affineAtlasFromImage;
+        umPerPx.push_back(std::sqrt(std::abs(a(0, 0) * a(1, 1) - a(0, 1) * a(1, 0))) *
+                          kAtlasUmPerPx);
+    }
+    std::string um;
+    for (double u : umPerPx)
+        um += " " + std::to_string(u);
+    const CommandResult r =
+        slicectl("atlas match-series --stack " + p("stack") + " --interval-um 800 --output " +
+                 p("series.json") + " --image-um-per-px" + um + " --" + images);
+    ASSERT_EQ(r.exitCode, 0) << r.output;
+    EXPECT_NE(r.output.find("section 6/6"), std::string::npos) << r.output; // progress line
+    const auto j = readJson(dir_ / "series.json");
+    ASSERT_EQ(j["sections"].size(), truth.size());
+    for (size_t i = 0; i < truth.size(); ++i) {
+        const auto& s = j["sections"][i];
+        EXPECT_LE(std::abs(s["position_um"].get<double>() - truth[i]), 2 * kIntervalUm) << i;
+        EXPECT_TRUE(s.contains("candidates"));
+        EXPECT_TRUE(s["series"].contains("slot"));
+    }
+    EXPECT_NEAR(j["series"]["spacing_um"].get<double>(), 800, 120);
+    EXPECT_EQ(j["sections"][3]["series"]["anomaly"], "skipped-before") << j.dump(1);
+    EXPECT_EQ(j["sections"][3]["series"]["slot"], 4);
+
+    const CommandResult bad =
+        slicectl("atlas match-series --stack " + p("stack") + " --image-um-per-px 10 20 -- " +
+                 p("series-0.tif") + " " + p("series-1.tif") + " " + p("series-2.tif"));
+    EXPECT_EQ(bad.exitCode, 2) << bad.output;
+    EXPECT_NE(bad.output.find("one per image"), std::string::npos) << bad.output;
+}

@@ -20,6 +20,8 @@ CommandRunner addDemoCommand(CLI::App& app);
 CommandRunner addStageCommand(CLI::App& app); ///< cli_stage.cpp
 /// `atlas slice` and `atlas match` (atlas_command.hpp).
 CommandRunner addAtlasCommands(CLI::App& app);
+/// `atlas match-series` (atlas_series_command.cpp); after addAtlasCommands, run before it.
+CommandRunner addAtlasSeriesCommand(CLI::App& app);
 /// scan submit, status, runs, sections, section, pause, resume, cancel, rescan, alerts,
 /// export: clients of a running slicestationd (cli_daemon.cpp).
 CommandRunner addDaemonCommands(CLI::App& app);

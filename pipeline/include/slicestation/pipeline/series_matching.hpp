@@ -1,0 +1,113 @@
+#pragma once
+/// Live series matching: sections of one brain arrive one at a time, in cutting order. The first
+/// few are matched against the whole stack (matchSection); after that the series model
+/// (series_model.hpp) predicts where the next one lies and only the slices around the
+/// prediction are searched, from a little before (a swap) to two slots after (a skip). A window
+/// whose best score falls well below the series' usual score is searched again over the whole
+/// stack, so a section far out of order is still found. After each section the model is fitted
+/// again. `finish` re-matches the sections that ended off the line near their predicted place.
+/// Pure computation; one SeriesMatcher per run, not shared between threads.
+
+#include "slicestation/core/result.hpp"
+#include "slicestation/pipeline/atlas_matching.hpp"
+#include "slicestation/pipeline/series_model.hpp"
+
+#include <functional>
+#include <vector>
+
+namespace slicestation::pipeline {
+
+struct SeriesMatchOptions {
+    MatchOptions match;         ///< for every search (first/last bound the whole search)
+    SeriesModelOptions model;   ///< intervalUm: the cutting plan's interval (0 = unknown)
+    int fullSearchSections = 3; ///< sections matched against the whole stack first
+    /// Search from this many spacings before the prediction (a swap puts the second section two
+    /// slots before it) to this many after (a skip one slot after).
+    double windowBeforeSpacings = 2.5;
+    double windowAfterSpacings = 2.5;
+    /// A windowed match scoring below this fraction of the series' median score is searched
+    /// again over the whole stack, and the whole stack's answer kept only when it scores at
+    /// least `fallbackGain` times the window's; 0 never.
+    double fallbackScoreRatio = 0.5;
+    double fallbackGain = 2.0;
+    /// finish(): a flagged section moves to the slot that makes the run regular when it scores
+    /// there at least this fraction of its own best (off-line sections move to any match on the
+    /// line).
+    double regularScoreRatio = 0.6;
+};
+
+/// How one section was searched.
+struct SeriesSearch {
+    double predictedUm = 0; ///< the model's prediction before the match (0 when none)
+    bool windowed = false;  ///< only the slices [first, last] were searched
+    int first = 0, last = 0;
+    bool fellBack = false; ///< the window's answer was weak and the whole stack was searched
+    double ms = 0;         ///< matching time
+};
+
+/// Matching features of the plane at `positionUm` tilted by the two angles (degrees), cut from
+/// the volume by the caller (atlas_slicing's sampleLabels, collapsed as the stack was) at the
+/// stack's working pixel size.
+using PlaneFeatures = std::function<core::Result<SliceFeatures>(
+    double positionUm, double tiltColumnsDeg, double tiltRowsDeg)>;
+
+struct TiltSearchOptions {
+    int sections = 6;           ///< the best-scoring on-line sections used
+    double maxDeg = 4;          ///< coarse grid within +-maxDeg on both angles
+    double coarseStepDeg = 2;   ///< coarse grid step
+    double fineStepDeg = 0.5;   ///< then a grid of this step within one coarse step of the best
+    double positionStepUm = 50; ///< planes at the section's position and this far either side
+};
+
+struct TiltEstimate {
+    double tiltColumnsDeg = 0;
+    double tiltRowsDeg = 0;
+    double score = 0; ///< summed best score of the sections at that tilt
+    int sections = 0;
+};
+
+/// The brain's cutting angle from tilted planes: the sections on the series' line with the best
+/// scores are matched against planes cut at their positions and each candidate tilt (a coarse
+/// grid, then a fine one around the best); the tilt whose planes the sections match best wins.
+/// \return InvalidArgument (fewer than two on-line sections, bad options), the errors of
+///         `planes`.
+[[nodiscard]] core::Result<TiltEstimate>
+searchSeriesTilt(const std::vector<SectionFeatures>& sections,
+                 const std::vector<SectionMatch>& matches, const SeriesFit& fit,
+                 const PlaneFeatures& planes, const TiltSearchOptions& options = {});
+
+class SeriesMatcher {
+public:
+    /// `slices` must outlive the matcher.
+    SeriesMatcher(const std::vector<SliceFeatures>& slices, SeriesMatchOptions options);
+
+    /// Matches the next section and refits the model.
+    /// \return the errors of matchSection (NoTissue...) and fitSeries; a failed section is not
+    ///         added.
+    [[nodiscard]] core::Result<SectionMatch> add(const SectionFeatures& section);
+
+    /// Each flagged section (off the line, skip, swap, out of order, duplicate) is matched again
+    /// around the slot that would make the run regular (after its on-line predecessor, before
+    /// its successor; for a skip also the section before it one slot on) and moved there when
+    /// it scores at least `regularScoreRatio` of its own match (off-line: any match on the
+    /// line); the model is fitted again, twice at most. A real skip or swap stays: the regular
+    /// place scores worse.
+    /// \return the errors of fitSeries.
+    [[nodiscard]] core::Result<void> finish(const std::vector<SectionFeatures>& sections);
+
+    const std::vector<SectionMatch>& matches() const { return matches_; }
+    const std::vector<SeriesSearch>& searches() const { return searches_; }
+    const SeriesFit& fit() const { return fit_; }
+
+private:
+    core::Result<void> refit();
+    int indexAt(double positionUm) const;
+
+    const std::vector<SliceFeatures>* slices_;
+    SeriesMatchOptions options_;
+    std::vector<SectionMatch> matches_;
+    std::vector<SeriesSearch> searches_;
+    SeriesFit fit_;
+};
+
+} // namespace slicestation::pipeline

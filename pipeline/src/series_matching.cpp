@@ -1,0 +1,245 @@
+#include "slicestation/pipeline/series_matching.hpp"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+
+namespace slicestation::pipeline {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+double msSince(Clock::time_point t) {
+    return std::chrono::duration<double, std::milli>(Clock::now() - t).count();
+}
+
+SeriesObservation observe(const SectionMatch& m) {
+    SeriesObservation o;
+    o.positionUm = m.positionUm;
+    o.score = std::max(m.score, 0.0);
+    o.tiltColumnsDeg = m.tiltColumnsDeg;
+    o.tiltRowsDeg = m.tiltRowsDeg;
+    o.tiltEstimated = m.tiltEstimated;
+    return o;
+}
+
+double medianOf(std::vector<double> v) {
+    if (v.empty())
+        return 0;
+    std::nth_element(v.begin(), v.begin() + long(v.size() / 2), v.end());
+    return v[v.size() / 2];
+}
+
+} // namespace
+
+SeriesMatcher::SeriesMatcher(const std::vector<SliceFeatures>& slices, SeriesMatchOptions options)
+    : slices_(&slices), options_(options) {}
+
+int SeriesMatcher::indexAt(double positionUm) const {
+    // Nearest slice by position (the stack's positions increase with the index).
+    const auto& s = *slices_;
+    int best = 0;
+    for (size_t i = 1; i < s.size(); ++i)
+        if (std::abs(s[i].positionUm - positionUm) <
+            std::abs(s[size_t(best)].positionUm - positionUm))
+            best = int(i);
+    return best;
+}
+
+core::Result<void> SeriesMatcher::refit() {
+    std::vector<SeriesObservation> obs;
+    for (const SectionMatch& m : matches_)
+        obs.push_back(observe(m));
+    auto f = fitSeries(obs, options_.model);
+    if (!f)
+        return f.error();
+    fit_ = std::move(*f);
+    return {};
+}
+
+core::Result<SectionMatch> SeriesMatcher::add(const SectionFeatures& section) {
+    const auto t0 = Clock::now();
+    const int n = int(matches_.size());
+    const int lastSlice = options_.match.last < 0 ? int(slices_->size()) - 1 : options_.match.last;
+    SeriesSearch search;
+    MatchOptions o = options_.match;
+    const double spacing = std::abs(fit_.spacingUm);
+    if (n >= options_.fullSearchSections && n > 0 && spacing > 0 && fit_.inliers >= 2) {
+        search.predictedUm = fit_.predictUm(n);
+        const double dir = fit_.spacingUm > 0 ? 1 : -1;
+        const double a = search.predictedUm - dir * options_.windowBeforeSpacings * spacing;
+        const double b = search.predictedUm + dir * options_.windowAfterSpacings * spacing;
+        int first = indexAt(std::min(a, b)), last = indexAt(std::max(a, b));
+        first = std::max(first, options_.match.first);
+        last = std::min(last, lastSlice);
+        if (last - first >= 2) {
+            search.windowed = true;
+            search.first = o.first = first;
+            search.last = o.last = last;
+        }
+    }
+    if (!search.windowed) {
+        search.first = options_.match.first;
+        search.last = lastSlice;
+    }
+    auto m = matchSection(section, *slices_, o);
+    if (!m)
+        return m.error();
+    if (search.windowed && options_.fallbackScoreRatio > 0) {
+        std::vector<double> scores;
+        for (const SectionMatch& p : matches_)
+            scores.push_back(p.score);
+        if (m->score < options_.fallbackScoreRatio * medianOf(scores)) {
+            auto whole = matchSection(section, *slices_, options_.match);
+            if (whole && whole->score > options_.fallbackGain * m->score) {
+                m = std::move(whole);
+                search.fellBack = true;
+            }
+        }
+    }
+    search.ms = msSince(t0);
+    matches_.push_back(*m);
+    searches_.push_back(search);
+    if (auto r = refit(); !r) {
+        matches_.pop_back();
+        searches_.pop_back();
+        return r.error();
+    }
+    return m;
+}
+
+core::Result<void> SeriesMatcher::finish(const std::vector<SectionFeatures>& sections) {
+    if (sections.size() != matches_.size())
+        return core::makeError(core::ErrorCode::InvalidArgument,
+                               "finish needs the same sections that were added, in order");
+    const int lastSlice = options_.match.last < 0 ? int(slices_->size()) - 1 : options_.match.last;
+    for (int pass = 0; pass < 2; ++pass) {
+        const double spacing = std::abs(fit_.spacingUm);
+        if (spacing <= 0 || fit_.inliers < 3)
+            return {};
+        const double tau = options_.model.inlierUm > 0 ? options_.model.inlierUm : 0.4 * spacing;
+        const size_t n = matches_.size();
+        // Moves that would make the run regular: a flagged section to the slot after its
+        // on-line predecessor's or before its successor's, and for a skip the section before
+        // it to the slot before its own.
+        struct Move {
+            size_t section;
+            int slot;
+        };
+        std::vector<Move> moves;
+        for (size_t k = 0; k < n; ++k) {
+            const SeriesSectionFit& s = fit_.sections[k];
+            if (s.anomaly == SeriesAnomaly::None)
+                continue;
+            for (size_t j = k; j-- > 0;)
+                if (fit_.sections[j].inlier && fit_.sections[j].anomaly == SeriesAnomaly::None) {
+                    moves.push_back({k, fit_.sections[j].slot + int(k - j)});
+                    break;
+                }
+            for (size_t j = k + 1; j < n; ++j)
+                if (fit_.sections[j].inlier && fit_.sections[j].anomaly == SeriesAnomaly::None) {
+                    moves.push_back({k, fit_.sections[j].slot - int(j - k)});
+                    break;
+                }
+            if (s.anomaly == SeriesAnomaly::Skipped && k > 0)
+                moves.push_back({k - 1, s.slot - 1});
+        }
+        bool changed = false;
+        for (const Move& mv : moves) {
+            SectionMatch& current = matches_[mv.section];
+            const double target = fit_.positionOfSlot(mv.slot);
+            if (std::abs(current.positionUm - target) <= 0.5 * tau)
+                continue;
+            MatchOptions o = options_.match;
+            o.first = std::max(options_.match.first, indexAt(target - 0.6 * spacing));
+            o.last = std::min(lastSlice, indexAt(target + 0.6 * spacing));
+            if (o.last - o.first < 2)
+                continue;
+            auto m = matchSection(sections[mv.section], *slices_, o);
+            if (!m || std::abs(m->positionUm - target) > tau)
+                continue;
+            // Off the line, anything on it is better; otherwise the regular place must score
+            // nearly as well as the section's own.
+            const bool offLine = !fit_.sections[mv.section].inlier;
+            if (offLine || m->score >= options_.regularScoreRatio * current.score) {
+                current = std::move(*m);
+                changed = true;
+            }
+        }
+        if (auto r = refit(); !r)
+            return r;
+        if (!changed)
+            break;
+    }
+    return {};
+}
+
+core::Result<TiltEstimate> searchSeriesTilt(const std::vector<SectionFeatures>& sections,
+                                            const std::vector<SectionMatch>& matches,
+                                            const SeriesFit& fit, const PlaneFeatures& planes,
+                                            const TiltSearchOptions& options) {
+    if (sections.size() != matches.size() || fit.sections.size() != matches.size())
+        return core::makeError(core::ErrorCode::InvalidArgument,
+                               "sections, matches and fit must describe the same series");
+    if (options.sections < 1 || !(options.maxDeg > 0) || !(options.coarseStepDeg > 0) ||
+        !(options.fineStepDeg > 0) || !(options.positionStepUm > 0) || options.maxDeg > 30)
+        return core::makeError(core::ErrorCode::InvalidArgument,
+                               "tilt search: sections >= 1, steps > 0, maxDeg in (0, 30]");
+    std::vector<size_t> chosen;
+    for (size_t k = 0; k < matches.size(); ++k)
+        if (fit.sections[k].inlier && fit.sections[k].anomaly == SeriesAnomaly::None)
+            chosen.push_back(k);
+    if (chosen.size() < 2)
+        return core::makeError(core::ErrorCode::InvalidArgument,
+                               "tilt search needs two sections on the series' line");
+    std::sort(chosen.begin(), chosen.end(),
+              [&](size_t a, size_t b) { return matches[a].score > matches[b].score; });
+    chosen.resize(std::min(chosen.size(), size_t(options.sections)));
+    MatchOptions mo;
+    mo.tiltMaxIntervalUm = 0;
+    mo.shortlist = 3;
+    auto scoreAt = [&](double tc, double tr) -> core::Result<double> {
+        double total = 0;
+        for (size_t k : chosen) {
+            std::vector<SliceFeatures> three;
+            for (int d = -1; d <= 1; ++d) {
+                auto f = planes(matches[k].positionUm + d * options.positionStepUm, tc, tr);
+                if (!f)
+                    return f.error();
+                three.push_back(std::move(*f));
+            }
+            auto m = matchSection(sections[k], three, mo);
+            if (m)
+                total += m->score;
+        }
+        return total;
+    };
+    TiltEstimate best;
+    best.score = -1;
+    auto grid = [&](double c0, double r0, double half, double step) -> core::Result<void> {
+        const int n = int(std::lround(half / step));
+        for (int i = -n; i <= n; ++i)
+            for (int j = -n; j <= n; ++j) {
+                const double tc = c0 + i * step, tr = r0 + j * step;
+                auto sc = scoreAt(tc, tr);
+                if (!sc)
+                    return sc.error();
+                if (*sc > best.score) {
+                    best.score = *sc;
+                    best.tiltColumnsDeg = tc;
+                    best.tiltRowsDeg = tr;
+                }
+            }
+        return {};
+    };
+    if (auto r = grid(0, 0, options.maxDeg, options.coarseStepDeg); !r)
+        return r.error();
+    if (auto r =
+            grid(best.tiltColumnsDeg, best.tiltRowsDeg, options.coarseStepDeg, options.fineStepDeg);
+        !r)
+        return r.error();
+    best.sections = int(chosen.size());
+    return best;
+}
+
+} // namespace slicestation::pipeline
