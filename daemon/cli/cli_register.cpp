@@ -62,6 +62,10 @@ CommandRunner addRegisterCommand(CLI::App& app) {
         ->check(finiteRange(kMinUmPerPx, kMaxUmPerPx));
     reg->add_option("--working-size", o->rq.workingMaxSide, "Longer side of the working image")
         ->check(CLI::Range(128, 8192));
+    reg->add_option("--max-turn", o->rq.maxTurnDeg,
+                    "How far sections are turned on the slide at most, in degrees (the lab's "
+                    "mounting rule; 180 = any way)")
+        ->check(CLI::Range(0.0, 180.0));
     return [o, reg]() -> int {
         if (!*reg)
             return -1;

@@ -159,6 +159,7 @@ core::Result<RegisteredSection> registerSectionFiles(const RegisterRequest& rq,
     opt.imageUmPerPx = rq.imageUmPerPx;
     opt.atlasUmPerPx = rq.atlasUmPerPx;
     opt.workingMaxSide = rq.workingMaxSide;
+    opt.maxTurnDeg = rq.maxTurnDeg;
     auto reg = pipeline::registerSection(*section, *labels, opt);
     if (!reg)
         return inFile(reg.error(), rq.image, "image");

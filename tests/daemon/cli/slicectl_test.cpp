@@ -196,6 +196,7 @@ TEST_F(SlicectlRegister, HostileImagesAndOptionsExitTwoWithOneLine) {
         {p("atlas.tif"), p("section.tif"), "--image-um-per-px 1e-6 --atlas-um-per-px 25",
          "--image-um-per-px"},
         {p("atlas.tif"), p("section.tif"), "--working-size 100000", "--working-size"},
+        {p("atlas.tif"), p("section.tif"), "--max-turn 200", "--max-turn"},
     };
     for (const Case& c : cases) {
         const CommandResult r = slicectl("register --atlas " + c.atlas + " --image " + c.image +

@@ -38,6 +38,9 @@ struct RegisterRequest {
     double imageUmPerPx = 0;                           ///< 0 = unknown
     double atlasUmPerPx = 0;                           ///< 0 = unknown
     int workingMaxSide = 1024;
+    /// The lab's mounting rule: sections are turned at most this far on the slide (degrees;
+    /// 180 = any way). See pipeline::RegistrationOptions::maxTurnDeg.
+    double maxTurnDeg = 180;
 };
 
 /// A section registered, typed; `document` is what was written to RESULT.json.
