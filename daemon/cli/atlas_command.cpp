@@ -80,7 +80,9 @@ core::Result<void> sliceVolumeFile(const AtlasSliceRequest& rq,
     const pipeline::CuttingPlan plan{*orientation, rq.firstUm,   rq.intervalUm,
                                      rq.tiltLrDeg, rq.tiltDvDeg, rq.umPerPx};
     report(rq, "cutting slices", 0, 0);
-    auto cut = pipeline::sliceVolume(*volume, axes, plan);
+    auto cut = pipeline::sliceVolume(*volume, axes, plan, [&rq](int done, int total) {
+        report(rq, "cutting slices", done, total);
+    });
     if (!cut)
         return makeError(cut.error().code, rq.volume.string() + ": " + cut.error().message);
     slices = std::move(*cut);

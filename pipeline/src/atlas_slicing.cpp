@@ -227,7 +227,8 @@ core::Result<void> checkStackBudget(double slices, cv::Size size) {
 }
 
 core::Result<std::vector<AtlasSlice>> sliceVolume(const core::Volume& volume, VolumeAxes axes,
-                                                  const CuttingPlan& plan) {
+                                                  const CuttingPlan& plan,
+                                                  const SliceProgress& progress) {
     if (!(plan.intervalUm > 0) || !std::isfinite(plan.intervalUm))
         return makeError(ErrorCode::InvalidArgument, "interval_um must be a positive number");
     const Layout l = layout(plan.orientation);
@@ -257,6 +258,8 @@ core::Result<std::vector<AtlasSlice>> sliceVolume(const core::Volume& volume, Vo
         if (!labels)
             return labels.error();
         slices.push_back({std::move(*labels), *g});
+        if (progress)
+            progress(i + 1, static_cast<int>(planes));
     }
     return slices;
 }

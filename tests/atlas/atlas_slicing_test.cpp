@@ -8,6 +8,8 @@
 #include <cmath>
 #include <filesystem>
 #include <set>
+#include <utility>
+#include <vector>
 
 using namespace slicestation;
 using namespace slicestation::pipeline;
@@ -181,6 +183,17 @@ TEST(AtlasSlicing, PlanGivesEvenlySpacedPlanesInsideTheVolume) {
     ASSERT_EQ(stack->size(), 5u); // 10, 60, 110, 160, 210
     EXPECT_DOUBLE_EQ(stack->back().geometry.positionUm, 210);
     EXPECT_DOUBLE_EQ(stack->front().geometry.normal[0], 1);
+}
+
+TEST(AtlasSlicing, ProgressIsReportedAfterEveryPlane) {
+    const core::Volume a = rampVolume();
+    std::vector<std::pair<int, int>> calls;
+    auto stack = sliceVolume(a, VolumeAxes::Allen, {PlaneOrientation::Coronal, 10, 50, 0, 0, 20},
+                             [&](int done, int total) { calls.emplace_back(done, total); });
+    ASSERT_TRUE(stack.ok());
+    ASSERT_EQ(calls.size(), 5u);
+    for (int i = 0; i < 5; ++i)
+        EXPECT_EQ(calls[size_t(i)], std::make_pair(i + 1, 5));
 }
 
 TEST(AtlasSlicing, BadPlanesAreClearErrors) {

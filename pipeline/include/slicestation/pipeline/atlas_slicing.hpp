@@ -14,6 +14,7 @@
 #include <opencv2/core.hpp>
 
 #include <cstdint>
+#include <functional>
 #include <string_view>
 #include <vector>
 
@@ -100,10 +101,15 @@ struct AtlasSlice {
     SliceGeometry geometry;
 };
 
-/// Every plane of `plan`. \return as planeGeometry (OutOfRange when firstUm lies outside),
-///         InvalidArgument for intervalUm <= 0 or a plan beyond the stack budget
-///         (checkStackBudget), before anything is sampled.
-[[nodiscard]] core::Result<std::vector<AtlasSlice>>
-sliceVolume(const core::Volume& volume, VolumeAxes axes, const CuttingPlan& plan);
+/// Called after each plane is cut: (planes done, planes in the plan).
+using SliceProgress = std::function<void(int done, int total)>;
+
+/// Every plane of `plan`; `progress`, when set, after each plane. \return as planeGeometry
+///         (OutOfRange when firstUm lies outside), InvalidArgument for intervalUm <= 0 or a plan
+///         beyond the stack budget (checkStackBudget), before anything is sampled.
+[[nodiscard]] core::Result<std::vector<AtlasSlice>> sliceVolume(const core::Volume& volume,
+                                                                VolumeAxes axes,
+                                                                const CuttingPlan& plan,
+                                                                const SliceProgress& progress = {});
 
 } // namespace slicestation::pipeline
