@@ -16,6 +16,19 @@ template <std::size_t N> std::string listOf(const char* const (&texts)[N]) {
     return out;
 }
 
+/// The enumerator whose text is `text` (enumerators are the texts' indices), or InvalidArgument
+/// naming it and listing the known ones.
+template <class Enum, std::size_t N>
+core::Result<Enum> parseText(const char* const (&texts)[N], std::string_view text,
+                             const char* what) {
+    for (std::size_t i = 0; i < N; ++i)
+        if (text == texts[i])
+            return static_cast<Enum>(i);
+    return core::makeError(core::ErrorCode::InvalidArgument,
+                           std::string("unknown alert ") + what + " \"" + std::string(text) +
+                               "\" (known: " + listOf(texts) + ")");
+}
+
 } // namespace
 
 static_assert(std::size(kKindTexts) == std::size(kAlertKinds));
@@ -43,21 +56,11 @@ int syslogPriority(AlertSeverity severity) noexcept {
 }
 
 core::Result<AlertKind> parseAlertKind(std::string_view text) {
-    for (std::size_t i = 0; i < std::size(kKindTexts); ++i)
-        if (text == kKindTexts[i])
-            return static_cast<AlertKind>(i);
-    return core::makeError(core::ErrorCode::InvalidArgument,
-                           "unknown alert kind \"" + std::string(text) +
-                               "\" (known: " + listOf(kKindTexts) + ")");
+    return parseText<AlertKind>(kKindTexts, text, "kind");
 }
 
 core::Result<AlertSeverity> parseAlertSeverity(std::string_view text) {
-    for (std::size_t i = 0; i < std::size(kSeverityTexts); ++i)
-        if (text == kSeverityTexts[i])
-            return static_cast<AlertSeverity>(i);
-    return core::makeError(core::ErrorCode::InvalidArgument,
-                           "unknown alert severity \"" + std::string(text) +
-                               "\" (known: " + listOf(kSeverityTexts) + ")");
+    return parseText<AlertSeverity>(kSeverityTexts, text, "severity");
 }
 
 } // namespace slicestation::daemon
