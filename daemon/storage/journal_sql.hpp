@@ -27,7 +27,7 @@ inline core::Error sqlError(sqlite3* db, const std::filesystem::path& file, cons
 /// A prepared statement; finalised on destruction. Bind indices start at 1.
 class Statement {
 public:
-    Statement(sqlite3* db, const char* sql) : db_(db) {
+    Statement(sqlite3* db, const char* sql) {
         if (sqlite3_prepare_v2(db, sql, -1, &stmt_, nullptr) != SQLITE_OK)
             stmt_ = nullptr;
     }
@@ -72,7 +72,6 @@ public:
     }
 
 private:
-    sqlite3* db_;
     sqlite3_stmt* stmt_ = nullptr;
 };
 
