@@ -148,4 +148,12 @@ bool isAtomicTemporaryName(std::string_view name) noexcept {
     return rest.size() > 5 && rest.substr(rest.size() - 4) == ".tmp";
 }
 
+bool isLegacyTemporaryName(std::string_view name) noexcept {
+    constexpr std::string_view partial = ".partial"; // .NAME.partial
+    if (name.size() > partial.size() + 1 && name.front() == '.' && name.ends_with(partial))
+        return true;
+    const std::size_t dash = name.rfind(".tmp-"); // NAME.tmp-PID
+    return dash != std::string_view::npos && dash > 0 && isNumber(name.substr(dash + 5));
+}
+
 } // namespace slicestation::core

@@ -1,6 +1,7 @@
 #include "slicestation/core/image_file.hpp"
 
 #include "slicestation/core/atomic_file.hpp"
+#include "slicestation/core/tiff_file.hpp"
 
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
@@ -44,11 +45,14 @@ std::string quoted(const fs::path& path) {
 // ---------------------------------------------------------------------------------------------
 // libtiff diagnostics: captured, never printed.
 
-/// Diagnostics of one TIFF handle. Its address is the handlers' user data, so it lives on the
-/// heap and does not move while the handle is open.
+/// Diagnostics of one TIFF handle, and the descriptor of one opened over a caller's fd. Its
+/// address is the handlers' (and the I/O procedures') user data, so it lives on the heap and
+/// does not move while the handle is open.
 struct TiffMessages {
     std::string errors;
     std::string warnings;
+    int fd = -1;        ///< the caller's descriptor (TiffFile::openFd), or -1
+    int firstErrno = 0; ///< errno of the first failed system call on `fd`
 };
 
 constexpr std::size_t kMaxMessageChars = 2000; // a corrupt file can emit thousands of warnings
@@ -100,7 +104,85 @@ void installGlobalTiffHandlers() {
     });
 }
 
-/// Move-only owner of a TIFF* and of the messages its handlers collect.
+// libtiff over a descriptor the caller owns, so that the errno of a failing write (ENOSPC)
+// is kept instead of libtiff's bare "write error".
+
+/// errno every write over a descriptor fails with, for tests (0: none).
+std::atomic<int> gWriteFault{0};
+
+void keepErrno(TiffMessages& io, int err) {
+    if (io.firstErrno == 0)
+        io.firstErrno = err;
+}
+
+tmsize_t fdRead(thandle_t h, void* buf, tmsize_t size) {
+    auto& io = *static_cast<TiffMessages*>(h);
+    tmsize_t done = 0;
+    while (done < size) {
+        const ssize_t n =
+            ::read(io.fd, static_cast<char*>(buf) + done, static_cast<std::size_t>(size - done));
+        if (n < 0 && errno == EINTR)
+            continue;
+        if (n < 0) {
+            keepErrno(io, errno);
+            return -1;
+        }
+        if (n == 0)
+            break;
+        done += n;
+    }
+    return done;
+}
+
+tmsize_t fdWrite(thandle_t h, void* buf, tmsize_t size) {
+    auto& io = *static_cast<TiffMessages*>(h);
+    tmsize_t done = 0;
+    while (done < size) {
+        if (const int fault = gWriteFault.load(); fault != 0) {
+            keepErrno(io, fault);
+            return -1;
+        }
+        const ssize_t n = ::write(io.fd, static_cast<const char*>(buf) + done,
+                                  static_cast<std::size_t>(size - done));
+        if (n < 0 && errno == EINTR)
+            continue;
+        if (n <= 0) {
+            keepErrno(io, n < 0 ? errno : EIO);
+            return -1;
+        }
+        done += n;
+    }
+    return done;
+}
+
+toff_t fdSeek(thandle_t h, toff_t offset, int whence) {
+    auto& io = *static_cast<TiffMessages*>(h);
+    const off_t at = ::lseek(io.fd, static_cast<off_t>(offset), whence);
+    if (at < 0) {
+        keepErrno(io, errno);
+        return static_cast<toff_t>(-1);
+    }
+    return static_cast<toff_t>(at);
+}
+
+int fdClose(thandle_t /*h*/) {
+    return 0; // the descriptor belongs to the caller
+}
+
+toff_t fdSize(thandle_t h) {
+    struct stat st {};
+    return ::fstat(static_cast<TiffMessages*>(h)->fd, &st) == 0 ? static_cast<toff_t>(st.st_size)
+                                                                : 0;
+}
+
+int fdMap(thandle_t /*h*/, void** /*base*/, toff_t* /*size*/) {
+    return 0; // no mapping: reads go through fdRead
+}
+
+void fdUnmap(thandle_t /*h*/, void* /*base*/, toff_t /*size*/) {}
+
+/// Move-only owner of a TIFF* and of the messages its handlers collect: the one libtiff wrapper
+/// (readImage, writeImage, writeTiffPage, readTiffDescription).
 class TiffFile {
 public:
     TiffFile(TiffFile&& other) noexcept
@@ -131,7 +213,34 @@ public:
         return TiffFile(tif, std::move(messages));
     }
 
+    /// Opens a TIFF over `fd` (owned by the caller, left open); `name` is for messages. Write
+    /// errors keep their errno (firstErrno()).
+    static Result<TiffFile> openFd(int fd, const fs::path& name, const char* mode) {
+        installGlobalTiffHandlers();
+        tlsGlobalTiffMessages.clear();
+        auto messages = std::make_unique<TiffMessages>();
+        messages->fd = fd;
+        TIFFOpenOptions* options = TIFFOpenOptionsAlloc();
+        if (options == nullptr) {
+            return makeError(ErrorCode::Internal, "libtiff: cannot allocate open options");
+        }
+        TIFFOpenOptionsSetErrorHandlerExtR(options, onTiffError, messages.get());
+        TIFFOpenOptionsSetWarningHandlerExtR(options, onTiffWarning, messages.get());
+        TIFF* tif = TIFFClientOpenExt(name.c_str(), mode, messages.get(), fdRead, fdWrite, fdSeek,
+                                      fdClose, fdSize, fdMap, fdUnmap, options);
+        TIFFOpenOptionsFree(options);
+        if (tif == nullptr) {
+            const int err = messages->firstErrno != 0 ? messages->firstErrno : EIO;
+            return makeError(ErrorCode::IoError,
+                             "cannot open TIFF " + quoted(name) + detail(*messages), err);
+        }
+        return TiffFile(tif, std::move(messages));
+    }
+
     TIFF* get() const noexcept { return tif_; }
+
+    /// errno of the first failed system call of a handle opened with openFd (0: none).
+    int firstErrno() const noexcept { return messages_ ? messages_->firstErrno : 0; }
 
     /// Closes the handle (flushing a file opened for writing). False if libtiff reported an
     /// error at any time on this handle.
@@ -741,12 +850,18 @@ cv::Mat toRgbOrder(const cv::Mat& image) {
     return rgb;
 }
 
-Result<void> writeTiffData(const fs::path& tmp, const fs::path& target, const cv::Mat& image) {
-    auto file = TiffFile::open(tmp, "w");
-    if (!file) {
-        return file.error();
-    }
-    TIFF* tif = file->get();
+/// IoError for `what` on `name`, with the errno of the first failed system call (EIO when
+/// libtiff failed without one) and what libtiff said.
+Error writeError(const std::string& what, const fs::path& name, const TiffFile& file) {
+    const int err = file.firstErrno() != 0 ? file.firstErrno() : EIO;
+    return makeError(ErrorCode::IoError,
+                     what + " " + quoted(name) + ": " + std::strerror(err) + " (errno " +
+                         std::to_string(err) + ")" + file.detail(),
+                     err);
+}
+
+Result<void> setPageTags(TIFF* tif, const cv::Mat& image, const TiffTags& tags,
+                         std::uint32_t rowsPerStrip) {
     const int channels = image.channels();
     const int depth = image.depth();
     const auto bits = static_cast<std::uint16_t>(8 * CV_ELEM_SIZE1(depth));
@@ -769,26 +884,56 @@ Result<void> writeTiffData(const fs::path& tmp, const fs::path& target, const cv
             channels == 4 ? EXTRASAMPLE_UNASSALPHA : EXTRASAMPLE_UNSPECIFIED;
         ok = ok && TIFFSetField(tif, TIFFTAG_EXTRASAMPLES, 1, &extra) == 1;
     }
-    ok = ok && TIFFSetField(tif, TIFFTAG_ROWSPERSTRIP, TIFFDefaultStripSize(tif, 0)) == 1;
-    if (!ok) {
-        return makeError(ErrorCode::Internal,
-                         "cannot set TIFF tags for " + quoted(target) + file->detail());
+    ok = ok && TIFFSetField(tif, TIFFTAG_ROWSPERSTRIP, rowsPerStrip) == 1;
+    if (!tags.imageDescription.empty())
+        ok = ok && TIFFSetField(tif, TIFFTAG_IMAGEDESCRIPTION, tags.imageDescription.c_str()) == 1;
+    if (!tags.software.empty())
+        ok = ok && TIFFSetField(tif, TIFFTAG_SOFTWARE, tags.software.c_str()) == 1;
+    if (tags.umPerPx > 0) {
+        // For readers that ignore the OME-XML (ImageJ's plain TIFF reader).
+        const auto pxPerCm = static_cast<float>(1e4 / tags.umPerPx);
+        ok = ok && TIFFSetField(tif, TIFFTAG_XRESOLUTION, pxPerCm) == 1;
+        ok = ok && TIFFSetField(tif, TIFFTAG_YRESOLUTION, pxPerCm) == 1;
+        ok = ok && TIFFSetField(tif, TIFFTAG_RESOLUTIONUNIT, RESUNIT_CENTIMETER) == 1;
     }
+    if (!ok)
+        return makeError(ErrorCode::Internal, "libtiff refused a tag");
+    return {};
+}
 
+Result<void> writeTiffPageImpl(int fd, const fs::path& name, const cv::Mat& image,
+                               const TiffTags& tags) {
+    auto file = TiffFile::openFd(fd, name, "wl");
+    if (!file) {
+        return file.error();
+    }
+    TIFF* tif = file->get();
+    // Rows per strip: about 64 KiB of raw data per strip (the TIFF 6.0 recommendation is ~8 KiB;
+    // larger strips compress better and Bio-Formats reads any size).
+    const std::size_t rowBytes = static_cast<std::size_t>(image.cols) * image.elemSize();
+    const auto rowsPerStrip = static_cast<std::uint32_t>(std::clamp<std::size_t>(
+        65536 / std::max<std::size_t>(rowBytes, 1), 1, static_cast<std::size_t>(image.rows)));
+    if (auto set = setPageTags(tif, image, tags, rowsPerStrip); !set) {
+        return makeError(ErrorCode::Internal,
+                         "cannot set TIFF tags for " + quoted(name) + file->detail());
+    }
     const cv::Mat rgb = toRgbOrder(image);
-    const std::size_t rowBytes = static_cast<std::size_t>(rgb.cols) * rgb.elemSize();
-    // The predictor differences the row in place, so libtiff gets a scratch copy.
-    std::vector<std::uint8_t> row(rowBytes);
-    for (int y = 0; y < rgb.rows; ++y) {
-        std::memcpy(row.data(), rgb.ptr(y), rowBytes);
-        if (TIFFWriteScanline(tif, row.data(), static_cast<std::uint32_t>(y), 0) != 1) {
-            return makeError(ErrorCode::IoError, "cannot write row " + std::to_string(y) + " of " +
-                                                     quoted(target) + file->detail());
+    // The predictor differences the data in place, so libtiff gets a scratch copy of each strip.
+    std::vector<std::uint8_t> strip(rowBytes * rowsPerStrip);
+    tstrip_t index = 0;
+    for (int y = 0; y < rgb.rows; y += static_cast<int>(rowsPerStrip), ++index) {
+        const int rows = std::min(static_cast<int>(rowsPerStrip), rgb.rows - y);
+        for (int r = 0; r < rows; ++r) {
+            std::memcpy(strip.data() + static_cast<std::size_t>(r) * rowBytes, rgb.ptr(y + r),
+                        rowBytes);
+        }
+        const auto bytes = static_cast<tmsize_t>(static_cast<std::size_t>(rows) * rowBytes);
+        if (TIFFWriteEncodedStrip(tif, index, strip.data(), bytes) != bytes) {
+            return writeError("cannot write TIFF", name, *file);
         }
     }
-    if (!file->close()) {
-        return makeError(ErrorCode::IoError,
-                         "cannot finish TIFF " + quoted(target) + file->detail());
+    if (!file->close() || file->firstErrno() != 0) {
+        return writeError("cannot finish TIFF", name, *file);
     }
     return {};
 }
@@ -836,8 +981,9 @@ Result<void> writeImageImpl(const fs::path& path, const cv::Mat& image) {
                                      std::to_string(static_cast<long long>(minValue)));
             }
         }
-        return replaceAtomically(
-            path, [&](int /*fd*/, const fs::path& tmp) { return writeTiffData(tmp, path, image); });
+        return replaceAtomically(path, [&](int fd, const fs::path& /*tmp*/) {
+            return writeTiffPageImpl(fd, path, image, {});
+        });
     }
     return makeError(ErrorCode::Unsupported, what + "unknown extension '" +
                                                  path.extension().string() +
@@ -909,6 +1055,51 @@ Result<void> writeImage(const std::filesystem::path& path, const cv::Mat& image)
         return makeError(ErrorCode::Internal,
                          "cannot write image " + quoted(path) + ": " + e.what());
     }
+}
+
+Result<void> writeTiffPage(int fd, const std::filesystem::path& name, const cv::Mat& image,
+                           const TiffTags& tags) {
+    const int depth = image.depth();
+    if (image.empty() ||
+        (depth != CV_8U && depth != CV_16U && depth != CV_32S && depth != CV_32F) ||
+        image.channels() > 4) {
+        return makeError(ErrorCode::Unsupported,
+                         "cannot write TIFF " + quoted(name) + ": " +
+                             (image.empty() ? std::string("empty image")
+                                            : "type " + cv::typeToString(image.type())));
+    }
+    if (tags.imageDescription.find('\0') != std::string::npos) {
+        return makeError(ErrorCode::InvalidArgument,
+                         "cannot write TIFF " + quoted(name) + ": ImageDescription holds a NUL");
+    }
+    try {
+        return writeTiffPageImpl(fd, name, image, tags);
+    } catch (const std::exception& e) {
+        return makeError(ErrorCode::Internal,
+                         "cannot write TIFF " + quoted(name) + ": " + e.what());
+    }
+}
+
+Result<std::optional<std::string>> readTiffDescription(const std::filesystem::path& path) {
+    std::error_code ec;
+    if (!fs::exists(path, ec)) {
+        return makeError(ErrorCode::NotFound, "TIFF " + quoted(path) + " does not exist");
+    }
+    auto file = TiffFile::open(path, "r");
+    if (!file) {
+        return makeError(ErrorCode::IoError, "not a readable TIFF: " + file.error().message,
+                         file.error().sysErrno);
+    }
+    const char* description = nullptr;
+    if (TIFFGetField(file->get(), TIFFTAG_IMAGEDESCRIPTION, &description) != 1 ||
+        description == nullptr) {
+        return std::optional<std::string>();
+    }
+    return std::optional<std::string>(description);
+}
+
+void setTiffWriteFaultForTesting(int err) noexcept {
+    gWriteFault.store(err);
 }
 
 } // namespace slicestation::core

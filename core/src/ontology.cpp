@@ -1,5 +1,7 @@
 #include "slicestation/core/ontology.hpp"
 
+#include "slicestation/core/csv.hpp"
+
 #include <algorithm>
 #include <cerrno>
 #include <charconv>
@@ -50,86 +52,6 @@ namespace {
 /// The Allen structure tree is 224 KB; 64 MiB leaves room for any ontology and keeps a wrong
 /// file (a volume given as --ontology) from being read whole into memory.
 constexpr std::uintmax_t kMaxOntologyBytes = std::uintmax_t{64} << 20;
-
-struct CsvRecord {
-    int line = 0; ///< physical line on which the record starts, 1-based
-    std::vector<std::string> fields;
-};
-
-/// RFC 4180 records of `text`. Blank lines are skipped.
-Result<std::vector<CsvRecord>> parseCsv(const std::string& text, const std::string& where) {
-    std::vector<CsvRecord> records;
-    std::size_t i = 0;
-    const std::size_t n = text.size();
-    int line = 1;
-    while (i < n) {
-        CsvRecord record;
-        record.line = line;
-        while (true) {
-            std::string field;
-            const int fieldNumber = static_cast<int>(record.fields.size()) + 1;
-            if (i < n && text[i] == '"') {
-                const int quoteLine = line;
-                ++i;
-                while (true) {
-                    if (i >= n) {
-                        return makeError(ErrorCode::InvalidArgument,
-                                         where + ": line " + std::to_string(quoteLine) +
-                                             ", field " + std::to_string(fieldNumber) +
-                                             ": quoted field is never closed");
-                    }
-                    if (text[i] == '"') {
-                        if (i + 1 < n && text[i + 1] == '"') {
-                            field += '"';
-                            i += 2;
-                            continue;
-                        }
-                        ++i;
-                        break;
-                    }
-                    if (text[i] == '\n') {
-                        ++line;
-                    }
-                    field += text[i++];
-                }
-                if (i < n && text[i] != ',' && text[i] != '\r' && text[i] != '\n') {
-                    return makeError(ErrorCode::InvalidArgument,
-                                     where + ": line " + std::to_string(line) + ", field " +
-                                         std::to_string(fieldNumber) +
-                                         ": unexpected character after closing quote");
-                }
-            } else {
-                while (i < n && text[i] != ',' && text[i] != '\r' && text[i] != '\n') {
-                    if (text[i] == '"') {
-                        return makeError(ErrorCode::InvalidArgument,
-                                         where + ": line " + std::to_string(line) + ", field " +
-                                             std::to_string(fieldNumber) +
-                                             ": quote inside an unquoted field");
-                    }
-                    field += text[i++];
-                }
-            }
-            record.fields.push_back(std::move(field));
-            if (i < n && text[i] == ',') {
-                ++i;
-                continue;
-            }
-            if (i < n && text[i] == '\r') {
-                ++i;
-            }
-            if (i < n && text[i] == '\n') {
-                ++i;
-                ++line;
-            }
-            break;
-        }
-        if (record.fields.size() == 1 && record.fields.front().empty()) {
-            continue; // blank line
-        }
-        records.push_back(std::move(record));
-    }
-    return records;
-}
 
 std::optional<std::uint32_t> parseId(std::string_view text) {
     std::uint64_t value = 0;
@@ -211,11 +133,7 @@ private:
         }
         std::ostringstream bytes;
         bytes << in.rdbuf();
-        std::string text = std::move(bytes).str();
-        if (text.rfind("\xEF\xBB\xBF", 0) == 0) {
-            text.erase(0, 3); // UTF-8 byte-order mark
-        }
-        return text;
+        return std::move(bytes).str(); // parseCsv skips a byte-order mark
     }
 
     Result<void> findColumns(const CsvRecord& header) {

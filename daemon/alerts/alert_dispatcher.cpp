@@ -49,9 +49,9 @@ struct AlertDispatcher::Lane {
     std::deque<Clock::time_point> starts; ///< first attempts inside the rate window
     std::uint64_t heldCount = 0;          ///< alerts over the rate limit, not yet summarised
     std::map<std::string, std::uint64_t> heldKinds;
-    int heldRank = 0;
-    bool busy = false; ///< delivering or waiting to retry
-    bool done = false; ///< the worker has returned
+    AlertSeverity heldSeverity = AlertSeverity::Info; ///< the highest held
+    bool busy = false;                                ///< delivering or waiting to retry
+    bool done = false;                                ///< the worker has returned
     AlertChannelStats stats;
     std::thread thread;
 };
@@ -64,7 +64,7 @@ AlertDispatcher::AlertDispatcher(const AlertSettings& policy,
       rateWindow_(policy.rateWindow),
       maxPerWindow_(static_cast<std::size_t>(std::max(0, policy.maxPerWindow))),
       queueCapacity_(std::max<std::size_t>(1, policy.queueCapacity)),
-      minRank_(severityRank(policy.minSeverity)), onGiveUp_(std::move(onGiveUp)) {
+      minSeverity_(policy.minSeverity), onGiveUp_(std::move(onGiveUp)) {
     for (auto& sink : sinks) {
         auto lane = std::make_unique<Lane>();
         lane->stats.name = sink->name();
@@ -81,7 +81,7 @@ AlertDispatcher::~AlertDispatcher() {
 }
 
 void AlertDispatcher::post(const AlertRecord& alert) {
-    if (severityRank(alert.severity) < minRank_)
+    if (alert.severity < minSeverity_)
         return;
     std::lock_guard lock(mutex_);
     if (stopping_)
@@ -160,8 +160,8 @@ void AlertDispatcher::run(Lane& lane) {
         if (!room) {
             for (const auto& a : lane.queue) {
                 ++lane.heldCount;
-                ++lane.heldKinds[a.kind];
-                lane.heldRank = std::max(lane.heldRank, severityRank(a.severity));
+                ++lane.heldKinds[toString(a.kind)]; // by name: the summary lists them so
+                lane.heldSeverity = std::max(lane.heldSeverity, a.severity);
                 ++lane.stats.suppressed;
             }
             lane.queue.clear();
@@ -170,8 +170,8 @@ void AlertDispatcher::run(Lane& lane) {
         // Held alerts go out as one summary once the window has room, or at once when stopping.
         if (lane.heldCount > 0 && (room || stopping_)) {
             AlertRecord s;
-            s.kind = "alert_summary";
-            s.severity = kSeverities[std::clamp(lane.heldRank, 0, 2)];
+            s.kind = AlertKind::AlertSummary;
+            s.severity = lane.heldSeverity;
             s.raisedUtc = Journal::nowUtc();
             std::string kinds;
             for (const auto& [kind, n] : lane.heldKinds)
@@ -181,7 +181,7 @@ void AlertDispatcher::run(Lane& lane) {
                         "; held by the rate limit of this channel, see slicectl alerts";
             lane.heldCount = 0;
             lane.heldKinds.clear();
-            lane.heldRank = 0;
+            lane.heldSeverity = AlertSeverity::Info;
             ++lane.stats.summaries;
             next = std::move(s);
         } else if (room && !lane.queue.empty()) {

@@ -136,14 +136,6 @@ Result<CommandSettings> readCommand(const nlohmann::json& e, const std::string& 
 
 // Settings -------------------------------------------------------------------------------------
 
-int severityRank(const std::string& severity) noexcept {
-    if (severity == "info")
-        return 0;
-    if (severity == "warning")
-        return 1;
-    return 2;
-}
-
 Result<AlertSettings> parseAlertSettings(const nlohmann::json& station, const std::string& origin) {
     FieldReader rd(origin);
     AlertSettings s;
@@ -183,11 +175,10 @@ Result<AlertSettings> parseAlertSettings(const nlohmann::json& station, const st
     auto sev = rd.string(t, "alerts", "min_severity", std::string("info"));
     if (!sev)
         return sev.error();
-    if (std::none_of(std::begin(kSeverities), std::end(kSeverities),
-                     [&](const char* k) { return *sev == k; }))
-        return rd.bad("alerts.min_severity",
-                      "expected \"info\", \"warning\" or \"critical\", got \"" + *sev + "\"");
-    s.minSeverity = *sev;
+    auto minSeverity = parseAlertSeverity(*sev);
+    if (!minSeverity)
+        return rd.bad("alerts.min_severity", minSeverity.error().message);
+    s.minSeverity = *minSeverity;
 
     auto webhooks =
         forEachTable(t, "webhook", {"url", "format", "timeout_s"}, rd,

@@ -11,9 +11,6 @@
 
 namespace slicestation::daemon {
 
-/// The severities, lowest first (severityRank is the index).
-inline constexpr const char* kSeverities[] = {"info", "warning", "critical"};
-
 struct ParsedUrl {
     std::string scheme; ///< http or https
     std::string host;   ///< as written, [brackets] kept for IPv6

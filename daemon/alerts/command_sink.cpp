@@ -83,8 +83,8 @@ std::vector<std::string> alertEnvironment(const AlertRecord& alert) {
         if (!std::string_view(*e).starts_with("SLST_ALERT_"))
             env.emplace_back(*e);
     env.push_back("SLST_ALERT_ID=" + std::to_string(alert.id));
-    env.push_back("SLST_ALERT_KIND=" + alert.kind);
-    env.push_back("SLST_ALERT_SEVERITY=" + alert.severity);
+    env.push_back(std::string("SLST_ALERT_KIND=") + toString(alert.kind));
+    env.push_back(std::string("SLST_ALERT_SEVERITY=") + toString(alert.severity));
     env.push_back("SLST_ALERT_MESSAGE=" + alert.message);
     env.push_back("SLST_ALERT_RUN_ID=" + optionalId(alert.runId));
     env.push_back("SLST_ALERT_SECTION_ID=" + optionalId(alert.sectionId));

@@ -55,14 +55,13 @@ JournalSink::JournalSink(Send send) : send_(std::move(send)) {
 }
 
 std::vector<std::string> JournalSink::fields(const AlertRecord& alert) {
-    const int rank = severityRank(alert.severity);
-    const int priority = rank == 0 ? 5 : rank == 1 ? 4 : 2; // notice, warning, critical
-    std::vector<std::string> f{"MESSAGE=ALERT " + alert.kind + ": " + alert.message,
-                               "PRIORITY=" + std::to_string(priority),
+    std::vector<std::string> f{std::string("MESSAGE=ALERT ") + toString(alert.kind) + ": " +
+                                   alert.message,
+                               "PRIORITY=" + std::to_string(syslogPriority(alert.severity)),
                                "SYSLOG_IDENTIFIER=slicestationd",
                                "SLST_ALERT_ID=" + std::to_string(alert.id),
-                               "SLST_ALERT_KIND=" + alert.kind,
-                               "SLST_ALERT_SEVERITY=" + alert.severity};
+                               std::string("SLST_ALERT_KIND=") + toString(alert.kind),
+                               std::string("SLST_ALERT_SEVERITY=") + toString(alert.severity)};
     if (alert.runId)
         f.push_back("SLST_RUN_ID=" + std::to_string(*alert.runId));
     if (alert.sectionId)

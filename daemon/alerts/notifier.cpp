@@ -26,7 +26,7 @@ void Notifier::publish(const StationEvent& event) {
         l(event);
 }
 
-core::Result<std::int64_t> Notifier::raise(const std::string& kind, const std::string& severity,
+core::Result<std::int64_t> Notifier::raise(AlertKind kind, AlertSeverity severity,
                                            const std::string& message,
                                            std::optional<std::int64_t> runId,
                                            std::optional<std::int64_t> sectionId) {
@@ -52,7 +52,7 @@ core::Result<std::int64_t> Notifier::raise(const std::string& kind, const std::s
             logged = false; // said already, and held
         } else {
             if (held_.size() >= kMaxHeldAlerts) {
-                std::cerr << "<4>ALERT " << held_.front().kind << " raised at "
+                std::cerr << "<4>ALERT " << toString(held_.front().kind) << " raised at "
                           << held_.front().raisedUtc << " is dropped: " << kMaxHeldAlerts
                           << " alerts wait to be stored" << std::endl;
                 held_.erase(held_.begin());
@@ -64,8 +64,7 @@ core::Result<std::int64_t> Notifier::raise(const std::string& kind, const std::s
     if (!logged)
         return id;
     // sd-daemon priority prefixes: the systemd journal files the line at that level.
-    const char* prefix = severity == "critical" ? "<2>" : severity == "warning" ? "<4>" : "<5>";
-    std::cerr << prefix << "ALERT " << kind << ": " << message;
+    std::cerr << "<" << syslogPriority(severity) << ">ALERT " << toString(kind) << ": " << message;
     if (!id)
         std::cerr << " (not stored yet, held until the journal can store it: " << id.error().message
                   << ")";
@@ -88,23 +87,24 @@ core::Result<void> Notifier::runStateChanged(std::int64_t runId, RunState state,
     const std::string name = run ? run->name : std::to_string(runId);
     if (set)
         publish({"run_state", {{"run_id", runId}, {"state", toString(state)}, {"reason", reason}}});
-    std::string kind, severity;
+    AlertKind kind{};
+    AlertSeverity severity{};
     switch (state) {
     case RunState::Finished:
-        kind = "run_finished";
-        severity = "info";
+        kind = AlertKind::RunFinished;
+        severity = AlertSeverity::Info;
         break;
     case RunState::Paused:
-        kind = "run_paused";
-        severity = "warning";
+        kind = AlertKind::RunPaused;
+        severity = AlertSeverity::Warning;
         break;
     case RunState::Failed:
-        kind = "run_failed";
-        severity = "critical";
+        kind = AlertKind::RunFailed;
+        severity = AlertSeverity::Critical;
         break;
     case RunState::Cancelled:
-        kind = "run_cancelled";
-        severity = "info";
+        kind = AlertKind::RunCancelled;
+        severity = AlertSeverity::Info;
         break;
     default:
         return set;

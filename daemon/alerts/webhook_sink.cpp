@@ -76,7 +76,8 @@ std::string WebhookSink::name() const {
 
 std::string WebhookSink::body(const AlertRecord& alert) const {
     if (impl_->settings.format == WebhookSettings::Format::Slack) {
-        std::string text = "[" + alert.severity + "] " + alert.kind + ": " + alert.message;
+        std::string text = std::string("[") + toString(alert.severity) + "] " +
+                           toString(alert.kind) + ": " + alert.message;
         if (alert.runId && alert.sectionId)
             text += " (run " + std::to_string(*alert.runId) + ", section " +
                     std::to_string(*alert.sectionId) + ")";

@@ -1,5 +1,8 @@
 #include "slicestation/daemon/cli/points_csv.hpp"
 
+#include "slicestation/core/csv.hpp"
+
+#include <algorithm>
 #include <cerrno>
 #include <charconv>
 #include <cmath>
@@ -21,19 +24,6 @@ std::string_view trim(std::string_view s) {
     return s;
 }
 
-std::vector<std::string_view> split(std::string_view line) {
-    std::vector<std::string_view> out;
-    size_t start = 0;
-    for (;;) {
-        const size_t comma = line.find(',', start);
-        out.push_back(trim(line.substr(start, comma - start)));
-        if (comma == std::string_view::npos)
-            break;
-        start = comma + 1;
-    }
-    return out;
-}
-
 bool parseNumber(std::string_view s, double& out) {
     if (s.empty())
         return false;
@@ -48,26 +38,26 @@ bool parseNumber(std::string_view s, double& out) {
 } // namespace
 
 core::Result<std::vector<cv::Point2d>> parsePointsCsv(std::string_view text) {
+    auto records = core::parseCsv(text, "points CSV");
+    if (!records)
+        return records.error();
     std::vector<cv::Point2d> points;
     bool header = false;
-    size_t lineNo = 0, pos = 0;
-    if (text.substr(0, 3) == "\xEF\xBB\xBF")
-        pos = 3; // UTF-8 byte-order mark from spreadsheets
-    while (pos <= text.size()) {
-        const size_t nl = text.find('\n', pos);
-        const std::string_view line =
-            trim(text.substr(pos, nl == std::string_view::npos ? text.size() - pos : nl - pos));
-        ++lineNo;
-        pos = nl == std::string_view::npos ? text.size() + 1 : nl + 1;
-        if (line.empty())
-            continue;
-        const auto fields = split(line);
-        const std::string where = "points CSV line " + std::to_string(lineNo) + ": ";
+    for (const core::CsvRecord& record : *records) {
+        std::vector<std::string_view> fields;
+        for (const std::string& f : record.fields)
+            fields.push_back(trim(f)); // spaces around numbers are allowed
+        if (std::all_of(fields.begin(), fields.end(), [](auto f) { return f.empty(); }))
+            continue; // a line of spaces
+        const std::string where = "points CSV line " + std::to_string(record.line) + ": ";
         if (!header) {
-            if (fields.size() < 2 || fields[0] != "x" || fields[1] != "y")
+            if (fields.size() < 2 || fields[0] != "x" || fields[1] != "y") {
+                std::string got;
+                for (const auto& f : record.fields)
+                    got += (got.empty() ? "" : ",") + f;
                 return makeError(ErrorCode::InvalidArgument,
-                                 where + "expected the header \"x,y\", got \"" + std::string(line) +
-                                     "\"");
+                                 where + "expected the header \"x,y\", got \"" + got + "\"");
+            }
             header = true;
             continue;
         }

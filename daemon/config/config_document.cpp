@@ -305,6 +305,19 @@ core::Error FieldReader::bad(const std::string& field, const std::string& what) 
                      origin_ + ": " + (field.empty() ? "" : field + ": ") + what);
 }
 
+namespace {
+
+/// An absent key: its default when it has one, else "missing".
+template <class T>
+Result<T> absent(const FieldReader& rd, const std::string& field,
+                 const std::optional<T>& fallback) {
+    if (fallback)
+        return *fallback;
+    return rd.bad(field, "missing");
+}
+
+} // namespace
+
 std::string FieldReader::join(const std::string& path, const char* key) {
     return path.empty() ? std::string(key) : path + "." + key;
 }
@@ -313,11 +326,8 @@ Result<double> FieldReader::number(const nlohmann::json& obj, const std::string&
                                    const char* key, std::optional<double> fallback, double min,
                                    double max) const {
     const std::string field = join(path, key);
-    if (!obj.is_object() || !obj.contains(key)) {
-        if (fallback)
-            return *fallback;
-        return bad(field, "missing");
-    }
+    if (!obj.is_object() || !obj.contains(key))
+        return absent(*this, field, fallback);
     const auto& v = obj[key];
     if (!v.is_number())
         return bad(field, "expected a number, got " + preview(v));
@@ -336,11 +346,8 @@ Result<std::int64_t> FieldReader::integer(const nlohmann::json& obj, const std::
                                           const char* key, std::optional<std::int64_t> fallback,
                                           std::int64_t min, std::int64_t max) const {
     const std::string field = join(path, key);
-    if (!obj.is_object() || !obj.contains(key)) {
-        if (fallback)
-            return *fallback;
-        return bad(field, "missing");
-    }
+    if (!obj.is_object() || !obj.contains(key))
+        return absent(*this, field, fallback);
     const auto& v = obj[key];
     if (!v.is_number_integer())
         return bad(field, "expected an integer, got " + preview(v));
@@ -358,11 +365,8 @@ Result<std::string> FieldReader::string(const nlohmann::json& obj, const std::st
                                         const char* key,
                                         std::optional<std::string> fallback) const {
     const std::string field = join(path, key);
-    if (!obj.is_object() || !obj.contains(key)) {
-        if (fallback)
-            return *fallback;
-        return bad(field, "missing");
-    }
+    if (!obj.is_object() || !obj.contains(key))
+        return absent(*this, field, fallback);
     const auto& v = obj[key];
     if (!v.is_string())
         return bad(field, "expected a string, got " + preview(v));
@@ -372,11 +376,8 @@ Result<std::string> FieldReader::string(const nlohmann::json& obj, const std::st
 Result<bool> FieldReader::boolean(const nlohmann::json& obj, const std::string& path,
                                   const char* key, std::optional<bool> fallback) const {
     const std::string field = join(path, key);
-    if (!obj.is_object() || !obj.contains(key)) {
-        if (fallback)
-            return *fallback;
-        return bad(field, "missing");
-    }
+    if (!obj.is_object() || !obj.contains(key))
+        return absent(*this, field, fallback);
     const auto& v = obj[key];
     if (!v.is_boolean())
         return bad(field, "expected true or false, got " + preview(v));

@@ -19,6 +19,7 @@ namespace {
 
 using StagePosition = std::function<hw::StagePosition()>;
 using CameraResult = core::Result<std::unique_ptr<hw::Camera>>;
+using StageResult = core::Result<std::unique_ptr<hw::Stage>>;
 
 CameraResult openV4l2(const CameraConfig& config, StagePosition) {
     drivers::V4l2CameraConfig c;
@@ -82,12 +83,46 @@ CameraResult openSimCamera(const CameraConfig& config, StagePosition stagePositi
     return std::unique_ptr<hw::Camera>(std::move(faulty).value());
 }
 
+/// Modbus TCP or RTU (config.modbus.transport), any register map.
+StageResult openModbusStage(const StageConfig& config) {
+    auto s = drivers::ModbusStage::create(config.modbus);
+    if (!s)
+        return s.error();
+    return std::unique_ptr<hw::Stage>(std::move(s).value());
+}
+
+StageResult openSimStage(const StageConfig& config) {
+    auto s = sim::SimStage::create(config.sim);
+    if (!s)
+        return s.error();
+    return std::unique_ptr<hw::Stage>(std::move(s).value());
+}
+
+struct StageDriver {
+    const char* name;
+    StageResult (*open)(const StageConfig&);
+    bool simulated;
+};
+/// The stage registry: a new stage driver adds its entry here (and its keys in
+/// config/stage_config.cpp).
+constexpr std::array<StageDriver, 2> kStageDrivers = {{
+    {"modbus", openModbusStage, false},
+    {"sim", openSimStage, true},
+}};
+
+std::string joined(const std::vector<std::string>& names) {
+    std::string out;
+    for (const auto& n : names)
+        out += (out.empty() ? "" : ", ") + n;
+    return out;
+}
+
 struct CameraDriver {
     const char* name;
     CameraResult (*open)(const CameraConfig&, StagePosition);
     bool simulated;
 };
-/// The registry: a new camera driver adds its entry here.
+/// The camera registry: a new camera driver adds its entry here.
 constexpr std::array<CameraDriver, 3> kCameraDrivers = {{
     {"v4l2", openV4l2, false},
     {"libcamera", openLibcamera, false},
@@ -98,16 +133,14 @@ constexpr std::array<CameraDriver, 3> kCameraDrivers = {{
 
 core::Result<std::unique_ptr<hw::Stage>> openStage(const StageConfig& config, bool& simulated) {
     simulated = config.driver == "sim";
-    if (simulated) {
-        auto s = sim::SimStage::create(config.sim);
-        if (!s)
-            return s.error();
-        return std::unique_ptr<hw::Stage>(std::move(s).value());
-    }
-    auto s = drivers::ModbusStage::create(config.modbus);
-    if (!s)
-        return s.error();
-    return std::unique_ptr<hw::Stage>(std::move(s).value());
+    for (const StageDriver& d : kStageDrivers)
+        if (config.driver == d.name) {
+            simulated = d.simulated;
+            return d.open(config);
+        }
+    return makeError(ErrorCode::InvalidArgument, "stage.driver: no driver \"" + config.driver +
+                                                     "\" (known: " + joined(stageDriverNames()) +
+                                                     ")");
 }
 
 core::Result<std::unique_ptr<hw::Camera>>
@@ -122,12 +155,16 @@ openCamera(const CameraConfig& config, std::function<hw::StagePosition()> stageP
             simulated = d.simulated;
             return d.open(config, std::move(stagePosition));
         }
-    return makeError(ErrorCode::InvalidArgument,
-                     "camera.driver: no driver \"" + config.driver + "\"");
+    return makeError(ErrorCode::InvalidArgument, "camera.driver: no driver \"" + config.driver +
+                                                     "\" (known: " + joined(cameraDriverNames()) +
+                                                     ")");
 }
 
 std::vector<std::string> stageDriverNames() {
-    return {"modbus", "sim"};
+    std::vector<std::string> out;
+    for (const StageDriver& d : kStageDrivers)
+        out.emplace_back(d.name);
+    return out;
 }
 
 std::vector<std::string> cameraDriverNames() {

@@ -7,7 +7,11 @@
 
 #include <httplib.h>
 
+#include <nlohmann/json.hpp>
+
+#include <cstdint>
 #include <memory>
+#include <optional>
 
 namespace slicestation::daemon::http {
 
@@ -21,6 +25,35 @@ void addRunRoutes(httplib::Server& server, StationApi& station, const Authoriser
 void addSectionRoutes(httplib::Server& server, StationApi& station, const Authoriser& authorised);
 /// GET /api/alerts; POST /api/alerts/{id}/ack. routes_alerts.cpp
 void addAlertRoutes(httplib::Server& server, StationApi& station, const Authoriser& authorised);
+
+/// A POST on one record (/api/{things}/{id}/{verb}) after its common checks: authorised, the
+/// id, and the optional JSON object body whose one key `key` (when given) passes `valid`.
+struct ControlRequest {
+    std::int64_t id = 0;
+    nlohmann::json body = nlohmann::json::object(); ///< {} when the request has no body
+};
+/// \return the request, or nullopt once the refusal has been sent (401/403, 404 for a bad id,
+/// 400 with `expected` for a bad body).
+inline std::optional<ControlRequest>
+controlRequest(const httplib::Request& req, httplib::Response& res, const Authoriser& authorised,
+               const char* key = nullptr, bool (*valid)(const nlohmann::json&) = nullptr,
+               const char* expected = "") {
+    if (!authorised(req, res))
+        return std::nullopt;
+    auto id = idParam(req, res);
+    if (!id)
+        return std::nullopt;
+    ControlRequest out{*id};
+    if (key != nullptr && !req.body.empty()) {
+        out.body = nlohmann::json::parse(req.body, nullptr, false);
+        if (out.body.is_discarded() || !out.body.is_object() ||
+            (out.body.contains(key) && !valid(out.body[key]))) {
+            sendError(res, 400, expected);
+            return std::nullopt;
+        }
+    }
+    return out;
+}
 
 /// Station events fanned out to every event-stream client. routes_events.cpp
 struct EventHub;

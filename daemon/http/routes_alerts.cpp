@@ -16,21 +16,12 @@ void addAlertRoutes(httplib::Server& srv, StationApi& st, const Authoriser& auth
     });
     srv.Post(R"(/api/alerts/([^/]+)/ack)", [&st, authorised](const httplib::Request& req,
                                                              httplib::Response& res) {
-        if (!authorised(req, res))
+        auto rq = controlRequest(
+            req, res, authorised, "action", [](const nlohmann::json& v) { return v.is_string(); },
+            "body: expected {\"action\": \"rescan\" | \"accept\" | text}");
+        if (!rq)
             return;
-        auto id = idParam(req, res);
-        if (!id)
-            return;
-        std::string action = "accept";
-        if (!req.body.empty()) {
-            auto j = nlohmann::json::parse(req.body, nullptr, false);
-            if (j.is_discarded() || !j.is_object() ||
-                (j.contains("action") && !j["action"].is_string()))
-                return sendError(res, 400,
-                                 "body: expected {\"action\": \"rescan\" | \"accept\" | text}");
-            action = j.value("action", action);
-        }
-        auto a = st.acknowledgeAlert(*id, action);
+        auto a = st.acknowledgeAlert(rq->id, rq->body.value("action", std::string("accept")));
         if (!a)
             return sendError(res, a.error(), RequestKind::Control);
         sendJson(res, toJson(*a));

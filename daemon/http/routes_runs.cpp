@@ -84,12 +84,10 @@ void addRunRoutes(httplib::Server& srv, StationApi& st, const Authoriser& author
     auto control = [&srv, &st, authorised](const char* pattern, auto action) {
         srv.Post(pattern,
                  [&st, authorised, action](const httplib::Request& req, httplib::Response& res) {
-                     if (!authorised(req, res))
+                     auto rq = controlRequest(req, res, authorised);
+                     if (!rq)
                          return;
-                     auto id = idParam(req, res);
-                     if (!id)
-                         return;
-                     core::Result<void> r = action(st, *id);
+                     core::Result<void> r = action(st, rq->id);
                      if (!r)
                          return sendError(res, r.error(), RequestKind::Control);
                      sendJson(res, {{"ok", true}});
@@ -97,26 +95,19 @@ void addRunRoutes(httplib::Server& srv, StationApi& st, const Authoriser& author
     };
     control(R"(/api/runs/([^/]+)/pause)",
             [](StationApi& s, std::int64_t id) { return s.pauseRun(id); });
-    srv.Post(R"(/api/runs/([^/]+)/resume)", [&st, authorised](const httplib::Request& req,
-                                                              httplib::Response& res) {
-        if (!authorised(req, res))
-            return;
-        auto id = idParam(req, res);
-        if (!id)
-            return;
-        bool resetAlarm = false;
-        if (!req.body.empty()) {
-            auto j = nlohmann::json::parse(req.body, nullptr, false);
-            if (j.is_discarded() || !j.is_object() ||
-                (j.contains("reset_stage_alarm") && !j["reset_stage_alarm"].is_boolean()))
-                return sendError(res, 400, "body: expected {\"reset_stage_alarm\": true | false}");
-            resetAlarm = j.value("reset_stage_alarm", false);
-        }
-        auto r = st.resumeRun(*id, resetAlarm);
-        if (!r)
-            return sendError(res, r.error(), RequestKind::Control);
-        sendJson(res, {{"ok", true}});
-    });
+    srv.Post(R"(/api/runs/([^/]+)/resume)",
+             [&st, authorised](const httplib::Request& req, httplib::Response& res) {
+                 auto rq = controlRequest(
+                     req, res, authorised, "reset_stage_alarm",
+                     [](const nlohmann::json& v) { return v.is_boolean(); },
+                     "body: expected {\"reset_stage_alarm\": true | false}");
+                 if (!rq)
+                     return;
+                 auto r = st.resumeRun(rq->id, rq->body.value("reset_stage_alarm", false));
+                 if (!r)
+                     return sendError(res, r.error(), RequestKind::Control);
+                 sendJson(res, {{"ok", true}});
+             });
     control(R"(/api/runs/([^/]+)/cancel)",
             [](StationApi& s, std::int64_t id) { return s.cancelRun(id); });
 }

@@ -86,7 +86,7 @@ startAlertDelivery(const AlertSettings& settings,
             if (channel == "journal" && journalFailureLogged->exchange(true))
                 return;
             // The message names the channel.
-            std::cerr << "<4>slicestationd: alert " << a.id << " (" << a.kind
+            std::cerr << "<4>slicestationd: alert " << a.id << " (" << toString(a.kind)
                       << ") not delivered: " << e.message
                       << (channel == "journal" ? " (not repeated)" : "") << std::endl;
         });
@@ -96,7 +96,7 @@ startAlertDelivery(const AlertSettings& settings,
             names += (names.empty() ? "" : ", ") + n;
         std::cerr << "<6>slicestationd: alert channels: "
                   << (names.empty() ? "none (journal disabled)" : names) << " (min severity "
-                  << settings.minSeverity << ", " << settings.retries << " retries, "
+                  << toString(settings.minSeverity) << ", " << settings.retries << " retries, "
                   << settings.maxPerWindow << "/min per channel)" << std::endl;
     }
     return alerts;

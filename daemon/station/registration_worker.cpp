@@ -77,7 +77,7 @@ void RegistrationWorker::loop() {
             if (auto c = journal_.capture(id)) {
                 (void)journal_.failSection(c->sectionId,
                                            std::string("registration crashed: ") + e.what());
-                (void)notifier_.raise("registration_failed", "warning",
+                (void)notifier_.raise(AlertKind::RegistrationFailed, AlertSeverity::Warning,
                                       std::string("registration crashed: ") + e.what(),
                                       std::nullopt, c->sectionId);
             }
@@ -196,8 +196,8 @@ void RegistrationWorker::process(std::int64_t captureId) {
                               std::to_string(run->id) + ")";
     auto fail = [&](const std::string& why) {
         (void)journal_.failSection(section->id, why);
-        (void)notifier_.raise("registration_failed", "warning", label + ": " + why, run->id,
-                              section->id);
+        (void)notifier_.raise(AlertKind::RegistrationFailed, AlertSeverity::Warning,
+                              label + ": " + why, run->id, section->id);
         notifier_.publish({"section_failed", {{"section_id", section->id}, {"reason", why}}});
     };
     auto settings =
@@ -254,7 +254,7 @@ void RegistrationWorker::record(RegistrationRecord& rec, const RunRecord& run,
                                 const SectionRecord& section, const std::string& label) {
     auto id = journal_.recordRegistration(rec);
     if (!id) {
-        (void)notifier_.raise("journal_error", "critical",
+        (void)notifier_.raise(AlertKind::JournalError, AlertSeverity::Critical,
                               label + ": cannot store registration: " + id.error().message, run.id,
                               section.id);
         return;
@@ -265,10 +265,10 @@ void RegistrationWorker::record(RegistrationRecord& rec, const RunRecord& run,
     ev["run_id"] = run.id;
     notifier_.publish({rec.damaged ? "section_damaged" : "section_registered", ev});
     if (!rec.warning.empty())
-        (void)notifier_.raise("atlas_mismatch", "warning", label + ": " + rec.warning, run.id,
-                              section.id);
+        (void)notifier_.raise(AlertKind::AtlasMismatch, AlertSeverity::Warning,
+                              label + ": " + rec.warning, run.id, section.id);
     if (rec.damaged)
-        (void)notifier_.raise("damaged", "critical",
+        (void)notifier_.raise(AlertKind::Damaged, AlertSeverity::Critical,
                               label + " is damaged (" + rec.summary +
                                   "): re-mount it and request a rescan, or accept it as is",
                               run.id, section.id);

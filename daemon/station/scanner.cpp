@@ -203,7 +203,7 @@ void Scanner::loop() {
         (void)d_.notifier.storeHeldAlerts(); // alerts a full disk kept out of the journal
         auto next = d_.journal.nextRun();
         if (!next) {
-            (void)d_.notifier.raise("journal_error", "critical",
+            (void)d_.notifier.raise(AlertKind::JournalError, AlertSeverity::Critical,
                                     "cannot read the journal: " + next.error().message);
             std::unique_lock lock(mutex_);
             cv_.wait_for(lock, std::chrono::seconds(5),
@@ -298,7 +298,7 @@ Scanner::Outcome Scanner::executeRun(const RunRecord& run) {
             return *o;
         auto next = d_.journal.nextSectionToCapture(run.id);
         if (!next)
-            return pauseFor(ctx, {"journal_error", next.error()});
+            return pauseFor(ctx, {AlertKind::JournalError, next.error()});
         if (!*next) {
             if (auto o = finishOnceRegistered(ctx))
                 return *o;
@@ -311,9 +311,10 @@ Scanner::Outcome Scanner::executeRun(const RunRecord& run) {
 
 Scanner::Outcome Scanner::pauseFor(const RunContext& ctx, const Fault& f) {
     // A full disk, whoever found it (image writer: ENOSPC, journal: SQLITE_FULL).
-    const std::string kind = f.error.sysErrno == ENOSPC ? std::string("low_disk") : f.kind;
-    (void)d_.notifier.raise(kind, "critical", ctx.label + ": " + f.error.message, ctx.run.id);
-    settle(ctx.run.id, RunState::Paused, kind + ": " + f.error.message);
+    const AlertKind kind = f.error.sysErrno == ENOSPC ? AlertKind::LowDisk : f.kind;
+    (void)d_.notifier.raise(kind, AlertSeverity::Critical, ctx.label + ": " + f.error.message,
+                            ctx.run.id);
+    settle(ctx.run.id, RunState::Paused, toString(kind) + (": " + f.error.message));
     return Outcome::Paused;
 }
 
@@ -336,7 +337,7 @@ std::optional<Scanner::Outcome> Scanner::startRun(RunContext& ctx, SectionSteps&
     const RunRecord& run = ctx.run;
     if (run.state == RunState::Queued) {
         if (auto r = d_.journal.setRunState(run.id, RunState::Running); !r)
-            return pauseFor(ctx, {"journal_error", r.error()});
+            return pauseFor(ctx, {AlertKind::JournalError, r.error()});
         d_.notifier.publish(
             {"run_state", {{"run_id", run.id}, {"state", "running"}, {"reason", ""}}});
     }
@@ -350,7 +351,7 @@ std::optional<Scanner::Outcome> Scanner::startRun(RunContext& ctx, SectionSteps&
         if (auto r = d_.stage.resetAlarm(ctx.settings.moveTimeout); !r) {
             if (shutdown_)
                 return Outcome::Shutdown;
-            return pauseFor(ctx, {"stage_fault", r.error()});
+            return pauseFor(ctx, {AlertKind::StageFault, r.error()});
         }
     }
     // The run's own camera settings (snapshot), read back from the device.
@@ -394,7 +395,7 @@ std::optional<Scanner::Outcome> Scanner::finishOnceRegistered(const RunContext& 
     // Everything captured: the run is finished once the worker has registered it all.
     auto secs = d_.journal.sections(ctx.run.id);
     if (!secs)
-        return pauseFor(ctx, {"journal_error", secs.error()});
+        return pauseFor(ctx, {AlertKind::JournalError, secs.error()});
     const bool pending = std::any_of(secs->begin(), secs->end(), [](const SectionRecord& x) {
         return x.state == SectionState::Captured;
     });
@@ -471,7 +472,7 @@ std::optional<Scanner::Outcome> Scanner::scanSection(RunContext& ctx, SectionSte
     rec.gain = captured->meta.analogueGain;
     auto id = d_.journal.recordCapture(rec);
     if (!id)
-        return pauseFor(ctx, {"journal_error", id.error()});
+        return pauseFor(ctx, {AlertKind::JournalError, id.error()});
     rec.id = *id;
     rec.attempt = attempt;
     nlohmann::json ev = toJson(rec);

@@ -79,7 +79,7 @@ std::filesystem::path imagePathFor(const RunRecord& run, const SectionRecord& se
 Step<hw::CameraSettings> SectionSteps::configureCamera() {
     auto c = configureWithRetries(d_.camera, s_.camera, s_.captureTimeout, s_.captureRetries);
     if (!c)
-        return Fault{"camera_fault", c.error()};
+        return Fault{AlertKind::CameraFault, c.error()};
     const bool transposed = orientation(s_.objective.cameraToStage).transpose;
     fieldWUm_ = (transposed ? c->height : c->width) * s_.objective.umPerPx;
     fieldHUm_ = (transposed ? c->width : c->height) * s_.objective.umPerPx;
@@ -91,13 +91,14 @@ std::optional<Fault> SectionSteps::checkDisk() const {
         return std::nullopt;
     auto free = d_.freeSpace(d_.stateDir);
     if (!free)
-        return Fault{"storage_fault", free.error()};
+        return Fault{AlertKind::StorageFault, free.error()};
     if (*free >= s_.minFreeBytes)
         return std::nullopt;
-    return Fault{"low_disk", makeError(ErrorCode::IoError,
-                                       "low disk: " + std::to_string(*free >> 20) + " MB free in " +
-                                           d_.stateDir.string() + ", the threshold is " +
-                                           std::to_string(s_.minFreeBytes >> 20) + " MB")};
+    return Fault{AlertKind::LowDisk,
+                 makeError(ErrorCode::IoError, "low disk: " + std::to_string(*free >> 20) +
+                                                   " MB free in " + d_.stateDir.string() +
+                                                   ", the threshold is " +
+                                                   std::to_string(s_.minFreeBytes >> 20) + " MB")};
 }
 
 Step<hw::StagePosition> SectionSteps::move(hw::StagePosition target) {
@@ -106,7 +107,7 @@ Step<hw::StagePosition> SectionSteps::move(hw::StagePosition target) {
         target.zUm = 0;
     auto r = moveWithRetries(d_.stage, target, s_.moveTimeout, s_.moveRetries);
     if (!r)
-        return Fault{"stage_fault", r.error()};
+        return Fault{AlertKind::StageFault, r.error()};
     if (d_.watchdog)
         d_.watchdog->progress();
     return *r;
@@ -131,9 +132,9 @@ Step<SectionSteps::Focus> SectionSteps::focus(double xUm, double yUm, double zUm
     // A stage error during the focus sweep is a stage fault like any other, a capture error a
     // camera fault; only the search itself failing is a focus fault.
     if (!af)
-        return Fault{failed == FocusFailure::Stage    ? "stage_fault"
-                     : failed == FocusFailure::Camera ? "camera_fault"
-                                                      : "focus_fault",
+        return Fault{failed == FocusFailure::Stage    ? AlertKind::StageFault
+                     : failed == FocusFailure::Camera ? AlertKind::CameraFault
+                                                      : AlertKind::FocusFault,
                      af.error()};
     if (!af->tissueFound)
         return Focus{zUm, false, std::nullopt};
@@ -156,7 +157,7 @@ SectionSteps::capture(const SectionRecord& sec, double z,
         PhaseTimer t(d_.stats, "capture");
         auto frame = captureWithRetries(d_.camera, s_.captureTimeout, s_.captureRetries, s_.camera);
         if (!frame)
-            return Fault{"camera_fault", frame.error()};
+            return Fault{AlertKind::CameraFault, frame.error()};
         if (d_.watchdog)
             d_.watchdog->progress();
         out.meta = frame->metadata;
@@ -174,7 +175,7 @@ SectionSteps::capture(const SectionRecord& sec, double z,
     PhaseTimer t(d_.stats, "stitch");
     auto stitched = pipeline::stitchTiles(tiles, s_.objective.umPerPx);
     if (!stitched)
-        return Fault{"camera_fault", stitched.error()};
+        return Fault{AlertKind::CameraFault, stitched.error()};
     out.image = *stitched;
     return out;
 }
@@ -187,7 +188,7 @@ std::optional<Fault> SectionSteps::writeImage(const std::filesystem::path& rel,
     std::error_code ec;
     std::filesystem::create_directories(full.parent_path(), ec);
     if (ec)
-        return Fault{"storage_fault",
+        return Fault{AlertKind::StorageFault,
                      makeError(ErrorCode::IoError,
                                "cannot create " + full.parent_path().string() + ": " + ec.message(),
                                ec.value())};
@@ -206,9 +207,9 @@ std::optional<Fault> SectionSteps::writeImage(const std::filesystem::path& rel,
         // overwritten.
         auto owner = journal.captureWithImage(rel.string());
         if (!owner)
-            return Fault{"journal_error", owner.error()};
+            return Fault{AlertKind::JournalError, owner.error()};
         if (*owner)
-            return Fault{"storage_fault",
+            return Fault{AlertKind::StorageFault,
                          makeError(ErrorCode::IoError,
                                    full.string() + " is the image of capture " +
                                        std::to_string(**owner) + "; it is not overwritten",
@@ -218,7 +219,8 @@ std::optional<Fault> SectionSteps::writeImage(const std::filesystem::path& rel,
         w = writeOmeTiffAtomic(full, capture.image, info);
     }
     if (!w)
-        return Fault{w.error().sysErrno == ENOSPC ? "low_disk" : "storage_fault", w.error()};
+        return Fault{w.error().sysErrno == ENOSPC ? AlertKind::LowDisk : AlertKind::StorageFault,
+                     w.error()};
     return std::nullopt;
 }
 

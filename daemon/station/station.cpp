@@ -151,7 +151,7 @@ Result<std::unique_ptr<Station>> Station::create(StationParts parts) {
             if (r.state == RunState::Running &&
                 !std::filesystem::exists(st->parts_.stateDir / "clean-stop"))
                 (void)st->notifier_->raise(
-                    "restarted", "warning",
+                    AlertKind::Restarted, AlertSeverity::Warning,
                     "the daemon restarted while run " + std::to_string(r.id) + " \"" + r.name +
                         "\" was in progress (crash, power cut or watchdog); resuming it",
                     r.id);

@@ -236,25 +236,15 @@ Result<RunRecord> Journal::run(std::int64_t runId) {
     Statement st(db_,
                  (std::string("SELECT ") + kRunColumns + " FROM runs r WHERE r.id = ?").c_str());
     st.bind(1, runId);
-    const int rc = st.step();
-    if (rc == SQLITE_DONE)
-        return makeError(ErrorCode::NotFound, "no run " + std::to_string(runId));
-    if (rc != SQLITE_ROW)
-        return sqlError(db_, file_, "read run");
-    return readRun(st);
+    return readOne<RunRecord>(st, db_, file_, "read run", "no run " + std::to_string(runId),
+                              readRun);
 }
 
 Result<std::vector<RunRecord>> Journal::runs() {
     std::lock_guard lock(mutex_);
     Statement st(db_,
                  (std::string("SELECT ") + kRunColumns + " FROM runs r ORDER BY r.id").c_str());
-    std::vector<RunRecord> out;
-    int rc;
-    while ((rc = st.step()) == SQLITE_ROW)
-        out.push_back(readRun(st));
-    if (rc != SQLITE_DONE)
-        return sqlError(db_, file_, "list runs");
-    return out;
+    return readAll<RunRecord>(st, db_, file_, "list runs", readRun);
 }
 
 Result<void> Journal::setRunState(std::int64_t runId, RunState state, const std::string& reason,
@@ -311,13 +301,7 @@ Result<std::vector<SectionRecord>> Journal::sections(std::int64_t runId) {
                        " FROM sections s WHERE s.run_id = ? ORDER BY s.slide_index, s.idx")
                           .c_str());
     st.bind(1, runId);
-    std::vector<SectionRecord> out;
-    int rc;
-    while ((rc = st.step()) == SQLITE_ROW)
-        out.push_back(readSection(st));
-    if (rc != SQLITE_DONE)
-        return sqlError(db_, file_, "list sections");
-    return out;
+    return readAll<SectionRecord>(st, db_, file_, "list sections", readSection);
 }
 
 Result<SectionRecord> Journal::section(std::int64_t sectionId) {
@@ -326,12 +310,8 @@ Result<SectionRecord> Journal::section(std::int64_t sectionId) {
         db_,
         (std::string("SELECT ") + kSectionColumns + " FROM sections s WHERE s.id = ?").c_str());
     st.bind(1, sectionId);
-    const int rc = st.step();
-    if (rc == SQLITE_DONE)
-        return makeError(ErrorCode::NotFound, "no section " + std::to_string(sectionId));
-    if (rc != SQLITE_ROW)
-        return sqlError(db_, file_, "read section");
-    return readSection(st);
+    return readOne<SectionRecord>(st, db_, file_, "read section",
+                                  "no section " + std::to_string(sectionId), readSection);
 }
 
 Result<std::optional<SectionRecord>> Journal::nextSectionToCapture(std::int64_t runId) {
@@ -396,13 +376,7 @@ Result<std::vector<CaptureRecord>> Journal::captures(std::int64_t sectionId) {
                        " FROM captures WHERE section_id = ? ORDER BY attempt")
                           .c_str());
     st.bind(1, sectionId);
-    std::vector<CaptureRecord> out;
-    int rc;
-    while ((rc = st.step()) == SQLITE_ROW)
-        out.push_back(readCapture(st));
-    if (rc != SQLITE_DONE)
-        return sqlError(db_, file_, "list captures");
-    return out;
+    return readAll<CaptureRecord>(st, db_, file_, "list captures", readCapture);
 }
 
 Result<CaptureRecord> Journal::capture(std::int64_t captureId) {
@@ -410,12 +384,8 @@ Result<CaptureRecord> Journal::capture(std::int64_t captureId) {
     Statement st(
         db_, (std::string("SELECT ") + kCaptureColumns + " FROM captures WHERE id = ?").c_str());
     st.bind(1, captureId);
-    const int rc = st.step();
-    if (rc == SQLITE_DONE)
-        return makeError(ErrorCode::NotFound, "no capture " + std::to_string(captureId));
-    if (rc != SQLITE_ROW)
-        return sqlError(db_, file_, "read capture");
-    return readCapture(st);
+    return readOne<CaptureRecord>(st, db_, file_, "read capture",
+                                  "no capture " + std::to_string(captureId), readCapture);
 }
 
 Result<std::optional<std::int64_t>> Journal::captureWithImage(const std::string& imagePath) {
@@ -437,13 +407,8 @@ Result<std::vector<std::int64_t>> Journal::capturesAwaitingRegistration() {
                       "WHERE s.state = 'captured' AND c.attempt = (SELECT MAX(attempt) FROM "
                       "captures WHERE section_id = s.id) AND NOT EXISTS (SELECT 1 FROM "
                       "registrations r WHERE r.capture_id = c.id) ORDER BY c.id");
-    std::vector<std::int64_t> out;
-    int rc;
-    while ((rc = st.step()) == SQLITE_ROW)
-        out.push_back(st.i64(0));
-    if (rc != SQLITE_DONE)
-        return sqlError(db_, file_, "captures awaiting registration");
-    return out;
+    return readAll<std::int64_t>(st, db_, file_, "captures awaiting registration",
+                                 [](const Statement& row) { return row.i64(0); });
 }
 
 Result<std::int64_t> Journal::recordRegistration(RegistrationRecord r) {
@@ -492,13 +457,7 @@ Result<std::vector<RegistrationRecord>> Journal::registrations(std::int64_t sect
                        "section_id = ?) ORDER BY id")
                           .c_str());
     st.bind(1, sectionId);
-    std::vector<RegistrationRecord> out;
-    int rc;
-    while ((rc = st.step()) == SQLITE_ROW)
-        out.push_back(readRegistration(st));
-    if (rc != SQLITE_DONE)
-        return sqlError(db_, file_, "list registrations");
-    return out;
+    return readAll<RegistrationRecord>(st, db_, file_, "list registrations", readRegistration);
 }
 
 Result<void> Journal::failSection(std::int64_t sectionId, const std::string& reason) {

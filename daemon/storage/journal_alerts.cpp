@@ -17,7 +17,10 @@ Result<std::int64_t> Journal::raiseAlert(AlertRecord a) {
     Statement ins(db_,
                   "INSERT INTO alerts (run_id, section_id, kind, severity, message, raised_utc) "
                   "VALUES (?,?,?,?,?,?)");
-    ins.bind(1, a.runId).bind(2, a.sectionId).bind(3, a.kind).bind(4, a.severity);
+    ins.bind(1, a.runId)
+        .bind(2, a.sectionId)
+        .bind(3, toString(a.kind))
+        .bind(4, toString(a.severity));
     ins.bind(5, a.message).bind(6, a.raisedUtc);
     if (ins.step() != SQLITE_DONE)
         return sqlError(db_, file_, "insert alert");
@@ -29,13 +32,8 @@ Result<std::vector<AlertRecord>> Journal::alerts(bool openOnly) {
     Statement st(db_, (std::string("SELECT ") + kAlertColumns + " FROM alerts" +
                        (openOnly ? " WHERE acknowledged_utc IS NULL" : "") + " ORDER BY id")
                           .c_str());
-    std::vector<AlertRecord> out;
-    int rc;
-    while ((rc = st.step()) == SQLITE_ROW)
-        out.push_back(readAlert(st));
-    if (rc != SQLITE_DONE)
-        return sqlError(db_, file_, "list alerts");
-    return out;
+    return readAll<AlertRecord>(st, db_, file_, "list alerts",
+                                [this](const Statement& row) { return readAlert(row, file_); });
 }
 
 Result<AlertRecord> Journal::alert(std::int64_t alertId) {
@@ -43,12 +41,8 @@ Result<AlertRecord> Journal::alert(std::int64_t alertId) {
     Statement st(db_,
                  (std::string("SELECT ") + kAlertColumns + " FROM alerts WHERE id = ?").c_str());
     st.bind(1, alertId);
-    const int rc = st.step();
-    if (rc == SQLITE_DONE)
-        return makeError(ErrorCode::NotFound, "no alert " + std::to_string(alertId));
-    if (rc != SQLITE_ROW)
-        return sqlError(db_, file_, "read alert");
-    return readAlert(st);
+    return readOne<AlertRecord>(st, db_, file_, "read alert", "no alert " + std::to_string(alertId),
+                                [this](const Statement& row) { return readAlert(row, file_); });
 }
 
 Result<AlertRecord> Journal::acknowledgeAlert(std::int64_t alertId, const std::string& action) {

@@ -69,12 +69,9 @@ nlohmann::json toJson(const RegistrationRecord& r) {
 }
 
 nlohmann::json toJson(const AlertRecord& a) {
-    nlohmann::json j{{"id", a.id},
-                     {"kind", a.kind},
-                     {"severity", a.severity},
-                     {"message", a.message},
-                     {"raised_utc", a.raisedUtc},
-                     {"ack_action", a.ackAction}};
+    nlohmann::json j{
+        {"id", a.id},           {"kind", toString(a.kind)},  {"severity", toString(a.severity)},
+        {"message", a.message}, {"raised_utc", a.raisedUtc}, {"ack_action", a.ackAction}};
     j["run_id"] = a.runId ? nlohmann::json(*a.runId) : nlohmann::json();
     j["section_id"] = a.sectionId ? nlohmann::json(*a.sectionId) : nlohmann::json();
     j["acknowledged_utc"] =

@@ -27,7 +27,7 @@ inline core::Error sqlError(sqlite3* db, const std::filesystem::path& file, cons
 /// A prepared statement; finalised on destruction. Bind indices start at 1.
 class Statement {
 public:
-    Statement(sqlite3* db, const char* sql) : db_(db) {
+    Statement(sqlite3* db, const char* sql) {
         if (sqlite3_prepare_v2(db, sql, -1, &stmt_, nullptr) != SQLITE_OK)
             stmt_ = nullptr;
     }
@@ -72,7 +72,6 @@ public:
     }
 
 private:
-    sqlite3* db_;
     sqlite3_stmt* stmt_ = nullptr;
 };
 
@@ -198,18 +197,57 @@ inline RegistrationRecord readRegistration(const Statement& st) {
     return r;
 }
 
+/// Every row of `st` through `read` (a record, or a Result of one); a failed step is the
+/// journal's error for `what`.
+template <class Record, class Read>
+core::Result<std::vector<Record>> readAll(Statement& st, sqlite3* db,
+                                          const std::filesystem::path& file, const char* what,
+                                          Read read) {
+    std::vector<Record> out;
+    int rc;
+    while ((rc = st.step()) == SQLITE_ROW) {
+        core::Result<Record> r = read(st);
+        if (!r)
+            return r.error();
+        out.push_back(std::move(*r));
+    }
+    if (rc != SQLITE_DONE)
+        return sqlError(db, file, what);
+    return out;
+}
+
+/// The one row of `st` through `read`; NotFound with `missing` when there is none.
+template <class Record, class Read>
+core::Result<Record> readOne(Statement& st, sqlite3* db, const std::filesystem::path& file,
+                             const char* what, const std::string& missing, Read read) {
+    const int rc = st.step();
+    if (rc == SQLITE_DONE)
+        return makeError(ErrorCode::NotFound, missing);
+    if (rc != SQLITE_ROW)
+        return sqlError(db, file, what);
+    return read(st);
+}
+
 constexpr const char* kAlertColumns =
     "id, run_id, section_id, kind, severity, message, raised_utc, acknowledged_utc, ack_action";
 
-inline AlertRecord readAlert(const Statement& st) {
+/// An alert row; a kind or severity this build does not know (a newer daemon's journal, an edited
+/// file) is an IoError naming it and the alert, never read as another one.
+inline core::Result<AlertRecord> readAlert(const Statement& st, const std::filesystem::path& file) {
     AlertRecord a;
     a.id = st.i64(0);
     if (!st.isNull(1))
         a.runId = st.i64(1);
     if (!st.isNull(2))
         a.sectionId = st.i64(2);
-    a.kind = st.text(3);
-    a.severity = st.text(4);
+    auto kind = parseAlertKind(st.text(3));
+    auto severity = parseAlertSeverity(st.text(4));
+    if (!kind || !severity)
+        return makeError(ErrorCode::IoError,
+                         "journal " + file.string() + ": alert " + std::to_string(a.id) + ": " +
+                             (kind ? severity.error().message : kind.error().message));
+    a.kind = *kind;
+    a.severity = *severity;
     a.message = st.text(5);
     a.raisedUtc = st.text(6);
     if (!st.isNull(7))

@@ -5,32 +5,17 @@
 #include "slicestation/core/atomic_file.hpp"
 
 #include "slicestation/core/image_file.hpp"
-#include "slicestation/core/unique_fd.hpp"
+#include "slicestation/core/tiff_file.hpp"
 
 #include <opencv2/core.hpp>
-#include <opencv2/imgproc.hpp>
-
-#include <tiffio.h>
-
-#include <fcntl.h>
-#include <sys/stat.h>
-#include <unistd.h>
 
 #include <algorithm>
 #include <array>
-#include <atomic>
-#include <bit>
 #include <cerrno>
-#include <charconv>
-#include <chrono>
 #include <cmath>
-#include <cstdarg>
-#include <cstdio>
 #include <cstring>
 #include <ctime>
-#include <memory>
 #include <optional>
-#include <random>
 #include <regex>
 #include <vector>
 namespace slicestation::daemon {
@@ -41,10 +26,6 @@ using core::ErrorCode;
 using core::makeError;
 using ome_text::formatDouble;
 using ome_text::quoted;
-
-std::string errnoText(int err) {
-    return std::string(std::strerror(err)) + " (errno " + std::to_string(err) + ")";
-}
 
 bool hasControlCharacters(std::string_view text) {
     return std::any_of(text.begin(), text.end(),
@@ -64,205 +45,6 @@ std::string utcNowIso8601() {
     std::array<char, 32> buf{};
     std::strftime(buf.data(), buf.size(), "%Y-%m-%dT%H:%M:%SZ", &tm);
     return buf.data();
-}
-
-// ---------------------------------------------------------------------------------------------
-// libtiff over a file descriptor we own, so that the errno of a failing write (ENOSPC) is kept.
-
-/// errno every write fails with, for tests (0: none); see setOmeTiffWriteFaultForTesting.
-std::atomic<int> gWriteFault{0};
-
-struct TiffIo {
-    int fd = -1;
-    int firstErrno = 0; ///< errno of the first failed system call
-    std::string errors; ///< libtiff's error messages
-};
-
-tmsize_t tiffRead(thandle_t h, void* buf, tmsize_t size) {
-    auto* io = static_cast<TiffIo*>(h);
-    tmsize_t done = 0;
-    while (done < size) {
-        const ssize_t n =
-            ::read(io->fd, static_cast<char*>(buf) + done, static_cast<std::size_t>(size - done));
-        if (n < 0 && errno == EINTR)
-            continue;
-        if (n < 0) {
-            if (io->firstErrno == 0)
-                io->firstErrno = errno;
-            return -1;
-        }
-        if (n == 0)
-            break;
-        done += n;
-    }
-    return done;
-}
-
-tmsize_t tiffWrite(thandle_t h, void* buf, tmsize_t size) {
-    auto* io = static_cast<TiffIo*>(h);
-    tmsize_t done = 0;
-    while (done < size) {
-        if (const int fault = gWriteFault.load(); fault != 0) {
-            if (io->firstErrno == 0)
-                io->firstErrno = fault;
-            return -1;
-        }
-        const ssize_t n = ::write(io->fd, static_cast<const char*>(buf) + done,
-                                  static_cast<std::size_t>(size - done));
-        if (n < 0 && errno == EINTR)
-            continue;
-        if (n <= 0) {
-            if (io->firstErrno == 0)
-                io->firstErrno = n < 0 ? errno : EIO;
-            return -1;
-        }
-        done += n;
-    }
-    return done;
-}
-
-toff_t tiffSeek(thandle_t h, toff_t offset, int whence) {
-    auto* io = static_cast<TiffIo*>(h);
-    const off_t at = ::lseek(io->fd, static_cast<off_t>(offset), whence);
-    if (at < 0) {
-        if (io->firstErrno == 0)
-            io->firstErrno = errno;
-        return static_cast<toff_t>(-1);
-    }
-    return static_cast<toff_t>(at);
-}
-
-int tiffClose(thandle_t /*h*/) {
-    return 0; // the descriptor belongs to the caller
-}
-
-toff_t tiffSize(thandle_t h) {
-    struct stat st {};
-    return ::fstat(static_cast<TiffIo*>(h)->fd, &st) == 0 ? static_cast<toff_t>(st.st_size) : 0;
-}
-
-int tiffMap(thandle_t, void**, toff_t*) {
-    return 0;
-}
-void tiffUnmap(thandle_t, void*, toff_t) {}
-
-int onTiffError(TIFF*, void* user, const char* module, const char* fmt, va_list ap) {
-    auto* io = static_cast<TiffIo*>(user);
-    if (io->errors.size() < 2000) {
-        std::array<char, 512> text{};
-        std::vsnprintf(text.data(), text.size(), fmt, ap);
-        io->errors += (io->errors.empty() ? "" : "; ") + std::string(module ? module : "") +
-                      (module ? ": " : "") + text.data();
-    }
-    return 1; // handled: nothing printed
-}
-
-int onTiffWarning(TIFF*, void*, const char*, const char*, va_list) {
-    return 1;
-}
-
-/// Move-only owner of a TIFF* opened over an fd through TiffIo.
-class TiffHandle {
-public:
-    static std::unique_ptr<TiffHandle> open(TiffIo& io, const char* name, const char* mode) {
-        TIFFOpenOptions* options = TIFFOpenOptionsAlloc();
-        if (options == nullptr)
-            return nullptr;
-        TIFFOpenOptionsSetErrorHandlerExtR(options, onTiffError, &io);
-        TIFFOpenOptionsSetWarningHandlerExtR(options, onTiffWarning, &io);
-        TIFF* tif = TIFFClientOpenExt(name, mode, &io, tiffRead, tiffWrite, tiffSeek, tiffClose,
-                                      tiffSize, tiffMap, tiffUnmap, options);
-        TIFFOpenOptionsFree(options);
-        return tif ? std::unique_ptr<TiffHandle>(new TiffHandle(tif)) : nullptr;
-    }
-    TiffHandle(const TiffHandle&) = delete;
-    TiffHandle& operator=(const TiffHandle&) = delete;
-    ~TiffHandle() { close(); }
-    TIFF* get() const noexcept { return tif_; }
-    /// Flushes (when writing) and closes. False when the flush failed.
-    bool close() noexcept {
-        if (tif_ == nullptr)
-            return true;
-        const bool flushed = TIFFGetMode(tif_) == O_RDONLY || TIFFFlush(tif_) == 1;
-        TIFFClose(tif_);
-        tif_ = nullptr;
-        return flushed;
-    }
-
-private:
-    explicit TiffHandle(TIFF* tif) : tif_(tif) {}
-    TIFF* tif_ = nullptr;
-};
-
-core::Error ioError(const std::string& what, const fs::path& path, const TiffIo& io) {
-    const int err = io.firstErrno != 0 ? io.firstErrno : EIO;
-    std::string message = what + " " + quoted(path) + ": " + errnoText(err);
-    if (!io.errors.empty())
-        message += " (libtiff: " + io.errors + ")";
-    return makeError(ErrorCode::IoError, message, err);
-}
-
-core::Result<void> writeTiff(int fd, const fs::path& tmp, const cv::Mat& image,
-                             const std::string& xml, double umPerPx) {
-    TiffIo io;
-    io.fd = fd;
-    auto handle = TiffHandle::open(io, tmp.c_str(), "wl");
-    if (!handle)
-        return ioError("cannot start TIFF", tmp, io);
-    TIFF* tif = handle->get();
-    const int channels = image.channels();
-    const auto bits = static_cast<std::uint16_t>(image.depth() == CV_16U ? 16 : 8);
-    // Rows per strip: about 64 KiB of raw data per strip (the TIFF 6.0 recommendation is ~8 KiB;
-    // larger strips compress better and Bio-Formats reads any size).
-    const std::size_t rowBytes = static_cast<std::size_t>(image.cols) * image.elemSize();
-    const auto rowsPerStrip = static_cast<std::uint32_t>(std::clamp<std::size_t>(
-        65536 / std::max<std::size_t>(rowBytes, 1), 1, static_cast<std::size_t>(image.rows)));
-    // Resolution tags for readers that ignore the OME-XML (ImageJ's plain TIFF reader).
-    const auto pxPerCm = static_cast<float>(1e4 / umPerPx);
-    bool ok = TIFFSetField(tif, TIFFTAG_IMAGEWIDTH, static_cast<std::uint32_t>(image.cols)) == 1;
-    ok = ok && TIFFSetField(tif, TIFFTAG_IMAGELENGTH, static_cast<std::uint32_t>(image.rows)) == 1;
-    ok =
-        ok && TIFFSetField(tif, TIFFTAG_SAMPLESPERPIXEL, static_cast<std::uint16_t>(channels)) == 1;
-    ok = ok && TIFFSetField(tif, TIFFTAG_BITSPERSAMPLE, bits) == 1;
-    ok = ok && TIFFSetField(tif, TIFFTAG_SAMPLEFORMAT, SAMPLEFORMAT_UINT) == 1;
-    ok = ok && TIFFSetField(tif, TIFFTAG_PLANARCONFIG, PLANARCONFIG_CONTIG) == 1;
-    ok = ok && TIFFSetField(tif, TIFFTAG_PHOTOMETRIC,
-                            channels == 3 ? PHOTOMETRIC_RGB : PHOTOMETRIC_MINISBLACK) == 1;
-    ok = ok && TIFFSetField(tif, TIFFTAG_COMPRESSION, COMPRESSION_ADOBE_DEFLATE) == 1;
-    ok = ok && TIFFSetField(tif, TIFFTAG_PREDICTOR, PREDICTOR_HORIZONTAL) == 1;
-    ok = ok && TIFFSetField(tif, TIFFTAG_ROWSPERSTRIP, rowsPerStrip) == 1;
-    ok = ok && TIFFSetField(tif, TIFFTAG_IMAGEDESCRIPTION, xml.c_str()) == 1;
-    ok = ok && TIFFSetField(tif, TIFFTAG_SOFTWARE, "slicestation") == 1;
-    ok = ok && TIFFSetField(tif, TIFFTAG_XRESOLUTION, pxPerCm) == 1;
-    ok = ok && TIFFSetField(tif, TIFFTAG_YRESOLUTION, pxPerCm) == 1;
-    ok = ok && TIFFSetField(tif, TIFFTAG_RESOLUTIONUNIT, RESUNIT_CENTIMETER) == 1;
-    if (!ok)
-        return ioError("cannot set TIFF tags of", tmp, io);
-    // A new Mat: converting into a shallow copy of `image` would swap the caller's pixels.
-    cv::Mat rgb;
-    if (channels == 3) {
-        cv::cvtColor(image, rgb, cv::COLOR_BGR2RGB);
-    } else {
-        rgb = image;
-    }
-    // The predictor differences the data in place, so libtiff gets a scratch copy of each strip.
-    std::vector<std::uint8_t> strip(rowBytes * rowsPerStrip);
-    tstrip_t index = 0;
-    for (int y = 0; y < rgb.rows; y += static_cast<int>(rowsPerStrip), ++index) {
-        const int rows = std::min(static_cast<int>(rowsPerStrip), rgb.rows - y);
-        for (int r = 0; r < rows; ++r) {
-            std::memcpy(strip.data() + static_cast<std::size_t>(r) * rowBytes, rgb.ptr(y + r),
-                        rowBytes);
-        }
-        const auto bytes = static_cast<tmsize_t>(static_cast<std::size_t>(rows) * rowBytes);
-        if (TIFFWriteEncodedStrip(tif, index, strip.data(), bytes) != bytes) {
-            return ioError("cannot write", tmp, io);
-        }
-    }
-    if (!handle->close() || io.firstErrno != 0 || !io.errors.empty()) {
-        return ioError("cannot finish", tmp, io);
-    }
-    return {};
 }
 
 core::Result<void> validate(const fs::path& path, const cv::Mat& image, const OmeTiffInfo& info) {
@@ -309,9 +91,10 @@ core::Result<void> writeAtomic(const fs::path& path, const cv::Mat& image, OmeTi
     const std::string xml = makeOmeXml(image.cols, image.rows, image.type(), info);
 
     // Never over an existing file: it may be an image the journal refers to (EEXIST instead).
+    const core::TiffTags tags{xml, "slicestation", info.umPerPx};
     auto r = core::replaceAtomically(
         path,
-        [&](int fd, const fs::path& tmp) { return writeTiff(fd, tmp, image, xml, info.umPerPx); },
+        [&](int fd, const fs::path& tmp) { return core::writeTiffPage(fd, tmp, image, tags); },
         core::Replace::Never);
     // This writer's contract: a missing directory is an IoError (with ENOENT) like any other.
     if (!r && r.error().code == ErrorCode::NotFound)
@@ -320,26 +103,13 @@ core::Result<void> writeAtomic(const fs::path& path, const cv::Mat& image, OmeTi
 }
 
 core::Result<std::string> readDescription(const fs::path& path) {
-    core::UniqueFd fd(::open(path.c_str(), O_RDONLY | O_CLOEXEC));
-    if (!fd) {
-        const int err = errno;
-        return makeError(err == ENOENT ? ErrorCode::NotFound : ErrorCode::IoError,
-                         "cannot open " + quoted(path) + ": " + errnoText(err), err);
-    }
-    TiffIo io;
-    io.fd = fd.get();
-    auto handle = TiffHandle::open(io, path.c_str(), "r");
-    if (!handle) {
-        return makeError(ErrorCode::IoError, "not a readable TIFF: " + quoted(path) +
-                                                 (io.errors.empty() ? "" : " (" + io.errors + ")"));
-    }
-    const char* description = nullptr;
-    if (TIFFGetField(handle->get(), TIFFTAG_IMAGEDESCRIPTION, &description) != 1 ||
-        description == nullptr) {
+    auto description = core::readTiffDescription(path);
+    if (!description)
+        return description.error();
+    if (!*description)
         return makeError(ErrorCode::IoError,
                          "TIFF " + quoted(path) + " has no ImageDescription (not an OME-TIFF)");
-    }
-    return std::string(description);
+    return std::move(**description);
 }
 
 core::Result<OmeTiffImage> readImpl(const fs::path& path) {
@@ -390,7 +160,7 @@ core::Result<OmeTiffImage> readOmeTiff(const std::filesystem::path& path) {
 }
 
 void setOmeTiffWriteFaultForTesting(int err) noexcept {
-    gWriteFault.store(err);
+    core::setTiffWriteFaultForTesting(err);
 }
 
 core::Result<void> writeOmeTiffAtomic(const std::filesystem::path& path, const cv::Mat& image,

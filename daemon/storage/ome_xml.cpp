@@ -1,38 +1,19 @@
-// OME-XML: the document written into a section image, and the small parser that reads it back.
+// OME-XML: the document written into a section image, and reading it back (pugixml).
 #include "slicestation/daemon/storage/ome_tiff.hpp"
 
 #include "ome_text.hpp"
 
-#include "slicestation/core/atomic_file.hpp"
-
-#include "slicestation/core/image_file.hpp"
-#include "slicestation/core/unique_fd.hpp"
-
 #include <opencv2/core.hpp>
 #include <opencv2/imgproc.hpp>
 
-#include <tiffio.h>
+#include <pugixml.hpp>
 
-#include <fcntl.h>
-#include <sys/stat.h>
-#include <unistd.h>
-
-#include <algorithm>
 #include <array>
-#include <atomic>
 #include <bit>
-#include <cerrno>
 #include <charconv>
-#include <chrono>
 #include <cmath>
-#include <cstdarg>
-#include <cstdio>
-#include <cstring>
-#include <ctime>
-#include <memory>
 #include <optional>
 #include <random>
-#include <regex>
 #include <vector>
 namespace slicestation::daemon {
 namespace {
@@ -102,255 +83,50 @@ std::string randomUuid() {
     return out;
 }
 
-// ---------------------------------------------------------------------------------------------
-// A minimal XML reader: elements, attributes, text; enough for OME-XML, with namespace
-// prefixes dropped. Comments, processing instructions and DOCTYPE are skipped.
+// Reading back: pugixml parses, these look elements and attributes up by local name, so that
+// another writer's namespace prefix (<ome:Pixels>) reads like ours.
 
-struct XmlElement {
-    std::string name; ///< local name (prefix removed)
-    std::vector<std::pair<std::string, std::string>> attributes;
-    std::vector<XmlElement> children;
-    std::string text;
+std::string_view localName(std::string_view name) {
+    const auto colon = name.find(':');
+    return colon == std::string_view::npos ? name : name.substr(colon + 1);
+}
 
-    const std::string* attribute(std::string_view key) const {
-        for (const auto& [k, v] : attributes) {
-            if (k == key) {
-                return &v;
-            }
-        }
-        return nullptr;
-    }
-    const XmlElement* child(std::string_view key) const {
-        for (const auto& c : children) {
-            if (c.name == key) {
-                return &c;
-            }
-        }
-        return nullptr;
-    }
-};
+pugi::xml_node child(pugi::xml_node parent, std::string_view name) {
+    for (pugi::xml_node c = parent.first_child(); c; c = c.next_sibling())
+        if (c.type() == pugi::node_element && localName(c.name()) == name)
+            return c;
+    return {};
+}
 
-class XmlParser {
-public:
-    explicit XmlParser(std::string_view text) : s_(text) {}
+/// The attribute's value, or nullptr when it has none.
+const char* attribute(pugi::xml_node e, std::string_view name) {
+    for (pugi::xml_attribute a = e.first_attribute(); a; a = a.next_attribute())
+        if (localName(a.name()) == name)
+            return a.value();
+    return nullptr;
+}
 
-    core::Result<XmlElement> parseDocument() {
-        skipMisc();
-        if (!peek('<')) {
-            return fail("no root element");
-        }
-        auto root = parseElement(0);
-        if (!root) {
-            return root;
-        }
-        skipMisc();
-        if (pos_ != s_.size()) {
-            return fail("content after the root element");
-        }
-        return root;
+/// The document, or IoError naming pugixml's complaint and its byte offset. One root element
+/// only, and nothing but comments, processing instructions and DOCTYPE beside it.
+core::Result<pugi::xml_node> loadDocument(pugi::xml_document& doc, std::string_view xml) {
+    const pugi::xml_parse_result r =
+        doc.load_buffer(xml.data(), xml.size(), pugi::parse_default, pugi::encoding_utf8);
+    if (!r)
+        return makeError(ErrorCode::IoError, "malformed OME-XML at byte " +
+                                                 std::to_string(r.offset) + ": " + r.description());
+    pugi::xml_node root;
+    for (pugi::xml_node n = doc.first_child(); n; n = n.next_sibling()) {
+        if (n.type() == pugi::node_element && !root)
+            root = n;
+        else if (n.type() == pugi::node_element || n.type() == pugi::node_pcdata ||
+                 n.type() == pugi::node_cdata)
+            return makeError(ErrorCode::IoError,
+                             "malformed OME-XML: content after the root element");
     }
-
-private:
-    static constexpr int kMaxDepth = 64;
-
-    core::Error fail(const std::string& what) const {
-        return makeError(ErrorCode::IoError,
-                         "malformed OME-XML at byte " + std::to_string(pos_) + ": " + what);
-    }
-    bool peek(char c) const { return pos_ < s_.size() && s_[pos_] == c; }
-    bool startsWith(std::string_view p) const { return s_.substr(pos_, p.size()) == p; }
-    void skipSpace() {
-        while (pos_ < s_.size() && std::strchr(" \t\r\n", s_[pos_]) != nullptr) {
-            ++pos_;
-        }
-    }
-    bool skipPast(std::string_view end) {
-        const auto at = s_.find(end, pos_);
-        if (at == std::string_view::npos) {
-            pos_ = s_.size();
-            return false;
-        }
-        pos_ = at + end.size();
-        return true;
-    }
-    /// Skips whitespace, comments, processing instructions and DOCTYPE.
-    void skipMisc() {
-        for (;;) {
-            skipSpace();
-            if (startsWith("<?")) {
-                skipPast("?>");
-            } else if (startsWith("<!--")) {
-                skipPast("-->");
-            } else if (startsWith("<!DOCTYPE")) {
-                skipPast(">");
-            } else {
-                return;
-            }
-        }
-    }
-    std::string_view parseName() {
-        const std::size_t start = pos_;
-        while (pos_ < s_.size() && std::strchr(" \t\r\n/>=", s_[pos_]) == nullptr) {
-            ++pos_;
-        }
-        return s_.substr(start, pos_ - start);
-    }
-    static std::string localName(std::string_view name) {
-        const auto colon = name.find(':');
-        return std::string(colon == std::string_view::npos ? name : name.substr(colon + 1));
-    }
-    std::optional<std::string> unescape(std::string_view raw) const {
-        std::string out;
-        out.reserve(raw.size());
-        for (std::size_t i = 0; i < raw.size(); ++i) {
-            if (raw[i] != '&') {
-                out += raw[i];
-                continue;
-            }
-            const auto semi = raw.find(';', i);
-            if (semi == std::string_view::npos) {
-                return std::nullopt;
-            }
-            const std::string_view entity = raw.substr(i + 1, semi - i - 1);
-            if (entity == "lt") {
-                out += '<';
-            } else if (entity == "gt") {
-                out += '>';
-            } else if (entity == "amp") {
-                out += '&';
-            } else if (entity == "quot") {
-                out += '"';
-            } else if (entity == "apos") {
-                out += '\'';
-            } else if (entity.size() > 1 && entity[0] == '#') {
-                const bool hex = entity[1] == 'x' || entity[1] == 'X';
-                const std::string_view digits = entity.substr(hex ? 2 : 1);
-                unsigned long code = 0;
-                const auto [end, ec] = std::from_chars(digits.data(), digits.data() + digits.size(),
-                                                       code, hex ? 16 : 10);
-                if (ec != std::errc() || end != digits.data() + digits.size() || code > 0x10FFFF) {
-                    return std::nullopt;
-                }
-                appendUtf8(out, static_cast<std::uint32_t>(code));
-            } else {
-                return std::nullopt;
-            }
-            i = semi;
-        }
-        return out;
-    }
-    static void appendUtf8(std::string& out, std::uint32_t cp) {
-        if (cp < 0x80) {
-            out += static_cast<char>(cp);
-        } else if (cp < 0x800) {
-            out += static_cast<char>(0xC0 | (cp >> 6));
-            out += static_cast<char>(0x80 | (cp & 0x3F));
-        } else if (cp < 0x10000) {
-            out += static_cast<char>(0xE0 | (cp >> 12));
-            out += static_cast<char>(0x80 | ((cp >> 6) & 0x3F));
-            out += static_cast<char>(0x80 | (cp & 0x3F));
-        } else {
-            out += static_cast<char>(0xF0 | (cp >> 18));
-            out += static_cast<char>(0x80 | ((cp >> 12) & 0x3F));
-            out += static_cast<char>(0x80 | ((cp >> 6) & 0x3F));
-            out += static_cast<char>(0x80 | (cp & 0x3F));
-        }
-    }
-
-    core::Result<XmlElement> parseElement(int depth) {
-        if (depth > kMaxDepth) {
-            return fail("elements nested too deeply");
-        }
-        ++pos_; // '<'
-        const std::string_view rawName = parseName();
-        if (rawName.empty()) {
-            return fail("element without a name");
-        }
-        XmlElement element;
-        element.name = localName(rawName);
-        for (;;) {
-            skipSpace();
-            if (startsWith("/>")) {
-                pos_ += 2;
-                return element;
-            }
-            if (peek('>')) {
-                ++pos_;
-                break;
-            }
-            const std::string_view key = parseName();
-            skipSpace();
-            if (key.empty() || !peek('=')) {
-                return fail("attribute without a value in <" + std::string(rawName) + ">");
-            }
-            ++pos_;
-            skipSpace();
-            if (!peek('"') && !peek('\'')) {
-                return fail("unquoted attribute value");
-            }
-            const char quote = s_[pos_++];
-            const auto end = s_.find(quote, pos_);
-            if (end == std::string_view::npos) {
-                return fail("unterminated attribute value");
-            }
-            auto value = unescape(s_.substr(pos_, end - pos_));
-            if (!value) {
-                return fail("bad entity in attribute " + std::string(key));
-            }
-            element.attributes.emplace_back(localName(key), std::move(*value));
-            pos_ = end + 1;
-        }
-        // Content: text, children, comments, CDATA, until the matching end tag.
-        for (;;) {
-            if (pos_ >= s_.size()) {
-                return fail("unterminated element <" + std::string(rawName) + ">");
-            }
-            if (startsWith("</")) {
-                pos_ += 2;
-                const std::string_view endName = parseName();
-                skipSpace();
-                if (endName != rawName || !peek('>')) {
-                    return fail("end tag does not match <" + std::string(rawName) + ">");
-                }
-                ++pos_;
-                return element;
-            }
-            if (startsWith("<!--")) {
-                if (!skipPast("-->")) {
-                    return fail("unterminated comment");
-                }
-            } else if (startsWith("<![CDATA[")) {
-                pos_ += 9;
-                const auto end = s_.find("]]>", pos_);
-                if (end == std::string_view::npos) {
-                    return fail("unterminated CDATA");
-                }
-                element.text += s_.substr(pos_, end - pos_);
-                pos_ = end + 3;
-            } else if (startsWith("<?")) {
-                skipPast("?>");
-            } else if (peek('<')) {
-                auto child = parseElement(depth + 1);
-                if (!child) {
-                    return child;
-                }
-                element.children.push_back(std::move(child.value()));
-            } else {
-                const auto end = s_.find('<', pos_);
-                const auto stop = end == std::string_view::npos ? s_.size() : end;
-                auto text = unescape(s_.substr(pos_, stop - pos_));
-                if (!text) {
-                    return fail("bad entity in text");
-                }
-                element.text += *text;
-                pos_ = stop;
-            }
-        }
-    }
-
-    std::string_view s_;
-    std::size_t pos_ = 0;
-};
+    if (!root)
+        return makeError(ErrorCode::IoError, "malformed OME-XML: no root element");
+    return root;
+}
 
 /// Factor to µm of an OME UnitsLength symbol; "reference frame" (the schema's default for stage
 /// positions) is taken as µm, the stage's own unit.
@@ -445,96 +221,97 @@ std::string makeOmeXml(int width, int height, int cvType, const OmeTiffInfo& inf
 }
 
 core::Result<OmeXmlContent> parseOmeXml(std::string_view xml) {
-    auto doc = XmlParser(xml).parseDocument();
+    pugi::xml_document document;
+    auto doc = loadDocument(document, xml);
     if (!doc)
         return doc.error();
     const auto bad = [](const std::string& what) {
         return makeError(ErrorCode::IoError, "OME-XML: " + what);
     };
-    if (doc->name != "OME")
-        return bad("root element is <" + doc->name + ">, not <OME>");
-    const XmlElement* image = doc->child("Image");
-    if (image == nullptr)
+    if (localName(doc->name()) != "OME")
+        return bad("root element is <" + std::string(localName(doc->name())) + ">, not <OME>");
+    const pugi::xml_node image = child(*doc, "Image");
+    if (!image)
         return bad("no <Image>");
-    const XmlElement* pixels = image->child("Pixels");
-    if (pixels == nullptr)
+    const pugi::xml_node pixels = child(image, "Pixels");
+    if (!pixels)
         return bad("no <Pixels> in the first <Image>");
 
     OmeXmlContent out;
     auto& info = out.info;
-    if (const auto* n = image->attribute("Name"))
-        info.name = *n;
-    if (const auto* d = image->child("AcquisitionDate"))
-        info.acquiredUtc = d->text;
+    if (const char* n = attribute(image, "Name"))
+        info.name = n;
+    if (const pugi::xml_node d = child(image, "AcquisitionDate"))
+        info.acquiredUtc = d.child_value();
 
-    const auto number = [&](const XmlElement& e, std::string_view key) -> core::Result<double> {
-        const std::string* text = e.attribute(key);
+    const auto number = [&](pugi::xml_node e, std::string_view key) -> core::Result<double> {
+        const char* text = attribute(e, key);
         if (text == nullptr)
-            return bad("no " + std::string(key) + " in <" + e.name + ">");
-        const auto v = parseDouble(*text);
+            return bad("no " + std::string(key) + " in <" + std::string(localName(e.name())) + ">");
+        const auto v = parseDouble(text);
         if (!v)
-            return bad(std::string(key) + "=\"" + *text + "\" is not a number");
+            return bad(std::string(key) + "=\"" + text + "\" is not a number");
         return *v;
     };
-    const auto length = [&](const XmlElement& e, std::string_view key) -> core::Result<double> {
+    const auto length = [&](pugi::xml_node e, std::string_view key) -> core::Result<double> {
         auto v = number(e, key);
         if (!v)
             return v;
-        const std::string* unit = e.attribute(std::string(key) + "Unit");
-        const auto factor = lengthToUm(unit ? *unit : std::string_view());
+        const char* unit = attribute(e, std::string(key) + "Unit");
+        const auto factor = lengthToUm(unit ? unit : std::string_view());
         if (!factor)
-            return bad(std::string(key) + "Unit=\"" + *unit + "\" is not a known length");
+            return bad(std::string(key) + "Unit=\"" + unit + "\" is not a known length");
         return *v * *factor;
     };
 
     for (const char* key : {"SizeX", "SizeY"}) {
-        auto v = number(*pixels, key);
+        auto v = number(pixels, key);
         if (!v)
             return v.error();
         // A pixel count: a whole number that an int holds (found by fuzz_small_formats:
         // SizeX="1.6e55" was cast to int, which is undefined).
         if (!(*v >= 1 && *v <= 2147483647.0 && *v == std::floor(*v)))
-            return bad(std::string(key) + "=\"" + *pixels->attribute(key) +
+            return bad(std::string(key) + "=\"" + attribute(pixels, key) +
                        "\" is not a pixel count");
         (std::string_view(key) == "SizeX" ? out.sizeX : out.sizeY) = static_cast<int>(*v);
     }
-    auto sizeUm = length(*pixels, "PhysicalSizeX");
+    auto sizeUm = length(pixels, "PhysicalSizeX");
     if (!sizeUm)
         return sizeUm.error();
     if (!(*sizeUm > 0))
         return bad("PhysicalSizeX must be > 0");
     info.umPerPx = *sizeUm;
 
-    if (const XmlElement* channel = pixels->child("Channel")) {
-        if (const auto* n = channel->attribute("Name"))
-            info.channel = *n;
-        if (const XmlElement* ds = channel->child("DetectorSettings");
-            ds != nullptr && ds->attribute("Gain") != nullptr) {
-            auto gain = number(*ds, "Gain");
+    if (const pugi::xml_node channel = child(pixels, "Channel")) {
+        if (const char* n = attribute(channel, "Name"))
+            info.channel = n;
+        if (const pugi::xml_node ds = child(channel, "DetectorSettings");
+            ds && attribute(ds, "Gain") != nullptr) {
+            auto gain = number(ds, "Gain");
             if (!gain)
                 return gain.error();
             info.gain = *gain;
         }
     }
-    if (const XmlElement* plane = pixels->child("Plane")) {
+    if (const pugi::xml_node plane = child(pixels, "Plane")) {
         double* targets[] = {&info.stage.xUm, &info.stage.yUm, &info.stage.zUm};
         const char* keys[] = {"PositionX", "PositionY", "PositionZ"};
         for (int i = 0; i < 3; ++i) {
-            if (plane->attribute(keys[i]) == nullptr)
+            if (attribute(plane, keys[i]) == nullptr)
                 continue;
-            auto v = length(*plane, keys[i]);
+            auto v = length(plane, keys[i]);
             if (!v)
                 return v.error();
             *targets[i] = *v;
         }
-        if (plane->attribute("ExposureTime") != nullptr) {
-            auto v = number(*plane, "ExposureTime");
+        if (attribute(plane, "ExposureTime") != nullptr) {
+            auto v = number(plane, "ExposureTime");
             if (!v)
                 return v.error();
-            const std::string* unit = plane->attribute("ExposureTimeUnit");
-            const auto factor = timeToUs(unit ? *unit : std::string_view());
+            const char* unit = attribute(plane, "ExposureTimeUnit");
+            const auto factor = timeToUs(unit ? unit : std::string_view());
             if (!factor)
-                return bad("ExposureTimeUnit=\"" + *unit + "\" is not a known time");
+                return bad("ExposureTimeUnit=\"" + std::string(unit) + "\" is not a known time");
             info.exposureUs = std::llround(*v * *factor);
         }
     }

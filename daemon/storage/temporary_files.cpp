@@ -10,29 +10,12 @@ namespace slicestation::daemon {
 using core::ErrorCode;
 using core::makeError;
 
-namespace {
-
-bool isDigits(std::string_view s) noexcept {
-    if (s.empty())
-        return false;
-    for (char c : s)
-        if (c < '0' || c > '9')
-            return false;
-    return true;
-}
-
-} // namespace
-
 bool isTemporaryFileName(std::string_view n) noexcept {
     // `.NAME.tmp.PID.N.STAMP`: core::replaceAtomically, every writer since issue 21.
     if (core::isAtomicTemporaryName(n))
         return true;
     // Older versions' schemes: `.NAME.partial` (the OME-TIFF writer), `NAME.tmp-PID` (results).
-    constexpr std::string_view partial = ".partial";
-    if (n.size() > partial.size() + 1 && n.front() == '.' && n.ends_with(partial))
-        return true;
-    const std::size_t dash = n.rfind(".tmp-");
-    return dash != std::string_view::npos && dash > 0 && isDigits(n.substr(dash + 5));
+    return core::isLegacyTemporaryName(n);
 }
 
 core::Result<std::size_t> removeTemporaryFiles(const std::filesystem::path& dir) {

@@ -174,7 +174,7 @@ protected:
         if (!all)
             return out;
         for (const auto& a : *all)
-            if (a.kind == kind)
+            if (toString(a.kind) == kind)
                 out.push_back(a);
         return out;
     }

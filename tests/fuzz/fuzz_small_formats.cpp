@@ -1,5 +1,6 @@
 // Small text formats from outside: the points CSV of `slicectl register --points` (first byte
-// even) and the OME-XML block of an OME-TIFF (first byte odd).
+// even; read by core::parseCsv, the one CSV reader, which the ontology shares) and the OME-XML
+// block of an OME-TIFF (first byte odd; parsed by pugixml).
 #include "slicestation/daemon/cli/points_csv.hpp"
 #include "slicestation/daemon/storage/ome_tiff.hpp"
 

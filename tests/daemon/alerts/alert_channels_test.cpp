@@ -32,12 +32,12 @@ using namespace std::chrono_literals;
 using Clock = std::chrono::steady_clock;
 namespace fs = std::filesystem;
 
-AlertRecord sampleAlert(std::int64_t id = 12, std::string kind = "damaged",
-                        std::string severity = "warning") {
+AlertRecord sampleAlert(std::int64_t id = 12, AlertKind kind = AlertKind::Damaged,
+                        AlertSeverity severity = AlertSeverity::Warning) {
     AlertRecord a;
     a.id = id;
-    a.kind = std::move(kind);
-    a.severity = std::move(severity);
+    a.kind = kind;
+    a.severity = severity;
     a.message = "section s01-3 is torn (\"tear\" 4.2% of the area)";
     a.runId = 3;
     a.sectionId = 17;
@@ -249,7 +249,7 @@ timeout_s = 10
     EXPECT_EQ(s->backoffMax, 4000ms);
     EXPECT_EQ(s->maxPerWindow, 5);
     EXPECT_EQ(s->rateWindow, 60s);
-    EXPECT_EQ(s->minSeverity, "warning");
+    EXPECT_EQ(s->minSeverity, AlertSeverity::Warning);
     ASSERT_EQ(s->webhooks.size(), 2u);
     EXPECT_EQ(s->webhooks[0].url, "http://127.0.0.1:9000/hook?x=1");
     EXPECT_EQ(s->webhooks[0].format, WebhookSettings::Format::Slack);
@@ -279,7 +279,7 @@ TEST(AlertSettings, AbsentTableMeansJournalOnly) {
     EXPECT_EQ(s->backoffInitial, 1000ms);
     EXPECT_EQ(s->backoffMax, 60000ms);
     EXPECT_EQ(s->maxPerWindow, 20);
-    EXPECT_EQ(s->minSeverity, "info");
+    EXPECT_EQ(s->minSeverity, AlertSeverity::Info);
     auto made = makeAlertSinks(*s);
     ASSERT_TRUE(made);
     ASSERT_EQ(made->size(), 1u);
@@ -338,8 +338,8 @@ TEST(WebhookChannel, JsonBodyCarriesTheAlert) {
     EXPECT_EQ(hit.contentType, "application/json");
     const auto j = nlohmann::json::parse(hit.body);
     EXPECT_EQ(j.at("id"), a.id);
-    EXPECT_EQ(j.at("kind"), a.kind);
-    EXPECT_EQ(j.at("severity"), a.severity);
+    EXPECT_EQ(j.at("kind"), "damaged");
+    EXPECT_EQ(j.at("severity"), "warning");
     EXPECT_EQ(j.at("message"), a.message);
     EXPECT_EQ(j.at("run_id"), *a.runId);
     EXPECT_EQ(j.at("section_id"), *a.sectionId);
@@ -623,15 +623,16 @@ TEST(AlertDispatcher, RateLimitHoldsAndSummarises) {
     p.rateWindow = 300ms;
     AlertDispatcher d(p, sinks(std::make_unique<RecordingSink>(rec)));
     for (int i = 1; i <= 10; ++i)
-        d.post(sampleAlert(i, i <= 8 ? "damaged" : "low_disk", i == 10 ? "critical" : "warning"));
+        d.post(sampleAlert(i, i <= 8 ? AlertKind::Damaged : AlertKind::LowDisk,
+                           i == 10 ? AlertSeverity::Critical : AlertSeverity::Warning));
     ASSERT_TRUE(d.waitIdle(5s));
     std::lock_guard lock(rec->mutex);
     ASSERT_EQ(rec->got.size(), 4u);
     for (int i = 0; i < 3; ++i)
         EXPECT_EQ(rec->got[static_cast<std::size_t>(i)].second.id, i + 1);
     const auto& [at, summary] = rec->got[3];
-    EXPECT_EQ(summary.kind, "alert_summary");
-    EXPECT_EQ(summary.severity, "critical") << "the highest held severity";
+    EXPECT_EQ(summary.kind, AlertKind::AlertSummary);
+    EXPECT_EQ(summary.severity, AlertSeverity::Critical) << "the highest held severity";
     EXPECT_EQ(summary.message.rfind("7 more alerts: kinds damaged (x5), low_disk (x2)", 0), 0u)
         << summary.message;
     EXPECT_GE(at - rec->got[0].first, 250ms) << "sent once the window had room";
@@ -671,11 +672,11 @@ TEST(AlertDispatcher, FullQueueDropsTheOldest) {
 TEST(AlertDispatcher, BelowMinSeverityIsNotSent) {
     auto rec = std::make_shared<Recorded>();
     AlertSettings p = fastPolicy();
-    p.minSeverity = "warning";
+    p.minSeverity = AlertSeverity::Warning;
     AlertDispatcher d(p, sinks(std::make_unique<RecordingSink>(rec)));
-    d.post(sampleAlert(1, "run_finished", "info"));
-    d.post(sampleAlert(2, "damaged", "warning"));
-    d.post(sampleAlert(3, "run_failed", "critical"));
+    d.post(sampleAlert(1, AlertKind::RunFinished, AlertSeverity::Info));
+    d.post(sampleAlert(2, AlertKind::Damaged, AlertSeverity::Warning));
+    d.post(sampleAlert(3, AlertKind::RunFailed, AlertSeverity::Critical));
     ASSERT_TRUE(d.waitIdle(5s));
     std::lock_guard lock(rec->mutex);
     ASSERT_EQ(rec->got.size(), 2u);
@@ -697,13 +698,13 @@ TEST(JournalChannel, SendsTheExactFields) {
     });
     ASSERT_TRUE(made);
     AlertDispatcher d(p, std::move(*made));
-    d.post(sampleAlert(12, "damaged", "warning"));
-    AlertRecord bare = sampleAlert(13, "run_failed", "critical");
+    d.post(sampleAlert(12, AlertKind::Damaged, AlertSeverity::Warning));
+    AlertRecord bare = sampleAlert(13, AlertKind::RunFailed, AlertSeverity::Critical);
     bare.runId.reset();
     bare.sectionId.reset();
     bare.message = "run failed";
     d.post(bare);
-    d.post(sampleAlert(14, "run_finished", "info"));
+    d.post(sampleAlert(14, AlertKind::RunFinished, AlertSeverity::Info));
     ASSERT_TRUE(d.waitIdle(5s));
     std::lock_guard lock(mutex);
     ASSERT_EQ(sent.size(), 3u);

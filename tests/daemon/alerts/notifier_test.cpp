@@ -42,12 +42,12 @@ protected:
 };
 
 TEST_F(NotifierTest, AnAlertIsStoredThenDeliveredAndTold) {
-    auto id = notifier_->raise("camera_fault", "critical", "capture timed out", std::nullopt,
-                               std::nullopt);
+    auto id = notifier_->raise(AlertKind::CameraFault, AlertSeverity::Critical, "capture timed out",
+                               std::nullopt, std::nullopt);
     ASSERT_TRUE(id);
     auto stored = journal_->alert(*id);
     ASSERT_TRUE(stored);
-    EXPECT_EQ(stored->kind, "camera_fault");
+    EXPECT_EQ(stored->kind, AlertKind::CameraFault);
     ASSERT_EQ(delivered_.size(), 1u);
     EXPECT_EQ(delivered_[0].id, *id) << "channels get the stored alert, with its id";
     EXPECT_EQ(events_, std::vector<std::string>{"alert_raised"});
@@ -68,8 +68,8 @@ TEST_F(NotifierTest, EveryEndOfARunRaisesItsAlert) {
     ASSERT_TRUE(run);
     ASSERT_TRUE(notifier_->runStateChanged(*run, RunState::Paused, "stage_fault: x drive alarm"));
     ASSERT_EQ(delivered_.size(), 1u);
-    EXPECT_EQ(delivered_[0].kind, "run_paused");
-    EXPECT_EQ(delivered_[0].severity, "warning");
+    EXPECT_EQ(delivered_[0].kind, AlertKind::RunPaused);
+    EXPECT_EQ(delivered_[0].severity, AlertSeverity::Warning);
     EXPECT_NE(delivered_[0].message.find("stage_fault: x drive alarm"), std::string::npos);
     EXPECT_EQ(events_.front(), "run_state");
     ASSERT_TRUE(notifier_->runStateChanged(*run, RunState::Running, ""));
@@ -78,11 +78,13 @@ TEST_F(NotifierTest, EveryEndOfARunRaisesItsAlert) {
 
 TEST_F(NotifierTest, AFullDiskHoldsTheAlertAndStoresItLater) {
     testing_vfs::FullDiskVfs::install().setFull(true);
-    auto id = notifier_->raise("low_disk", "critical", "no space", std::nullopt, std::nullopt);
+    auto id = notifier_->raise(AlertKind::LowDisk, AlertSeverity::Critical, "no space",
+                               std::nullopt, std::nullopt);
     EXPECT_FALSE(id) << "the journal refused it";
     ASSERT_EQ(delivered_.size(), 1u) << "delivered all the same";
     EXPECT_LT(delivered_[0].id, 0) << "a held alert has a negative id";
-    (void)notifier_->raise("low_disk", "critical", "no space", std::nullopt, std::nullopt);
+    (void)notifier_->raise(AlertKind::LowDisk, AlertSeverity::Critical, "no space", std::nullopt,
+                           std::nullopt);
     EXPECT_EQ(notifier_->heldAlerts().size(), 1u) << "the same alert is not held twice";
     EXPECT_EQ(delivered_.size(), 1u);
     EXPECT_EQ(notifier_->storeHeldAlerts(), 1u) << "still full";
@@ -92,7 +94,7 @@ TEST_F(NotifierTest, AFullDiskHoldsTheAlertAndStoresItLater) {
     auto open = journal_->alerts(true);
     ASSERT_TRUE(open);
     ASSERT_EQ(open->size(), 1u);
-    EXPECT_EQ(open->front().kind, "low_disk");
+    EXPECT_EQ(open->front().kind, AlertKind::LowDisk);
     EXPECT_EQ(events_.back(), "alert_stored");
 }
 

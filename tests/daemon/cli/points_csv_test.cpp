@@ -41,3 +41,16 @@ TEST(PointsCsv, MissingFileIsNotFound) {
     ASSERT_FALSE(r.ok());
     EXPECT_EQ(r.error().code, core::ErrorCode::NotFound);
 }
+
+TEST(PointsCsv, QuotedFieldsAndBrokenQuotingFollowTheCoreReader) {
+    auto r = parsePointsCsv("\"x\",\"y\",\"note, with comma\"\r\n\"1.5\",2,\"a \"\"b\"\"\"\r\n");
+    ASSERT_TRUE(r.ok()) << r.error().message;
+    ASSERT_EQ(r->size(), 1u);
+    EXPECT_EQ((*r)[0], cv::Point2d(1.5, 2));
+    auto open = parsePointsCsv("x,y\n1,\"2\n");
+    ASSERT_FALSE(open.ok());
+    EXPECT_EQ(open.error().code, core::ErrorCode::InvalidArgument);
+    EXPECT_NE(open.error().message.find("line 2, field 2: quoted field is never closed"),
+              std::string::npos)
+        << open.error().message;
+}

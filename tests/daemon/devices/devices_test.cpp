@@ -63,7 +63,9 @@ TEST(Devices, ACameraWithoutDriverOrStagePositionIsRefused) {
     auto refused = openCamera(
         unknown, [] { return hw::StagePosition{}; }, simulated);
     ASSERT_FALSE(refused);
-    EXPECT_NE(refused.error().message.find("no driver \"gige\""), std::string::npos);
+    EXPECT_NE(refused.error().message.find("no driver \"gige\" (known: v4l2, libcamera, sim)"),
+              std::string::npos)
+        << refused.error().message;
 
     auto blind = openCamera(cfg->camera, {}, simulated);
     ASSERT_FALSE(blind) << "a simulated camera must know where the stage is";
@@ -79,3 +81,19 @@ TEST(Devices, EveryDriverTheConfigurationAcceptsIsRegistered) {
 }
 
 } // namespace
+
+TEST(Devices, AStageDriverTheRegistryLacksIsRefusedListingTheKnownOnes) {
+    auto cfg = parseStationConfig(kSimStation, "station.toml");
+    ASSERT_TRUE(cfg);
+    StageConfig unknown = cfg->stage;
+    unknown.driver = "canopen";
+    bool simulated = true;
+    auto refused = openStage(unknown, simulated);
+    ASSERT_FALSE(refused);
+    EXPECT_EQ(refused.error().code, core::ErrorCode::InvalidArgument);
+    EXPECT_FALSE(simulated) << "an unknown driver is no simulator";
+    EXPECT_NE(
+        refused.error().message.find("stage.driver: no driver \"canopen\" (known: modbus, sim)"),
+        std::string::npos)
+        << refused.error().message;
+}

@@ -469,8 +469,8 @@ TEST_F(DaemonProcessTest, KilledAtRandomMomentsItResumesWithoutLosingOrDuplicati
     ASSERT_TRUE(alerts);
     int restarted = 0, damaged = 0;
     for (const auto& a : *alerts) {
-        restarted += a.kind == "restarted";
-        damaged += a.kind == "damaged";
+        restarted += a.kind == daemon::AlertKind::Restarted;
+        damaged += a.kind == daemon::AlertKind::Damaged;
     }
     EXPECT_GE(restarted, 1) << "a run interrupted by a kill raises a 'restarted' alert";
     EXPECT_EQ(damaged, 1) << "the torn section alerted once";
@@ -534,7 +534,7 @@ TEST_F(DaemonProcessTest, NotifiesSystemdAndStopsWatchdogPingsWhileAMoveHangs) {
     ASSERT_TRUE(alerts);
     const std::vector<daemon::AlertRecord> all = *alerts;
     for (const auto& a : all)
-        EXPECT_NE(a.kind, "restarted") << a.message;
+        EXPECT_NE(a.kind, daemon::AlertKind::Restarted) << a.message;
 }
 
 TEST_F(DaemonProcessTest, AStageAlarmPausesTheRunUntilTheTechnicianAsksForTheReset) {

@@ -259,7 +259,7 @@ int main(int argc, char** argv) {
     std::map<std::string, int> alertKinds;
     if (auto alerts = station.journal().alerts(false))
         for (const auto& a : *alerts)
-            ++alertKinds[a.kind];
+            ++alertKinds[toString(a.kind)];
     rusage ru{};
     getrusage(RUSAGE_SELF, &ru);
     const auto phases = station.stats().summary();

@@ -170,13 +170,13 @@ TEST(SectionSteps, EachFaultIsNamedByTheDeviceThatFailed) {
     rig.faultyCamera->timeoutNext(2); // beyond the one retry
     auto capture = steps.capture(section(0, 0), kFocusZ, {});
     ASSERT_FALSE(capture);
-    EXPECT_EQ(capture.fault().kind, "camera_fault");
+    EXPECT_EQ(capture.fault().kind, daemon::AlertKind::CameraFault);
     EXPECT_EQ(capture.fault().error.code, ErrorCode::Timeout);
 
     rig.faultyStage->alarmOnNextMove(0x42);
     auto move = steps.move({600, 500, kFocusZ});
     ASSERT_FALSE(move);
-    EXPECT_EQ(move.fault().kind, "stage_fault");
+    EXPECT_EQ(move.fault().kind, daemon::AlertKind::StageFault);
     EXPECT_EQ(move.fault().error.code, ErrorCode::Alarm);
     ASSERT_TRUE(rig.stage->resetAlarm(1s));
 
@@ -185,12 +185,12 @@ TEST(SectionSteps, EachFaultIsNamedByTheDeviceThatFailed) {
     ASSERT_TRUE(steps.move({600, 500, kFocusZ}));
     auto focus = steps.focus(600, 500, kFocusZ);
     ASSERT_FALSE(focus);
-    EXPECT_EQ(focus.fault().kind, "stage_fault");
+    EXPECT_EQ(focus.fault().kind, daemon::AlertKind::StageFault);
 
     rig.freeBytes = 1 << 20;
     auto disk = steps.checkDisk();
     ASSERT_TRUE(disk);
-    EXPECT_EQ(disk->kind, "low_disk");
+    EXPECT_EQ(disk->kind, daemon::AlertKind::LowDisk);
 }
 
 TEST(SectionSteps, FocusIsSkippedWhenTheRunAsksNone) {
@@ -233,7 +233,7 @@ TEST(SectionSteps, AnImageNoCaptureRefersToIsReplacedOneACaptureRefersToNever) {
     ASSERT_TRUE(rig.journal->recordCapture(rec));
     auto refused = steps.writeImage(rel, *captured, "third", *used, *rig.journal);
     ASSERT_TRUE(refused);
-    EXPECT_EQ(refused->kind, "storage_fault");
+    EXPECT_EQ(refused->kind, daemon::AlertKind::StorageFault);
     EXPECT_EQ(refused->error.sysErrno, EEXIST);
 }
 

@@ -439,14 +439,15 @@ struct DeliveredAlerts {
     }
     std::size_t count(const std::string& kind) {
         std::lock_guard lock(mutex);
-        return static_cast<std::size_t>(std::count_if(
-            alerts.begin(), alerts.end(), [&](const AlertRecord& a) { return a.kind == kind; }));
+        return static_cast<std::size_t>(
+            std::count_if(alerts.begin(), alerts.end(),
+                          [&](const AlertRecord& a) { return toString(a.kind) == kind; }));
     }
     bool waitFor(const std::string& kind, std::chrono::seconds limit = 60s) {
         std::unique_lock lock(mutex);
         return cv.wait_for(lock, limit, [&] {
             return std::any_of(alerts.begin(), alerts.end(),
-                               [&](const AlertRecord& a) { return a.kind == kind; });
+                               [&](const AlertRecord& a) { return toString(a.kind) == kind; });
         });
     }
 };
@@ -564,9 +565,9 @@ TEST_F(StationTest, AFullDiskPausesTheRunOnceAndKeepsTheAlertUntilItCanBeStored)
     EXPECT_EQ(heldStates.at(*id), RunState::Paused);
     auto held = rig_.station->notifier().heldAlerts();
     ASSERT_EQ(held.size(), 2u);
-    EXPECT_EQ(held[0].kind, "low_disk");
+    EXPECT_EQ(held[0].kind, AlertKind::LowDisk);
     EXPECT_LT(held[0].id, 0);
-    EXPECT_EQ(held[1].kind, "run_paused");
+    EXPECT_EQ(held[1].kind, AlertKind::RunPaused);
     EXPECT_TRUE(imagesUnder(rig_.dir / "runs").empty());
 
     // Paused in memory: the stage does not go back to the section. (Waiting for something not

@@ -150,8 +150,8 @@ TEST_F(JournalTest, AlertsStayOpenUntilAcknowledged) {
     auto j = Journal::open(file());
     ASSERT_TRUE(j);
     AlertRecord a;
-    a.kind = "damaged";
-    a.severity = "critical";
+    a.kind = AlertKind::Damaged;
+    a.severity = AlertSeverity::Critical;
     a.message = "torn";
     auto id = (*j)->raiseAlert(a);
     ASSERT_TRUE(id);
@@ -168,11 +168,45 @@ TEST_F(JournalTest, AlertsStayOpenUntilAcknowledged) {
     auto none = (*j)->acknowledgeAlert(999, "accept");
     ASSERT_FALSE(none);
     EXPECT_EQ(none.error().code, core::ErrorCode::NotFound);
-    AlertRecord bad = a;
-    bad.severity = "whatever"; // refused by the schema's CHECK
-    auto b = (*j)->raiseAlert(bad);
-    ASSERT_FALSE(b);
-    EXPECT_EQ(b.error().code, core::ErrorCode::IoError);
+    // Typed as an enum, a bad severity cannot be raised; the schema's CHECK still refuses one
+    // written beside the daemon.
+    sqlite3* db = nullptr;
+    ASSERT_EQ(sqlite3_open(file().c_str(), &db), SQLITE_OK);
+    EXPECT_NE(sqlite3_exec(db,
+                           "INSERT INTO alerts (kind, severity, message, raised_utc) VALUES "
+                           "('damaged', 'whatever', 'm', '2024-01-01T00:00:00Z')",
+                           nullptr, nullptr, nullptr),
+              SQLITE_OK);
+    sqlite3_close(db);
+}
+
+TEST_F(JournalTest, AnUnknownStoredAlertKindIsAnErrorNamingIt) {
+    auto j = Journal::open(file());
+    ASSERT_TRUE(j);
+    AlertRecord a;
+    a.kind = AlertKind::LowDisk;
+    a.severity = AlertSeverity::Critical;
+    auto id = (*j)->raiseAlert(a);
+    ASSERT_TRUE(id);
+    auto back = (*j)->alert(*id);
+    ASSERT_TRUE(back);
+    EXPECT_EQ(back->kind, AlertKind::LowDisk);
+    EXPECT_EQ(back->severity, AlertSeverity::Critical);
+    sqlite3* db = nullptr;
+    ASSERT_EQ(sqlite3_open(file().c_str(), &db), SQLITE_OK);
+    ASSERT_EQ(
+        sqlite3_exec(db, "UPDATE alerts SET kind = 'meteor_strike'", nullptr, nullptr, nullptr),
+        SQLITE_OK);
+    sqlite3_close(db);
+    auto one = (*j)->alert(*id);
+    auto all = (*j)->alerts(false);
+    ASSERT_FALSE(one);
+    ASSERT_FALSE(all);
+    for (const core::Error& e : {one.error(), all.error()}) {
+        EXPECT_EQ(e.code, core::ErrorCode::IoError);
+        EXPECT_NE(e.message.find("unknown alert kind \"meteor_strike\""), std::string::npos)
+            << e.message;
+    }
 }
 
 TEST_F(JournalTest, PersistsAcrossReopenAndMissingRecordsAreNotFound) {
@@ -259,8 +293,8 @@ TEST_F(JournalTest, AFullDiskIsReportedAsEnospcAndNothingIsLost) {
     auto secs = (*j)->sections(*run);
     ASSERT_TRUE(secs);
     AlertRecord a;
-    a.kind = "low_disk";
-    a.severity = "critical";
+    a.kind = AlertKind::LowDisk;
+    a.severity = AlertSeverity::Critical;
     a.message = "full";
     vfs.setFull(true);
     auto refused = (*j)->raiseAlert(a);

@@ -42,4 +42,9 @@ using FillTemporary = std::function<Result<void>(int fd, const std::filesystem::
 /// True when `fileName` (a name, not a path) is a temporary name of this writer.
 bool isAtomicTemporaryName(std::string_view fileName) noexcept;
 
+/// True when `fileName` is a temporary name of the writers this one replaced (slicestation
+/// before issue 21): `.NAME.partial` (the OME-TIFF writer) and `NAME.tmp-PID` (results). A state
+/// directory may still hold them after a crash; its cleanup removes them with the current ones.
+bool isLegacyTemporaryName(std::string_view fileName) noexcept;
+
 } // namespace slicestation::core

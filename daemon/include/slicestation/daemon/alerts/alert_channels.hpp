@@ -51,7 +51,7 @@ struct AlertSettings {
     /// The sliding window of the rate limit. Not a file key (always a minute there); tests
     /// shorten it.
     std::chrono::milliseconds rateWindow{60'000};
-    std::string minSeverity = "info"; ///< info, warning or critical; lower ones are not sent
+    AlertSeverity minSeverity = AlertSeverity::Info; ///< lower ones are not sent
     std::size_t queueCapacity = 1000; ///< per channel; when full the oldest alert is dropped
     std::vector<WebhookSettings> webhooks;
     std::vector<CommandSettings> commands;
@@ -62,9 +62,6 @@ struct AlertSettings {
 /// InvalidArgument naming the key, e.g. `station.toml: alerts.webhook[0].url: ...`.
 [[nodiscard]] core::Result<AlertSettings> parseAlertSettings(const nlohmann::json& station,
                                                              const std::string& origin);
-
-/// 0 info, 1 warning, 2 critical; an unknown severity ranks as critical (never filtered out).
-int severityRank(const std::string& severity) noexcept;
 
 /// Where an alert goes: one configured webhook, command or the journal.
 /// Threading: deliver() is called from one thread at a time (the channel's worker); cancel()
@@ -213,7 +210,7 @@ private:
     int retries_;
     std::chrono::milliseconds backoffInitial_, backoffMax_, rateWindow_;
     std::size_t maxPerWindow_, queueCapacity_;
-    int minRank_;
+    AlertSeverity minSeverity_;
     GiveUp onGiveUp_;
 
     mutable std::mutex mutex_;

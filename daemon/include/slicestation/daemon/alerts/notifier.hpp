@@ -45,7 +45,7 @@ public:
 
     /// Stores and delivers an alert. \return its id, or the journal's error (then the alert is
     /// still logged and delivered: a full disk must not swallow the "low disk" alert).
-    core::Result<std::int64_t> raise(const std::string& kind, const std::string& severity,
+    core::Result<std::int64_t> raise(AlertKind kind, AlertSeverity severity,
                                      const std::string& message,
                                      std::optional<std::int64_t> runId = std::nullopt,
                                      std::optional<std::int64_t> sectionId = std::nullopt);

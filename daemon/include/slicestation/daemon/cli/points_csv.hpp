@@ -12,9 +12,10 @@
 
 namespace slicestation::daemon {
 
-/// Parses CSV text. Accepts CRLF, a trailing newline, blank lines, spaces around fields, and extra
-/// columns after x,y (ignored). \return InvalidArgument naming the line and the problem: missing or
-/// wrong header, wrong field count, non-numeric or non-finite value.
+/// Parses CSV text with core::parseCsv (RFC 4180: quoted fields, CRLF, a byte-order mark, blank
+/// lines), then allows spaces around fields and extra columns after x,y (ignored).
+/// \return InvalidArgument naming the line and the problem: broken quoting, missing or wrong
+/// header, wrong field count, non-numeric or non-finite value.
 [[nodiscard]] core::Result<std::vector<cv::Point2d>> parsePointsCsv(std::string_view text);
 
 /// Reads and parses a file. \return NotFound, IoError, or the errors of parsePointsCsv.

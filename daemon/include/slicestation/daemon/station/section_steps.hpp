@@ -30,7 +30,7 @@ class ProgressWatchdog;
 /// Why a section could not be captured: the alert kind (stage_fault, camera_fault, focus_fault,
 /// low_disk, storage_fault, journal_error) and the error.
 struct Fault {
-    std::string kind;
+    AlertKind kind;
     core::Error error;
 };
 

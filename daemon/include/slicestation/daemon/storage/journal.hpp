@@ -15,6 +15,7 @@
 /// message says why), Unsupported (schema from the future).
 #include "slicestation/core/result.hpp"
 #include "slicestation/core/stage.hpp"
+#include "slicestation/daemon/storage/alert_kind.hpp"
 
 #include <nlohmann/json.hpp>
 
@@ -113,9 +114,8 @@ struct AlertRecord {
     std::int64_t id = 0;
     std::optional<std::int64_t> runId;
     std::optional<std::int64_t> sectionId;
-    std::string kind;     ///< damaged, run_finished, run_paused, run_failed, run_cancelled,
-                          ///< stage_fault, camera_fault, low_disk, restarted
-    std::string severity; ///< info, warning, critical
+    AlertKind kind = AlertKind::Damaged; ///< stored and served as toString(kind)
+    AlertSeverity severity = AlertSeverity::Info;
     std::string message;
     std::string raisedUtc;
     std::optional<std::string> acknowledgedUtc;
