@@ -5,6 +5,7 @@
 // publish() sends an event to the page at the moment the test chooses, so the tests can space
 // events 2 ms apart as the real station does, without scanning anything.
 #include "slicestation/daemon/station/station_api.hpp"
+#include "slicestation/daemon/storage/alert_kind.hpp"
 
 #include <opencv2/imgproc.hpp>
 
@@ -26,8 +27,9 @@ inline AlertRecord makeAlert(std::int64_t id, std::optional<std::int64_t> sectio
     a.id = id;
     a.runId = 7;
     a.sectionId = section;
-    a.kind = kind;
-    a.severity = severity;
+    // The test's strings must name a kind and a severity the daemon knows.
+    a.kind = parseAlertKind(kind).value();
+    a.severity = parseAlertSeverity(severity).value();
     a.message = message;
     a.raisedUtc = raisedUtc;
     return a;
