@@ -255,7 +255,7 @@ int main(int argc, char** argv) {
     std::vector<int> only;
     bool shiftOnly = false;
     double fieldScale = 1.0, maxTurnDeg = 180;
-    std::string smoothMode = "on";
+    std::string smoothMode = "off";
     app.add_flag("--shift-only", shiftOnly,
                  "Warps are whole-pixel shifts only (checks the benchmark: RMS near 0 expected)");
     app.add_option("--field-scale", fieldScale,

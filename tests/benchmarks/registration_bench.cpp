@@ -244,7 +244,7 @@ int main(int argc, char** argv) {
     std::vector<int> only;
     app.add_option("--only", only,
                    "Run only these case indices of the --cases set (to look into them)");
-    std::string overlayDir, refineMode = "on", nonLinearMode = "on", smoothMode = "on";
+    std::string overlayDir, refineMode = "on", nonLinearMode = "on", smoothMode = "off";
     app.add_option("--nonlinear", nonLinearMode,
                    "Ours with its non-linear stages (Laplace warp, dense refinement): on | off "
                    "(off: the affine alone)")

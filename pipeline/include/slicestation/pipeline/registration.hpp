@@ -47,8 +47,9 @@ struct RegistrationOptions {
     /// A smooth B-spline field fitted to every edge and outline match before the Laplace warp
     /// (`smooth_warp.hpp`): deformations of the whole section beyond the Laplace warp's reach.
     /// Its matching levels are set from the atlas height in registerSection; these options set
-    /// the spacing, stiffness and robustness.
-    bool smoothWarp = true;
+    /// the spacing, stiffness and robustness. Off by default: it gains a few percent of accuracy
+    /// but moved a clean real section over the damage decision (docs/registration.md).
+    bool smoothWarp = false;
     SmoothWarpOptions smooth;
     /// Optional atlas intensity plane (CV_32F, the size of the atlas labels, e.g. a plane of the
     /// Allen average template): a second term of the dense refinement. Empty = none.
