@@ -222,119 +222,136 @@ struct DaemonOpts {
     bool resetAlarm = false;
 };
 
+/// The subcommands of addDaemonCommands, to tell which one was given.
+struct DaemonCommands {
+    CLI::App *scan = nullptr, *submit = nullptr, *status = nullptr, *runs = nullptr,
+             *sections = nullptr, *section = nullptr, *pause = nullptr, *resume = nullptr,
+             *cancel = nullptr, *rescan = nullptr, *alerts = nullptr, *ack = nullptr,
+             *exp = nullptr;
+};
+
+DaemonCommands declareDaemonCommands(CLI::App& app, const std::shared_ptr<DaemonOpts>& o) {
+    DaemonCommands c;
+    c.scan = app.add_subcommand("scan", "Submit scan plans to the daemon");
+    c.submit =
+        c.scan->add_subcommand("submit", "Queue a scan plan (TOML or JSON); prints the run id");
+    c.submit->add_option("PLAN", o->plan, "Plan file")->required()->check(CLI::ExistingFile);
+    addConnectionOptions(c.submit, o->c);
+    c.scan->require_subcommand(1);
+
+    c.status = app.add_subcommand("status", "The daemon's status");
+    c.runs = app.add_subcommand("runs", "List runs");
+    c.sections = app.add_subcommand("sections", "List the sections of a run");
+    c.sections->add_option("RUN", o->id, "Run id")->required();
+    c.section =
+        app.add_subcommand("section", "One section in detail: captures, registrations, damage");
+    c.section->add_option("SECTION", o->id, "Section id")->required();
+    c.pause = app.add_subcommand("pause", "Pause a run (between sections)");
+    c.pause->add_option("RUN", o->id, "Run id")->required();
+    c.resume = app.add_subcommand("resume", "Resume a paused run");
+    c.resume->add_option("RUN", o->id, "Run id")->required();
+    c.resume->add_flag(
+        "--reset-stage-alarm", o->resetAlarm,
+        "The cause of a stage alarm is cleared: reset the drives' alarm before going on");
+    c.cancel =
+        app.add_subcommand("cancel", "Cancel a run (preempts the move or capture in progress)");
+    c.cancel->add_option("RUN", o->id, "Run id")->required();
+    c.rescan =
+        app.add_subcommand("rescan", "Capture a re-mounted section again (keeps the old records)");
+    c.rescan->add_option("SECTION", o->id, "Section id")->required();
+    c.alerts = app.add_subcommand("alerts", "List open alerts, or acknowledge one");
+    c.alerts->add_flag("--all", o->all, "Also list acknowledged alerts");
+    c.ack = c.alerts->add_subcommand("ack", "Acknowledge an alert");
+    c.ack->add_option("ALERT", o->id, "Alert id")->required();
+    c.ack
+        ->add_option("--action", o->action,
+                     "rescan (re-mounted: capture again) or accept (as is; the default)")
+        ->check(CLI::IsMember({"rescan", "accept"}));
+    addConnectionOptions(c.ack, o->c);
+    c.exp = app.add_subcommand("export",
+                               "Export a run: per section image, stage position, atlas slice, "
+                               "registration quality, damage");
+    c.exp->add_option("RUN", o->id, "Run id")->required();
+    c.exp->add_option("--format", o->format, "csv or json")->check(CLI::IsMember({"csv", "json"}));
+    c.exp->add_option("--output", o->output, "Write to this file instead of stdout");
+    for (auto* sub : {c.status, c.runs, c.sections, c.section, c.pause, c.resume, c.cancel,
+                      c.rescan, c.alerts, c.exp})
+        addConnectionOptions(sub, o->c);
+    for (auto* sub : {c.submit, c.status, c.runs, c.sections, c.pause, c.resume, c.cancel, c.rescan,
+                      c.alerts, c.ack})
+        sub->add_flag("--json", o->json,
+                      "Print the daemon's JSON (for scripts) instead of a table");
+
+    return c;
+}
+
+int runDaemonCommand(const DaemonOpts& o, const DaemonCommands& c) {
+    const std::string id = std::to_string(o.id);
+    const bool json = o.json;
+    if (*c.scan && *c.submit) {
+        std::ifstream in(o.plan);
+        std::stringstream ss;
+        ss << in.rdbuf();
+        const bool isJson = o.plan.ends_with(".json");
+        return finish("scan submit",
+                      request(o.c, "POST", "/api/runs", ss.str(),
+                              isJson ? "application/json" : "application/toml"),
+                      json, [](const nlohmann::json& j) {
+                          std::cout << "run " << text(j, "run_id") << " queued\n";
+                      });
+    }
+    if (*c.status)
+        return finish("status", request(o.c, "GET", "/api/status"), json, printStatus);
+    if (*c.runs)
+        return finish("runs", request(o.c, "GET", "/api/runs"), json, printRuns);
+    if (*c.sections)
+        return finish("sections", request(o.c, "GET", "/api/runs/" + id + "/sections"), json,
+                      printSections);
+    if (*c.section) // the detail is nested: JSON is its readable form
+        return finish("section", request(o.c, "GET", "/api/sections/" + id), true);
+    if (*c.pause)
+        return finish("pause", request(o.c, "POST", "/api/runs/" + id + "/pause"), json,
+                      saying("run " + id + ": pause requested (it stops between sections)"));
+    if (*c.resume)
+        return finish(
+            "resume",
+            request(o.c, "POST", "/api/runs/" + id + "/resume",
+                    nlohmann::json{{"reset_stage_alarm", o.resetAlarm}}.dump()),
+            json, saying("run " + id + " resumed" + (o.resetAlarm ? " (stage alarm reset)" : "")));
+    if (*c.cancel)
+        return finish("cancel", request(o.c, "POST", "/api/runs/" + id + "/cancel"), json,
+                      saying("run " + id + " cancelled"));
+    if (*c.rescan)
+        return finish("rescan", request(o.c, "POST", "/api/sections/" + id + "/rescan"), json,
+                      saying("section " + id + ": rescan requested"));
+    if (*c.alerts && *c.ack)
+        return finish("alerts ack",
+                      request(o.c, "POST", "/api/alerts/" + id + "/ack",
+                              nlohmann::json{{"action", o.action}}.dump()),
+                      json, saying("alert " + id + " acknowledged (" + o.action + ")"));
+    if (*c.alerts)
+        return finish("alerts", request(o.c, "GET", o.all ? "/api/alerts" : "/api/alerts?open=1"),
+                      json, printAlerts);
+    if (*c.exp) {
+        auto r = request(o.c, "GET", "/api/runs/" + id + "/export?format=" + o.format);
+        if (o.output.empty() || !r || r->status != 200)
+            return finish("export", r, false, {}, true);
+        std::ofstream out(o.output, std::ios::binary);
+        out << r->body;
+        out.close();
+        if (!out)
+            return reportError("export", makeError(ErrorCode::IoError, "cannot write " + o.output));
+        return 0;
+    }
+    return -1;
+}
+
 } // namespace
 
 CommandRunner addDaemonCommands(CLI::App& app) {
     auto o = std::make_shared<DaemonOpts>();
-    auto* scan = app.add_subcommand("scan", "Submit scan plans to the daemon");
-    auto* submit =
-        scan->add_subcommand("submit", "Queue a scan plan (TOML or JSON); prints the run id");
-    submit->add_option("PLAN", o->plan, "Plan file")->required()->check(CLI::ExistingFile);
-    addConnectionOptions(submit, o->c);
-    scan->require_subcommand(1);
-
-    auto* status = app.add_subcommand("status", "The daemon's status");
-    auto* runs = app.add_subcommand("runs", "List runs");
-    auto* sections = app.add_subcommand("sections", "List the sections of a run");
-    sections->add_option("RUN", o->id, "Run id")->required();
-    auto* section =
-        app.add_subcommand("section", "One section in detail: captures, registrations, damage");
-    section->add_option("SECTION", o->id, "Section id")->required();
-    auto* pause = app.add_subcommand("pause", "Pause a run (between sections)");
-    pause->add_option("RUN", o->id, "Run id")->required();
-    auto* resume = app.add_subcommand("resume", "Resume a paused run");
-    resume->add_option("RUN", o->id, "Run id")->required();
-    resume->add_flag(
-        "--reset-stage-alarm", o->resetAlarm,
-        "The cause of a stage alarm is cleared: reset the drives' alarm before going on");
-    auto* cancel =
-        app.add_subcommand("cancel", "Cancel a run (preempts the move or capture in progress)");
-    cancel->add_option("RUN", o->id, "Run id")->required();
-    auto* rescan =
-        app.add_subcommand("rescan", "Capture a re-mounted section again (keeps the old records)");
-    rescan->add_option("SECTION", o->id, "Section id")->required();
-    auto* alerts = app.add_subcommand("alerts", "List open alerts, or acknowledge one");
-    alerts->add_flag("--all", o->all, "Also list acknowledged alerts");
-    auto* ack = alerts->add_subcommand("ack", "Acknowledge an alert");
-    ack->add_option("ALERT", o->id, "Alert id")->required();
-    ack->add_option("--action", o->action,
-                    "rescan (re-mounted: capture again) or accept (as is; the default)")
-        ->check(CLI::IsMember({"rescan", "accept"}));
-    addConnectionOptions(ack, o->c);
-    auto* exp = app.add_subcommand("export",
-                                   "Export a run: per section image, stage position, atlas slice, "
-                                   "registration quality, damage");
-    exp->add_option("RUN", o->id, "Run id")->required();
-    exp->add_option("--format", o->format, "csv or json")->check(CLI::IsMember({"csv", "json"}));
-    exp->add_option("--output", o->output, "Write to this file instead of stdout");
-    for (auto* c : {status, runs, sections, section, pause, resume, cancel, rescan, alerts, exp})
-        addConnectionOptions(c, o->c);
-    for (auto* c : {submit, status, runs, sections, pause, resume, cancel, rescan, alerts, ack})
-        c->add_flag("--json", o->json, "Print the daemon's JSON (for scripts) instead of a table");
-
-    return [=]() -> int {
-        const std::string id = std::to_string(o->id);
-        const bool json = o->json;
-        if (*scan && *submit) {
-            std::ifstream in(o->plan);
-            std::stringstream ss;
-            ss << in.rdbuf();
-            const bool isJson = o->plan.ends_with(".json");
-            return finish("scan submit",
-                          request(o->c, "POST", "/api/runs", ss.str(),
-                                  isJson ? "application/json" : "application/toml"),
-                          json, [](const nlohmann::json& j) {
-                              std::cout << "run " << text(j, "run_id") << " queued\n";
-                          });
-        }
-        if (*status)
-            return finish("status", request(o->c, "GET", "/api/status"), json, printStatus);
-        if (*runs)
-            return finish("runs", request(o->c, "GET", "/api/runs"), json, printRuns);
-        if (*sections)
-            return finish("sections", request(o->c, "GET", "/api/runs/" + id + "/sections"), json,
-                          printSections);
-        if (*section) // the detail is nested: JSON is its readable form
-            return finish("section", request(o->c, "GET", "/api/sections/" + id), true);
-        if (*pause)
-            return finish("pause", request(o->c, "POST", "/api/runs/" + id + "/pause"), json,
-                          saying("run " + id + ": pause requested (it stops between sections)"));
-        if (*resume)
-            return finish(
-                "resume",
-                request(o->c, "POST", "/api/runs/" + id + "/resume",
-                        nlohmann::json{{"reset_stage_alarm", o->resetAlarm}}.dump()),
-                json,
-                saying("run " + id + " resumed" + (o->resetAlarm ? " (stage alarm reset)" : "")));
-        if (*cancel)
-            return finish("cancel", request(o->c, "POST", "/api/runs/" + id + "/cancel"), json,
-                          saying("run " + id + " cancelled"));
-        if (*rescan)
-            return finish("rescan", request(o->c, "POST", "/api/sections/" + id + "/rescan"), json,
-                          saying("section " + id + ": rescan requested"));
-        if (*alerts && *ack)
-            return finish("alerts ack",
-                          request(o->c, "POST", "/api/alerts/" + id + "/ack",
-                                  nlohmann::json{{"action", o->action}}.dump()),
-                          json, saying("alert " + id + " acknowledged (" + o->action + ")"));
-        if (*alerts)
-            return finish("alerts",
-                          request(o->c, "GET", o->all ? "/api/alerts" : "/api/alerts?open=1"), json,
-                          printAlerts);
-        if (*exp) {
-            auto r = request(o->c, "GET", "/api/runs/" + id + "/export?format=" + o->format);
-            if (o->output.empty() || !r || r->status != 200)
-                return finish("export", r, false, {}, true);
-            std::ofstream out(o->output, std::ios::binary);
-            out << r->body;
-            out.close();
-            if (!out)
-                return reportError("export",
-                                   makeError(ErrorCode::IoError, "cannot write " + o->output));
-            return 0;
-        }
-        return -1;
-    };
+    const DaemonCommands c = declareDaemonCommands(app, o);
+    return [o, c]() -> int { return runDaemonCommand(*o, c); };
 }
 
 } // namespace slicestation::daemon
