@@ -77,7 +77,8 @@ Result<void> checkScanTable(const nlohmann::json& t, const FieldReader& rd, cons
                               "min_free_mb",
                               "register",
                               "check_atlas_match",
-                              "atlas_mismatch_tolerance"});
+                              "atlas_mismatch_tolerance",
+                              "max_turn_deg"});
         !k)
         return k.error();
     if (t.contains("objectives")) {
@@ -277,6 +278,10 @@ Result<void> readRunSettings(const nlohmann::json& t, const FieldReader& rd, con
     if (!tol)
         return tol.error();
     s.mismatchToleranceSlices = static_cast<int>(*tol);
+    auto turn = rd.number(t, p, "max_turn_deg", 180.0, 0, 180);
+    if (!turn)
+        return turn.error();
+    s.maxTurnDeg = *turn;
     return {};
 }
 
@@ -405,7 +410,8 @@ nlohmann::json toJson(const ScanSettings& s) {
             {"capture_timeout_s", s.captureTimeout.count() / 1000.0},
             {"min_free_mb", static_cast<double>(s.minFreeBytes) / (1024.0 * 1024.0)},
             {"check_atlas_match", s.checkAtlasMatch},
-            {"atlas_mismatch_tolerance", s.mismatchToleranceSlices}};
+            {"atlas_mismatch_tolerance", s.mismatchToleranceSlices},
+            {"max_turn_deg", s.maxTurnDeg}};
 }
 
 Result<ScanSettings> scanSettingsFromJson(const nlohmann::json& j, const std::string& origin) {

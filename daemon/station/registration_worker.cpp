@@ -221,6 +221,7 @@ void RegistrationWorker::process(std::int64_t captureId) {
     rq.atlas = *atlas;
     rq.image = image;
     rq.imageUmPerPx = capture->umPerPx;
+    rq.maxTurnDeg = settings->maxTurnDeg;
     if (rq.imageUmPerPx > 0)
         rq.atlasUmPerPx = stack_.slices[static_cast<std::size_t>(slice)].umPerPx;
     rq.output = base.string() + ".result.json";

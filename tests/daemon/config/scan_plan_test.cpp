@@ -146,6 +146,22 @@ TEST(DaemonSettings, DefaultsSnapshotAndErrors) {
     auto back = scanSettingsFromJson(toJson(s->scan), "snapshot");
     ASSERT_TRUE(back) << back.error().message;
     EXPECT_EQ(toJson(*back), toJson(s->scan));
+    EXPECT_DOUBLE_EQ(s->scan.maxTurnDeg, 180); // any way, unless the lab says otherwise
+
+    // The lab's mounting rule: kept in the snapshot, range-checked.
+    auto mounted = parseDocument("[scan]\num_per_px = 2\nmax_turn_deg = 45\n", DocumentFormat::Toml,
+                                 "station.toml");
+    auto m = parseDaemonSettings(*mounted, "station.toml");
+    ASSERT_TRUE(m) << m.error().message;
+    EXPECT_DOUBLE_EQ(m->scan.maxTurnDeg, 45);
+    auto mBack = scanSettingsFromJson(toJson(m->scan), "snapshot");
+    ASSERT_TRUE(mBack) << mBack.error().message;
+    EXPECT_DOUBLE_EQ(mBack->maxTurnDeg, 45);
+    auto overTurned = parseDocument("[scan]\num_per_px = 2\nmax_turn_deg = 200\n",
+                                    DocumentFormat::Toml, "station.toml");
+    auto o = parseDaemonSettings(*overTurned, "station.toml");
+    ASSERT_FALSE(o);
+    EXPECT_NE(o.error().message.find("scan.max_turn_deg"), std::string::npos) << o.error().message;
 
     auto noPixel =
         parseDocument("[scan]\nobjective = \"10x\"\n", DocumentFormat::Toml, "station.toml");

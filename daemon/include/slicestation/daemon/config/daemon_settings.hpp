@@ -68,6 +68,9 @@ struct ScanSettings {
     std::uint64_t minFreeBytes = 500ull << 20;
     bool checkAtlasMatch = true;
     int mismatchToleranceSlices = 2;
+    /// The lab's mounting rule: sections lie at most this far turned on the slide (degrees; 180
+    /// = any way). Registration does not consider placements turned further.
+    double maxTurnDeg = 180;
 };
 
 struct DaemonSettings {
