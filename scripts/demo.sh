@@ -58,7 +58,7 @@ done
 echo "demo: run 1 is $state"
 echo
 echo "== alerts (open) =="
-"$slicectl" alerts --json --url "$url" | sed -n 's/^    "message": "\(.*\)",$/  \1/p'
+"$slicectl" alerts --url "$url"
 echo
 echo "== run 1, per section (also in $out/run-1.csv) =="
 "$slicectl" export 1 --format csv --url "$url" --output "$out/run-1.csv"
