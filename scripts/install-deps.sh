@@ -12,6 +12,7 @@ packages=(
     systemd  # systemd-analyze, for the unit file checks (tests/systemd)
     chromium chromium-driver  # headless browser tests of the web page (tests/web)
     clang-format  # scripts/check-format.sh: the tree follows .clang-format
+    python3  # scripts/check-daemon-size.py: the daemon's file and function sizes
     clang-14 libclang-rt-14-dev  # the checking build: ASan + UBSan and libFuzzer (scripts/build-checking.sh)
 )
 missing=()

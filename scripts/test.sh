@@ -4,12 +4,14 @@
 #   build-check/  the checking build (clang, AddressSanitizer + UndefinedBehaviorSanitizer +
 #                 LeakSanitizer on everything), every test again, and each fuzz target (label
 #                 fuzz) replaying its committed corpus and fuzzing for SLST_FUZZ_SECONDS (30).
-# Before the tests, scripts/check-format.sh checks that every C++ file follows .clang-format.
+# Before the tests, scripts/check-format.sh checks that every C++ file follows .clang-format and
+# scripts/check-daemon-size.py that no daemon/ file exceeds 600 lines nor any function 100.
 # CI runs exactly this. SLST_TEST_CHECKING=0 skips the checking build (a quicker local run).
 set -euo pipefail
 here=$(cd "$(dirname "$0")/.." && pwd)
 bash "$here/scripts/build.sh"
 bash "$here/scripts/check-format.sh"
+python3 "$here/scripts/check-daemon-size.py" --top 3
 if [ ! -d "$here/../shared" ]; then
     echo "note: ../shared is absent; tests that need the real atlas and sections will skip" >&2
 fi

@@ -622,6 +622,13 @@ TEST_F(StationTest, AFullJournalPausesTheRunAndTheImageItCouldNotRecordIsReplace
 
     vfs.setFull(false);
     waitRun(*id, RunState::Paused);
+    // The alert held while the journal was full is stored by the notifier's own thread once the
+    // journal takes writes again: wait for it (bounded) before counting the stored alerts.
+    const auto deadline = std::chrono::steady_clock::now() + 30s;
+    while (!rig_.station->notifier().heldAlerts().empty() &&
+           std::chrono::steady_clock::now() < deadline)
+        std::this_thread::sleep_for(50ms); // polling the notifier, bounded
+    EXPECT_TRUE(rig_.station->notifier().heldAlerts().empty());
     EXPECT_EQ(alertsOf("low_disk").size(), 1u);
     ASSERT_TRUE(rig_.station->scanner().resume(*id));
     waitRun(*id, RunState::Finished);
