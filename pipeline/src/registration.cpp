@@ -649,8 +649,10 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         // (outside the damaged concavities) is also paired with the atlas outline, one boundary
         // each, so further away than edges among edges.
         const bool pullOutline = reg.quality.tissueOverlap < options.outlinePullBelowOverlap;
+        // The tissue outline outside the damaged concavities: the outline pull's and the
+        // smooth stage's pairs.
         EdgePoints outline;
-        for (size_t i = 0; pullOutline && i < imgOuter.size(); ++i) {
+        for (size_t i = 0; (pullOutline || options.smoothWarp) && i < imgOuter.size(); ++i) {
             const cv::Point p(std::clamp(cvRound(imgOuter.points[i].x), 0, mei.cols - 1),
                               std::clamp(cvRound(imgOuter.points[i].y), 0, mei.rows - 1));
             if (!damagedOutline.empty() && damagedOutline.at<std::uint8_t>(p))
@@ -664,24 +666,14 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         // (outside damaged concavities) at once; the Laplace warp then adds local corrections.
         DisplacementField base;
         if (options.smoothWarp) {
-            EdgePoints smoothOutline;
-            for (size_t i = 0; i < imgOuter.size(); ++i) {
-                const cv::Point p(std::clamp(cvRound(imgOuter.points[i].x), 0, mei.cols - 1),
-                                  std::clamp(cvRound(imgOuter.points[i].y), 0, mei.rows - 1));
-                if (!damagedOutline.empty() && damagedOutline.at<std::uint8_t>(p))
-                    continue;
-                smoothOutline.points.push_back(imgOuter.points[i]);
-                smoothOutline.normals.push_back(imgOuter.normals[i]);
-            }
             const PointGrid outerGrid(atlasOuter.points, float(atlasH / 40));
             SmoothWarpOptions so = options.smooth;
-
             if (so.levels.empty())
                 so.levels = {{atlasH / 15, 20, 3}, {atlasH / 25, 15, 3}, {atlasH / 40, 10, 3}};
             const SmoothWarp sw =
                 fitSmoothWarp(reg.workingGrey.size(), reg.atlasFromWorking,
                               {{&reg.sectionEdges, &reg.atlasEdges, &atlasGrid, 1.0},
-                               {&smoothOutline, &atlasOuter, &outerGrid, 1.0}},
+                               {&outline, &atlasOuter, &outerGrid, 1.0}},
                               lo.cellPx, so);
             base = sw.field;
             reg.warp = base;
