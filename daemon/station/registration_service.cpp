@@ -91,6 +91,8 @@ json resultDocument(const RegisterRequest& rq, const cv::Mat& section, const cv:
                                                                                  : "fluorescence"}};
     out["atlas"] = {{"path", rq.atlas.string()}, {"width", labels.cols}, {"height", labels.rows}};
     out["damaged"] = reg.damaged;
+    out["damage_score"] = reg.damageScore;
+    out["damage_verdict"] = std::string(pipeline::toString(reg.damageVerdict));
     json regions = json::array();
     for (const pipeline::DamageRegion& d : reg.damage) {
         json poly = json::array();
@@ -100,7 +102,8 @@ json resultDocument(const RegisterRequest& rq, const cv::Mat& section, const cv:
                            {"polygon", std::move(poly)},
                            {"area_px", d.areaPx},
                            {"share", d.share},
-                           {"length_px", d.lengthPx}});
+                           {"length_px", d.lengthPx},
+                           {"score", d.score}});
     }
     out["damage_regions"] = std::move(regions);
     out["damage_fraction"] = reg.damageFraction;

@@ -492,16 +492,48 @@ cv::Mat piecesInside(const cv::Mat& pieces, const cv::Mat& region, double share)
     return out;
 }
 
+double damageEvidence(const DamageRegion& region, double brainWidthPx, const DamageParams& params) {
+    double e = params.damagedShare > 0 ? region.share / params.damagedShare : 0;
+    if (region.kind == DamageKind::Tear && brainWidthPx > 0 && params.deepTearFrac > 0 &&
+        region.lengthPx >= params.crackElongation * region.thicknessPx)
+        e = std::max(e, region.lengthPx / (params.deepTearFrac * brainWidthPx));
+    return e;
+}
+
+double scoreFromEvidence(double evidence) {
+    return evidence > 0 ? 1.0 - std::exp2(-evidence) : 0.0;
+}
+
+double damageScore(std::vector<DamageRegion>& regions, double brainWidthPx,
+                   const DamageParams& params) {
+    double share = 0;
+    double crack = 0;
+    for (DamageRegion& r : regions) {
+        const double e = damageEvidence(r, brainWidthPx, params);
+        r.score = scoreFromEvidence(e);
+        share += r.share;
+        crack = std::max(crack, e);
+    }
+    const double summed = params.damagedShare > 0 ? share / params.damagedShare : 0;
+    return scoreFromEvidence(std::max(summed, crack));
+}
+
 bool isDamaged(const std::vector<DamageRegion>& regions, double brainWidthPx,
                const DamageParams& params) {
-    double share = 0;
-    for (const DamageRegion& r : regions) {
-        share += r.share;
-        if (r.kind == DamageKind::Tear && r.lengthPx >= params.deepTearFrac * brainWidthPx &&
-            r.lengthPx >= params.crackElongation * r.thicknessPx)
-            return true;
+    std::vector<DamageRegion> copy = regions;
+    return damageScore(copy, brainWidthPx, params) >= params.flagScore;
+}
+
+std::string_view toString(DamageVerdict verdict) noexcept {
+    switch (verdict) {
+    case DamageVerdict::Clean:
+        return "clean";
+    case DamageVerdict::Damaged:
+        return "damaged";
+    case DamageVerdict::CheckRegistration:
+        return "check_registration";
     }
-    return share >= params.damagedShare;
+    return "clean";
 }
 
 std::string damageSummary(const std::vector<DamageRegion>& regions) {

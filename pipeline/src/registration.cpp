@@ -776,7 +776,9 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
             prepared->tissueMaskFine | piecesInside(prepared->smallPiecesFine, expectedBrain, 0.7);
         std::vector<DamageRegion> regions = tissueDamage(
             sectionTissue, expected, brainWidth, options.damage, fragments, reg.workingGrey);
-        reg.damaged = isDamaged(regions, brainWidth, options.damage);
+        reg.damageScore = damageScore(regions, brainWidth, options.damage);
+        reg.damaged = reg.damageScore >= options.damage.flagScore;
+        reg.damageVerdict = reg.damaged ? DamageVerdict::Damaged : DamageVerdict::Clean;
         reg.damageSummary = damageSummary(regions);
         // Report in full-resolution pixels.
         const double s = reg.workingScale;

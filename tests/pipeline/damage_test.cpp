@@ -314,3 +314,36 @@ TEST(Damage, ExtraPiecesAreThoseTheAtlasDoesNotHave) {
     cv::circle(two, {280, 150}, 60, cv::Scalar(255), cv::FILLED);
     EXPECT_TRUE(extraPieces(two, two).empty());
 }
+
+TEST(Damage, TheScoreIsOneHalfAtTheDecisionLineAndGrowsWithTheEvidence) {
+    const DamageParams p;
+    DamageRegion small;
+    small.kind = DamageKind::Missing;
+    small.share = p.damagedShare / 2;
+    DamageRegion other = small;
+    std::vector<DamageRegion> one{small};
+    const double half = damageScore(one, 500, p);
+    EXPECT_GT(half, 0.2);
+    EXPECT_LT(half, 0.5);
+    EXPECT_FALSE(isDamaged(one, 500, p));
+    // Two regions of half the share each reach the line together.
+    std::vector<DamageRegion> two{small, other};
+    EXPECT_DOUBLE_EQ(damageScore(two, 500, p), 0.5);
+    EXPECT_TRUE(isDamaged(two, 500, p));
+    EXPECT_NEAR(two[0].score, half, 1e-12); // each region keeps its own score
+    // A crack: its length over the deep-tear length, when it is a crack and not a hole.
+    DamageRegion crack;
+    crack.kind = DamageKind::Tear;
+    crack.lengthPx = 2 * p.deepTearFrac * 500;
+    crack.thicknessPx = 5;
+    std::vector<DamageRegion> c{crack};
+    EXPECT_DOUBLE_EQ(damageScore(c, 500, p), 0.75);
+    crack.thicknessPx = crack.lengthPx; // as thick as long: a hole, judged by its share only
+    std::vector<DamageRegion> h{crack};
+    EXPECT_DOUBLE_EQ(damageScore(h, 500, p), 0.0);
+    // The threshold is a setting.
+    DamageParams strict = p;
+    strict.flagScore = 0.8;
+    EXPECT_FALSE(isDamaged(c, 500, strict));
+    EXPECT_EQ(toString(DamageVerdict::CheckRegistration), "check_registration");
+}

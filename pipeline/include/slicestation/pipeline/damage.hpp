@@ -14,6 +14,13 @@ namespace slicestation::pipeline {
 enum class DamageKind { Tear, Missing, Fragment };
 std::string_view toString(DamageKind kind) noexcept;
 
+/// What a section is, for the technician: clean; damaged (re-mount it); or "check the
+/// registration": tissue looks missing only where the atlas cannot be trusted locally, so the
+/// deficit may be the registration's misfit rather than a tear.
+enum class DamageVerdict { Clean, Damaged, CheckRegistration };
+std::string_view
+toString(DamageVerdict verdict) noexcept; ///< "clean", "damaged", "check_registration"
+
 struct DamageRegion {
     DamageKind kind = DamageKind::Missing;
     std::vector<cv::Point2f> polygon; ///< outline, in the pixel frame of the masks it came from
@@ -22,6 +29,9 @@ struct DamageRegion {
     double lengthPx = 0;              ///< longest extent (a tear's depth)
     double openShare = 0;             ///< gaps: share of the rim on the glass outside the section
     double thicknessPx = 0;           ///< gaps: twice the largest inscribed radius
+    /// How sure the region is damage, in [0, 1]: 0.5 where its evidence alone reaches the
+    /// decision line (damageScore).
+    double score = 0;
 };
 
 /// Lengths are fractions of the brain width (the OBB's major extent of the section), so the rule
@@ -49,6 +59,9 @@ struct DamageParams {
                                     ///< are an outline that did not fit, not a bite
     double fissureRingFrac = 0.03;  ///< how far around a gap the parts beside it are looked for
     double fissurePurity = 0.6;     ///< share of one part on a side for that side to be it
+    /// The section is flagged when its damage score reaches this (a station setting; 0.5 is the
+    /// documented decision line of damagedShare and deepTearFrac).
+    double flagScore = 0.5;
 };
 
 /// The outermost outline of the tissue as a polygon with unit normals (unoriented).
@@ -160,9 +173,23 @@ double crackLength(const cv::Mat& region, const GapThreads& threads);
 /// `region` (CV_8U, same size).
 cv::Mat piecesInside(const cv::Mat& pieces, const cv::Mat& region, double share);
 
-/// The documented decision: damaged when the regions together cover at least damagedShare of the
-/// tissue, or one tear is a crack at least deepTearFrac of the brain width long and at least
-/// crackElongation times longer than its thickest width (DamageRegion::thicknessPx).
+/// The evidence of one region (1 at the decision line): its share of the tissue over
+/// damagedShare, or for a crack (a tear at least crackElongation times longer than its thickest
+/// width, DamageRegion::thicknessPx) its length over deepTearFrac of the brain width.
+double damageEvidence(const DamageRegion& region, double brainWidthPx, const DamageParams& params);
+
+/// Evidence e mapped to a score in [0, 1): 1 - 2^-e (0.5 at e = 1).
+double scoreFromEvidence(double evidence);
+
+/// Sets every region's score and returns the section's: the score of the larger of the regions'
+/// summed share over damagedShare and the strongest crack's evidence.
+double damageScore(std::vector<DamageRegion>& regions, double brainWidthPx,
+                   const DamageParams& params);
+
+/// The documented decision: damageScore(...) >= params.flagScore. With the default 0.5: damaged
+/// when the regions together cover at least damagedShare of the tissue, or one tear is a crack
+/// at least deepTearFrac of the brain width long and at least crackElongation times longer than
+/// its thickest width.
 bool isDamaged(const std::vector<DamageRegion>& regions, double brainWidthPx,
                const DamageParams& params);
 

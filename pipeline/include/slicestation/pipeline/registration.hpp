@@ -116,7 +116,10 @@ struct Registration {
     /// largest region first.
     std::vector<std::pair<std::int32_t, double>> regionConfidence;
 
-    bool damaged = false;             ///< the decision of isDamaged()
+    bool damaged = false; ///< damageVerdict == Damaged
+    /// The section's damage score in [0, 1] (damageScore); flagged at DamageParams::flagScore.
+    double damageScore = 0;
+    DamageVerdict damageVerdict = DamageVerdict::Clean;
     std::vector<DamageRegion> damage; ///< full-resolution pixels, largest first
     double damageFraction = 0;        ///< damaged area / tissue area
     std::string damageSummary;
