@@ -154,6 +154,134 @@ cv::Mat concavityExclusion(const std::vector<Concavity>& concavities, cv::Size s
     return mask;
 }
 
+namespace {
+/// Whether a region (CV_8U, its top-left at `offset`) runs along the expected midline: at least
+/// 70% of its pixels within `ringPx` of it and its principal axis within 20 degrees of it.
+bool alongMidline(const cv::Mat& region, cv::Point offset, const Midline& midline, int ringPx) {
+    const cv::Point2f dir = midline.b - midline.a;
+    const double len = std::hypot(dir.x, dir.y);
+    if (len <= 0)
+        return false;
+    const cv::Point2d u(dir.x / len, dir.y / len);
+    std::vector<cv::Point> pts;
+    cv::findNonZero(region, pts);
+    if (pts.empty())
+        return false;
+    int near = 0;
+    for (const cv::Point& p : pts) {
+        const cv::Point2d d(p.x + offset.x - midline.a.x, p.y + offset.y - midline.a.y);
+        if (std::abs(d.x * u.y - d.y * u.x) <= ringPx)
+            ++near;
+    }
+    if (near < 0.7 * double(pts.size()))
+        return false;
+    const cv::Moments m = cv::moments(region, true);
+    const double angle = 0.5 * std::atan2(2 * m.mu11, m.mu20 - m.mu02);
+    const double cosTurn = std::abs(std::cos(angle) * u.x + std::sin(angle) * u.y);
+    return cosTurn >= std::cos(20.0 * 3.14159265358979 / 180.0);
+}
+} // namespace
+
+std::vector<DamageRegion> thinCracks(const cv::Mat& grey, const cv::Mat& tissue,
+                                     const AtlasExpectation& expected, const cv::Mat& ventricles,
+                                     double brainWidthPx, const DamageParams& params,
+                                     const Midline& midline, const cv::Mat& known) {
+    CV_Assert(grey.type() == CV_32F && tissue.type() == CV_8U && tissue.size() == grey.size() &&
+              expected.brain.size() == grey.size() && ventricles.size() == grey.size() &&
+              (known.empty() || known.size() == grey.size()) &&
+              (expected.parts.empty() || expected.parts.size() == grey.size()));
+    std::vector<DamageRegion> out;
+    const double tissueArea = cv::countNonZero(tissue);
+    if (tissueArea <= 0 || brainWidthPx <= 0)
+        return out;
+    // The glass outside the section, a few pixels away from its blurred edge.
+    cv::Mat exterior;
+    cv::dilate(fillHoles(tissue), exterior,
+               cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(7, 7)));
+    exterior = ~exterior;
+    if (cv::countNonZero(exterior) < 256)
+        return out;
+    cv::Mat light;
+    cv::GaussianBlur(grey, light, cv::Size(), 0.7);
+    const float glass = percentile(light, 0.5, exterior);
+    cv::Mat dev;
+    cv::absdiff(light, cv::Scalar(glass), dev);
+    const float noise = std::max(1e-6f, 1.4826f * percentile(dev, 0.5, exterior));
+    const cv::Mat glassPx = light < glass + static_cast<float>(params.glassNoiseUnits) * noise;
+    // Glass narrower than the closing disc, with tissue on both sides.
+    const int half = std::max(1, static_cast<int>(std::lround(params.crackMaxWidthPx / 2)));
+    cv::Mat closed;
+    cv::morphologyEx(
+        ~glassPx, closed, cv::MORPH_CLOSE,
+        cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * half + 1, 2 * half + 1)));
+    // Where a crack may be: inside the mapped brain, away from the mapped ventricles.
+    const int slack = std::max(1, static_cast<int>(std::lround(params.slackFrac * brainWidthPx)));
+    cv::Mat nearVentricle;
+    cv::dilate(
+        ventricles, nearVentricle,
+        cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * slack + 1, 2 * slack + 1)));
+    const cv::Mat thin = glassPx & closed & expected.brain & ~nearVentricle;
+    const int ringPx =
+        std::max(1, static_cast<int>(std::lround(params.fissureRingFrac * brainWidthPx)));
+    cv::Mat tissueParts;
+    if (!expected.parts.empty()) {
+        tissueParts = cv::Mat::zeros(tissue.size(), CV_8U);
+        expected.parts.copyTo(tissueParts, tissue);
+    }
+    cv::Mat labels, stats, centroids;
+    const int n = cv::connectedComponentsWithStats(thin, labels, stats, centroids, 8, CV_32S);
+    const double minLength = params.crackMinFrac * brainWidthPx;
+    for (int i = 1; i < n; ++i) {
+        const int w = stats.at<int>(i, cv::CC_STAT_WIDTH), h = stats.at<int>(i, cv::CC_STAT_HEIGHT);
+        if (std::max(w, h) < 0.7 * minLength)
+            continue;
+        const double area = stats.at<int>(i, cv::CC_STAT_AREA);
+        const cv::Rect bounds(stats.at<int>(i, cv::CC_STAT_LEFT), stats.at<int>(i, cv::CC_STAT_TOP),
+                              w, h);
+        const cv::Rect roi = grown(bounds, ringPx + 1, labels.size());
+        const cv::Mat region = labels(roi) == i;
+        if (!known.empty() && cv::countNonZero(region & known(roi)) > 0.5 * area)
+            continue;
+        std::vector<cv::Point> pts;
+        cv::findNonZero(region, pts);
+        const cv::RotatedRect box = cv::minAreaRect(pts);
+        const double length = std::max(box.size.width, box.size.height);
+        cv::Mat dist;
+        cv::distanceTransform(region, dist, cv::DIST_L2, 3);
+        double radius = 0;
+        cv::minMaxLoc(dist, nullptr, &radius);
+        const double thickness = 2 * radius;
+        if (length < minLength || length < params.crackElongation * std::max(thickness, 1.0))
+            continue;
+        if (!tissueParts.empty() &&
+            betweenParts(region, tissueParts(roi), ringPx, params.fissurePurity))
+            continue;
+        // Tissue on both sides: beside a crack (past its blurred edge) lies tissue, not more
+        // glass-level speckle, as between the grains of dim textured tissue.
+        cv::Mat nearBand, farBand;
+        cv::dilate(region, nearBand, cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(5, 5)));
+        cv::dilate(
+            region, farBand,
+            cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(4 * half + 5, 4 * half + 5)));
+        const cv::Mat beside = farBand & ~nearBand & tissue(roi);
+        const double besideGlass = cv::countNonZero(beside & glassPx(roi)) /
+                                   std::max(1.0, double(cv::countNonZero(beside)));
+        if (besideGlass > params.crackWallGlass)
+            continue;
+        if (alongMidline(region, roi.tl(), midline, ringPx))
+            continue;
+        DamageRegion d;
+        d.kind = DamageKind::Tear;
+        d.polygon = polygonOf(region, roi.tl());
+        d.areaPx = area;
+        d.share = area / tissueArea;
+        d.lengthPx = length;
+        d.thicknessPx = thickness;
+        out.push_back(std::move(d));
+    }
+    return out;
+}
+
 GreyLevels greyLevels(const cv::Mat& grey, const cv::Mat& tissueMask) {
     CV_Assert(grey.type() == CV_32F && tissueMask.type() == CV_8U &&
               grey.size() == tissueMask.size());
@@ -268,6 +396,16 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const AtlasExp
         return crackLength(labels(roi) == id, gapThreads(thin, deficit(roi)));
     };
     const cv::Mat outside = ~fillHoles(tissueMask);
+    // The glass outside the section: its level and noise, to tell glass showing through a gap
+    // from dim tissue (a pale fibre tract) that the tissue mask left out.
+    float glassMedian = 0, glassNoise = 0, tissueMedian = 0;
+    if (!grey.empty() && cv::countNonZero(outside) > 64) {
+        glassMedian = percentile(grey, 0.5, outside);
+        cv::Mat dev;
+        cv::absdiff(grey, cv::Scalar(glassMedian), dev);
+        glassNoise = std::max(1e-6f, 1.4826f * percentile(dev, 0.5, outside));
+        tissueMedian = percentile(grey, 0.5, tissueMask);
+    }
     // The parts where the section has tissue: a fissure opened has tissue on both sides.
     cv::Mat tissueParts;
     if (!expected.parts.empty()) {
@@ -320,6 +458,16 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const AtlasExp
         // it is wide, and a lobe lost whole leaves a gap with glass all round.
         if (alongOutline && openShare < 0.75 && length >= params.bandElongation * 2 * thickness)
             continue;
+        // Glass shows through lost tissue; a gap at a level clearly above the glass is dim tissue
+        // (a pale fibre tract, unstained white matter) that the tissue mask left out.
+        double levelShare = 0, levelNoiseUnits = 0;
+        if (glassNoise > 0) {
+            const float level = percentile(grey(roi), 0.5, region);
+            levelNoiseUnits = (level - glassMedian) / glassNoise;
+            levelShare = (level - glassMedian) / std::max(1e-6f, tissueMedian - glassMedian);
+            if (levelNoiseUnits > params.glassNoiseUnits)
+                continue;
+        }
         // A gap with one part of the brain on one side and another on the other is a natural
         // fissure opened; a tear runs through a part, or across the interface.
         if (!tissueParts.empty() &&
@@ -335,6 +483,8 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const AtlasExp
         d.lengthPx = d.kind == DamageKind::Tear ? crackLengthOf(labels, i, bounds) : length;
         d.openShare = openShare;
         d.thicknessPx = 2 * thickness;
+        d.levelShare = levelShare;
+        d.levelNoiseUnits = levelNoiseUnits;
         out.push_back(std::move(d));
     }
 

@@ -539,6 +539,7 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     // Algorithm 2: deep, asymmetric concavities of the outline are damage; their edges stay out
     // of the matching. The mirror is the atlas midline seen through the initial placement.
     const double brainWidth = 2 * imgBox.halfMajor;
+    reg.brainWidthPx = brainWidth / reg.workingScale;
     cv::Mat damagedOutline; // where the outline is a deep asymmetric concavity
     if (options.detectDamage) {
         const Outline outline = tissueOutline(mainTissue);
@@ -776,10 +777,6 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
             prepared->tissueMaskFine | piecesInside(prepared->smallPiecesFine, expectedBrain, 0.7);
         std::vector<DamageRegion> regions = tissueDamage(
             sectionTissue, expected, brainWidth, options.damage, fragments, reg.workingGrey);
-        reg.damageScore = damageScore(regions, brainWidth, options.damage);
-        reg.damaged = reg.damageScore >= options.damage.flagScore;
-        reg.damageVerdict = reg.damaged ? DamageVerdict::Damaged : DamageVerdict::Clean;
-        reg.damageSummary = damageSummary(regions);
         // Report in full-resolution pixels.
         const double s = reg.workingScale;
         for (DamageRegion& d : regions) {
@@ -788,8 +785,51 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
             d.areaPx /= s * s;
             d.lengthPx /= s;
             d.thicknessPx /= s;
-            reg.damageFraction += d.share;
         }
+        // Thin cracks, at full resolution: glass lines narrower than the working image shows.
+        if (auto full = toGreyFloat(section); full) {
+            cv::Mat grey = *full;
+            if (reg.contrast == Contrast::Brightfield)
+                grey = -grey;
+            const auto up = [&](const cv::Mat& m) {
+                cv::Mat o;
+                cv::resize(m, o, section.size(), 0, 0, cv::INTER_NEAREST);
+                return o;
+            };
+            AtlasExpectation fullExpected{cv::Mat(), up(expectedBrain), cv::Mat()};
+            Midline midline;
+            // The atlas midline (the brain's centroid column), into the image by the affine.
+            const cv::Moments am = cv::moments(atlasMask, true);
+            if (am.m00 > 0) {
+                const double mx = am.m10 / am.m00;
+                const cv::Matx23d imageFromAtlas = invert(reg.affineAtlasFromImage());
+                const cv::Point2d a = apply(imageFromAtlas, cv::Point2d(mx, 0));
+                const cv::Point2d b = apply(imageFromAtlas, cv::Point2d(mx, atlasLabels.rows));
+                midline = {cv::Point2f(float(a.x), float(a.y)),
+                           cv::Point2f(float(b.x), float(b.y))};
+            }
+            if (!expected.parts.empty())
+                fullExpected.parts = up(expected.parts);
+            cv::Mat known = cv::Mat::zeros(section.size(), CV_8U);
+            for (const DamageRegion& d : regions) {
+                std::vector<cv::Point> poly;
+                for (const cv::Point2f& p : d.polygon)
+                    poly.emplace_back(cvRound(p.x), cvRound(p.y));
+                if (poly.size() >= 3)
+                    cv::fillPoly(known, std::vector<std::vector<cv::Point>>{poly}, cv::Scalar(255));
+            }
+            std::vector<DamageRegion> cracks =
+                thinCracks(grey, up(sectionTissue), fullExpected, up(ventricles), brainWidth / s,
+                           options.damage, midline, known);
+            for (DamageRegion& d : cracks)
+                regions.push_back(std::move(d));
+        }
+        reg.damageScore = damageScore(regions, brainWidth / s, options.damage);
+        reg.damaged = reg.damageScore >= options.damage.flagScore;
+        reg.damageVerdict = reg.damaged ? DamageVerdict::Damaged : DamageVerdict::Clean;
+        reg.damageSummary = damageSummary(regions);
+        for (const DamageRegion& d : regions)
+            reg.damageFraction += d.share;
         reg.damage = std::move(regions);
         timer.lap("damage");
     }

@@ -245,6 +245,7 @@ int main(int argc, char** argv) {
     app.add_option("--only", only,
                    "Run only these case indices of the --cases set (to look into them)");
     std::string overlayDir, refineMode = "on", nonLinearMode = "on", smoothMode = "off";
+    std::string damageLogPath;
     app.add_option("--nonlinear", nonLinearMode,
                    "Ours with its non-linear stages (Laplace warp, dense refinement): on | off "
                    "(off: the affine alone)")
@@ -253,6 +254,9 @@ int main(int argc, char** argv) {
         ->check(CLI::IsMember({"on", "off"}));
     app.add_option("--refine", refineMode, "Dense refinement of ours: on | off")
         ->check(CLI::IsMember({"on", "off"}));
+    app.add_option("--damage-log", damageLogPath,
+                   "Write a row per reported damage region (its measures, the registration's "
+                   "confidence around it and how much of it is painted damage) here");
     app.add_option("--overlays", overlayDir,
                    "Write each case's overlay (ours, damage in red) here");
     std::string familyText = "all", labelsText = "major";
@@ -265,6 +269,10 @@ int main(int argc, char** argv) {
                    "all (every Allen id)")
         ->check(CLI::IsMember({"major", "all"}));
     CLI11_PARSE(app, argc, argv);
+    FILE* damageLog = damageLogPath.empty() ? nullptr : std::fopen(damageLogPath.c_str(), "w");
+    if (damageLog)
+        std::fprintf(damageLog, "family,case,damaged,flag,kind,share,length_w,thick_w,open,score,"
+                                "ring_confidence,painted,level_share,level_noise\n");
     int w = 0, h = 0;
     if (std::sscanf(sizeText.c_str(), "%dx%d", &w, &h) != 2 || w < 300 || h < 300) {
         std::cerr << "--size must be WxH with both at least 300\n";
@@ -405,6 +413,36 @@ int main(int argc, char** argv) {
                     ++d.overlapped;
             }
             damageRows[family].push_back(d);
+            if (damageLog) {
+                cv::Mat truthAll = cv::Mat::zeros(gen->image.size(), CV_8U);
+                for (const auto& t : gen->truth.damage)
+                    fillPolygon(truthAll, t.polygon);
+                for (const auto& r : reg->damage) {
+                    cv::Mat m = cv::Mat::zeros(gen->image.size(), CV_8U);
+                    fillPolygon(m, r.polygon);
+                    const double area = std::max(1, cv::countNonZero(m));
+                    const double painted = cv::countNonZero(m & truthAll) / area;
+                    double conf = -1;
+                    if (!reg->confidence.empty()) {
+                        cv::Mat small;
+                        cv::resize(m, small, reg->confidence.size(), 0, 0, cv::INTER_NEAREST);
+                        cv::Mat ring;
+                        cv::dilate(small, ring,
+                                   cv::getStructuringElement(cv::MORPH_ELLIPSE, {9, 9}));
+                        ring &= ~small;
+                        ring &= reg->confidence > 0;
+                        if (cv::countNonZero(ring) > 0)
+                            conf = cv::mean(reg->confidence, ring)[0];
+                    }
+                    const double bw = std::max(1.0, reg->brainWidthPx);
+                    std::fprintf(damageLog,
+                                 "%s,%d,%d,%s,%s,%.5f,%.4f,%.4f,%.3f,%.3f,%.3f,%.3f,%.3f,%.1f\n",
+                                 family.c_str(), c.index, int(d.truth), d.flagged ? "flag" : "-",
+                                 std::string(pipeline::toString(r.kind)).c_str(), r.share,
+                                 r.lengthPx / bw, r.thicknessPx / bw, r.openShare, r.score, conf,
+                                 painted, r.levelShare, r.levelNoiseUnits);
+                }
+            }
             if (!overlayDir.empty()) {
                 const cv::Mat tile = pipeline::renderOverlay(*reg, plane);
                 std::filesystem::create_directories(overlayDir);

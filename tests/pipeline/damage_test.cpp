@@ -347,3 +347,83 @@ TEST(Damage, TheScoreIsOneHalfAtTheDecisionLineAndGrowsWithTheEvidence) {
     EXPECT_FALSE(isDamaged(c, 500, strict));
     EXPECT_EQ(toString(DamageVerdict::CheckRegistration), "check_registration");
 }
+
+namespace {
+/// A fluorescence-like section: glass 0.05 with noise, tissue `level` with noise, in `tissue`.
+cv::Mat noisySection(const cv::Mat& tissue, float level, float noise, std::uint64_t seed) {
+    cv::Mat grey(tissue.size(), CV_32F, cv::Scalar(0.05));
+    grey.setTo(level, tissue);
+    cv::Mat n(tissue.size(), CV_32F);
+    cv::RNG rng(seed);
+    rng.fill(n, cv::RNG::NORMAL, 0, noise);
+    return grey + n;
+}
+} // namespace
+
+TEST(Damage, AGapAtADimTissueLevelIsNotGlassAndNotDamage) {
+    // A pale tract that the tissue mask left out: its level is far above the glass noise.
+    const cv::Mat expected = ellipseMask({600, 400}, {300, 200}, {250, 160});
+    cv::Mat tissue = expected.clone();
+    cv::ellipse(tissue, {300, 200}, {80, 12}, 20, 0, 360, cv::Scalar(0), cv::FILLED);
+    cv::Mat tract = expected & ~tissue;
+    cv::Mat grey = noisySection(expected, 0.6f, 0.01f, 3);
+    grey.setTo(0.12f, tract); // dim tissue: 7 noise units above the glass
+    const auto pale = tissueDamage(tissue, {expected, expected, {}}, 500, DamageParams{}, {}, grey);
+    EXPECT_TRUE(pale.empty());
+    // The same gap showing glass is damage, with its level near the glass.
+    grey.setTo(0.05f, tract);
+    const auto torn = tissueDamage(tissue, {expected, expected, {}}, 500, DamageParams{}, {}, grey);
+    ASSERT_EQ(torn.size(), 1u);
+    EXPECT_LT(std::abs(torn[0].levelNoiseUnits), 3.0);
+    EXPECT_LT(torn[0].levelShare, 0.05);
+}
+
+TEST(Damage, ThinCracksAreGlassLinesWithTissueBesideThemAwayFromTheMidline) {
+    const cv::Mat brain = ellipseMask({1200, 800}, {600, 400}, {500, 320});
+    const cv::Mat none = cv::Mat::zeros(brain.size(), CV_8U);
+    const AtlasExpectation expected{brain, brain, cv::Mat()};
+    const Midline midline{{600, 0}, {600, 800}};
+    const DamageParams p;
+    // A 3 px crack from the edge, 200 px long (20% of the width): glass showing through.
+    cv::Mat tissue = brain.clone();
+    cv::line(tissue, {150, 300}, {330, 390}, cv::Scalar(0), 3);
+    cv::Mat grey = noisySection(tissue, 0.6f, 0.01f, 5);
+    auto cracks = thinCracks(grey, tissue, expected, none, 1000, p, midline);
+    ASSERT_EQ(cracks.size(), 1u);
+    EXPECT_EQ(cracks[0].kind, DamageKind::Tear);
+    EXPECT_NEAR(cracks[0].lengthPx, 200, 25);
+    EXPECT_LE(cracks[0].thicknessPx, 5);
+    std::vector<DamageRegion> flagged = cracks;
+    EXPECT_GE(damageScore(flagged, 1000, p), p.flagScore);
+    // Already known as a gap: not reported twice.
+    cv::Mat known = brain & ~tissue;
+    EXPECT_TRUE(thinCracks(grey, tissue, expected, none, 1000, p, midline, known).empty());
+    // The same glass line along the midline is the longitudinal fissure.
+    tissue = brain.clone();
+    cv::line(tissue, {600, 150}, {602, 400}, cv::Scalar(0), 3);
+    grey = noisySection(tissue, 0.6f, 0.01f, 6);
+    EXPECT_TRUE(thinCracks(grey, tissue, expected, none, 1000, p, midline).empty());
+    // Beside a mapped ventricle, a slit of glass is that ventricle.
+    cv::Mat ventricles = none.clone();
+    cv::line(ventricles, {400, 500}, {450, 560}, cv::Scalar(255), 4);
+    tissue = brain.clone();
+    cv::line(tissue, {400, 500}, {450, 560}, cv::Scalar(0), 3);
+    grey = noisySection(tissue, 0.6f, 0.01f, 7);
+    EXPECT_TRUE(thinCracks(grey, tissue, expected, ventricles, 1000, p, midline).empty());
+    // A glass line in dim tissue whose grains go down to the glass level (a fifth of the pixels
+    // around it): a web between grains, no crack, since glass lies beside it too.
+    tissue = brain.clone();
+    cv::line(tissue, {150, 300}, {330, 390}, cv::Scalar(0), 3);
+    grey = noisySection(tissue, 0.6f, 0.01f, 8);
+    cv::Mat coarse(brain.rows / 3, brain.cols / 3, CV_32F), salt; // grains 3 px across
+    cv::RNG rng(9);
+    rng.fill(coarse, cv::RNG::UNIFORM, 0.0, 1.0);
+    cv::resize(coarse, salt, brain.size(), 0, 0, cv::INTER_NEAREST);
+    cv::Mat band = cv::Mat::zeros(brain.size(), CV_8U);
+    cv::line(band, {150, 300}, {330, 390}, cv::Scalar(255), 30);
+    grey.setTo(0.05f, band & (salt < 0.2f));
+    EXPECT_TRUE(thinCracks(grey, tissue, expected, none, 1000, p, midline).empty());
+    DamageParams anyWall = p; // the line is there: only the tissue beside tells them apart
+    anyWall.crackWallGlass = 1.0;
+    EXPECT_FALSE(thinCracks(grey, tissue, expected, none, 1000, anyWall, midline).empty());
+}

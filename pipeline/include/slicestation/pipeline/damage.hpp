@@ -29,6 +29,12 @@ struct DamageRegion {
     double lengthPx = 0;              ///< longest extent (a tear's depth)
     double openShare = 0;             ///< gaps: share of the rim on the glass outside the section
     double thicknessPx = 0;           ///< gaps: twice the largest inscribed radius
+    /// Gaps, where the grey image is known: the median grey level inside the gap above the
+    /// glass outside the section, as a share of the span from the glass to the median tissue
+    /// (0 = glass, 1 = typical tissue), and in units of the glass noise (robust spread of the
+    /// glass outside the section).
+    double levelShare = 0;
+    double levelNoiseUnits = 0;
     /// How sure the region is damage, in [0, 1]: 0.5 where its evidence alone reaches the
     /// decision line (damageScore).
     double score = 0;
@@ -59,6 +65,18 @@ struct DamageParams {
                                     ///< are an outline that did not fit, not a bite
     double fissureRingFrac = 0.03;  ///< how far around a gap the parts beside it are looked for
     double fissurePurity = 0.6;     ///< share of one part on a side for that side to be it
+    /// A gap whose median grey level lies more than this many glass-noise units above the glass
+    /// is dim tissue (a pale tract), not glass showing through: not damage. 3 = the usual
+    /// three-sigma of a single pixel, generous to glass since a gap's median is far steadier.
+    double glassNoiseUnits = 3.0;
+    /// Cracks (thinCracks): glass lines at most this wide (full-resolution px; 1-5 px at
+    /// 1500 px is what a section's crack is),
+    double crackMaxWidthPx = 7.0;
+    /// and at least this share of the brain width long.
+    double crackMinFrac = 0.05;
+    /// Beside a crack lies tissue: at most this share of glass-level pixels there. Dim textured
+    /// tissue has glass-level grains between its cells, whose thin glass webs are no crack.
+    double crackWallGlass = 0.02;
     /// The section is flagged when its damage score reaches this (a station setting; 0.5 is the
     /// documented decision line of damagedShare and deepTearFrac).
     double flagScore = 0.5;
@@ -111,6 +129,12 @@ struct AtlasExpectation {
     cv::Mat parts;
 };
 
+/// The brain's midline in a section's pixels, as two points on it (equal = unknown). The
+/// longitudinal fissure (and the cleft between the olfactory bulbs) runs along it.
+struct Midline {
+    cv::Point2f a, b;
+};
+
 /// Beyond the paper, after registration: gaps where the atlas expects tissue but the section
 /// shows glass, anywhere in the section and symmetric or not, and tissue pieces lying mostly
 /// outside the mapped atlas brain away from the main tissue (fragments). A gap with one of
@@ -123,6 +147,26 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const AtlasExp
                                        double brainWidthPx, const DamageParams& params,
                                        const cv::Mat& knownFragments = cv::Mat(),
                                        const cv::Mat& grey = cv::Mat());
+
+/// Thin cracks at full resolution: lines of glass a few pixels wide crossing the tissue, where
+/// the section split and the slide shows through. A pixel is glass when its lightly blurred
+/// (0.7 px) level lies within params.glassNoiseUnits of the glass noise above the glass outside
+/// the section (both measured on `grey`); a crack is the glass that a closing of the rest by a
+/// disc of params.crackMaxWidthPx fills (glass narrower than that, with tissue on both sides),
+/// at least params.crackMinFrac of the brain width long and crackElongation times longer than
+/// wide, inside the mapped atlas brain, not beside a mapped ventricle (within slackFrac of the
+/// width; a ventricle's slit is glass too), not between two of `expected.parts` and not along
+/// the midline (within fissureRingFrac of it, 20 degrees; both are natural fissures), with
+/// tissue, not more glass, beside it (at most crackWallGlass of the pixels 2 to crackMaxWidthPx
+/// + 2 px away).
+/// `grey`: CV_32F, tissue bright, full resolution; `tissue`: the section's tissue mask at that
+/// size; `expected` and `ventricles` (CV_8U) the mapped atlas at that size. Returned regions are
+/// tears in those pixels, `share` of the tissue's area, skipping those overlapping `known`
+/// (CV_8U gaps already found, or empty) by half their area.
+std::vector<DamageRegion> thinCracks(const cv::Mat& grey, const cv::Mat& tissue,
+                                     const AtlasExpectation& expected, const cv::Mat& ventricles,
+                                     double brainWidthPx, const DamageParams& params,
+                                     const Midline& midline, const cv::Mat& known = cv::Mat());
 
 /// The glass level (mean outside `tissueMask`) and the typical tissue level (median inside) of a
 /// section's grey image (CV_32F, tissue bright); both 0 when the mask is empty or full.

@@ -122,6 +122,7 @@ struct Registration {
     DamageVerdict damageVerdict = DamageVerdict::Clean;
     std::vector<DamageRegion> damage; ///< full-resolution pixels, largest first
     double damageFraction = 0;        ///< damaged area / tissue area
+    double brainWidthPx = 0;          ///< the section's OBB major extent, full-resolution px
     std::string damageSummary;
     std::vector<Concavity> concavities; ///< deep outline concavities (working px), for diagnosis
 
