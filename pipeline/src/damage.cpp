@@ -194,6 +194,21 @@ std::vector<DamageRegion> thinCracks(const cv::Mat& grey, const cv::Mat& tissue,
     const double tissueArea = cv::countNonZero(tissue);
     if (tissueArea <= 0 || brainWidthPx <= 0)
         return out;
+    // Work in the box of the section and the mapped brain with a band of glass around it.
+    const cv::Rect work = grown(cv::boundingRect(tissue | expected.brain), 24, grey.size());
+    if (work.area() < grey.size().area()) {
+        const auto crop = [&](const cv::Mat& m) { return m.empty() ? m : m(work); };
+        const AtlasExpectation inBox{crop(expected.tissue), crop(expected.brain),
+                                     crop(expected.parts)};
+        const cv::Point2f shift(float(work.x), float(work.y));
+        const Midline boxMidline{midline.a - shift, midline.b - shift};
+        out = thinCracks(grey(work), tissue(work), inBox, ventricles(work), brainWidthPx, params,
+                         boxMidline, crop(known));
+        for (DamageRegion& d : out)
+            for (cv::Point2f& p : d.polygon)
+                p += shift;
+        return out;
+    }
     // The glass outside the section, a few pixels away from its blurred edge.
     cv::Mat exterior;
     cv::dilate(fillHoles(tissue), exterior,

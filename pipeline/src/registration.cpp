@@ -771,10 +771,10 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         AtlasExpectation expected{expectedBrain & ~ventricles, expectedBrain, cv::Mat()};
         if (options.separateParts.size() > 1)
             expected.parts = partMap(seen, options.separateParts);
-        // Small pieces set aside as debris where the atlas expects brain are tissue there (a
-        // lobe cut apart), not glass.
-        const cv::Mat sectionTissue =
-            prepared->tissueMaskFine | piecesInside(prepared->smallPiecesFine, expectedBrain, 0.7);
+        // Small pieces set aside as debris are tissue: where the atlas expects brain a lobe cut
+        // apart, not glass; elsewhere, when large enough to be reported (minRegionShare), a
+        // fragment that came loose (dust is smaller).
+        const cv::Mat sectionTissue = prepared->tissueMaskFine | prepared->smallPiecesFine;
         std::vector<DamageRegion> regions = tissueDamage(
             sectionTissue, expected, brainWidth, options.damage, fragments, reg.workingGrey);
         // Report in full-resolution pixels.
@@ -786,6 +786,7 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
             d.lengthPx /= s;
             d.thicknessPx /= s;
         }
+        timer.lap("damage");
         // Thin cracks, at full resolution: glass lines narrower than the working image shows.
         if (auto full = toGreyFloat(section); full) {
             cv::Mat grey = *full;
@@ -831,7 +832,7 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         for (const DamageRegion& d : regions)
             reg.damageFraction += d.share;
         reg.damage = std::move(regions);
-        timer.lap("damage");
+        timer.lap("damage-cracks");
     }
     timer.total();
     return reg;
