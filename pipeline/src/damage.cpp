@@ -11,6 +11,7 @@
 #include <array>
 #include <cmath>
 #include <cstdio>
+#include <map>
 #include <optional>
 #include <unordered_map>
 
@@ -48,6 +49,8 @@ std::string_view toString(DamageKind kind) noexcept {
         return "tear";
     case DamageKind::Missing:
         return "missing";
+    case DamageKind::Fold:
+        return "fold";
     case DamageKind::Fragment:
         return "fragment";
     }
@@ -292,6 +295,104 @@ std::vector<DamageRegion> thinCracks(const cv::Mat& grey, const cv::Mat& tissue,
         d.share = area / tissueArea;
         d.lengthPx = length;
         d.thicknessPx = thickness;
+        out.push_back(std::move(d));
+    }
+    return out;
+}
+
+std::vector<DamageRegion> foldBands(const cv::Mat& grey, const cv::Mat& tissueMask,
+                                    const cv::Mat& expectedTissue, const cv::Mat& labels,
+                                    double brainWidthPx, const DamageParams& params) {
+    CV_Assert(grey.type() == CV_32F && tissueMask.type() == CV_8U && labels.type() == CV_32S &&
+              grey.size() == tissueMask.size() && labels.size() == grey.size() &&
+              expectedTissue.size() == grey.size());
+    std::vector<DamageRegion> out;
+    const double tissueArea = cv::countNonZero(tissueMask);
+    if (tissueArea <= 0 || brainWidthPx <= 0)
+        return out;
+    const cv::Mat outside = ~fillHoles(tissueMask);
+    if (cv::countNonZero(outside) < 64)
+        return out;
+    const float glass = percentile(grey, 0.5, outside);
+    const cv::Mat gaps = expectedTissue & ~tissueMask;
+    cv::Mat gapLabels, stats, centroids;
+    const int n = cv::connectedComponentsWithStats(gaps, gapLabels, stats, centroids, 8, CV_32S);
+    const double minLength = params.crackMinFrac * brainWidthPx;
+    for (int i = 1; i < n; ++i) {
+        const int w = stats.at<int>(i, cv::CC_STAT_WIDTH), h = stats.at<int>(i, cv::CC_STAT_HEIGHT);
+        if (std::max(w, h) < minLength)
+            continue;
+        const cv::Rect bounds(stats.at<int>(i, cv::CC_STAT_LEFT), stats.at<int>(i, cv::CC_STAT_TOP),
+                              w, h);
+        cv::Mat dist;
+        const cv::Mat whole = gapLabels == i;
+        cv::distanceTransform(whole(grown(bounds, 1, grey.size())), dist, cv::DIST_L2, 3);
+        double radius = 0;
+        cv::minMaxLoc(dist, nullptr, &radius);
+        const int depth = std::max(2, static_cast<int>(std::lround(2 * radius)));
+        // A folded flap is shallow; a deeper gap is a bite or a lost lobe, not a fold.
+        if (depth > 2 * params.shallowFrac * brainWidthPx)
+            continue;
+        const cv::Rect roi = grown(bounds, 3 * depth + 3, grey.size());
+        const cv::Mat region = whole(roi);
+        // Along the outline: much of its rim on the outside glass.
+        cv::Mat rim;
+        cv::dilate(region, rim, cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(5, 5)));
+        rim &= ~region;
+        const double openShare =
+            cv::countNonZero(rim & outside(roi)) / std::max(1.0, double(cv::countNonZero(rim)));
+        if (openShare <= params.alongOutlineShare)
+            continue;
+        // The band of tissue as deep as the gap along it, and the band behind that.
+        cv::Mat away;
+        cv::distanceTransform(~region, away, cv::DIST_L2, 3);
+        const cv::Mat d1 = away <= depth + 1;
+        const cv::Mat d2 = away <= 2 * depth + 1;
+        const cv::Mat tissueRoi = tissueMask(roi);
+        const cv::Mat nearBand = d1 & tissueRoi;
+        const cv::Mat farBand = d2 & ~d1 & tissueRoi;
+        std::map<std::int32_t, std::pair<std::vector<float>, std::vector<float>>> byRegion;
+        for (int y = 0; y < roi.height; ++y) {
+            const std::uint8_t* nb = nearBand.ptr<std::uint8_t>(y);
+            const std::uint8_t* fb = farBand.ptr<std::uint8_t>(y);
+            const std::int32_t* lb = labels.ptr<std::int32_t>(y + roi.y) + roi.x;
+            const float* g = grey.ptr<float>(y + roi.y) + roi.x;
+            for (int x = 0; x < roi.width; ++x) {
+                if (lb[x] == 0)
+                    continue;
+                if (nb[x])
+                    byRegion[lb[x]].first.push_back(g[x]);
+                else if (fb[x])
+                    byRegion[lb[x]].second.push_back(g[x]);
+            }
+        }
+        double weighted = 0, weight = 0;
+        for (auto& [id, bands] : byRegion) {
+            auto& [nearV, farV] = bands;
+            if (nearV.size() < 20 || farV.size() < 20)
+                continue;
+            const auto median = [](std::vector<float>& v) {
+                std::nth_element(v.begin(), v.begin() + std::ptrdiff_t(v.size() / 2), v.end());
+                return v[v.size() / 2];
+            };
+            const double above = median(farV) - glass;
+            if (above <= 0)
+                continue;
+            const double count = double(std::min(nearV.size(), farV.size()));
+            weighted += count * (median(nearV) - glass) / above;
+            weight += count;
+        }
+        if (weight < 40 || weighted / weight < params.foldRatio)
+            continue;
+        DamageRegion d;
+        d.kind = DamageKind::Fold;
+        d.polygon = polygonOf(nearBand, roi.tl());
+        d.areaPx = cv::countNonZero(nearBand);
+        d.share = d.areaPx / tissueArea;
+        d.lengthPx = std::max(w, h);
+        d.thicknessPx = depth;
+        d.openShare = openShare;
+        d.levelShare = weighted / weight;
         out.push_back(std::move(d));
     }
     return out;
@@ -704,14 +805,14 @@ std::string_view toString(DamageVerdict verdict) noexcept {
 std::string damageSummary(const std::vector<DamageRegion>& regions) {
     if (regions.empty())
         return "no damage found";
-    double share[3] = {0, 0, 0};
-    int count[3] = {0, 0, 0};
+    double share[4] = {0, 0, 0, 0};
+    int count[4] = {0, 0, 0, 0};
     for (const DamageRegion& r : regions) {
         share[static_cast<int>(r.kind)] += r.share;
         ++count[static_cast<int>(r.kind)];
     }
     std::string s;
-    for (int k = 0; k < 3; ++k) {
+    for (int k = 0; k < 4; ++k) {
         if (!count[k])
             continue;
         char buf[96];

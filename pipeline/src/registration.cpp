@@ -771,12 +771,15 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         AtlasExpectation expected{expectedBrain & ~ventricles, expectedBrain, cv::Mat()};
         if (options.separateParts.size() > 1)
             expected.parts = partMap(seen, options.separateParts);
-        // Small pieces set aside as debris are tissue: where the atlas expects brain a lobe cut
-        // apart, not glass; elsewhere, when large enough to be reported (minRegionShare), a
-        // fragment that came loose (dust is smaller).
-        const cv::Mat sectionTissue = prepared->tissueMaskFine | prepared->smallPiecesFine;
+        // Small pieces set aside as debris where the atlas expects brain are tissue there (a
+        // lobe cut apart), not glass.
+        const cv::Mat sectionTissue =
+            prepared->tissueMaskFine | piecesInside(prepared->smallPiecesFine, expectedBrain, 0.7);
         std::vector<DamageRegion> regions = tissueDamage(
             sectionTissue, expected, brainWidth, options.damage, fragments, reg.workingGrey);
+        for (DamageRegion& d : foldBands(reg.workingGrey, sectionTissue, expected.tissue, seen,
+                                         brainWidth, options.damage))
+            regions.push_back(std::move(d));
         // Report in full-resolution pixels.
         const double s = reg.workingScale;
         for (DamageRegion& d : regions) {

@@ -427,3 +427,27 @@ TEST(Damage, ThinCracksAreGlassLinesWithTissueBesideThemAwayFromTheMidline) {
     anyWall.crackWallGlass = 1.0;
     EXPECT_FALSE(thinCracks(grey, tissue, expected, none, 1000, anyWall, midline).empty());
 }
+
+TEST(Damage, AFoldIsADoubledBandBesideAGapAlongTheEdgeAndASliverIsNot) {
+    // The atlas expects an ellipse; along its top the section's edge moved in by 12 px.
+    const cv::Mat expected = ellipseMask({600, 400}, {300, 200}, {250, 160});
+    cv::Mat tissue = expected.clone();
+    tissue(cv::Rect(200, 0, 200, 52)).setTo(0);
+    cv::Mat labels(expected.size(), CV_32S, cv::Scalar(0));
+    labels.setTo(7, expected);
+    const DamageParams p;
+    // Folded: the 12 px band inside the new edge holds the flap too, twice as bright.
+    cv::Mat grey = noisySection(tissue, 0.5f, 0.01f, 11);
+    cv::Mat band = cv::Mat::zeros(expected.size(), CV_8U);
+    band(cv::Rect(210, 52, 180, 12)).setTo(255);
+    grey.setTo(0.95f, band & tissue);
+    auto folds = foldBands(grey, tissue, expected, labels, 500, p);
+    ASSERT_EQ(folds.size(), 1u);
+    EXPECT_EQ(folds[0].kind, DamageKind::Fold);
+    EXPECT_NEAR(folds[0].levelShare, 2.0, 0.3);
+    EXPECT_GT(folds[0].share, 0.0);
+    EXPECT_EQ(toString(DamageKind::Fold), "fold");
+    // The same edge with tissue of one level: an outline that did not fit, no fold.
+    grey = noisySection(tissue, 0.5f, 0.01f, 12);
+    EXPECT_TRUE(foldBands(grey, tissue, expected, labels, 500, p).empty());
+}

@@ -11,7 +11,7 @@
 
 namespace slicestation::pipeline {
 
-enum class DamageKind { Tear, Missing, Fragment };
+enum class DamageKind { Tear, Missing, Fragment, Fold };
 std::string_view toString(DamageKind kind) noexcept;
 
 /// What a section is, for the technician: clean; damaged (re-mount it); or "check the
@@ -77,6 +77,9 @@ struct DamageParams {
     /// Beside a crack lies tissue: at most this share of glass-level pixels there. Dim textured
     /// tissue has glass-level grains between its cells, whose thin glass webs are no crack.
     double crackWallGlass = 0.02;
+    /// Folds (foldBands): the band along the edge at least this many times as far above the
+    /// glass as the same region behind it; 2 is tissue doubled, 1 none, 1.5 half way.
+    double foldRatio = 1.5;
     /// The section is flagged when its damage score reaches this (a station setting; 0.5 is the
     /// documented decision line of damagedShare and deepTearFrac).
     double flagScore = 0.5;
@@ -167,6 +170,19 @@ std::vector<DamageRegion> thinCracks(const cv::Mat& grey, const cv::Mat& tissue,
                                      const AtlasExpectation& expected, const cv::Mat& ventricles,
                                      double brainWidthPx, const DamageParams& params,
                                      const Midline& midline, const cv::Mat& known = cv::Mat());
+
+/// Folds: a flap of the edge folded back over the tissue. The edge moves in (the atlas expects
+/// tissue where glass now is, along the outline) and the tissue beside it is doubled: within one
+/// atlas region, the band along that stretch of edge, as deep as the gap, is about twice as far
+/// above the glass as the band behind it (fluorescence adds; absorbance adds in brightfield,
+/// inverted). For each gap along the outline (over alongOutlineShare of its rim on the outside
+/// glass), at least crackMinFrac of the brain width long, the ratio is taken per atlas region
+/// (`labels`, CV_32S, the mapped atlas) over the two bands and combined by pixel count; a fold
+/// when it reaches params.foldRatio. Returns the doubled bands as Fold regions (working px of
+/// the masks given). `expectedTissue`: the mapped atlas brain minus ventricles (CV_8U).
+std::vector<DamageRegion> foldBands(const cv::Mat& grey, const cv::Mat& tissueMask,
+                                    const cv::Mat& expectedTissue, const cv::Mat& labels,
+                                    double brainWidthPx, const DamageParams& params);
 
 /// The glass level (mean outside `tissueMask`) and the typical tissue level (median inside) of a
 /// section's grey image (CV_32F, tissue bright); both 0 when the mask is empty or full.
