@@ -12,8 +12,9 @@
 ///   /api/sections/{id}/image.jpg, /api/sections/{id}/overlay.png.
 /// Events: GET /api/events, Server-Sent Events (section_captured, section_registered,
 ///   section_damaged, section_check_registration, section_failed, section_rescan, run_state,
-///   alert_raised, alert_acknowledged, damage_threshold; data is JSON); a slow client loses its oldest events, never slows the
-///   station. At most HttpLimits::kMaxEventStreams at once; past them 503.
+///   alert_raised, alert_acknowledged, damage_threshold; data is JSON); a slow client loses its
+///   oldest events, never slows the station. At most HttpLimits::kMaxEventStreams at once; past
+///   them 503.
 /// Control (need `Authorization: Bearer <token>`, else 401):
 ///   POST /api/runs (body: a plan, TOML or JSON), /api/runs/{id}/pause|resume|cancel,
 ///   /api/sections/{id}/rescan, /api/alerts/{id}/ack {"action": "rescan"|"accept"|text},
