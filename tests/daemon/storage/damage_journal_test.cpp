@@ -1,6 +1,8 @@
 // Issue 18 in the journal: schema version 2 (score, verdict, flag score; station settings), the
 // migration of a version-1 file, the damage flags with their answers, and the lab's report
 // computed from them.
+#include "slicestation/daemon/config/config_document.hpp"
+#include "slicestation/daemon/config/daemon_settings.hpp"
 #include "slicestation/daemon/station/damage_report.hpp"
 #include "slicestation/daemon/storage/journal.hpp"
 
@@ -333,4 +335,33 @@ TEST(DamageReport, SinceIsAUtcDateOrTimePrefix) {
     for (const char* bad : {"yesterday", "2026-13-01", "2026-12-1", "2026-12-01T", "2026/12/01",
                             "2026-12-01&x=1", "2026-12-01T08:30:00.0000"})
         EXPECT_FALSE(parseSinceUtc(bad)) << bad;
+}
+
+TEST(DamageSettings, FlagScoreIsReadCheckedAndSnapshotted) {
+    const auto parse = [](const std::string& extra) {
+        auto doc =
+            parseDocument("[scan]\num_per_px = 2\n" + extra, DocumentFormat::Toml, "station.toml");
+        EXPECT_TRUE(doc);
+        return parseDaemonSettings(*doc, "station.toml");
+    };
+    auto plain = parse("");
+    ASSERT_TRUE(plain);
+    EXPECT_DOUBLE_EQ(plain->scan.damageFlagScore, 0.5);
+    auto set = parse("[damage]\nflag_score = 0.74\n");
+    ASSERT_TRUE(set) << set.error().message;
+    EXPECT_DOUBLE_EQ(set->scan.damageFlagScore, 0.74);
+    // The run's snapshot keeps it; an older snapshot without it reads the old decision line.
+    const nlohmann::json snap = toJson(set->scan);
+    EXPECT_DOUBLE_EQ(snap["damage_flag_score"].get<double>(), 0.74);
+    EXPECT_DOUBLE_EQ(scanSettingsFromJson(snap, "run 1")->damageFlagScore, 0.74);
+    nlohmann::json old = snap;
+    old.erase("damage_flag_score");
+    EXPECT_DOUBLE_EQ(scanSettingsFromJson(old, "run 1")->damageFlagScore, 0.5);
+    // Out of range, not a number, or a key it does not know: refused, naming the key.
+    for (const char* bad : {"[damage]\nflag_score = 1.5\n", "[damage]\nflag_score = \"high\"\n",
+                            "[damage]\nflag_scor = 0.5\n", "damage = 3\n"}) {
+        auto r = parse(bad);
+        ASSERT_FALSE(r) << bad;
+        EXPECT_NE(r.error().message.find("damage"), std::string::npos) << r.error().message;
+    }
 }
