@@ -6,8 +6,10 @@
 /// Files are referenced only after they are complete on disk: callers write the image (atomic
 /// rename + fsync) first and journal it second.
 ///
-/// Schema versions live in `PRAGMA user_version`; open() applies the migrations a file lacks, in
-/// one transaction each, and refuses a file written by a newer version (Unsupported).
+/// Schema versions live in `PRAGMA user_version`; open() applies the migrations a file lacks, all
+/// in one transaction, and refuses a file written by a newer version (Unsupported). Version 2
+/// (issue 18) adds the damage score, verdict and flag score of every registration (NULL, unknown,
+/// for older rows) and the station settings kept in the journal.
 ///
 /// Threading: every method is thread-safe (one connection behind a mutex); calls are short.
 /// Errors: IoError (SQLite failure, message carries SQLite's text and the file), NotFound (no such
