@@ -5,6 +5,8 @@
 #include "slicestation/daemon/config/config_document.hpp"
 #include "slicestation/daemon/config/daemon_settings.hpp"
 
+#include "daemon_client.hpp"
+
 #include <httplib.h>
 #include <nlohmann/json.hpp>
 
@@ -21,13 +23,7 @@ namespace slicestation::daemon {
 using core::ErrorCode;
 using core::makeError;
 
-namespace {
-
-struct Connection {
-    std::string url;    ///< http://host:port
-    std::string token;  ///< bearer token for control commands
-    std::string config; ///< station file to read port and token from
-};
+namespace client {
 
 void addConnectionOptions(CLI::App* cmd, Connection& c) {
     cmd->add_option("--url", c.url,
@@ -38,14 +34,8 @@ void addConnectionOptions(CLI::App* cmd, Connection& c) {
                     "Station file: read daemon.http_port and daemon.token from it");
 }
 
-struct Reply {
-    int status = 0;
-    std::string body;
-};
-
 core::Result<Reply> request(Connection c, const std::string& method, const std::string& path,
-                            const std::string& body = {},
-                            const std::string& contentType = "application/json") {
+                            const std::string& body, const std::string& contentType) {
     std::string url = c.url;
     if (!c.config.empty()) {
         auto doc = readDocument(c.config);
@@ -83,8 +73,6 @@ core::Result<Reply> request(Connection c, const std::string& method, const std::
     return Reply{res->status, res->body};
 }
 
-/// The exit code of a daemon reply: 2xx ok; 400, 404, 413 the input; 409 a conflict with the
-/// run's state; 401, 403 and 5xx the daemon refused.
 int exitCodeOf(int status) {
     if (status >= 200 && status < 300)
         return kExitOk;
@@ -95,12 +83,8 @@ int exitCodeOf(int status) {
     return kExitUnreachable;
 }
 
-using Printer = std::function<void(const nlohmann::json&)>;
-
-/// On success prints the reply: `print` for people, or the JSON (pretty) with --json or without
-/// a printer; `raw` prints the body as it came. On failure the daemon's message. Exit code.
-int finish(const char* name, const core::Result<Reply>& r, bool json, const Printer& print = {},
-           bool raw = false) {
+int finish(const char* name, const core::Result<Reply>& r, bool json, const Printer& print,
+           bool raw) {
     if (!r)
         return reportError(name, r.error());
     if (r->status >= 200 && r->status < 300) {
@@ -137,6 +121,12 @@ std::string text(const nlohmann::json& j, const char* key) {
         return v.get<bool>() ? "yes" : "no";
     return v.dump();
 }
+
+} // namespace client
+
+namespace {
+
+using namespace client;
 
 void printStatus(const nlohmann::json& j) {
     std::vector<std::vector<std::string>> rows{{"state", text(j, "state")},
@@ -351,7 +341,11 @@ int runDaemonCommand(const DaemonOpts& o, const DaemonCommands& c) {
 CommandRunner addDaemonCommands(CLI::App& app) {
     auto o = std::make_shared<DaemonOpts>();
     const DaemonCommands c = declareDaemonCommands(app, o);
-    return [o, c]() -> int { return runDaemonCommand(*o, c); };
+    CommandRunner damage = addDamageCommands(app); // damage_command.cpp
+    return [o, c, damage]() -> int {
+        const int r = runDaemonCommand(*o, c);
+        return r != -1 ? r : damage();
+    };
 }
 
 } // namespace slicestation::daemon

@@ -282,6 +282,12 @@ Result<void> readRunSettings(const nlohmann::json& t, const FieldReader& rd, con
     if (!turn)
         return turn.error();
     s.maxTurnDeg = *turn;
+    if (snapshot) { // the station file has it in [damage] (readDamage)
+        auto fs = rd.number(t, p, "damage_flag_score", 0.5, 0, 1);
+        if (!fs)
+            return fs.error();
+        s.damageFlagScore = *fs;
+    }
     return {};
 }
 
@@ -381,6 +387,15 @@ Result<DaemonSettings> parseDaemonSettings(const nlohmann::json& station,
     if (!s)
         return s.error();
     d.scan = *s;
+    const nlohmann::json& damage = station.contains("damage") ? station["damage"] : empty;
+    if (!damage.is_object())
+        return rd.bad("damage", "expected a table");
+    if (auto k = rd.onlyKeys(damage, "damage", {"flag_score"}); !k)
+        return k.error();
+    auto fs = rd.number(damage, "damage", "flag_score", 0.5, 0, 1);
+    if (!fs)
+        return fs.error();
+    d.scan.damageFlagScore = *fs;
     return d;
 }
 
@@ -411,7 +426,8 @@ nlohmann::json toJson(const ScanSettings& s) {
             {"min_free_mb", static_cast<double>(s.minFreeBytes) / (1024.0 * 1024.0)},
             {"check_atlas_match", s.checkAtlasMatch},
             {"atlas_mismatch_tolerance", s.mismatchToleranceSlices},
-            {"max_turn_deg", s.maxTurnDeg}};
+            {"max_turn_deg", s.maxTurnDeg},
+            {"damage_flag_score", s.damageFlagScore}};
 }
 
 Result<ScanSettings> scanSettingsFromJson(const nlohmann::json& j, const std::string& origin) {

@@ -28,6 +28,7 @@ core::Result<std::unique_ptr<HttpApi>> HttpApi::start(StationApi& station, const
     http::addRunRoutes(srv, station, authorised);
     http::addSectionRoutes(srv, station, authorised);
     http::addAlertRoutes(srv, station, authorised);
+    http::addDamageRoutes(srv, station, authorised);
     api->events_ = http::addEventRoutes(srv, station);
     srv.set_error_handler([](const httplib::Request&, httplib::Response& res) {
         if (res.body.empty())

@@ -26,6 +26,10 @@ void addSectionRoutes(httplib::Server& server, StationApi& station, const Author
 /// GET /api/alerts; POST /api/alerts/{id}/ack. routes_alerts.cpp
 void addAlertRoutes(httplib::Server& server, StationApi& station, const Authoriser& authorised);
 
+/// GET /api/damage/report?since=&target_false_alarm_rate=, /api/damage/threshold;
+/// POST /api/damage/threshold {"flag_score": x | null}. routes_damage.cpp
+void addDamageRoutes(httplib::Server& server, StationApi& station, const Authoriser& authorised);
+
 /// A POST on one record (/api/{things}/{id}/{verb}) after its common checks: authorised, the
 /// id, and the optional JSON object body whose one key `key` (when given) passes `valid`.
 struct ControlRequest {

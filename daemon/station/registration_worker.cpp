@@ -5,6 +5,7 @@
 #include "slicestation/daemon/station/registration_service.hpp"
 
 #include <algorithm>
+#include <cstdio>
 #include <cstdlib>
 #include <exception>
 #include <map>
@@ -154,6 +155,33 @@ nlohmann::json regionsShown(const cv::Mat& labels, const AtlasStack& stack) {
 
 } // namespace
 
+void RegistrationWorker::applyFlagScore(RegistrationRecord& rec, const pipeline::Registration& reg,
+                                        double flagScore) {
+    // The station decides damaged vs clean from the score with its own threshold (the run's
+    // snapshot), so that a learned threshold takes effect without touching the pipeline. The
+    // pipeline's "check the registration" stays a third state: the deficit may be misfit.
+    rec.damageScore = reg.damageScore;
+    rec.flagScore = flagScore;
+    if (reg.damageVerdict == pipeline::DamageVerdict::CheckRegistration)
+        rec.damageVerdict = "check_registration";
+    else
+        rec.damageVerdict = reg.damageScore >= flagScore ? "damaged" : "clean";
+    rec.damaged = rec.damageVerdict == "damaged";
+}
+
+std::string RegistrationWorker::damageAlertText(const RegistrationRecord& rec,
+                                                const std::string& label) {
+    char score[32];
+    std::snprintf(score, sizeof score, "%.2f", rec.damageScore.value_or(0.0));
+    const std::string detail = rec.summary.empty() ? "" : ": " + rec.summary;
+    if (rec.damageVerdict == "check_registration")
+        return "check the registration of " + label +
+               ": tissue looks missing where the atlas fit is uncertain (score " + score + detail +
+               "); look at the overlay, then rescan or accept it";
+    return label + " is damaged, score " + score + detail +
+           ": re-mount it and request a rescan, or accept it as is";
+}
+
 core::Result<RegistrationWorker::SliceChoice>
 RegistrationWorker::chooseSlice(const SectionRecord& section, const CaptureRecord& capture,
                                 const ScanSettings& settings) {
@@ -239,7 +267,7 @@ void RegistrationWorker::process(std::int64_t captureId) {
     rec.atlasSlice = slice;
     rec.matchedSlice = choice->matched;
     rec.warning = choice->warning;
-    rec.damaged = result->registration.damaged;
+    applyFlagScore(rec, result->registration, settings->damageFlagScore);
     rec.damageFraction = result->registration.damageFraction;
     rec.summary = result->registration.damageSummary;
     rec.quality = result->registration.quality.tissueOverlap;
@@ -264,15 +292,18 @@ void RegistrationWorker::record(RegistrationRecord& rec, const RunRecord& run,
     nlohmann::json ev = toJson(rec);
     ev["section_id"] = section.id;
     ev["run_id"] = run.id;
-    notifier_.publish({rec.damaged ? "section_damaged" : "section_registered", ev});
+    const bool check = rec.damageVerdict == "check_registration";
+    notifier_.publish({rec.damaged ? "section_damaged"
+                       : check     ? "section_check_registration"
+                                   : "section_registered",
+                       ev});
     if (!rec.warning.empty())
         (void)notifier_.raise(AlertKind::AtlasMismatch, AlertSeverity::Warning,
                               label + ": " + rec.warning, run.id, section.id);
-    if (rec.damaged)
-        (void)notifier_.raise(AlertKind::Damaged, AlertSeverity::Critical,
-                              label + " is damaged (" + rec.summary +
-                                  "): re-mount it and request a rescan, or accept it as is",
-                              run.id, section.id);
+    if (rec.damaged || check)
+        (void)notifier_.raise(rec.damaged ? AlertKind::Damaged : AlertKind::CheckRegistration,
+                              rec.damaged ? AlertSeverity::Critical : AlertSeverity::Warning,
+                              damageAlertText(rec, label), run.id, section.id);
 }
 
 } // namespace slicestation::daemon

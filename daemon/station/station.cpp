@@ -201,8 +201,10 @@ Result<std::int64_t> Station::submitPlan(const nlohmann::json& doc, const std::s
     std::vector<PlannedSection> sections;
     for (const auto& ps : plan->sections)
         sections.push_back(ps.section);
-    auto id =
-        journal_->createRun(plan->name, plan->document, toJson(parts_.settings.scan), sections);
+    auto scan = settingsForNewRun();
+    if (!scan)
+        return scan.error();
+    auto id = journal_->createRun(plan->name, plan->document, toJson(*scan), sections);
     if (!id)
         return id;
     notifier_->publish(

@@ -1,6 +1,7 @@
 // The station's views for the outward parts (StationApi's reads): status, records, the export,
 // stored images and the atlas region at a pixel.
 #include "slicestation/core/image_file.hpp"
+#include "slicestation/daemon/station/damage_report.hpp"
 #include "slicestation/daemon/station/station.hpp"
 
 #include <cmath>
@@ -251,6 +252,73 @@ Result<std::string> Station::exportRun(std::int64_t runId, const std::string& fo
         os << "\n";
     }
     return os.str();
+}
+
+namespace {
+constexpr const char* kFlagScoreKey = "damage.flag_score";
+} // namespace
+
+Result<ScanSettings> Station::settingsForNewRun() {
+    ScanSettings scan = parts_.settings.scan;
+    auto set = journal_->setting(kFlagScoreKey);
+    if (!set)
+        return set.error();
+    if (*set) {
+        const auto& v = (*set)->value;
+        if (!v.is_number() || !(v.get<double>() >= 0 && v.get<double>() <= 1))
+            return makeError(ErrorCode::IoError, std::string("journal setting ") + kFlagScoreKey +
+                                                     ": expected a number in [0, 1], got " +
+                                                     v.dump());
+        scan.damageFlagScore = v.get<double>();
+    }
+    return scan;
+}
+
+Result<nlohmann::json> Station::damageThreshold() {
+    auto set = journal_->setting(kFlagScoreKey);
+    if (!set)
+        return set.error();
+    auto scan = settingsForNewRun();
+    if (!scan)
+        return scan.error();
+    nlohmann::json j{{"flag_score", scan->damageFlagScore},
+                     {"station_file_flag_score", parts_.settings.scan.damageFlagScore},
+                     {"source", *set ? "set" : "station file"}};
+    j["set_utc"] = *set ? nlohmann::json((*set)->setUtc) : nlohmann::json();
+    return j;
+}
+
+Result<nlohmann::json> Station::setDamageThreshold(std::optional<double> flagScore) {
+    if (flagScore && !(*flagScore >= 0 && *flagScore <= 1))
+        return makeError(ErrorCode::OutOfRange, "flag_score: expected a number in [0, 1]");
+    auto r = flagScore ? journal_->setSetting(kFlagScoreKey, *flagScore)
+                       : journal_->clearSetting(kFlagScoreKey);
+    if (!r)
+        return r.error();
+    auto j = damageThreshold();
+    if (j)
+        notifier_->publish({"damage_threshold", *j});
+    return j;
+}
+
+Result<nlohmann::json> Station::damageReport(const std::string& sinceUtc,
+                                             double targetFalseAlarmRate) {
+    auto since = parseSinceUtc(sinceUtc);
+    if (!since)
+        return since.error();
+    auto flags = journal_->damageFlags(*since);
+    if (!flags)
+        return flags.error();
+    auto report = computeDamageReport(*flags, targetFalseAlarmRate);
+    if (!report)
+        return report.error();
+    auto threshold = damageThreshold();
+    if (!threshold)
+        return threshold.error();
+    nlohmann::json j = toJson(*report);
+    j["since"] = *since;
+    j["current"] = *threshold;
+    return j;
 }
 
 std::shared_ptr<const hw::Frame> Station::liveFrame() const {

@@ -101,7 +101,25 @@ CREATE INDEX captures_by_section ON captures(section_id, attempt);
 CREATE INDEX alerts_open ON alerts(acknowledged_utc);
 )sql";
 
-constexpr std::array<const char*, 1> kMigrations = {kMigration1};
+// Version 2: the damage score and verdict of every registration, the threshold the station
+// applied to it, and the station's own settings (the lab's learned damage threshold). Rows from
+// version 1 keep NULL there: their score and verdict are unknown (docs/damage.md).
+constexpr const char* kMigration2 = R"sql(
+ALTER TABLE registrations ADD COLUMN damage_score REAL
+    CHECK (damage_score IS NULL OR (damage_score >= 0 AND damage_score <= 1));
+ALTER TABLE registrations ADD COLUMN damage_verdict TEXT
+    CHECK (damage_verdict IS NULL OR damage_verdict IN ('clean','damaged','check_registration'));
+ALTER TABLE registrations ADD COLUMN flag_score REAL
+    CHECK (flag_score IS NULL OR (flag_score >= 0 AND flag_score <= 1));
+CREATE TABLE station_settings (
+    key TEXT PRIMARY KEY,
+    value_json TEXT NOT NULL,
+    set_utc TEXT NOT NULL
+);
+CREATE INDEX alerts_by_kind ON alerts(kind, raised_utc);
+)sql";
+
+constexpr std::array<const char*, 2> kMigrations = {kMigration1, kMigration2};
 static_assert(kMigrations.size() == Journal::kSchemaVersion);
 
 } // namespace
@@ -188,18 +206,21 @@ Result<void> Journal::migrate() {
                          "journal " + file_.string() + ": schema version " +
                              std::to_string(version) + " is newer than this slicestation (" +
                              std::to_string(kSchemaVersion) + "); refusing to touch it");
-    for (int v = version; v < kSchemaVersion; ++v) {
-        Transaction tx(db_);
-        if (!tx.began())
-            return sqlError(db_, file_, "begin migration");
+    if (version == kSchemaVersion)
+        return {};
+    // Every missing version in one transaction (one synced commit, which keeps a fresh station's
+    // start short): a file is either migrated to the current version or left as it was.
+    Transaction tx(db_);
+    if (!tx.began())
+        return sqlError(db_, file_, "begin migration");
+    for (int v = version; v < kSchemaVersion; ++v)
         if (sqlite3_exec(db_, kMigrations[static_cast<std::size_t>(v)], nullptr, nullptr,
                          nullptr) != SQLITE_OK)
             return sqlError(db_, file_, ("migration to version " + std::to_string(v + 1)).c_str());
-        const std::string setVersion = "PRAGMA user_version = " + std::to_string(v + 1);
-        if (sqlite3_exec(db_, setVersion.c_str(), nullptr, nullptr, nullptr) != SQLITE_OK ||
-            !tx.commit())
-            return sqlError(db_, file_, "commit migration");
-    }
+    const std::string setVersion = "PRAGMA user_version = " + std::to_string(kSchemaVersion);
+    if (sqlite3_exec(db_, setVersion.c_str(), nullptr, nullptr, nullptr) != SQLITE_OK ||
+        !tx.commit())
+        return sqlError(db_, file_, "commit migration");
     return {};
 }
 
@@ -430,11 +451,15 @@ Result<std::int64_t> Journal::recordRegistration(RegistrationRecord r) {
     Statement ins(db_,
                   "INSERT INTO registrations (capture_id, atlas_slice, matched_slice, damaged, "
                   "damage_fraction, summary, warning, quality, result_path, overlay_path, "
-                  "labels_path, result_json, registered_utc) VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?)");
+                  "labels_path, result_json, registered_utc, damage_score, damage_verdict, "
+                  "flag_score) VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?)");
     ins.bind(1, r.captureId).bind(2, r.atlasSlice).bind(3, r.matchedSlice);
     ins.bind(4, r.damaged ? 1 : 0).bind(5, r.damageFraction).bind(6, r.summary).bind(7, r.warning);
     ins.bind(8, r.quality).bind(9, r.resultPath).bind(10, r.overlayPath).bind(11, r.labelsPath);
-    ins.bind(12, r.result.dump()).bind(13, r.registeredUtc);
+    ins.bind(12, r.result.dump()).bind(13, r.registeredUtc).bind(14, r.damageScore);
+    ins.bind(15, r.damageVerdict.empty() ? std::optional<std::string>()
+                                         : std::optional<std::string>(r.damageVerdict));
+    ins.bind(16, r.flagScore);
     if (ins.step() != SQLITE_DONE)
         return sqlError(db_, file_, "insert registration");
     const std::int64_t id = sqlite3_last_insert_rowid(db_);

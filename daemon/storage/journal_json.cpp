@@ -31,6 +31,9 @@ nlohmann::json toJson(const SectionRecord& s) {
                      {"reason", s.reason},
                      {"attempts", s.attempts}};
     j["expected_slice"] = s.expectedSlice ? nlohmann::json(*s.expectedSlice) : nlohmann::json();
+    j["damage_score"] = s.damageScore ? nlohmann::json(*s.damageScore) : nlohmann::json();
+    j["damage_verdict"] =
+        s.damageVerdict.empty() ? nlohmann::json() : nlohmann::json(s.damageVerdict);
     return j;
 }
 
@@ -65,6 +68,10 @@ nlohmann::json toJson(const RegistrationRecord& r) {
                      {"labels", r.labelsPath},
                      {"registered_utc", r.registeredUtc}};
     j["matched_slice"] = r.matchedSlice ? nlohmann::json(*r.matchedSlice) : nlohmann::json();
+    j["damage_score"] = r.damageScore ? nlohmann::json(*r.damageScore) : nlohmann::json();
+    j["damage_verdict"] =
+        r.damageVerdict.empty() ? nlohmann::json() : nlohmann::json(r.damageVerdict);
+    j["flag_score"] = r.flagScore ? nlohmann::json(*r.flagScore) : nlohmann::json();
     return j;
 }
 

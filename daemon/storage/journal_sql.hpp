@@ -129,7 +129,11 @@ inline RunRecord readRun(const Statement& st) {
 constexpr const char* kSectionColumns =
     "s.id, s.run_id, s.slide_index, s.slide_name, s.idx, s.name, s.x_um, s.y_um, s.width_um, "
     "s.height_um, s.expected_slice, s.state, s.reason, "
-    "(SELECT COUNT(*) FROM captures c WHERE c.section_id = s.id)";
+    "(SELECT COUNT(*) FROM captures c WHERE c.section_id = s.id), "
+    "(SELECT r.damage_score FROM registrations r JOIN captures c ON c.id = r.capture_id "
+    "WHERE c.section_id = s.id ORDER BY r.id DESC LIMIT 1), "
+    "(SELECT r.damage_verdict FROM registrations r JOIN captures c ON c.id = r.capture_id "
+    "WHERE c.section_id = s.id ORDER BY r.id DESC LIMIT 1)";
 
 inline SectionRecord readSection(const Statement& st) {
     SectionRecord s;
@@ -148,6 +152,9 @@ inline SectionRecord readSection(const Statement& st) {
     s.state = sectionStateFromString(st.text(11)).value_or(SectionState::Failed);
     s.reason = st.text(12);
     s.attempts = st.i32(13);
+    if (!st.isNull(14))
+        s.damageScore = st.f64(14);
+    s.damageVerdict = st.text(15);
     return s;
 }
 
@@ -175,7 +182,8 @@ inline CaptureRecord readCapture(const Statement& st) {
 
 constexpr const char* kRegistrationColumns =
     "id, capture_id, atlas_slice, matched_slice, damaged, damage_fraction, summary, warning, "
-    "quality, result_path, overlay_path, labels_path, result_json, registered_utc";
+    "quality, result_path, overlay_path, labels_path, result_json, registered_utc, damage_score, "
+    "damage_verdict, flag_score";
 
 inline RegistrationRecord readRegistration(const Statement& st) {
     RegistrationRecord r;
@@ -194,6 +202,11 @@ inline RegistrationRecord readRegistration(const Statement& st) {
     r.labelsPath = st.text(11);
     r.result = parseJsonColumn(st.text(12));
     r.registeredUtc = st.text(13);
+    if (!st.isNull(14))
+        r.damageScore = st.f64(14);
+    r.damageVerdict = st.text(15);
+    if (!st.isNull(16))
+        r.flagScore = st.f64(16);
     return r;
 }
 

@@ -313,3 +313,65 @@ TEST_F(PageControl, RunControlsAndWhatTheTechnicianLooksAt) {
                ".map(e => e.tagName + '#' + e.id + '.' + e.className + ' ' + "
                "Math.round(e.getBoundingClientRect().right))];");
 }
+
+// Issue 18: a damage banner shows the section's score, a "check the registration" banner is a
+// warning with its own wording, and the section panel shows verdict, score, the flag score it was
+// judged at and each region's score.
+TEST_F(PageControl, DamageBannersAndTheSectionPanelShowTheScoreAndTheVerdict) {
+    webdriver::Session browser(1280, 1000);
+    browser.navigate(base_);
+    ASSERT_TRUE(waitFor([&] { return browser.findAll("#grid .cell").size() == 4; }));
+    ASSERT_TRUE(
+        waitFor([&] { return browser.execute("return document.body.dataset.stream;") == "open"; }));
+    station_.registerSection(103, true, 0.031, 0.83, "damaged");
+    const auto torn = makeAlert(21, 103, "damaged", "critical",
+                                "section s03 (slide-01, run 7) is damaged, score 0.83: 1 tear "
+                                "(3.1% of the tissue): re-mount it and request a rescan, or "
+                                "accept it as is",
+                                "2026-12-02T09:32:00.000Z");
+    station_.addAlert(torn);
+    station_.publish("section_damaged", {{"section_id", 103}, {"run_id", 7}});
+    station_.publish("alert_raised", toJson(torn));
+    station_.registerSection(102, false, 0.02, 0.62, "check_registration");
+    const auto check = makeAlert(22, 102, "check_registration", "warning",
+                                 "check the registration of section s02 (slide-01, run 7): "
+                                 "tissue looks missing where the atlas fit is uncertain (score "
+                                 "0.62: 1 missing (2.0% of the tissue))",
+                                 "2026-12-02T09:33:00.000Z");
+    station_.addAlert(check);
+    station_.publish("section_check_registration", {{"section_id", 102}, {"run_id", 7}});
+    station_.publish("alert_raised", toJson(check));
+    ASSERT_TRUE(waitFor([&] {
+        return banners(browser) == std::vector<std::string>{"22", "21"};
+    })) << "both banners";
+
+    const auto scoreOf = [&](std::int64_t alert) {
+        auto e = browser.find(bannerButton(alert, ".banner-score"));
+        return e ? browser.text(*e) : std::string("(no score)");
+    };
+    ASSERT_TRUE(waitFor([&] { return scoreOf(21) == "score 0.83"; })) << scoreOf(21);
+    EXPECT_EQ(scoreOf(22), "score 0.62");
+    EXPECT_EQ(
+        browser.execute("return document.querySelector('#banners .banner[data-alert-id=\"22\"]')"
+                        ".className;"),
+        "banner warning");
+    EXPECT_NE(
+        browser.text(*browser.find(bannerButton(22, ".banner-text"))).find("check registration"),
+        std::string::npos);
+
+    browser.clickCss(bannerButton(21, "button.show"));
+    ASSERT_TRUE(waitFor([&] {
+        return browser.text(*browser.find("#detail"))
+                   .find("damaged, score 0.83 (flagged from 0.50)") != std::string::npos;
+    })) << browser.text(*browser.find("#detail"));
+    EXPECT_NE(browser.text(*browser.find("#detail")).find("tear, 3.1% of the section, score 0.71"),
+              std::string::npos)
+        << browser.text(*browser.find("#detail"));
+    browser.clickCss(bannerButton(22, "button.show"));
+    ASSERT_TRUE(waitFor([&] {
+        return browser.text(*browser.find("#detail")).find("check the registration, score 0.62") !=
+               std::string::npos;
+    })) << browser.text(*browser.find("#detail"));
+    std::filesystem::create_directories(kArtefacts);
+    browser.screenshot(kArtefacts / "page-damage-score.png");
+}

@@ -81,10 +81,16 @@ public:
         for (auto& l : ls)
             l({type, data});
     }
-    /// Records section `id` as captured and registered (damaged or not) with a damage fraction.
-    void registerSection(std::int64_t id, bool damaged, double damageFraction = 0) {
+    /// Records section `id` as captured and registered (damaged or not) with a damage fraction,
+    /// and optionally the station's damage score and verdict (one tear region of that score).
+    void registerSection(std::int64_t id, bool damaged, double damageFraction = 0,
+                         std::optional<double> score = std::nullopt,
+                         const std::string& verdict = "") {
         std::lock_guard lock(m_);
         SectionRecord& s = sectionRef(id);
+        s.damageScore = score;
+        s.damageVerdict = verdict;
+        scores_[id] = {score, verdict};
         s.state = damaged ? SectionState::Damaged : SectionState::Registered;
         s.attempts = std::max(s.attempts, 1);
         runs_[1].doneCount = static_cast<int>(
@@ -178,7 +184,14 @@ public:
             r.summary = r.damaged ? "tear" : "";
             r.quality = 0.9;
             r.registeredUtc = "2026-12-02T09:31:05.000Z";
+            r.damageScore = scores_[id].first;
+            r.damageVerdict = scores_[id].second;
+            if (r.damageScore)
+                r.flagScore = 0.5;
             j["registrations"].push_back(toJson(r));
+            if (r.damageScore)
+                j["registrations"].back()["damage_regions"] = {
+                    {{"kind", "tear"}, {"share", damage_[id]}, {"score", *r.damageScore - 0.12}}};
         }
         return j;
     }
@@ -269,6 +282,7 @@ private:
     std::vector<RunRecord> runs_;
     std::vector<SectionRecord> sections_;
     std::map<std::int64_t, double> damage_;
+    std::map<std::int64_t, std::pair<std::optional<double>, std::string>> scores_;
     std::vector<AlertRecord> alerts_;
     std::vector<std::string> calls_;
     std::shared_ptr<const hw::Frame> frame_;

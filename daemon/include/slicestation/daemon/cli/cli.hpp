@@ -25,6 +25,9 @@ CommandRunner addAtlasSeriesCommand(CLI::App& app);
 /// scan submit, status, runs, sections, section, pause, resume, cancel, rescan, alerts,
 /// export: clients of a running slicestationd (cli_daemon.cpp).
 CommandRunner addDaemonCommands(CLI::App& app);
+/// `damage report` and `damage threshold [set X | clear]`: the lab's damage report and flag
+/// score, through the daemon (damage_command.cpp; added by addDaemonCommands).
+CommandRunner addDamageCommands(CLI::App& app);
 
 /// A CLI11 check for a number option: finite and within [min, max]. CLI::Range and
 /// CLI::PositiveNumber let "nan" through (every comparison with NaN is false).

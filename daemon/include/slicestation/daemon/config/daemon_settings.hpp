@@ -1,8 +1,9 @@
 #pragma once
 /// The daemon's part of the station file: `[daemon]` (state, atlas, HTTP) and `[scan]` (what a
 /// run uses: objective and its calibrated pixel size, camera-to-stage mapping, exposure, focus,
-/// tiling, retries, disk threshold). `[scan]` is snapshotted into every run when it is submitted
-/// and a run (also a resumed one) always uses its own snapshot.
+/// tiling, retries, disk threshold) and `[damage]` (flag_score: the damage score from which a
+/// section is flagged, docs/damage.md). `[scan]` and `[damage]` are snapshotted into every run when
+/// it is submitted and a run (also a resumed one) always uses its own snapshot.
 ///
 /// ```toml
 /// [daemon]
@@ -19,6 +20,9 @@
 /// [scan.objectives.4x]
 /// um_per_px = 8.0
 /// camera_to_stage = [1.0, 0.0, 0.0, 1.0]  # stage µm per camera px direction, row-major 2x2
+/// [damage]
+/// flag_score = 0.5   # flagged when the section's damage score reaches it; the threshold set
+///                    # through the API (slicectl damage threshold set) takes precedence
 /// ```
 /// Errors: InvalidArgument naming the key. Strict: a key not read here is refused with the
 /// nearest known one (`scan: unknown key "exposur_us"; did you mean "exposure_us"?`), also at
@@ -38,9 +42,9 @@
 namespace slicestation::daemon {
 
 /// The tables a station file may have: [stage] and [camera] (station_config), [daemon] and
-/// [scan] (here), [alerts] (alert_channels).
-inline constexpr std::array<std::string_view, 5> kStationTables = {"stage", "camera", "daemon",
-                                                                   "scan", "alerts"};
+/// [scan] and [damage] (here), [alerts] (alert_channels).
+inline constexpr std::array<std::string_view, 6> kStationTables = {"stage", "camera", "daemon",
+                                                                   "scan",  "alerts", "damage"};
 inline constexpr std::size_t kMaxTokenBytes = 4096; ///< daemon.token / token_file's first line
 
 struct ObjectiveSettings {
@@ -71,6 +75,9 @@ struct ScanSettings {
     /// The lab's mounting rule: sections lie at most this far turned on the slide (degrees; 180
     /// = any way). Registration does not consider placements turned further.
     double maxTurnDeg = 180;
+    /// [damage] flag_score: a section whose damage score (in [0, 1]) reaches this is flagged
+    /// damaged. Snapshotted as "damage_flag_score"; a snapshot without it (older runs) reads 0.5.
+    double damageFlagScore = 0.5;
 };
 
 struct DaemonSettings {

@@ -5,17 +5,20 @@
 /// Read (JSON): GET /api/status, /api/runs, /api/runs/{id}, /api/runs/{id}/sections,
 ///   /api/runs/{id}/export?format=json|csv, /api/sections/{id}, /api/alerts[?open=1],
 ///   /api/sections/{id}/region?x=&y=[&of_width=W] (atlas region at a full-resolution pixel, or at
-///   a pixel of the image scaled to width W).
+///   a pixel of the image scaled to width W), /api/damage/report?since=DATE&
+///   target_false_alarm_rate=R, /api/damage/threshold (docs/damage.md).
 /// The page: GET / (daemon/http/web/index.html, embedded; see docs/web.md).
 /// Images (?width= 16..4096, never scaled up): GET /api/live.jpg (the latest camera frame),
 ///   /api/sections/{id}/image.jpg, /api/sections/{id}/overlay.png.
 /// Events: GET /api/events, Server-Sent Events (section_captured, section_registered,
-///   section_damaged, section_failed, section_rescan, run_state, alert_raised,
-///   alert_acknowledged; data is JSON); a slow client loses its oldest events, never slows the
-///   station. At most HttpLimits::kMaxEventStreams at once; past them 503.
+///   section_damaged, section_check_registration, section_failed, section_rescan, run_state,
+///   alert_raised, alert_acknowledged, damage_threshold; data is JSON); a slow client loses its
+///   oldest events, never slows the station. At most HttpLimits::kMaxEventStreams at once; past
+///   them 503.
 /// Control (need `Authorization: Bearer <token>`, else 401):
 ///   POST /api/runs (body: a plan, TOML or JSON), /api/runs/{id}/pause|resume|cancel,
-///   /api/sections/{id}/rescan, /api/alerts/{id}/ack {"action": "rescan"|"accept"|text}.
+///   /api/sections/{id}/rescan, /api/alerts/{id}/ack {"action": "rescan"|"accept"|text},
+///   /api/damage/threshold {"flag_score": x | null}.
 /// Errors: {"error": message} with 400 (bad request), 401, 404 (no such record), 405 (method),
 /// 409 (wrong state), 411 (a body without Content-Length), 413 (body too large), 503 (too many
 /// event streams or connections), 500 (a fault of the station, never of the request).

@@ -16,6 +16,7 @@
 #include "slicestation/daemon/storage/atlas_stack.hpp"
 #include "slicestation/daemon/storage/journal.hpp"
 #include "slicestation/pipeline/atlas_matching.hpp"
+#include "slicestation/pipeline/registration.hpp"
 
 #include <chrono>
 #include <condition_variable>
@@ -24,6 +25,7 @@
 #include <filesystem>
 #include <mutex>
 #include <optional>
+#include <string>
 #include <thread>
 #include <vector>
 
@@ -45,6 +47,15 @@ public:
     bool waitIdle(std::chrono::milliseconds timeout) const;
     /// Finishes the registration in progress, drops the queue (the journal keeps it), joins.
     void stop() noexcept;
+
+    /// The station's verdict on a registration (docs/damage.md, "The score, the threshold and
+    /// the lab's report"): the pipeline's "check_registration" stays; otherwise "damaged" when
+    /// the score reaches `flagScore` (the run's snapshot), else "clean". Sets damageScore,
+    /// flagScore, damageVerdict and damaged.
+    static void applyFlagScore(RegistrationRecord& rec, const pipeline::Registration& reg,
+                               double flagScore);
+    /// The message of the damaged or check_registration alert, with the score (2 decimals).
+    static std::string damageAlertText(const RegistrationRecord& rec, const std::string& label);
 
 private:
     void loop();

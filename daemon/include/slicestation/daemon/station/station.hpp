@@ -95,6 +95,14 @@ public:
     [[nodiscard]] core::Result<void> requestRescan(std::int64_t sectionId) override;
     [[nodiscard]] core::Result<AlertRecord> acknowledgeAlert(std::int64_t alertId,
                                                              const std::string& action) override;
+    [[nodiscard]] core::Result<nlohmann::json> damageReport(const std::string& sinceUtc,
+                                                            double targetFalseAlarmRate) override;
+    [[nodiscard]] core::Result<nlohmann::json> damageThreshold() override;
+    [[nodiscard]] core::Result<nlohmann::json>
+    setDamageThreshold(std::optional<double> flagScore) override;
+    /// The [scan] settings a run submitted now snapshots: the station file's, with the flag
+    /// score set through the API (journal setting "damage.flag_score") when there is one.
+    [[nodiscard]] core::Result<ScanSettings> settingsForNewRun();
     void addListener(std::function<void(const StationEvent&)> listener) override {
         notifier_->addListener(std::move(listener));
     }

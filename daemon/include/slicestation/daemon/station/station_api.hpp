@@ -20,6 +20,7 @@
 
 #include <cstdint>
 #include <memory>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -75,6 +76,33 @@ public:
     /// InvalidArgument when it concerns no section; "accept" or any text).
     [[nodiscard]] virtual core::Result<AlertRecord> acknowledgeAlert(std::int64_t alertId,
                                                                      const std::string& action) = 0;
+
+    // The lab's damage report and threshold (docs/damage.md). A station that keeps no journal
+    // (a test double) answers Unsupported.
+    /// The report over the damage flags raised at or after `sinceUtc` (parseSinceUtc; "" = all)
+    /// for a target false-alarm rate in [0, 1], with the flag score in force now.
+    /// InvalidArgument for a bad date or rate.
+    [[nodiscard]] virtual core::Result<nlohmann::json> damageReport(const std::string& sinceUtc,
+                                                                    double targetFalseAlarmRate) {
+        (void)sinceUtc;
+        (void)targetFalseAlarmRate;
+        return core::makeError(core::ErrorCode::Unsupported, "this station keeps no damage report");
+    }
+    /// {"flag_score", "source": "station file" | "set", "set_utc"}: the flag score the next run
+    /// snapshots.
+    [[nodiscard]] virtual core::Result<nlohmann::json> damageThreshold() {
+        return core::makeError(core::ErrorCode::Unsupported,
+                               "this station has no damage threshold");
+    }
+    /// Stores `flagScore` (in [0, 1], else OutOfRange) in the journal as the flag score of the
+    /// runs submitted from now on; nullopt clears it (back to the station file's). \return as
+    /// damageThreshold().
+    [[nodiscard]] virtual core::Result<nlohmann::json>
+    setDamageThreshold(std::optional<double> flagScore) {
+        (void)flagScore;
+        return core::makeError(core::ErrorCode::Unsupported,
+                               "this station has no damage threshold");
+    }
 
     /// Every station event from now on (called on the raiser's thread; must not block).
     virtual void addListener(std::function<void(const StationEvent&)> listener) = 0;

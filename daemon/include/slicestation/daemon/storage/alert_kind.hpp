@@ -13,8 +13,9 @@ namespace slicestation::daemon {
 
 // Every kind the daemon raises, as X(Enumerator, "text"). A new kind is one line here.
 #define SLST_ALERT_KINDS(X)                                                                        \
-    X(Damaged, "damaged")                        /* registration found a damaged section */        \
-    X(AtlasMismatch, "atlas_mismatch")           /* the section matches another atlas slice */     \
+    X(Damaged, "damaged")                      /* registration found a damaged section */          \
+    X(CheckRegistration, "check_registration") /* tissue missing where the atlas fit is unsure */  \
+    X(AtlasMismatch, "atlas_mismatch")         /* the section matches another atlas slice */       \
     X(RegistrationFailed, "registration_failed") /* registration could not run or finish */        \
     X(StageFault, "stage_fault")                 /* a move failed; the run pauses */               \
     X(CameraFault, "camera_fault")               /* a capture or stitch failed */                  \

@@ -6,8 +6,10 @@
 /// Files are referenced only after they are complete on disk: callers write the image (atomic
 /// rename + fsync) first and journal it second.
 ///
-/// Schema versions live in `PRAGMA user_version`; open() applies the migrations a file lacks, in
-/// one transaction each, and refuses a file written by a newer version (Unsupported).
+/// Schema versions live in `PRAGMA user_version`; open() applies the migrations a file lacks, all
+/// in one transaction, and refuses a file written by a newer version (Unsupported). Version 2
+/// (issue 18) adds the damage score, verdict and flag score of every registration (NULL, unknown,
+/// for older rows) and the station settings kept in the journal.
 ///
 /// Threading: every method is thread-safe (one connection behind a mutex); calls are short.
 /// Errors: IoError (SQLite failure, message carries SQLite's text and the file), NotFound (no such
@@ -78,6 +80,11 @@ struct SectionRecord {
     SectionState state = SectionState::Pending;
     std::string reason;
     int attempts = 0; ///< captures stored so far
+    /// Of the latest registration: its damage score in [0, 1] and verdict ("clean", "damaged",
+    /// "check_registration"); empty/"" before the first registration and for registrations
+    /// journalled before schema version 2 (unknown).
+    std::optional<double> damageScore;
+    std::string damageVerdict;
 };
 
 struct CaptureRecord {
@@ -108,6 +115,28 @@ struct RegistrationRecord {
     std::string resultPath, overlayPath, labelsPath; ///< relative to the state directory
     nlohmann::json result;
     std::string registeredUtc;
+    /// Schema version 2. The section's damage score in [0, 1]; the station's verdict ("clean",
+    /// "damaged" or "check_registration", the only values the journal accepts); the flag score
+    /// the station applied. Unknown (nullopt / "") for rows journalled before version 2.
+    std::optional<double> damageScore;
+    std::string damageVerdict;
+    std::optional<double> flagScore;
+};
+
+/// A damage alert (kind damaged or check_registration) on a section and how it was answered,
+/// with the score of the registration it was raised for: the latest registration of the section
+/// journalled no later than the alert.
+struct DamageFlag {
+    std::int64_t alertId = 0;
+    std::int64_t sectionId = 0;
+    std::optional<std::int64_t> runId;
+    std::string sectionName, slideName;
+    AlertKind kind = AlertKind::Damaged;
+    std::string raisedUtc;
+    std::optional<std::string> acknowledgedUtc;
+    std::string ackAction;
+    std::optional<double> damageScore; ///< unknown for registrations before schema version 2
+    std::optional<double> flagScore;   ///< the threshold the station applied then
 };
 
 struct AlertRecord {
@@ -131,7 +160,7 @@ public:
     Journal(const Journal&) = delete;
     Journal& operator=(const Journal&) = delete;
 
-    static constexpr int kSchemaVersion = 1;
+    static constexpr int kSchemaVersion = 2;
 
     // Runs ----------------------------------------------------------------------------------
     /// Journals a new queued run with its sections in one transaction.
@@ -183,6 +212,21 @@ public:
     /// InvalidArgument when already acknowledged.
     [[nodiscard]] core::Result<AlertRecord> acknowledgeAlert(std::int64_t alertId,
                                                              const std::string& action);
+
+    // Damage flags and station settings (journal_damage.cpp) --------------------------------
+    /// Every alert of kind damaged or check_registration on a section raised at or after
+    /// `sinceUtc` (an ISO 8601 prefix compared as text; "" = all), oldest first.
+    [[nodiscard]] core::Result<std::vector<DamageFlag>> damageFlags(const std::string& sinceUtc);
+    /// A station setting stored in the journal (e.g. "damage.flag_score"), with the UTC time it
+    /// was set; nullopt when it was never set or has been cleared.
+    struct Setting {
+        nlohmann::json value;
+        std::string setUtc;
+    };
+    [[nodiscard]] core::Result<std::optional<Setting>> setting(const std::string& key);
+    [[nodiscard]] core::Result<void> setSetting(const std::string& key,
+                                                const nlohmann::json& value);
+    [[nodiscard]] core::Result<void> clearSetting(const std::string& key);
 
     /// `PRAGMA integrity_check` and `foreign_key_check`; IoError naming the first problem.
     [[nodiscard]] core::Result<void> checkIntegrity();
