@@ -194,6 +194,7 @@ core::Result<void> useStackSlice(RegisterRequest& rq, int slice) {
     if (!path)
         return path.error();
     rq.atlas = *path;
+    rq.atlasSlice = sliceFrame(*stack, slice);
     if (rq.imageUmPerPx > 0 && rq.atlasUmPerPx <= 0)
         rq.atlasUmPerPx = stack->slices[size_t(slice)].umPerPx;
     return {};
