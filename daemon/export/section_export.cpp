@@ -143,8 +143,9 @@ json mappingJson(const SavedMapping& m, const std::string& fieldFile) {
 core::Result<SavedMapping> readSavedMapping(const json& result,
                                             const std::filesystem::path& resultDir) {
     if (!result.is_object() || !result.contains("mapping") || !result["mapping"].is_object())
-        return makeError(ErrorCode::InvalidArgument,
-                         "result has no \"mapping\" (registered before version 0.22?)");
+        return makeError(
+            ErrorCode::InvalidArgument,
+            "result has no \"mapping\" (written before the full mapping was kept: register again)");
     const json& j = result["mapping"];
     SavedMapping m;
     auto scale = number(j, "working_scale");

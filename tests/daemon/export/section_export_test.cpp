@@ -390,6 +390,28 @@ std::string run(const std::string& args) {
     return std::to_string(WIFEXITED(st) ? WEXITSTATUS(st) : -1) + "|" + out;
 }
 
+TEST_F(SectionExportTest, ThePythonReaderOfTheDocsMapsThePointsAsTheStationDid) {
+    // docs/examples/map_points.py: the standard library only (no numpy on the station).
+    const std::string cmd = "python3 " +
+                            (fs::path(SLST_SOURCE_DIR) / "docs/examples/map_points.py").string() +
+                            " " + (registered->dir / "out" / "result.json").string() + " 2>&1";
+    std::string out;
+    FILE* p = ::popen(cmd.c_str(), "r");
+    ASSERT_NE(p, nullptr);
+    char buf[512];
+    while (std::fgets(buf, sizeof buf, p))
+        out += buf;
+    ASSERT_EQ(::pclose(p), 0) << out;
+    std::printf("%s", out.c_str());
+    unsigned n = 0;
+    double worst = -1;
+    ASSERT_EQ(std::sscanf(out.c_str(), "points %u max_difference_atlas_px %lf", &n, &worst), 2)
+        << out;
+    EXPECT_EQ(n, registered->section.truth.landmarks.size());
+    EXPECT_GE(worst, 0);
+    EXPECT_LT(worst, 1e-6);
+}
+
 TEST_F(SectionExportTest, SlicectlExportsOneResultForQuickNiiQuPathAndAsCsv) {
     const fs::path out = registered->dir / "out";
     const std::string result = (out / "result.json").string();

@@ -57,8 +57,8 @@ nlohmann::json mappingJson(const SavedMapping& mapping, const std::string& field
 
 /// The mapping of a result document (its "mapping" object and "image" size) with its field
 /// read from `resultDir`. \return InvalidArgument (no or malformed "mapping": the message names
-/// the field; results written before version 0.22 have none), NotFound / IoError (the field file),
-/// InvalidArgument (the field's pages differ in size or are not float32).
+/// the field; results written before the mapping was kept have none), NotFound / IoError (the field
+/// file), InvalidArgument (the field's pages differ in size or are not float32).
 [[nodiscard]] core::Result<SavedMapping> readSavedMapping(const nlohmann::json& result,
                                                           const std::filesystem::path& resultDir);
 
