@@ -476,6 +476,12 @@ json qupathFeatures(const cv::Mat& labels, const cv::Mat& side, const RegionLook
                    {"isLocked", true}};
         if (!hemisphere.empty())
             props["hemisphere"] = hemisphere;
+        if (info && info->path.size() >= 1) {
+            // The full Allen hierarchy: roll a region up to any ancestor.
+            props["structure_id_path"] = info->path;
+            if (info->path.size() >= 2)
+                props["parent_id"] = info->path[info->path.size() - 2];
+        }
         json geometry = polys.size() == 1 ? json{{"type", "Polygon"}, {"coordinates", polys[0]}}
                                           : json{{"type", "MultiPolygon"}, {"coordinates", polys}};
         features.push_back(

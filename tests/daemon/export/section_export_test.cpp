@@ -330,6 +330,14 @@ TEST_F(SectionExportTest, QuPathGetsClosedPolygonsPerRegionAndSideThatCoverTheMa
         right += props["hemisphere"] == "right";
         named += props["acronym"].get<std::string>().find_first_not_of("0123456789") !=
                  std::string::npos;
+        // The full hierarchy: the Allen path from the root (997) down to the region itself.
+        const json& path = props["structure_id_path"];
+        ASSERT_GE(path.size(), 1u) << props.dump();
+        EXPECT_EQ(path.front(), 997);
+        EXPECT_EQ(path.back(), props["allen_id"]);
+        if (path.size() >= 2) { // the annotation also labels some voxels "root" itself
+            EXPECT_EQ(props["parent_id"], path[path.size() - 2]);
+        }
     }
     // The mapped atlas brain in the section.
     const cv::Mat labels = registered->result.registration.warpedLabels(
@@ -340,6 +348,13 @@ TEST_F(SectionExportTest, QuPathGetsClosedPolygonsPerRegionAndSideThatCoverTheMa
                 regions, left, right, static_cast<long long>(pixels), polygonArea, mapped);
     EXPECT_GT(regions, 20) << "the full ontology: many leaf regions";
     EXPECT_EQ(named, regions) << "every id named from the ontology";
+    // The stack (--regions all) lists every ancestor too, named, so counts roll up by name.
+    for (std::uint32_t ancestor : {997u, 315u, 477u /* Striatum */, 549u /* Thalamus */}) {
+        const StackRegion* r = findRegion(registered->stack, ancestor);
+        ASSERT_NE(r, nullptr) << ancestor;
+        EXPECT_FALSE(r->name.empty());
+        EXPECT_EQ(r->path.back(), ancestor);
+    }
     EXPECT_GT(left, 5);
     EXPECT_GT(right, 5);
     // Labels from the saved mapping at the section's size: the same pixels as the registration's.
