@@ -184,6 +184,13 @@ core::Result<SavedMapping> readSavedMapping(const json& result,
         return makeError(ErrorCode::InvalidArgument,
                          "field " + j["field"].get<std::string>() +
                              ": expected two float32 samples per pixel (dx, dy)");
+    const int cols = j.value("field_cols", field->cols), rows = j.value("field_rows", field->rows);
+    if (field->cols != cols || field->rows != rows)
+        return makeError(ErrorCode::InvalidArgument,
+                         "field " + j["field"].get<std::string>() + " has " +
+                             std::to_string(field->cols) + " x " + std::to_string(field->rows) +
+                             " nodes, the result says " + std::to_string(cols) + " x " +
+                             std::to_string(rows));
     std::vector<cv::Mat> planes;
     cv::split(*field, planes);
     if (field->total() > 1) {

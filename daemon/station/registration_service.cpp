@@ -84,8 +84,12 @@ json affineJson(const cv::Matx23d& a) {
 /// `p` relative to the result's directory (how result.json names its files, so the folder can
 /// be moved as a whole).
 std::string relativeToResult(const std::filesystem::path& p, const RegisterRequest& rq) {
-    const auto base = std::filesystem::absolute(rq.output).lexically_normal().parent_path();
-    return std::filesystem::absolute(p).lexically_normal().lexically_relative(base).string();
+    std::error_code e1, e2; // absolute() fails only without a current directory: keep p then
+    const auto base = std::filesystem::absolute(rq.output, e1).lexically_normal().parent_path();
+    const auto abs = std::filesystem::absolute(p, e2).lexically_normal();
+    if (e1 || e2)
+        return p.string();
+    return abs.lexically_relative(base).string();
 }
 
 std::filesystem::path fieldPathOf(const std::filesystem::path& output) {

@@ -376,6 +376,11 @@ TEST_F(SectionExportTest, BadOrOldResultsAreRefusedNamingWhatIsWrong) {
     lost.result["mapping"]["field"] = "missing.field.tif";
     EXPECT_EQ(readSavedMapping(lost.result, lost.resultDir).error().code,
               core::ErrorCode::NotFound);
+    SectionFiles resized = f;
+    resized.result["mapping"]["field_cols"] = 3;
+    auto r = readSavedMapping(resized.result, resized.resultDir);
+    ASSERT_FALSE(r);
+    EXPECT_NE(r.error().message.find("nodes"), std::string::npos) << r.error().message;
     SectionFiles builtin = f;
     builtin.result["atlas"]["stack"]["ccf"] = false;
     auto q = quickNiiSliceOfResult(builtin, "x.png", 1);
