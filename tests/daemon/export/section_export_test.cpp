@@ -5,6 +5,7 @@
 #include "slicestation/core/image_file.hpp"
 #include "slicestation/core/nrrd.hpp"
 #include "slicestation/daemon/cli/atlas_command.hpp"
+#include "slicestation/daemon/export/run_export.hpp"
 #include "slicestation/daemon/export/section_export.hpp"
 #include "slicestation/daemon/station/registration_service.hpp"
 #include "slicestation/sim/section_generator.hpp"
@@ -430,6 +431,62 @@ TEST_F(SectionExportTest, ThePythonReaderOfTheDocsMapsThePointsAsTheStationDid) 
     EXPECT_EQ(n, registered->section.truth.landmarks.size());
     EXPECT_GE(worst, 0);
     EXPECT_LT(worst, 1e-6);
+}
+
+TEST_F(SectionExportTest, ARunExportsOneQuickNiiSliceAndOneQuPathCollectionPerRegisteredSection) {
+    // A journal whose run has two sections: the first registered (the CCF result above, as the
+    // daemon stores it: paths relative to the state directory), the second never captured.
+    const fs::path state = registered->dir;
+    auto journal = Journal::open(state / "journal.sqlite");
+    ASSERT_TRUE(journal) << journal.error().message;
+    std::vector<PlannedSection> plan(2);
+    for (int i = 0; i < 2; ++i) {
+        plan[std::size_t(i)].slideName = "slide 1";
+        plan[std::size_t(i)].index = i;
+        plan[std::size_t(i)].name = "s" + std::to_string(i + 1);
+    }
+    auto run = (*journal)->createRun("ccf-run", json::object(), json::object(), plan);
+    ASSERT_TRUE(run) << run.error().message;
+    auto secs = (*journal)->sections(*run);
+    ASSERT_TRUE(secs);
+    CaptureRecord c;
+    c.sectionId = (*secs)[0].id;
+    c.imagePath = "section.tif";
+    c.umPerPx = 10;
+    auto cap = (*journal)->recordCapture(c);
+    ASSERT_TRUE(cap) << cap.error().message;
+    RegistrationRecord rec;
+    rec.captureId = *cap;
+    rec.atlasSlice = registered->slice;
+    rec.resultPath = "out/result.json";
+    rec.result = files().result;
+    ASSERT_TRUE((*journal)->recordRegistration(rec));
+
+    auto q = exportRunResults(**journal, state, *run, "quicknii");
+    ASSERT_TRUE(q) << q.error().message;
+    const json series = json::parse(*q);
+    EXPECT_EQ(series["name"], "ccf-run");
+    EXPECT_EQ(series["target"], "ABA_Mouse_CCFv3_2017_25um.cutlas");
+    ASSERT_EQ(series["slices"].size(), 1u);
+    EXPECT_EQ(series["slices"][0]["filename"], "section.tif");
+    EXPECT_EQ(series["slices"][0]["nr"], 1);
+    auto one = quickNiiSliceOfResult(files(), "section.tif", 1);
+    ASSERT_TRUE(one);
+    EXPECT_EQ(series["slices"][0]["anchoring"], (*one)["anchoring"]);
+
+    auto g = exportRunResults(**journal, state, *run, "qupath");
+    ASSERT_TRUE(g) << g.error().message;
+    const json collections = json::parse(*g);
+    ASSERT_EQ(collections["sections"].size(), 1u);
+    EXPECT_EQ(collections["sections"][0]["file"],
+              std::to_string((*secs)[0].id) + "_slide_1_s1.geojson")
+        << "names made safe for a file";
+    EXPECT_EQ(collections["sections"][0]["feature_collection"]["type"], "FeatureCollection");
+
+    EXPECT_EQ(exportRunResults(**journal, state, *run, "xml").error().code,
+              core::ErrorCode::InvalidArgument);
+    EXPECT_EQ(exportRunResults(**journal, state, *run + 1, "qupath").error().code,
+              core::ErrorCode::NotFound);
 }
 
 TEST_F(SectionExportTest, SlicectlExportsOneResultForQuickNiiQuPathAndAsCsv) {
