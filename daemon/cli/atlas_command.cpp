@@ -102,10 +102,17 @@ core::Result<void> sliceVolumeFile(const AtlasSliceRequest& rq,
             for (auto it = s.labels.begin<int>(); it != s.labels.end<int>(); ++it)
                 if (*it != 0)
                     ids.insert(std::uint32_t(*it));
+        // Every ancestor too, so that counts and exports can be rolled up the whole hierarchy
+        // with names (docs/results.md).
+        std::set<std::uint32_t> ancestors;
+        for (std::uint32_t id : ids)
+            if (const core::Structure* st = ontology.find(id))
+                ancestors.insert(st->path.begin(), st->path.end());
+        ids.insert(ancestors.begin(), ancestors.end());
     }
     for (std::uint32_t id : ids) {
         const core::Structure* st = ontology.find(id);
-        regions.push_back(st ? StackRegion{id, st->name, st->acronym, st->colorRgb}
+        regions.push_back(st ? StackRegion{id, st->name, st->acronym, st->colorRgb, st->path}
                              : StackRegion{id, "", "", 0});
     }
     const cv::Vec3d extent = pipeline::volumeExtentUm(*volume, axes);
@@ -194,6 +201,7 @@ core::Result<void> useStackSlice(RegisterRequest& rq, int slice) {
     if (!path)
         return path.error();
     rq.atlas = *path;
+    rq.atlasSlice = sliceFrame(*stack, slice);
     if (rq.imageUmPerPx > 0 && rq.atlasUmPerPx <= 0)
         rq.atlasUmPerPx = stack->slices[size_t(slice)].umPerPx;
     return {};

@@ -2,6 +2,7 @@
 // runs, sections, section, pause, resume, cancel, rescan, alerts, export.
 #include "slicestation/daemon/cli/cli.hpp"
 #include "slicestation/daemon/cli/cli_output.hpp"
+#include "slicestation/daemon/cli/export_command.hpp"
 #include "slicestation/daemon/config/config_document.hpp"
 #include "slicestation/daemon/config/daemon_settings.hpp"
 
@@ -209,6 +210,7 @@ struct DaemonOpts {
     bool json = false;
     std::string format = "json";
     std::string output;
+    std::string result; ///< export --result: one registration, no daemon
     bool resetAlarm = false;
 };
 
@@ -258,12 +260,18 @@ DaemonCommands declareDaemonCommands(CLI::App& app, const std::shared_ptr<Daemon
                      "rescan (re-mounted: capture again) or accept (as is; the default)")
         ->check(CLI::IsMember({"rescan", "accept"}));
     addConnectionOptions(c.ack, o->c);
-    c.exp = app.add_subcommand("export",
-                               "Export a run: per section image, stage position, atlas slice, "
-                               "registration quality, damage");
-    c.exp->add_option("RUN", o->id, "Run id")->required();
-    c.exp->add_option("--format", o->format, "csv or json")->check(CLI::IsMember({"csv", "json"}));
-    c.exp->add_option("--output", o->output, "Write to this file instead of stdout");
+    c.exp = app.add_subcommand(
+        "export", "Export a run (or one result): csv/json summary, QuickNII/VisuAlign JSON, "
+                  "QuPath GeoJSON (docs/results.md)");
+    auto* run = c.exp->add_option("RUN", o->id, "Run id");
+    auto* result = c.exp->add_option("--result", o->result,
+                                     "Export this result.json (slicectl register's) instead "
+                                     "of a run; no daemon needed");
+    run->excludes(result);
+    c.exp->add_option("--format", o->format, "csv, json, quicknii or qupath")
+        ->check(CLI::IsMember({"csv", "json", "quicknii", "qupath"}));
+    c.exp->add_option("--output", o->output,
+                      "Write to this file instead of stdout (qupath for a run: a directory)");
     for (auto* sub : {c.status, c.runs, c.sections, c.section, c.pause, c.resume, c.cancel,
                       c.rescan, c.alerts, c.exp})
         addConnectionOptions(sub, o->c);
@@ -323,15 +331,22 @@ int runDaemonCommand(const DaemonOpts& o, const DaemonCommands& c) {
         return finish("alerts", request(o.c, "GET", o.all ? "/api/alerts" : "/api/alerts?open=1"),
                       json, printAlerts);
     if (*c.exp) {
+        if (!o.result.empty())
+            return exportResultFile(o.format, o.result, o.output);
+        if (c.exp->count("RUN") == 0) {
+            std::cerr << "slicectl export: error: give a RUN id or --result RESULT.json\n";
+            return kExitUsage;
+        }
+        std::unique_ptr<Progress> waiting;
+        if (o.format == "quicknii" || o.format == "qupath") {
+            waiting = std::make_unique<Progress>("export");
+            waiting->phase("the daemon is building the " + o.format + " export");
+        }
         auto r = request(o.c, "GET", "/api/runs/" + id + "/export?format=" + o.format);
-        if (o.output.empty() || !r || r->status != 200)
+        waiting.reset();
+        if (!r || r->status != 200)
             return finish("export", r, false, {}, true);
-        std::ofstream out(o.output, std::ios::binary);
-        out << r->body;
-        out.close();
-        if (!out)
-            return reportError("export", makeError(ErrorCode::IoError, "cannot write " + o.output));
-        return 0;
+        return writeRunExport(o.format, r->body, o.output);
     }
     return -1;
 }

@@ -2,6 +2,7 @@
 
 #include "slicestation/core/atomic_file.hpp"
 #include "slicestation/core/image_file.hpp"
+#include "slicestation/daemon/version.hpp"
 #include "slicestation/pipeline/atlas.hpp"
 #include "slicestation/pipeline/overlay.hpp"
 
@@ -80,16 +81,43 @@ json affineJson(const cv::Matx23d& a) {
         {json::array({a(0, 0), a(0, 1), a(0, 2)}), json::array({a(1, 0), a(1, 1), a(1, 2)})});
 }
 
+/// `p` relative to the result's directory (how result.json names its files, so the folder can
+/// be moved as a whole).
+std::string relativeToResult(const std::filesystem::path& p, const RegisterRequest& rq) {
+    std::error_code e1, e2; // absolute() fails only without a current directory: keep p then
+    const auto base = std::filesystem::absolute(rq.output, e1).lexically_normal().parent_path();
+    const auto abs = std::filesystem::absolute(p, e2).lexically_normal();
+    if (e1 || e2)
+        return p.string();
+    return abs.lexically_relative(base).string();
+}
+
+std::filesystem::path fieldPathOf(const std::filesystem::path& output) {
+    return output.parent_path() / (output.stem().string() + ".field.tif");
+}
+
 /// The result document (RESULT.json) of a registration; timings are added by the caller.
 json resultDocument(const RegisterRequest& rq, const cv::Mat& section, const cv::Mat& labels,
                     const pipeline::Registration& reg, const std::vector<cv::Point2d>& points) {
     json out;
+    out["software"] = {{"name", "slicestation"}, {"version", kVersion}};
     out["image"] = {{"path", rq.image.string()},
+                    {"file", relativeToResult(rq.image, rq)},
                     {"width", section.cols},
                     {"height", section.rows},
                     {"contrast", reg.contrast == pipeline::Contrast::Brightfield ? "brightfield"
                                                                                  : "fluorescence"}};
-    out["atlas"] = {{"path", rq.atlas.string()}, {"width", labels.cols}, {"height", labels.rows}};
+    out["atlas"] = {{"path", rq.atlas.string()},
+                    {"file", relativeToResult(rq.atlas, rq)},
+                    {"width", labels.cols},
+                    {"height", labels.rows}};
+    if (rq.atlasSlice) {
+        AtlasSliceFrame f = *rq.atlasSlice;
+        if (!f.stackDir.empty())
+            f.stackDir = relativeToResult(f.stackDir, rq);
+        out["atlas"]["stack"] = sliceFrameJson(f);
+    }
+    const bool ccf = rq.atlasSlice && rq.atlasSlice->ccf;
     out["damaged"] = reg.damaged;
     out["damage_score"] = reg.damageScore;
     out["damage_verdict"] = std::string(pipeline::toString(reg.damageVerdict));
@@ -109,10 +137,16 @@ json resultDocument(const RegisterRequest& rq, const cv::Mat& section, const cv:
     out["damage_fraction"] = reg.damageFraction;
     out["damage_summary"] = reg.damageSummary;
     out["affine_atlas_from_image"] = affineJson(reg.affineAtlasFromImage());
+    out["mapping"] = mappingJson(savedMapping(reg), fieldPathOf(rq.output).filename().string());
     json pts = json::array();
     for (const cv::Point2d& p : points) {
         const cv::Point2d a = reg.atlasFromImage(p);
-        pts.push_back({{"x", p.x}, {"y", p.y}, {"atlas_x", a.x}, {"atlas_y", a.y}});
+        json pt{{"x", p.x}, {"y", p.y}, {"atlas_x", a.x}, {"atlas_y", a.y}};
+        if (ccf) {
+            const cv::Vec3d c = ccfUm(rq.atlasSlice->geometry, a);
+            pt["ccf_um"] = {c[0], c[1], c[2]};
+        }
+        pts.push_back(std::move(pt));
     }
     out["points"] = std::move(pts);
     const auto& q = reg.quality;
@@ -180,6 +214,9 @@ core::Result<RegisteredSection> registerSectionFiles(const RegisterRequest& rq,
         if (auto w = core::writeImage(*rq.overlay, picture); !w)
             return w.error();
     }
+    // The full mapping, so that any point can be mapped later without registering again.
+    if (auto w = writeMappingField(fieldPathOf(rq.output), savedMapping(out.registration)); !w)
+        return w.error();
     const auto tWritten = Clock::now();
     auto ms = [](auto a, auto b) {
         return std::chrono::duration<double, std::milli>(b - a).count();

@@ -252,6 +252,7 @@ void RegistrationWorker::process(std::int64_t captureId) {
     rq.maxTurnDeg = settings->maxTurnDeg;
     if (rq.imageUmPerPx > 0)
         rq.atlasUmPerPx = stack_.slices[static_cast<std::size_t>(slice)].umPerPx;
+    rq.atlasSlice = sliceFrame(stack_, slice);
     rq.output = base.string() + ".result.json";
     rq.overlay = base.string() + ".overlay.png";
     rq.warpedLabels = base.string() + ".labels.tif";

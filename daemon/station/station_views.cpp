@@ -1,6 +1,7 @@
 // The station's views for the outward parts (StationApi's reads): status, records, the export,
 // stored images and the atlas region at a pixel.
 #include "slicestation/core/image_file.hpp"
+#include "slicestation/daemon/export/run_export.hpp"
 #include "slicestation/daemon/station/damage_report.hpp"
 #include "slicestation/daemon/station/station.hpp"
 
@@ -186,9 +187,11 @@ std::string csvField(const std::string& s) {
 } // namespace
 
 Result<std::string> Station::exportRun(std::int64_t runId, const std::string& format) {
+    if (isResultExportFormat(format)) // QuickNII/VisuAlign, QuPath: docs/results.md
+        return exportRunResults(*journal_, stateDir(), runId, format);
     if (format != "json" && format != "csv")
         return makeError(ErrorCode::InvalidArgument,
-                         "format: expected \"json\" or \"csv\", got \"" + format + "\"");
+                         "format: expected json, csv, quicknii or qupath, got \"" + format + "\"");
     auto run = journal_->run(runId);
     if (!run)
         return run.error();

@@ -152,8 +152,22 @@ core::Result<StackRegion> regionEntry(const FieldReader& rd, const json& e, size
                                  [](unsigned char c) { return std::isxdigit(c) != 0; });
     if (!hex)
         return rd.bad(where + ".color", "'" + color->substr(0, 20) + "' is not #RRGGBB");
-    return StackRegion{std::uint32_t(*id), *name, *acronym,
+    StackRegion region{std::uint32_t(*id), *name, *acronym,
                        std::uint32_t(std::stoul(color->substr(1), nullptr, 16))};
+    // Optional: the ontology path (root first, ending with the id), bounded like the ids.
+    if (e.contains("path")) {
+        const json& p = e["path"];
+        if (!p.is_array() || p.size() > 64)
+            return rd.bad(where + ".path", "expected an array of at most 64 ids");
+        for (const json& v : p) {
+            if (!v.is_number_unsigned() || v.get<std::uint64_t>() > 0xFFFFFFFFull)
+                return rd.bad(where + ".path", "expected ids (unsigned 32-bit integers)");
+            region.path.push_back(v.get<std::uint32_t>());
+        }
+        if (!region.path.empty() && region.path.back() != region.id)
+            return rd.bad(where + ".path", "must end with the region's own id");
+    }
+    return region;
 }
 
 core::Result<AtlasStack> stackFromJson(const json& j, const fs::path& manifest) {
@@ -240,11 +254,15 @@ core::Result<AtlasStack> writeStack(const fs::path& dir,
         stack.slices.push_back(std::move(s));
     }
     json jr = json::array();
-    for (const StackRegion& r : regions)
-        jr.push_back({{"id", r.id},
-                      {"name", r.name},
-                      {"acronym", r.acronym},
-                      {"color", colorHex(r.colorRgb)}});
+    for (const StackRegion& r : regions) {
+        json e{{"id", r.id},
+               {"name", r.name},
+               {"acronym", r.acronym},
+               {"color", colorHex(r.colorRgb)}};
+        if (!r.path.empty())
+            e["path"] = r.path;
+        jr.push_back(std::move(e));
+    }
     source["frame"] = "micrometres along (AP, DV, LR) from the centre of the first voxel";
     const json manifest = {{"slices", js}, {"regions", jr}, {"source", source}};
     if (auto w = core::writeFileAtomically(dir / "manifest.json", manifest.dump(2) + "\n"); !w)

@@ -3,10 +3,12 @@
 /// registration worker (and `slicectl register`) call. Reads both images, checks them,
 /// registers (pipeline::registerSection), and writes every requested output atomically: the
 /// result document (RESULT.json, docs/operation.md), the overlay PNG and the atlas labels in the
-/// section frame (CV_32S TIFF).
+/// section frame (CV_32S TIFF); always the full mapping's displacement field beside RESULT.json
+/// (`<RESULT stem>.field.tif`, docs/results.md).
 ///
 /// Threading: re-entrant; blocking file I/O and a registration of about a second.
 #include "slicestation/core/result.hpp"
+#include "slicestation/daemon/export/section_export.hpp"
 #include "slicestation/pipeline/registration.hpp"
 
 #include <nlohmann/json.hpp>
@@ -41,6 +43,9 @@ struct RegisterRequest {
     /// The lab's mounting rule: sections are turned at most this far on the slide (degrees;
     /// 180 = any way). See pipeline::RegistrationOptions::maxTurnDeg.
     double maxTurnDeg = 180;
+    /// The atlas is this slice of a stack: result.json then records the slice (index, position,
+    /// frame) and, for a stack cut from a CCF volume, every point's "ccf_um".
+    std::optional<AtlasSliceFrame> atlasSlice;
 };
 
 /// A section registered, typed; `document` is what was written to RESULT.json.

@@ -44,7 +44,8 @@ public:
     [[nodiscard]] virtual core::Result<RunRecord> run(std::int64_t runId) = 0;
     /// NotFound when the run does not exist.
     [[nodiscard]] virtual core::Result<std::vector<SectionRecord>> sections(std::int64_t runId) = 0;
-    /// Format "json" or "csv" (else InvalidArgument).
+    /// Format "json", "csv", "quicknii" or "qupath" (export/run_export.hpp; else
+    /// InvalidArgument).
     [[nodiscard]] virtual core::Result<std::string> exportRun(std::int64_t runId,
                                                               const std::string& format) = 0;
     [[nodiscard]] virtual core::Result<nlohmann::json> sectionDetail(std::int64_t sectionId) = 0;

@@ -6,7 +6,7 @@
 /// ```
 /// {"slices": [{"index", "file", "position_um", "normal", "um_per_px",
 ///              "width", "height", "origin_um", "column_um", "row_um"}...],
-///  "regions": [{"id", "name", "acronym", "color": "#RRGGBB"}...],
+///  "regions": [{"id", "name", "acronym", "color": "#RRGGBB", "path": [root, ..., id]}...],
 ///  "source": {"kind": "volume"|"builtin", "plane", "interval_um", ...}}
 /// ```
 /// Vectors are in the atlas frame: micrometres along (AP, DV, LR) from the centre of the
@@ -30,6 +30,9 @@ struct StackRegion {
     std::uint32_t id = 0;
     std::string name, acronym;
     std::uint32_t colorRgb = 0;
+    /// The ontology's structure_id_path: ancestors, root first, ending with `id`; empty when
+    /// unknown (built-in atlas, stacks written before it was kept).
+    std::vector<std::uint32_t> path = {};
 };
 
 struct StackSlice {
