@@ -217,8 +217,11 @@ std::vector<DetectedCell> detectLoG(const cv::Mat& top, const cv::Mat& mask,
 
 std::vector<DetectedCell> detectThreshold(const cv::Mat& top, const cv::Mat& mask,
                                           const CellDetectorOptions& o) {
+    // The top-hat of noise alone is not centred on 0: measure from its median.
+    std::vector<float> values = valuesIn(top, mask, top.total() > 4'000'000 ? 2 : 1);
+    const double level = median(values);
     const double noise = std::max(1e-12, robustSigma(top, mask));
-    cv::Mat binary = top > o.minSnr * noise;
+    cv::Mat binary = top > level + o.minSnr * noise;
     if (!mask.empty())
         binary.setTo(0, mask == 0);
     cv::Mat labels, stats, centroids;
@@ -247,7 +250,7 @@ std::vector<DetectedCell> detectThreshold(const cv::Mat& top, const cv::Mat& mas
         DetectedCell c;
         c.imagePx = {centroids.at<double>(i, 0), centroids.at<double>(i, 1)};
         c.clusterCells = std::max(1, int(std::lround(area / cellArea)));
-        c.response = peaks[size_t(i)] / noise;
+        c.response = (peaks[size_t(i)] - level) / noise;
         out.push_back(c);
     }
     return out;
