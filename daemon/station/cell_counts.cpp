@@ -1,6 +1,9 @@
 #include "slicestation/daemon/station/cell_counts.hpp"
 
+#include "slicestation/core/atomic_file.hpp"
 #include "slicestation/core/csv.hpp"
+#include "slicestation/core/image_file.hpp"
+#include "slicestation/pipeline/atlas.hpp"
 
 #include <opencv2/imgproc.hpp>
 
@@ -197,6 +200,91 @@ core::Result<std::string> sumCountsCsv(const std::vector<std::filesystem::path>&
                r.parent + "," + std::to_string(r.depth) + "," + std::to_string(r.count) + "," +
                number(r.area) + "," + (r.area > 0 ? number(double(r.count) / r.area) : "") + "\n";
     return out;
+}
+
+core::Result<nlohmann::json> countCellsBeside(const pipeline::Registration& reg,
+                                              const CellCountJob& job) {
+    auto section = core::readImage(job.image);
+    if (!section)
+        return section.error();
+    auto atlasImage = core::readImage(job.atlas);
+    if (!atlasImage)
+        return atlasImage.error();
+    auto labels = pipeline::labelsFromImage(*atlasImage);
+    if (!labels)
+        return labels.error();
+    core::Ontology ontology;
+    if (!job.ontologyFile.empty()) {
+        auto o = core::readOntologyCsv(job.ontologyFile);
+        if (!o)
+            return o.error();
+        ontology = std::move(*o);
+    }
+    auto counts =
+        countSectionCells(*section, reg, *labels, ontology, stackSliceOf(job.atlas), job.options);
+    if (!counts)
+        return counts.error();
+    const std::filesystem::path countsFile = job.base.string() + ".counts.csv";
+    const std::filesystem::path cellsFile = job.base.string() + ".cells.csv";
+    if (auto w = core::writeFileAtomically(cellsFile, counts->cellsCsv); !w)
+        return w.error();
+    if (auto w = core::writeFileAtomically(countsFile, counts->countsCsv); !w)
+        return w.error();
+    std::int64_t counted = 0;
+    for (const auto& c : counts->table.cells)
+        if (!c.excluded && c.atlasId > 0)
+            counted += c.cells;
+    nlohmann::json out{{"counted", counted},
+                       {"excluded_in_damage", counts->table.excludedCells},
+                       {"regions", counts->table.regions.size()},
+                       {"counts", countsFile.filename().string()},
+                       {"cells", cellsFile.filename().string()}};
+    if (!job.runDir.empty()) {
+        if (auto r = writeRunCounts(job.runDir); !r)
+            return r.error();
+        out["run_counts"] = "run-counts.csv";
+    }
+    return out;
+}
+
+core::Result<void> writeRunCounts(const std::filesystem::path& runDir) {
+    // Latest attempt per section: a rescan replaces the section's earlier counts.
+    std::map<std::string, std::pair<int, std::filesystem::path>> latest;
+    std::error_code ec;
+    for (auto it = std::filesystem::recursive_directory_iterator(runDir, ec);
+         !ec && it != std::filesystem::recursive_directory_iterator(); it.increment(ec)) {
+        const std::string name = it->path().filename().string();
+        const std::string suffix = ".counts.csv";
+        if (name.size() <= suffix.size() ||
+            name.compare(name.size() - suffix.size(), suffix.size(), suffix) != 0)
+            continue;
+        const std::string stem = name.substr(0, name.size() - suffix.size());
+        const auto a = stem.rfind("-a");
+        const auto dash = stem.find('-');
+        if (a == std::string::npos || dash == std::string::npos || a + 2 >= stem.size())
+            continue;
+        int attempt = 0;
+        try {
+            attempt = std::stoi(stem.substr(a + 2));
+        } catch (const std::exception&) {
+            continue;
+        }
+        const std::string key =
+            it->path().parent_path().string() + "/" + stem.substr(0, dash); // section id
+        auto& slot = latest[key];
+        if (slot.second.empty() || attempt > slot.first)
+            slot = {attempt, it->path()};
+    }
+    if (ec)
+        return makeError(ErrorCode::IoError,
+                         "cannot list " + runDir.string() + ": " + ec.message());
+    std::vector<std::filesystem::path> files;
+    for (const auto& [key, v] : latest)
+        files.push_back(v.second);
+    auto sum = sumCountsCsv(files);
+    if (!sum)
+        return sum.error();
+    return core::writeFileAtomically(runDir / "run-counts.csv", *sum);
 }
 
 } // namespace slicestation::daemon

@@ -71,6 +71,13 @@ struct ScanSettings {
     /// The lab's mounting rule: sections lie at most this far turned on the slide (degrees; 180
     /// = any way). Registration does not consider placements turned further.
     double maxTurnDeg = 180;
+    /// Cells per region after each registration (docs/cells.md): `count_cells`, the channel
+    /// (`cells_channel`, file order, -1 = grey), `cell_diameter_um` and the Allen structure tree
+    /// to roll counts up (`cells_ontology`, a path; empty = the stack's ids without hierarchy).
+    bool countCells = false;
+    int cellsChannel = -1;
+    double cellDiameterUm = 15;
+    std::string cellsOntology;
 };
 
 struct DaemonSettings {

@@ -15,6 +15,7 @@
 #include "slicestation/pipeline/cells.hpp"
 #include "slicestation/pipeline/registration.hpp"
 
+#include <nlohmann/json.hpp>
 #include <opencv2/core.hpp>
 
 #include <filesystem>
@@ -60,5 +61,26 @@ countSectionCells(const cv::Mat& section, const pipeline::Registration& registra
 /// (density recomputed). \return the errors of reading and parsing (the message names the file).
 [[nodiscard]] core::Result<std::string>
 sumCountsCsv(const std::vector<std::filesystem::path>& countsFiles);
+
+/// The daemon's counting of one registered section (the registration worker, after the
+/// registration is journaled; docs/cells.md): reads the section image and the atlas slice, loads
+/// `ontologyFile` when given, counts, writes `<base>.counts.csv` and `<base>.cells.csv`
+/// atomically, then the run's totals (writeRunCounts of `runDir`).
+struct CellCountJob {
+    std::filesystem::path image, atlas; ///< the section image; the atlas slice registered to
+    std::filesystem::path base;         ///< outputs: base + ".counts.csv" / ".cells.csv"
+    std::filesystem::path runDir;       ///< the run's folder: run-counts.csv goes there
+    std::filesystem::path ontologyFile; ///< empty: no roll-up
+    CellCountOptions options;
+};
+/// \return a summary (counted cells, regions, files written), or the first error (nothing of
+/// this section written then).
+[[nodiscard]] core::Result<nlohmann::json> countCellsBeside(const pipeline::Registration& reg,
+                                                            const CellCountJob& job);
+
+/// Sums the latest attempt of every section's `*-a<N>.counts.csv` under `runDir` (files named
+/// `<section id>-<name>-a<attempt>.counts.csv`) into `runDir/run-counts.csv`.
+/// \return the errors of sumCountsCsv and of writing.
+[[nodiscard]] core::Result<void> writeRunCounts(const std::filesystem::path& runDir);
 
 } // namespace slicestation::daemon
