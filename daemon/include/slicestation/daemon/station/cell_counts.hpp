@@ -73,8 +73,8 @@ struct CellCountJob {
     std::filesystem::path ontologyFile; ///< empty: no roll-up
     CellCountOptions options;
 };
-/// \return a summary (counted cells, regions, files written), or the first error (nothing of
-/// this section written then).
+/// CELLS.csv is written before COUNTS.csv, so a COUNTS.csv present means both are complete.
+/// \return a summary (counted cells, regions, files written), or the first error.
 [[nodiscard]] core::Result<nlohmann::json> countCellsBeside(const pipeline::Registration& reg,
                                                             const CellCountJob& job);
 
