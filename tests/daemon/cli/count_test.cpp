@@ -14,6 +14,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <iostream>
 #include <map>
 #include <sstream>
 #include <sys/wait.h>
@@ -106,20 +107,22 @@ TEST_F(SlicectlCount, WritesCountsAndCellsCloseToTheTruth) {
         byId[counts[i].fields[0]] = {std::stol(counts[i].fields[5]),
                                      std::stod(counts[i].fields[6])};
     ASSERT_TRUE(byId.count("997")) << "no root row: the counts were not rolled up";
-    // The whole brain: every counted cell, near the truth (detector and registration). Measured
-    // at this commit: 643 counted for 550 true (+17%, texture taken for cells on this built-in
-    // section; slst_bench_cells carries the accuracy figures): the bounds catch a broken
-    // mapping or detector, not a few percent.
-    EXPECT_NEAR(double(byId["997"].first), double(total_), 0.25 * total_);
+    std::cout << "counted " << byId["997"].first << " cells for " << total_ << " true\n";
+    // The whole brain: every counted cell, near the truth (detector and registration). Measured:
+    // 527 counted for 550 true (-4%); slst_bench_cells carries the accuracy figures.
+    EXPECT_NEAR(double(byId["997"].first), double(total_), 0.10 * total_);
     // Area: the section's tissue at 2.5 um/px, a few mm^2 (1200 x 880 px = 6.6 mm^2 in all).
     EXPECT_GT(byId["997"].second, 1.5);
     EXPECT_LT(byId["997"].second, 6.6);
-    // The largest region of the truth (measured: 195 for 159).
+    // The largest region of the truth (measured: isocortex 155 for 159).
     auto largest = std::max_element(truth_.begin(), truth_.end(),
                                     [](auto& a, auto& b) { return a.second < b.second; });
     ASSERT_TRUE(byId.count(std::to_string(largest->first)));
     EXPECT_NEAR(double(byId[std::to_string(largest->first)].first), double(largest->second),
-                0.3 * largest->second);
+                0.15 * largest->second)
+        << "largest region " << largest->first;
+    std::cout << "largest region " << largest->first << ": "
+              << byId[std::to_string(largest->first)].first << " for " << largest->second << "\n";
 
     const auto cells = readCsv(p("cells.csv"));
     ASSERT_GT(cells.size(), 100u);

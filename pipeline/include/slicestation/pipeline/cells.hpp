@@ -29,7 +29,8 @@ enum class CellMethod {
     /// Scale-normalised Laplacian of Gaussian at the cell size on the locally
     /// background-subtracted plane (white top-hat), local maxima (non-maximum suppression over
     /// the cell's own disc) above a multiple of the response's local robust noise, answering
-    /// more at the cell's scale than at half of it (smaller texture is not a cell). Touching cells
+    /// 1.7 times more at the cell's scale than at half of it (smaller texture is not a cell).
+    /// Touching cells
     /// keep
     /// their own maxima, so clusters are split by shape rather than by area.
     LoG,
