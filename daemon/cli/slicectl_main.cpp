@@ -15,6 +15,7 @@ int main(int argc, char** argv) {
     std::vector<CommandRunner> commands;
     commands.push_back(addRegisterCommand(app));
     commands.push_back(addDemoCommand(app));
+    commands.push_back(addCountCommand(app));
     commands.push_back(addStageCommand(app));
     commands.push_back(addCameraCommand(app));
     commands.push_back(addAtlasCommands(app));

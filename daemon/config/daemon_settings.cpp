@@ -78,7 +78,11 @@ Result<void> checkScanTable(const nlohmann::json& t, const FieldReader& rd, cons
                               "register",
                               "check_atlas_match",
                               "atlas_mismatch_tolerance",
-                              "max_turn_deg"});
+                              "max_turn_deg",
+                              "count_cells",
+                              "cells_channel",
+                              "cell_diameter_um",
+                              "cells_ontology"});
         !k)
         return k.error();
     if (t.contains("objectives")) {
@@ -288,6 +292,23 @@ Result<void> readRunSettings(const nlohmann::json& t, const FieldReader& rd, con
             return fs.error();
         s.damageFlagScore = *fs;
     }
+    // Cells per region after registration (docs/cells.md); off unless asked for.
+    auto cc = rd.boolean(t, p, "count_cells", false);
+    if (!cc)
+        return cc.error();
+    s.countCells = *cc;
+    auto ch = rd.integer(t, p, "cells_channel", -1, -1, 3);
+    if (!ch)
+        return ch.error();
+    s.cellsChannel = static_cast<int>(*ch);
+    auto cd = rd.number(t, p, "cell_diameter_um", 15.0, 1, 500);
+    if (!cd)
+        return cd.error();
+    s.cellDiameterUm = *cd;
+    auto co = rd.string(t, p, "cells_ontology", std::string());
+    if (!co)
+        return co.error();
+    s.cellsOntology = *co;
     return {};
 }
 
@@ -427,7 +448,11 @@ nlohmann::json toJson(const ScanSettings& s) {
             {"check_atlas_match", s.checkAtlasMatch},
             {"atlas_mismatch_tolerance", s.mismatchToleranceSlices},
             {"max_turn_deg", s.maxTurnDeg},
-            {"damage_flag_score", s.damageFlagScore}};
+            {"damage_flag_score", s.damageFlagScore},
+            {"count_cells", s.countCells},
+            {"cells_channel", s.cellsChannel},
+            {"cell_diameter_um", s.cellDiameterUm},
+            {"cells_ontology", s.cellsOntology}};
 }
 
 Result<ScanSettings> scanSettingsFromJson(const nlohmann::json& j, const std::string& origin) {

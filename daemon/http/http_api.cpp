@@ -27,6 +27,7 @@ core::Result<std::unique_ptr<HttpApi>> HttpApi::start(StationApi& station, const
     http::addPageRoutes(srv, station);
     http::addRunRoutes(srv, station, authorised);
     http::addSectionRoutes(srv, station, authorised);
+    http::addCountRoutes(srv, station);
     http::addAlertRoutes(srv, station, authorised);
     http::addDamageRoutes(srv, station, authorised);
     api->events_ = http::addEventRoutes(srv, station);

@@ -23,6 +23,8 @@ void addRunRoutes(httplib::Server& server, StationApi& station, const Authoriser
 /// GET /api/sections/{id}, .../image.jpg, .../overlay.png, .../region;
 /// POST /api/sections/{id}/rescan. routes_sections.cpp
 void addSectionRoutes(httplib::Server& server, StationApi& station, const Authoriser& authorised);
+/// GET /api/sections/{id}/counts, /api/runs/{id}/counts (CSV). routes_counts.cpp
+void addCountRoutes(httplib::Server& server, StationApi& station);
 /// GET /api/alerts; POST /api/alerts/{id}/ack. routes_alerts.cpp
 void addAlertRoutes(httplib::Server& server, StationApi& station, const Authoriser& authorised);
 

@@ -2,6 +2,7 @@
 
 #include "slicestation/core/image_file.hpp"
 #include "slicestation/daemon/config/daemon_settings.hpp"
+#include "slicestation/daemon/station/cell_counts.hpp"
 #include "slicestation/daemon/station/registration_service.hpp"
 
 #include <algorithm>
@@ -278,6 +279,26 @@ void RegistrationWorker::process(std::int64_t captureId) {
     rec.result = result->document;
     rec.result["regions"] = regionsShown(result->warpedLabels, stack_);
     record(rec, *run, *section, label);
+
+    // Cells per region (docs/cells.md), when the run asks for it: after the registration is
+    // journaled, still on this thread, so neither the stage nor the section's state waits.
+    if (settings->countCells) {
+        PhaseTimer cellsTimer(stats_, "count_cells");
+        CellCountJob job;
+        job.image = image;
+        job.atlas = *atlas;
+        job.base = base;
+        job.runDir = stateDir_ / "runs" / std::to_string(run->id);
+        job.ontologyFile = settings->cellsOntology;
+        job.options.detector.channel = settings->cellsChannel;
+        job.options.cellDiameterUm = settings->cellDiameterUm;
+        job.options.imageUmPerPx = capture->umPerPx;
+        auto counted = countCellsBeside(result->registration, job);
+        nlohmann::json ev = counted ? *counted : nlohmann::json{{"error", counted.error().message}};
+        ev["section_id"] = section->id;
+        ev["run_id"] = run->id;
+        notifier_.publish({counted ? "cells_counted" : "cells_count_failed", ev});
+    }
 }
 
 void RegistrationWorker::record(RegistrationRecord& rec, const RunRecord& run,

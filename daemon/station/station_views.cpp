@@ -6,6 +6,7 @@
 #include "slicestation/daemon/station/station.hpp"
 
 #include <cmath>
+#include <fstream>
 #include <sstream>
 
 namespace slicestation::daemon {
@@ -85,6 +86,47 @@ Result<cv::Mat> Station::sectionImage(std::int64_t sectionId, bool overlay) {
     if (!img)
         return makeError(ErrorCode::IoError, img.error().message, img.error().sysErrno);
     return img;
+}
+
+namespace {
+
+Result<std::string> readText(const std::filesystem::path& file, const std::string& what) {
+    std::error_code ec;
+    if (!std::filesystem::exists(file, ec))
+        return makeError(ErrorCode::NotFound, what + " has no cell counts (scan.count_cells)");
+    std::ifstream in(file, std::ios::binary);
+    std::ostringstream text;
+    if (!(in && text << in.rdbuf()))
+        return makeError(ErrorCode::IoError, what + ": cell counts unreadable");
+    return text.str();
+}
+
+} // namespace
+
+Result<std::string> Station::sectionCounts(std::int64_t sectionId) {
+    auto l = latest(*journal_, sectionId, true);
+    if (!l)
+        return l.error();
+    // Written beside the result by the registration worker: <base>.result.json ->
+    // <base>.counts.csv.
+    std::string rel = l->second->resultPath;
+    const std::string suffix = ".result.json";
+    if (rel.size() <= suffix.size() ||
+        rel.compare(rel.size() - suffix.size(), suffix.size(), suffix) != 0)
+        return makeError(ErrorCode::NotFound,
+                         "section " + std::to_string(sectionId) + " has no cell counts");
+    rel = rel.substr(0, rel.size() - suffix.size()) + ".counts.csv";
+    auto file = storedFile(parts_.stateDir, rel);
+    if (!file)
+        return file.error();
+    return readText(*file, "section " + std::to_string(sectionId));
+}
+
+Result<std::string> Station::runCounts(std::int64_t runId) {
+    if (auto r = journal_->run(runId); !r)
+        return r.error();
+    return readText(parts_.stateDir / "runs" / std::to_string(runId) / "run-counts.csv",
+                    "run " + std::to_string(runId));
 }
 
 Result<RegionAtPixel> Station::regionAt(std::int64_t sectionId, int x, int y, int ofWidth) {

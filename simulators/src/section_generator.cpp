@@ -152,6 +152,13 @@ std::optional<core::Error> validate(const cv::Mat& labels, const GeneratorOption
             return c;
     if (o.stain != Stain::Fluorescence && o.stain != Stain::Brightfield)
         return makeError(ErrorCode::InvalidArgument, "GeneratorOptions::stain: unknown value");
+    if (o.cells.enabled)
+        for (const auto& c : {checkRange("cells.diameterPx", o.cells.diameterPx, 1.5, 100.0),
+                              checkRange("cells.meanPerMpx", o.cells.meanPerMpx, 1.0, 1e5),
+                              checkRange("cells.contrast", o.cells.contrast, 0.05, 10.0),
+                              checkRange("cells.minDistance", o.cells.minDistance, 0.5, 3.0)})
+            if (c)
+                return c;
     return std::nullopt;
 }
 
@@ -426,6 +433,7 @@ struct Layers {
     cv::Mat signal;   // CV_32F, stain where covered
     cv::Mat nuclei;   // CV_32F, nuclear texture (about 1 at a nucleus' centre)
     cv::Mat level;    // CV_32F, the region's stain level with its slow variations
+    cv::Mat labelled; // CV_32F, labelled cells (GeneratorOptions::cells) or empty
     cv::Mat tissue;   // CV_8U 255 tissue present (no ventricles)
     cv::Mat outline;  // CV_8U 255 inside the section's outline (ventricles included)
     /// CV_8U 255 where coverage > 0: the outline plus the soft edge around it. Damage clears
@@ -664,6 +672,8 @@ void paintDamage(Layers& layers, const DamageContext& ctx, const GeneratorOption
         layers.signal = move(layers.signal, cv::INTER_LINEAR);
         layers.nuclei = move(layers.nuclei, cv::INTER_LINEAR);
         layers.level = move(layers.level, cv::INTER_LINEAR);
+        if (!layers.labelled.empty())
+            layers.labelled = move(layers.labelled, cv::INTER_LINEAR);
         layers.tissue = move(layers.tissue, cv::INTER_NEAREST);
         layers.outline = move(layers.outline, cv::INTER_NEAREST);
         layers.support = move(layers.support, cv::INTER_NEAREST);
@@ -868,6 +878,9 @@ cv::Mat renderBrightfield(const Layers& layers, const Debris& debris, const cv::
         cv::Mat od = layers.coverage.mul(nuclear[ch] * (0.06f + 0.75f * layers.nuclei) +
                                          counter[ch] * (0.1f + 0.55f * layers.level));
         od += (0.5f * nuclear[ch] + 0.2f) * debris.dark;
+        if (!layers.labelled.empty()) // DAB-like brown: absorbs blue most (R, G, B)
+            od +=
+                layers.coverage.mul(layers.labelled) * std::array{0.27f, 0.57f, 0.78f}[size_t(ch)];
         cv::exp(-od, rgb[static_cast<size_t>(ch)]);
         rgb[static_cast<size_t>(ch)] = rgb[static_cast<size_t>(ch)].mul(light) * lamp;
     }
@@ -958,6 +971,18 @@ core::Result<GeneratedSection> generate(const cv::Mat& labels, const GeneratorOp
     layers.level = regionLevel.mul(1.0f + 0.12f * slow);
     layers.nuclei = cells;
     layers.signal = layers.level.mul(0.35f + 0.8f * cells + 0.1f * speckle).mul(1.0f + 0.35f * rim);
+    if (o.cells.enabled) {
+        // Labelled cells (issue 22) on their own random stream: fluorescence adds their stain to
+        // the signal, brightfield their absorbing dye to the nuclear layer (dark cells).
+        out.cells = placeCells(truth.labelsInImage, layers.tissue, o.cells, o.seed);
+        const cv::Mat blobs = renderCells(size, out.cells, o.cells.diameterPx);
+        double maxLevel = 0;
+        cv::minMaxLoc(regionLevel, nullptr, &maxLevel);
+        if (o.stain == Stain::Fluorescence)
+            layers.signal += blobs * (o.cells.contrast * maxLevel);
+        else
+            layers.labelled = blobs * o.cells.contrast;
+    }
 
     const DamageContext ctx{[&] {
                                 const cv::Moments m = cv::moments(layers.outline, true);
@@ -966,6 +991,7 @@ core::Result<GeneratedSection> generate(const cv::Mat& labels, const GeneratorOp
                             placement.tissueWidthPx, placement.linear};
     paintDamage(layers, ctx, o, damageRng, truth);
     truth.tissueMask = layers.tissue;
+    markCounted(out.cells, truth.tissueMask, truth.damageMask);
     truth.landmarks =
         pickLandmarks(placement.map, tissueBefore, truth.damageMask, o.landmarkCount, landmarkRng);
 

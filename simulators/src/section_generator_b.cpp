@@ -82,6 +82,14 @@ core::Result<void> validate(const cv::Mat& labels, const GeneratorOptionsB& o) {
     for (const auto& [name, v, lo, hi] : ranges)
         if (auto r = checkRange(name, v, lo, hi); !r)
             return r.error();
+    if (o.cells.enabled)
+        for (const auto& [name, v, lo, hi] :
+             {std::tuple{"cells.diameterPx", o.cells.diameterPx, 1.5, 100.0},
+              std::tuple{"cells.meanPerMpx", o.cells.meanPerMpx, 1.0, 1e5},
+              std::tuple{"cells.contrast", o.cells.contrast, 0.05, 10.0},
+              std::tuple{"cells.minDistance", o.cells.minDistance, 0.5, 3.0}})
+            if (auto r = checkRange(name, v, lo, hi); !r)
+                return r.error();
     if (o.stain == StainB::Template) {
         if (o.templatePlane.empty() || o.templatePlane.type() != CV_32FC1 ||
             o.templatePlane.size() != labels.size())
@@ -625,6 +633,15 @@ GeneratedSectionB renderB(const cv::Mat& labels, const core::Ontology& onto,
             s[x] = float(lv[x] * ((1 - texture) + texture * f) * (1 + 0.06 * o.texture * dn[x]));
         }
     }
+    if (o.cells.enabled) {
+        // Labelled cells (issue 22), on their own random stream: more stain (brighter in
+        // fluorescence, darker in brightfield), over the brightest region's level.
+        out.cells = placeCells(imgLabels, tissue, o.cells, o.seed);
+        const cv::Mat blobs = renderCells(size, out.cells, o.cells.diameterPx);
+        double maxLevel = 0;
+        cv::minMaxLoc(level, nullptr, &maxLevel);
+        S += blobs * (o.cells.contrast * std::max(0.2, maxLevel));
+    }
 
     // ---- Damage, each kind once at its own place.
     const cv::Rect tbox = cv::boundingRect(tissue);
@@ -757,6 +774,7 @@ GeneratedSectionB renderB(const cv::Mat& labels, const core::Ontology& onto,
     }
     out.truth.tissueMask = tissue;
     out.truth.damageMask = damageMask;
+    markCounted(out.cells, tissue, damageMask);
 
     // ---- Landmarks: uniform over intact tissue at least 3 px from damage.
     {

@@ -13,6 +13,7 @@
 /// Determinism: the output depends only on the inputs; the same seed gives identical bytes.
 
 #include "slicestation/core/result.hpp"
+#include "slicestation/sim/section_cells.hpp"
 
 #include <opencv2/core/mat.hpp>
 #include <opencv2/core/matx.hpp>
@@ -53,6 +54,8 @@ struct GeneratorOptions {
     /// collapsed Allen plane use.
     std::vector<std::int32_t> fiberTractIds{1009};
     std::vector<std::int32_t> ventricleIds{73};
+    /// Labelled cells at known positions (GeneratedSection::cells); off by default.
+    CellOptions cells;
 };
 
 enum class DamageKind { Tear, Missing, Fragment };
@@ -91,6 +94,9 @@ struct GroundTruth {
 struct GeneratedSection {
     cv::Mat image; ///< CV_16UC1 (fluorescence) or CV_8UC3 BGR (brightfield)
     GroundTruth truth;
+    /// The labelled cells painted (GeneratorOptions::cells), every one placed; `counted` tells
+    /// which lie in intact tissue at the end.
+    std::vector<TrueCell> cells;
 };
 
 /// Renders `atlasLabels` (CV_32S, 0 or negative outside the brain) as a microscope image.

@@ -91,6 +91,8 @@ struct GeneratorOptionsB {
     /// With an ontology, every descendant of 1009 (fiber tracts) and 73 (ventricular systems) is.
     std::vector<std::int32_t> fiberTractIds{1009};
     std::vector<std::int32_t> ventricleIds{73};
+    /// Labelled cells at known positions (GeneratedSectionB::cells); off by default.
+    CellOptions cells;
 };
 
 struct GeneratedSectionB {
@@ -99,6 +101,8 @@ struct GeneratedSectionB {
     std::vector<DamageKindB> damageKinds; ///< parallel to truth.damage
     double imageUmPerPx = 0;              ///< the mean true pixel size (atlasUmPerPx / scale)
     double minJacobian = 0;               ///< of the non-linear part of the true map
+    /// The labelled cells painted (GeneratorOptionsB::cells); `counted`: in intact tissue.
+    std::vector<TrueCell> cells;
 };
 
 /// Renders `atlasLabels` (CV_32S, 0 or negative outside the brain; full Allen ids or any ids)

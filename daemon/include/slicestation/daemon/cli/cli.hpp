@@ -17,6 +17,7 @@ using CommandRunner = std::function<int()>;
 
 CommandRunner addRegisterCommand(CLI::App& app);
 CommandRunner addDemoCommand(CLI::App& app);
+CommandRunner addCountCommand(CLI::App& app); ///< `count`: cells per region (count_command.cpp)
 CommandRunner addStageCommand(CLI::App& app); ///< cli_stage.cpp
 /// `atlas slice` and `atlas match` (atlas_command.hpp).
 CommandRunner addAtlasCommands(CLI::App& app);

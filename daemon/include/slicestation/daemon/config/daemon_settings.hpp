@@ -78,6 +78,13 @@ struct ScanSettings {
     /// [damage] flag_score: a section whose damage score (in [0, 1]) reaches this is flagged
     /// damaged. Snapshotted as "damage_flag_score"; a snapshot without it (older runs) reads 0.5.
     double damageFlagScore = 0.5;
+    /// Cells per region after each registration (docs/cells.md): `count_cells`, the channel
+    /// (`cells_channel`, file order, -1 = grey), `cell_diameter_um` and the Allen structure tree
+    /// to roll counts up (`cells_ontology`, a path; empty = the stack's ids without hierarchy).
+    bool countCells = false;
+    int cellsChannel = -1;
+    double cellDiameterUm = 15;
+    std::string cellsOntology;
 };
 
 struct DaemonSettings {

@@ -77,6 +77,8 @@ public:
     /// null before the first. Any thread.
     std::shared_ptr<const hw::Frame> liveFrame() const override;
     [[nodiscard]] core::Result<cv::Mat> sectionImage(std::int64_t sectionId, bool overlay) override;
+    [[nodiscard]] core::Result<std::string> sectionCounts(std::int64_t sectionId) override;
+    [[nodiscard]] core::Result<std::string> runCounts(std::int64_t runId) override;
     [[nodiscard]] core::Result<RegionAtPixel> regionAt(std::int64_t sectionId, int x, int y,
                                                        int ofWidth) override;
     /// Validates and journals a plan (TOML/JSON already parsed) with a snapshot of the scan

@@ -63,6 +63,18 @@ public:
     /// stored labels are unreadable.
     [[nodiscard]] virtual core::Result<RegionAtPixel> regionAt(std::int64_t sectionId, int x, int y,
                                                                int ofWidth) = 0;
+    /// Cells per region (docs/cells.md): the COUNTS.csv of the section's latest registered
+    /// capture, or (`runId` form) the run's summed run-counts.csv. NotFound: no such section or
+    /// run, not registered yet, or counting was not asked for (scan.count_cells); IoError: the
+    /// file is unreadable. Not pure: a station without counting keeps the NotFound default.
+    [[nodiscard]] virtual core::Result<std::string> sectionCounts(std::int64_t sectionId) {
+        return core::makeError(core::ErrorCode::NotFound,
+                               "section " + std::to_string(sectionId) + " has no cell counts");
+    }
+    [[nodiscard]] virtual core::Result<std::string> runCounts(std::int64_t runId) {
+        return core::makeError(core::ErrorCode::NotFound,
+                               "run " + std::to_string(runId) + " has no cell counts");
+    }
 
     // Controls.
     /// Validates and journals a plan (TOML/JSON already parsed). \return the run id.
