@@ -77,6 +77,9 @@ public:
     /// null before the first. Any thread.
     std::shared_ptr<const hw::Frame> liveFrame() const override;
     [[nodiscard]] core::Result<cv::Mat> sectionImage(std::int64_t sectionId, bool overlay) override;
+    [[nodiscard]] core::Result<ImagePyramid> sectionPyramid(std::int64_t sectionId) override;
+    [[nodiscard]] core::Result<cv::Mat> sectionTile(std::int64_t sectionId, int level, int x,
+                                                    int y) override;
     [[nodiscard]] core::Result<RegionAtPixel> regionAt(std::int64_t sectionId, int x, int y,
                                                        int ofWidth) override;
     /// Validates and journals a plan (TOML/JSON already parsed) with a snapshot of the scan
