@@ -202,6 +202,25 @@ public:
             cv::rectangle(m, {100, 100}, {2300, 1500}, cv::Scalar(255, 255, 255), 20);
         return m;
     }
+    /// The pyramid of those images: 512 px tiles, levels 2400 x 1600 and 1200 x 800.
+    core::Result<ImagePyramid> sectionPyramid(std::int64_t) override {
+        return ImagePyramid{512, {{2400, 1600}, {1200, 800}}};
+    }
+    /// Tile (x, y) of a level: BGR (20 + 40 x, 20 + 40 y, 250 - 100 level), so that the page's
+    /// pixels tell which tile was drawn where.
+    core::Result<cv::Mat> sectionTile(std::int64_t id, int level, int x, int y) override {
+        const cv::Size size = level == 0 ? cv::Size(2400, 1600) : cv::Size(1200, 800);
+        if (level < 0 || level > 1 || x < 0 || y < 0 || x * 512 >= size.width ||
+            y * 512 >= size.height)
+            return core::makeError(core::ErrorCode::NotFound, "no such tile");
+        {
+            std::lock_guard lock(m_);
+            calls_.push_back("tile " + std::to_string(id) + " " + std::to_string(level) + "/" +
+                             std::to_string(x) + "_" + std::to_string(y));
+        }
+        return cv::Mat(std::min(512, size.height - 512 * y), std::min(512, size.width - 512 * x),
+                       CV_8UC3, cv::Scalar(20 + 40 * x, 20 + 40 * y, 250 - 100 * level));
+    }
     core::Result<RegionAtPixel> regionAt(std::int64_t, int x, int y, int) override {
         return RegionAtPixel{315, x, y, "Isocortex", "Isocortex"};
     }
