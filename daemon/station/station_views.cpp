@@ -219,6 +219,14 @@ nlohmann::json Station::status() {
         j["open_alerts"] = a->size();
     if (auto f = parts_.freeSpace(parts_.stateDir))
         j["free_mb"] = static_cast<double>(*f) / (1 << 20);
+    {
+        std::lock_guard lock(stageMutex_);
+        if (stage_)
+            j["stage"] = {{"x_um", stage_->xUm},
+                          {"y_um", stage_->yUm},
+                          {"z_um", stage_->zUm},
+                          {"moving", stageMoving_}};
+    }
     j["phases"] = stats_.summary();
     if (active)
         if (auto r = journal_->run(*active))

@@ -195,6 +195,19 @@ TEST_F(PageControl, RunControlsAndWhatTheTechnicianLooksAt) {
         return browser.text(*browser.find("#stage-pos")).find("12345.5") != std::string::npos;
     })) << browser.text(*browser.find("#stage-pos"));
     EXPECT_NE(browser.text(*browser.find("#stage-pos")).find("6789.3"), std::string::npos);
+    // While the stage moves, its positions arrive as events and replace it at once.
+    station_.publish("stage_position",
+                     {{"x_um", 20'500.25}, {"y_um", 3'000}, {"z_um", 2'500}, {"moving", true}});
+    ASSERT_TRUE(waitFor([&] {
+        return browser.text(*browser.find("#stage-pos")) ==
+               "x 20500.3 \u00b5m, y 3000.0 \u00b5m, z 2500.0 \u00b5m (moving)";
+    })) << browser.text(*browser.find("#stage-pos"));
+    station_.publish("stage_position",
+                     {{"x_um", 21'000}, {"y_um", 3'000}, {"z_um", 2'500}, {"moving", false}});
+    ASSERT_TRUE(waitFor([&] {
+        return browser.text(*browser.find("#stage-pos")).rfind("x 21000.0", 0) == 0 &&
+               browser.text(*browser.find("#stage-pos")).find("moving") == std::string::npos;
+    })) << browser.text(*browser.find("#stage-pos"));
     EXPECT_EQ(browser.text(*browser.find("#step")), "moving to s04");
     ASSERT_TRUE(waitFor([&] {
         return browser.text(*browser.find("#focus")).find("found, score 0.750") !=

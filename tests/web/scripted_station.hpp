@@ -72,11 +72,14 @@ public:
 
     // What the test does ---------------------------------------------------------------------
     /// Sends an event to every listener (the event stream), now.
+    /// A "stage_position" is also the status's stage from then on, as the station keeps it.
     void publish(const std::string& type, const nlohmann::json& data) {
         std::vector<std::function<void(const StationEvent&)>> ls;
         {
             std::lock_guard lock(m_);
             ls = listeners_;
+            if (type == "stage_position")
+                stage_ = data;
         }
         for (auto& l : ls)
             l({type, data});
@@ -123,6 +126,8 @@ public:
         if (state_ == "scanning")
             j["run"] = toJson(runs_[1]);
         j["simulated"] = {{"stage", true}, {"camera", true}};
+        if (!stage_.is_null())
+            j["stage"] = stage_;
         return j;
     }
     core::Result<std::vector<RunRecord>> runs() override {
@@ -284,6 +289,7 @@ private:
     }
 
     mutable std::mutex m_;
+    nlohmann::json stage_; ///< the last "stage_position" published (null: none)
     std::string state_ = "scanning", activity_ = "capturing s01";
     std::vector<RunRecord> runs_;
     std::vector<SectionRecord> sections_;

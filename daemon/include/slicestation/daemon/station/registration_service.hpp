@@ -41,6 +41,9 @@ struct RegisterRequest {
     /// The lab's mounting rule: sections are turned at most this far on the slide (degrees;
     /// 180 = any way). See pipeline::RegistrationOptions::maxTurnDeg.
     double maxTurnDeg = 180;
+    /// Registration steps done of steps total (pipeline::RegistrationOptions::progress), for
+    /// slicectl's bar. May be empty.
+    std::function<void(int done, int total)> progress;
 };
 
 /// A section registered, typed; `document` is what was written to RESULT.json.

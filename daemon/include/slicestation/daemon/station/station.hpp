@@ -124,6 +124,15 @@ private:
     std::unique_ptr<Scanner> scanner_;
     mutable std::mutex liveMutex_;
     std::shared_ptr<const hw::Frame> live_;
+    /// A stage position seen: `at` (stage clock) for a read during a move, nullopt for the
+    /// settled position after one. Kept for status(); published as "stage_position".
+    void noteStagePosition(const hw::StagePosition& p,
+                           std::optional<std::chrono::steady_clock::time_point> at);
+    std::mutex stageMutex_;
+    std::optional<hw::StagePosition> stage_;
+    bool stageMoving_ = false;
+    bool stageAnnounced_ = false; ///< a move's position was published: publish where it ended
+    std::optional<std::chrono::steady_clock::time_point> lastStageEvent_;
     std::mutex labelsMutex_; ///< the labels regionAt() read last, kept for the next pixel
     std::string labelsPath_;
     cv::Mat labels_;
