@@ -4,6 +4,7 @@
 #include "full_disk_vfs.hpp"
 #include "station_fixture.hpp"
 
+#include "slicestation/core/tiff_file.hpp"
 #include "slicestation/core/unique_fd.hpp"
 #include "slicestation/daemon/storage/ome_tiff.hpp"
 
@@ -56,6 +57,15 @@ TEST_F(StationTest, AWholeRunStoresEverySectionRegistersItAndFlagsTheTornOne) {
         EXPECT_NEAR(img->info.stage.xUm, s.xUm, 1.0);
         EXPECT_NEAR(img->info.stage.yUm, s.yUm, 1.0);
         EXPECT_EQ(img->image.cols, 1280);
+        // Written as QuPath reads it (docs/images.md): the objective of the station file, the
+        // fluorescence channel green, 512 px tiles and one reduced level (1280 -> 640 px).
+        EXPECT_EQ(img->info.objective, rig_.station->settings().scan.objective.name);
+        EXPECT_EQ(img->info.channelRgba, 0x00FF00FFu);
+        auto pyramid = core::readTiffPyramidInfo(rig_.dir / c.imagePath);
+        ASSERT_TRUE(pyramid) << pyramid.error().message;
+        EXPECT_TRUE(pyramid->tiled);
+        EXPECT_EQ(pyramid->tileSize, cv::Size(512, 512));
+        EXPECT_EQ(pyramid->levels, (std::vector<cv::Size>{{1280, 1024}, {640, 512}}));
         // Focus found near the simulated focal surface (2500 + 0.002 x - 0.001 y).
         EXPECT_TRUE(c.focusFound);
         EXPECT_NEAR(c.stage.zUm, 2'500 + 0.002 * s.xUm - 0.001 * s.yUm, 10.0);
