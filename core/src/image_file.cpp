@@ -5,6 +5,7 @@
 
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
 
 #include <tiffio.h>
 
@@ -860,8 +861,9 @@ Error writeError(const std::string& what, const fs::path& name, const TiffFile& 
                      err);
 }
 
+/// Tags of one page: strips of `rowsPerStrip` rows, or square tiles of `tilePx` when it is > 0.
 Result<void> setPageTags(TIFF* tif, const cv::Mat& image, const TiffTags& tags,
-                         std::uint32_t rowsPerStrip) {
+                         std::uint32_t rowsPerStrip, std::uint32_t tilePx = 0) {
     const int channels = image.channels();
     const int depth = image.depth();
     const auto bits = static_cast<std::uint16_t>(8 * CV_ELEM_SIZE1(depth));
@@ -884,7 +886,12 @@ Result<void> setPageTags(TIFF* tif, const cv::Mat& image, const TiffTags& tags,
             channels == 4 ? EXTRASAMPLE_UNASSALPHA : EXTRASAMPLE_UNSPECIFIED;
         ok = ok && TIFFSetField(tif, TIFFTAG_EXTRASAMPLES, 1, &extra) == 1;
     }
-    ok = ok && TIFFSetField(tif, TIFFTAG_ROWSPERSTRIP, rowsPerStrip) == 1;
+    if (tilePx > 0) {
+        ok = ok && TIFFSetField(tif, TIFFTAG_TILEWIDTH, tilePx) == 1;
+        ok = ok && TIFFSetField(tif, TIFFTAG_TILELENGTH, tilePx) == 1;
+    } else {
+        ok = ok && TIFFSetField(tif, TIFFTAG_ROWSPERSTRIP, rowsPerStrip) == 1;
+    }
     if (!tags.imageDescription.empty())
         ok = ok && TIFFSetField(tif, TIFFTAG_IMAGEDESCRIPTION, tags.imageDescription.c_str()) == 1;
     if (!tags.software.empty())
@@ -936,6 +943,135 @@ Result<void> writeTiffPageImpl(int fd, const fs::path& name, const cv::Mat& imag
         return writeError("cannot finish TIFF", name, *file);
     }
     return {};
+}
+
+// ---------------------------------------------------------------------------------------------
+// Tiled pyramids (OME-TIFF sub-resolutions in SubIFDs)
+
+/// Writes `rgb` (already in file sample order) as the tiles of the current directory.
+Result<void> writeTiles(TIFF* tif, const TiffFile& file, const fs::path& name, const cv::Mat& rgb,
+                        int tilePx) {
+    const std::size_t pixelBytes = rgb.elemSize();
+    const std::size_t tileRowBytes = static_cast<std::size_t>(tilePx) * pixelBytes;
+    // The predictor differences the data in place: libtiff gets a scratch buffer per tile.
+    std::vector<std::uint8_t> tile(tileRowBytes * static_cast<std::size_t>(tilePx));
+    for (int y = 0; y < rgb.rows; y += tilePx) {
+        for (int x = 0; x < rgb.cols; x += tilePx) {
+            std::fill(tile.begin(), tile.end(), std::uint8_t{0}); // edge tiles: zero padding
+            const int rows = std::min(tilePx, rgb.rows - y);
+            const std::size_t rowBytes =
+                static_cast<std::size_t>(std::min(tilePx, rgb.cols - x)) * pixelBytes;
+            for (int r = 0; r < rows; ++r)
+                std::memcpy(tile.data() + static_cast<std::size_t>(r) * tileRowBytes,
+                            rgb.ptr(y + r) + static_cast<std::size_t>(x) * pixelBytes, rowBytes);
+            const ttile_t index = TIFFComputeTile(tif, static_cast<std::uint32_t>(x),
+                                                  static_cast<std::uint32_t>(y), 0, 0);
+            const auto bytes = static_cast<tmsize_t>(tile.size());
+            if (TIFFWriteEncodedTile(tif, index, tile.data(), bytes) != bytes)
+                return writeError("cannot write TIFF", name, file);
+        }
+    }
+    return {};
+}
+
+Result<void> checkPyramidArguments(const fs::path& name, const cv::Mat& image, const TiffTags& tags,
+                                   const TiffPyramidLayout& layout) {
+    const std::string what = "cannot write TIFF " + quoted(name) + ": ";
+    const int depth = image.depth();
+    if (image.empty() || (depth != CV_8U && depth != CV_16U) ||
+        (image.channels() != 1 && image.channels() != 3)) {
+        return makeError(
+            ErrorCode::Unsupported,
+            what + "a pyramid takes 8/16-bit images with 1 or 3 channels, not " +
+                (image.empty() ? std::string("an empty image") : cv::typeToString(image.type())));
+    }
+    if (layout.tileSizePx < 16 || layout.tileSizePx > 4096 || layout.tileSizePx % 16 != 0) {
+        return makeError(ErrorCode::InvalidArgument,
+                         what + "tile size " + std::to_string(layout.tileSizePx) +
+                             " px (a multiple of 16 in [16, 4096], as TIFF 6.0 asks)");
+    }
+    if (layout.maxTopSidePx < 1) {
+        return makeError(ErrorCode::InvalidArgument, what + "maxTopSidePx must be >= 1");
+    }
+    if (tags.imageDescription.find('\0') != std::string::npos) {
+        return makeError(ErrorCode::InvalidArgument, what + "ImageDescription holds a NUL");
+    }
+    return {};
+}
+
+Result<void> writeTiffPyramidImpl(int fd, const fs::path& name, const cv::Mat& image,
+                                  const TiffTags& tags, const TiffPyramidLayout& layout) {
+    const std::vector<cv::Size> levels = tiffPyramidLevels(image.size(), layout.maxTopSidePx);
+    std::uint64_t rawBytes = 0;
+    for (const cv::Size& s : levels)
+        rawBytes += static_cast<std::uint64_t>(s.area()) * image.elemSize();
+    const bool big =
+        layout.bigTiff == TiffPyramidLayout::BigTiff::Always ||
+        (layout.bigTiff == TiffPyramidLayout::BigTiff::Auto && rawBytes > layout.bigTiffAboveBytes);
+    auto file = TiffFile::openFd(fd, name, big ? "wl8" : "wl");
+    if (!file)
+        return file.error();
+    TIFF* tif = file->get();
+    const auto tilePx = static_cast<std::uint32_t>(layout.tileSizePx);
+    if (auto set = setPageTags(tif, image, tags, 0, tilePx); !set)
+        return makeError(ErrorCode::Internal,
+                         "cannot set TIFF tags for " + quoted(name) + file->detail());
+    // Zero offsets as placeholders: libtiff writes the next levels.size() - 1 directories as
+    // this page's SubIFDs and fills their offsets in (TIFFTAG_SUBIFD in libtiff's tif_dir.c).
+    std::vector<toff_t> subIfds(levels.size() - 1, 0);
+    if (!subIfds.empty() &&
+        TIFFSetField(tif, TIFFTAG_SUBIFD, static_cast<std::uint16_t>(subIfds.size()),
+                     subIfds.data()) != 1)
+        return makeError(ErrorCode::Internal,
+                         "cannot set the SubIFD tag of " + quoted(name) + file->detail());
+    if (auto w = writeTiles(tif, *file, name, toRgbOrder(image), layout.tileSizePx); !w)
+        return w;
+    if (TIFFWriteDirectory(tif) != 1)
+        return writeError("cannot write the TIFF directory of", name, *file);
+    for (std::size_t k = 1; k < levels.size(); ++k) {
+        cv::Mat reduced;
+        cv::resize(image, reduced, levels[k], 0, 0, cv::INTER_AREA);
+        TiffTags levelTags;
+        levelTags.software = tags.software;
+        if (tags.umPerPx > 0)
+            levelTags.umPerPx = tags.umPerPx * image.cols / static_cast<double>(reduced.cols);
+        bool ok = TIFFSetField(tif, TIFFTAG_SUBFILETYPE, FILETYPE_REDUCEDIMAGE) == 1;
+        ok = ok && static_cast<bool>(setPageTags(tif, reduced, levelTags, 0, tilePx));
+        if (!ok)
+            return makeError(ErrorCode::Internal,
+                             "cannot set TIFF tags for " + quoted(name) + file->detail());
+        if (auto w = writeTiles(tif, *file, name, toRgbOrder(reduced), layout.tileSizePx); !w)
+            return w;
+        if (TIFFWriteDirectory(tif) != 1)
+            return writeError("cannot write a reduced level of", name, *file);
+    }
+    if (!file->close() || file->firstErrno() != 0)
+        return writeError("cannot finish TIFF", name, *file);
+    return {};
+}
+
+/// Opens `path` and makes `level` (0: first page, k: its k-th SubIFD) the current directory.
+Result<TiffFile> openLevel(const fs::path& path, int level) {
+    std::error_code ec;
+    if (!fs::exists(path, ec))
+        return makeError(ErrorCode::NotFound, "TIFF " + quoted(path) + " does not exist");
+    auto file = TiffFile::open(path, "r");
+    if (!file)
+        return makeError(ErrorCode::IoError, "not a readable TIFF: " + file.error().message,
+                         file.error().sysErrno);
+    if (level == 0)
+        return file;
+    TIFF* tif = file->get();
+    std::uint16_t count = 0;
+    toff_t* offsets = nullptr;
+    if (level < 0 || TIFFGetField(tif, TIFFTAG_SUBIFD, &count, &offsets) != 1 || level > count)
+        return makeError(ErrorCode::NotFound, "TIFF " + quoted(path) + " has no level " +
+                                                  std::to_string(level) + " (it has " +
+                                                  std::to_string(count + 1) + ")");
+    if (TIFFSetSubDirectory(tif, offsets[level - 1]) != 1)
+        return makeError(ErrorCode::IoError, "TIFF " + quoted(path) + ": cannot read level " +
+                                                 std::to_string(level) + file->detail());
+    return file;
 }
 
 std::string lowerExtension(const fs::path& path) {
@@ -1077,6 +1213,123 @@ Result<void> writeTiffPage(int fd, const std::filesystem::path& name, const cv::
     } catch (const std::exception& e) {
         return makeError(ErrorCode::Internal,
                          "cannot write TIFF " + quoted(name) + ": " + e.what());
+    }
+}
+
+std::vector<cv::Size> tiffPyramidLevels(cv::Size full, int maxTopSidePx) {
+    std::vector<cv::Size> levels{full};
+    while (std::max(levels.back().width, levels.back().height) > std::max(maxTopSidePx, 1) &&
+           levels.size() < 32) {
+        const cv::Size& last = levels.back();
+        levels.emplace_back((last.width + 1) / 2, (last.height + 1) / 2);
+    }
+    return levels;
+}
+
+Result<void> writeTiffPyramid(int fd, const std::filesystem::path& name, const cv::Mat& image,
+                              const TiffTags& tags, const TiffPyramidLayout& layout) {
+    if (auto ok = checkPyramidArguments(name, image, tags, layout); !ok)
+        return ok;
+    try {
+        return writeTiffPyramidImpl(fd, name, image, tags, layout);
+    } catch (const std::exception& e) {
+        return makeError(ErrorCode::Internal,
+                         "cannot write TIFF " + quoted(name) + ": " + e.what());
+    }
+}
+
+Result<TiffPyramidInfo> readTiffPyramidInfo(const std::filesystem::path& path) {
+    auto file = openLevel(path, 0);
+    if (!file)
+        return file.error();
+    TIFF* tif = file->get();
+    TiffPyramidInfo info;
+    info.bigTiff = TIFFIsBigTIFF(tif) != 0;
+    info.tiled = TIFFIsTiled(tif) != 0;
+    const auto size = [&]() {
+        std::uint32_t w = 0, h = 0;
+        TIFFGetField(tif, TIFFTAG_IMAGEWIDTH, &w);
+        TIFFGetField(tif, TIFFTAG_IMAGELENGTH, &h);
+        return cv::Size(static_cast<int>(std::min<std::uint32_t>(w, INT32_MAX)),
+                        static_cast<int>(std::min<std::uint32_t>(h, INT32_MAX)));
+    };
+    info.levels.push_back(size());
+    if (info.tiled) {
+        std::uint32_t tw = 0, th = 0;
+        TIFFGetField(tif, TIFFTAG_TILEWIDTH, &tw);
+        TIFFGetField(tif, TIFFTAG_TILELENGTH, &th);
+        info.tileSize = cv::Size(static_cast<int>(std::min<std::uint32_t>(tw, INT32_MAX)),
+                                 static_cast<int>(std::min<std::uint32_t>(th, INT32_MAX)));
+    }
+    std::uint16_t samples = 1, bits = 8;
+    TIFFGetFieldDefaulted(tif, TIFFTAG_SAMPLESPERPIXEL, &samples);
+    TIFFGetFieldDefaulted(tif, TIFFTAG_BITSPERSAMPLE, &bits);
+    if ((bits == 8 || bits == 16) && samples >= 1 && samples <= 4)
+        info.cvType = CV_MAKETYPE(bits == 8 ? CV_8U : CV_16U, samples);
+    std::uint16_t count = 0;
+    toff_t* offsets = nullptr;
+    if (TIFFGetField(tif, TIFFTAG_SUBIFD, &count, &offsets) == 1 && offsets != nullptr)
+        info.subIfdOffsets.assign(offsets, offsets + count);
+    for (const std::uint64_t offset : info.subIfdOffsets) {
+        if (TIFFSetSubDirectory(tif, offset) != 1)
+            return makeError(ErrorCode::IoError, "TIFF " + quoted(path) +
+                                                     ": cannot read the SubIFD at byte " +
+                                                     std::to_string(offset) + file->detail());
+        info.levels.push_back(size());
+    }
+    return info;
+}
+
+static Result<cv::Mat> readTiffTileImpl(const fs::path& path, int level, int tileX, int tileY) {
+    auto file = openLevel(path, level);
+    if (!file)
+        return file.error();
+    TIFF* tif = file->get();
+    const std::string where = "TIFF " + quoted(path) + " level " + std::to_string(level);
+    std::uint32_t width = 0, height = 0, tw = 0, th = 0;
+    std::uint16_t samples = 1, bits = 8, format = SAMPLEFORMAT_UINT, planar = PLANARCONFIG_CONTIG;
+    TIFFGetField(tif, TIFFTAG_IMAGEWIDTH, &width);
+    TIFFGetField(tif, TIFFTAG_IMAGELENGTH, &height);
+    TIFFGetFieldDefaulted(tif, TIFFTAG_SAMPLESPERPIXEL, &samples);
+    TIFFGetFieldDefaulted(tif, TIFFTAG_BITSPERSAMPLE, &bits);
+    TIFFGetFieldDefaulted(tif, TIFFTAG_SAMPLEFORMAT, &format);
+    TIFFGetFieldDefaulted(tif, TIFFTAG_PLANARCONFIG, &planar);
+    if (TIFFIsTiled(tif) == 0 || TIFFGetField(tif, TIFFTAG_TILEWIDTH, &tw) != 1 ||
+        TIFFGetField(tif, TIFFTAG_TILELENGTH, &th) != 1 || tw == 0 || th == 0 || tw > 4096 ||
+        th > 4096)
+        return makeError(ErrorCode::Unsupported, where + " is not tiled in tiles of <= 4096 px");
+    if ((bits != 8 && bits != 16) || (samples != 1 && samples != 3) ||
+        format != SAMPLEFORMAT_UINT || planar != PLANARCONFIG_CONTIG)
+        return makeError(ErrorCode::Unsupported,
+                         where + ": only interleaved 8/16-bit unsigned, 1 or 3 samples");
+    if (tileX < 0 || tileY < 0 || static_cast<std::uint64_t>(tileX) * tw >= width ||
+        static_cast<std::uint64_t>(tileY) * th >= height)
+        return makeError(ErrorCode::NotFound, where + " has no tile " + std::to_string(tileX) +
+                                                  "_" + std::to_string(tileY));
+    const auto x0 = static_cast<std::uint32_t>(tileX) * tw;
+    const auto y0 = static_cast<std::uint32_t>(tileY) * th;
+    const int type = CV_MAKETYPE(bits == 8 ? CV_8U : CV_16U, samples);
+    cv::Mat block(static_cast<int>(th), static_cast<int>(tw), type);
+    const auto wanted = static_cast<tmsize_t>(block.total() * block.elemSize());
+    if (TIFFTileSize(tif) != wanted ||
+        TIFFReadEncodedTile(tif, TIFFComputeTile(tif, x0, y0, 0, 0), block.data, wanted) != wanted)
+        return makeError(ErrorCode::IoError, where + ": cannot decode tile " +
+                                                 std::to_string(tileX) + "_" +
+                                                 std::to_string(tileY) + file->detail());
+    cv::Mat out = block(cv::Rect(0, 0, static_cast<int>(std::min(tw, width - x0)),
+                                 static_cast<int>(std::min(th, height - y0))))
+                      .clone();
+    if (samples == 3)
+        cv::cvtColor(out, out, cv::COLOR_RGB2BGR);
+    return out;
+}
+
+Result<cv::Mat> readTiffTile(const std::filesystem::path& path, int level, int tileX, int tileY) {
+    try {
+        return readTiffTileImpl(path, level, tileX, tileY);
+    } catch (const std::exception& e) {
+        return makeError(ErrorCode::Internal,
+                         "cannot read a tile of TIFF " + quoted(path) + ": " + e.what());
     }
 }
 

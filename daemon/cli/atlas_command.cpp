@@ -226,12 +226,18 @@ core::Result<json> runAtlasMatch(const AtlasMatchRequest& rq) {
     auto image = core::readImage(rq.image);
     if (!image)
         return image.error();
+    if (rq.progress)
+        rq.progress("reading the stack's slices", 0, 0);
     auto features = stackFeatures(*stack);
     if (!features)
         return features.error();
     const auto tLoaded = Clock::now();
 
     pipeline::MatchOptions opt;
+    if (rq.progress)
+        opt.progress = [&rq](int done, int total) {
+            rq.progress("matching against the slices", done, total);
+        };
     if (rq.expectedIndex) {
         // A window wider than the stack searches all of it; bounded first, so that no sum
         // overflows (expectedIndex < count).

@@ -80,7 +80,13 @@ CommandRunner addAtlasCommands(CLI::App& app) {
             rq.expectedIndex = *expected;
         core::Result<nlohmann::json> r = [&] {
             Progress progress("atlas match");
-            progress.phase("matching the section against the stack");
+            if (progress.enabled())
+                rq.progress = [&progress, last = std::string()](const std::string& phase, int done,
+                                                                int total) mutable {
+                    if (phase != last)
+                        progress.phase(last = phase, total);
+                    progress.advance(done, total);
+                };
             return runAtlasMatch(rq);
         }();
         if (!r)

@@ -206,6 +206,12 @@ void Progress::advance(int done) {
     state_->done = std::clamp(done, 0, std::max(state_->total, 0));
 }
 
+void Progress::advance(int done, int total) {
+    std::lock_guard lock(state_->mutex);
+    state_->total = std::max(total, 0);
+    state_->done = std::clamp(done, 0, state_->total);
+}
+
 std::string Progress::line() const {
     std::lock_guard lock(state_->mutex);
     const double s =

@@ -4,6 +4,7 @@
 #include "slicestation/daemon/cli/demo_command.hpp"
 #include "slicestation/daemon/cli/register_command.hpp"
 #include "slicestation/pipeline/atlas_slicing.hpp"
+#include "slicestation/pipeline/registration.hpp"
 
 #include <cmath>
 #include <iostream>
@@ -80,7 +81,10 @@ CommandRunner addRegisterCommand(CLI::App& app) {
             return reportError("register", s.error());
         auto r = [&] {
             Progress progress("register");
-            progress.phase("registering " + rq.image.filename().string());
+            progress.phase("registering " + rq.image.filename().string(),
+                           pipeline::kRegistrationSteps);
+            if (progress.enabled())
+                rq.progress = [&progress](int done, int) { progress.advance(done); };
             return runRegister(rq);
         }();
         if (!r)

@@ -20,7 +20,8 @@ void addPageRoutes(httplib::Server& server, StationApi& station);
 /// GET /api/runs, /api/runs/{id}, /api/runs/{id}/sections, /api/runs/{id}/export;
 /// POST /api/runs, /api/runs/{id}/pause|resume|cancel. routes_runs.cpp
 void addRunRoutes(httplib::Server& server, StationApi& station, const Authoriser& authorised);
-/// GET /api/sections/{id}, .../image.jpg, .../overlay.png, .../region;
+/// GET /api/sections/{id}, .../image.jpg, .../overlay.png, .../region, .../pyramid,
+/// .../tiles/{level}/{x}_{y}.png;
 /// POST /api/sections/{id}/rescan. routes_sections.cpp
 void addSectionRoutes(httplib::Server& server, StationApi& station, const Authoriser& authorised);
 /// GET /api/sections/{id}/counts, /api/runs/{id}/counts (CSV). routes_counts.cpp

@@ -17,11 +17,12 @@ void addPageRoutes(httplib::Server& srv, StationApi& st) {
         const auto page = webPage();
         res.set_content(page.data(), page.size(), "text/html; charset=utf-8");
     });
-    // The station's status, plus "stage": where the stage was at the latest camera frame (the
-    // page's live position; absent before the first frame or when the camera model does not know).
+    // The station's status with "stage": the station's last known position (read during moves
+    // on stages that report it), else where the stage was at the latest camera frame; absent
+    // when neither is known.
     srv.Get("/api/status", [&st](const httplib::Request&, httplib::Response& res) {
         nlohmann::json j = st.status();
-        if (auto frame = st.liveFrame(); frame && frame->metadata.stage) {
+        if (auto frame = st.liveFrame(); !j.contains("stage") && frame && frame->metadata.stage) {
             const auto& p = *frame->metadata.stage;
             j["stage"] = {{"x_um", p.xUm}, {"y_um", p.yUm}, {"z_um", p.zUm}};
         }

@@ -1,6 +1,11 @@
 // Sections: the detail, the latest image and overlay, the atlas region at a pixel, a rescan.
 #include "routes.hpp"
 
+#include <opencv2/imgcodecs.hpp>
+
+#include <string>
+#include <vector>
+
 namespace slicestation::daemon::http {
 
 void addSectionRoutes(httplib::Server& srv, StationApi& st, const Authoriser& authorised) {
@@ -30,6 +35,37 @@ void addSectionRoutes(httplib::Server& srv, StationApi& st, const Authoriser& au
     };
     imageRoute(R"(/api/sections/([^/]+)/image\.jpg)", false);
     imageRoute(R"(/api/sections/([^/]+)/overlay\.png)", true);
+    // The tile pyramid of the section's latest image (docs/images.md) and one tile as PNG. The
+    // numbers are bounded by the pattern (a longer one finds no route: 404); the station
+    // answers 404 for a level or tile the image does not have.
+    srv.Get(R"(/api/sections/([^/]+)/pyramid)",
+            [&st](const httplib::Request& req, httplib::Response& res) {
+                auto id = idParam(req, res);
+                if (!id)
+                    return;
+                auto p = st.sectionPyramid(*id);
+                if (!p)
+                    return sendError(res, p.error());
+                nlohmann::json levels = nlohmann::json::array();
+                for (const auto& l : p->levels)
+                    levels.push_back({l.width, l.height});
+                sendJson(res, {{"tile_px", p->tileSizePx}, {"levels", levels}});
+            });
+    srv.Get(R"(/api/sections/([^/]+)/tiles/([0-9]{1,2})/([0-9]{1,6})_([0-9]{1,6})\.png)",
+            [&st](const httplib::Request& req, httplib::Response& res) {
+                auto id = idParam(req, res);
+                if (!id)
+                    return;
+                const auto number = [&](std::size_t k) { return std::stoi(req.matches[k].str()); };
+                auto tile = st.sectionTile(*id, number(2), number(3), number(4));
+                if (!tile)
+                    return sendError(res, tile.error());
+                std::vector<uchar> png;
+                if (!cv::imencode(".png", *tile, png))
+                    return sendError(res, 500, "cannot encode the tile");
+                res.set_header("Cache-Control", "private, max-age=60");
+                res.set_content(std::string(png.begin(), png.end()), "image/png");
+            });
     // The atlas region at a pixel of the section's latest capture (full resolution), or with
     // ?of_width=W at a pixel of the image shown scaled to width W (the page's overlay).
     srv.Get(R"(/api/sections/([^/]+)/region)",

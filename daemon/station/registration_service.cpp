@@ -197,6 +197,7 @@ core::Result<RegisteredSection> registerSectionFiles(const RegisterRequest& rq,
     opt.atlasUmPerPx = rq.atlasUmPerPx;
     opt.workingMaxSide = rq.workingMaxSide;
     opt.maxTurnDeg = rq.maxTurnDeg;
+    opt.progress = rq.progress;
     auto reg = pipeline::registerSection(*section, *labels, opt);
     if (!reg)
         return inFile(reg.error(), rq.image, "image");

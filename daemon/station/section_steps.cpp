@@ -195,7 +195,10 @@ std::optional<Fault> SectionSteps::writeImage(const std::filesystem::path& rel,
     OmeTiffInfo info;
     info.umPerPx = s_.objective.umPerPx;
     info.stage = capture.stage;
-    info.channel = used.format == hw::PixelFormat::Rgb8 ? "brightfield" : "fluorescence";
+    const bool rgb = used.format == hw::PixelFormat::Rgb8;
+    info.channel = rgb ? "brightfield" : "fluorescence";
+    info.channelRgba = rgb ? 0xFFFFFFFFu : 0x00FF00FFu; // white; green (docs/images.md)
+    info.objective = s_.objective.name;
     info.name = name;
     info.exposureUs = capture.meta.exposureUs;
     info.gain = capture.meta.analogueGain;

@@ -12,12 +12,18 @@ namespace slicestation::daemon {
 namespace {
 
 /// Reports every position the stage settled at (moves made by autofocus too), so a simulated
-/// camera renders what lies under the objective. Forwards everything else unchanged.
+/// camera renders what lies under the objective, and every position seen during and after a move
+/// to the station (the page's live position). Forwards everything else unchanged.
 class ReportingStage final : public hw::Stage {
 public:
+    using Seen = std::function<void(const hw::StagePosition&,
+                                    std::optional<std::chrono::steady_clock::time_point>)>;
     ReportingStage(std::unique_ptr<hw::Stage> inner,
-                   std::function<void(const hw::StagePosition&)> report)
-        : inner_(std::move(inner)), report_(std::move(report)) {}
+                   std::function<void(const hw::StagePosition&)> settled, Seen seen)
+        : inner_(std::move(inner)), settled_(std::move(settled)), seen_(std::move(seen)) {
+        inner_->setMoveObserver([this](const hw::StagePosition& p,
+                                       std::chrono::steady_clock::time_point at) { seen_(p, at); });
+    }
     hw::StageLimits limits() const override { return inner_->limits(); }
     core::Result<hw::StagePosition> position(std::chrono::milliseconds t) override {
         return inner_->position(t);
@@ -39,12 +45,16 @@ public:
 
 private:
     core::Result<hw::StagePosition> reported(core::Result<hw::StagePosition> r) {
-        if (r)
-            report_(*r);
+        if (r) {
+            if (settled_)
+                settled_(*r);
+            seen_(*r, std::nullopt);
+        }
         return r;
     }
     std::unique_ptr<hw::Stage> inner_;
-    std::function<void(const hw::StagePosition&)> report_;
+    std::function<void(const hw::StagePosition&)> settled_;
+    Seen seen_;
 };
 
 /// Hands every frame the camera delivers (autofocus frames too) to the live view.
@@ -111,15 +121,18 @@ Result<std::unique_ptr<Station>> Station::create(StationParts parts) {
         return makeError(ErrorCode::IoError,
                          "state directory " + parts.stateDir.string() + ": " + ec.message(),
                          ec.value());
-    if (parts.stageMoved) {
-        parts.stage = std::make_unique<ReportingStage>(std::move(parts.stage), parts.stageMoved);
-        parts.stageMoved = nullptr;
-    }
     if (!parts.freeSpace)
         parts.freeSpace = [](const std::filesystem::path& p) { return availableBytes(p); };
     std::unique_ptr<Station> st(new Station(std::move(parts)));
     {
         Station* self = st.get();
+        st->parts_.stage = std::make_unique<ReportingStage>(
+            std::move(st->parts_.stage), std::move(st->parts_.stageMoved),
+            [self](const hw::StagePosition& p,
+                   std::optional<std::chrono::steady_clock::time_point> at) {
+                self->noteStagePosition(p, at);
+            });
+        st->parts_.stageMoved = nullptr;
         st->parts_.camera =
             std::make_unique<LiveCamera>(std::move(st->parts_.camera), [self](const hw::Frame& f) {
                 auto copy = std::make_shared<const hw::Frame>(f); // ~2.6 MB for 1280x1024x16 bit
@@ -166,6 +179,32 @@ Result<std::unique_ptr<Station>> Station::create(StationParts parts) {
                      st->parts_.status};
     st->scanner_ = std::make_unique<Scanner>(std::move(deps));
     return st;
+}
+
+void Station::noteStagePosition(const hw::StagePosition& p,
+                                std::optional<std::chrono::steady_clock::time_point> at) {
+    // At most one event per 200 ms of stage time while moving (5 Hz), and the settled position
+    // once after a move that published one: a short autofocus step publishes nothing.
+    constexpr auto kEvery = std::chrono::milliseconds(200);
+    nlohmann::json ev;
+    {
+        std::lock_guard lock(stageMutex_);
+        stage_ = p;
+        stageMoving_ = at.has_value();
+        if (at) {
+            if (lastStageEvent_ && *at - *lastStageEvent_ < kEvery && *at >= *lastStageEvent_)
+                return;
+            lastStageEvent_ = at;
+            stageAnnounced_ = true;
+        } else {
+            if (!stageAnnounced_)
+                return;
+            stageAnnounced_ = false;
+        }
+        ev = {{"x_um", p.xUm}, {"y_um", p.yUm}, {"z_um", p.zUm}, {"moving", at.has_value()}};
+    }
+    if (notifier_)
+        notifier_->publish({"stage_position", ev});
 }
 
 Station::~Station() {

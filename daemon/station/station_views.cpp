@@ -1,13 +1,16 @@
 // The station's views for the outward parts (StationApi's reads): status, records, the export,
 // stored images and the atlas region at a pixel.
 #include "slicestation/core/image_file.hpp"
+#include "slicestation/core/tiff_file.hpp"
 #include "slicestation/daemon/export/run_export.hpp"
 #include "slicestation/daemon/station/damage_report.hpp"
 #include "slicestation/daemon/station/station.hpp"
 
+#include <algorithm>
 #include <cmath>
 #include <fstream>
 #include <sstream>
+#include <vector>
 
 namespace slicestation::daemon {
 
@@ -101,6 +104,58 @@ Result<std::string> readText(const std::filesystem::path& file, const std::strin
     return text.str();
 }
 
+/// The stored image of a section's latest capture, tiled (Unsupported when it is not).
+Result<std::pair<std::filesystem::path, core::TiffPyramidInfo>>
+tiledImage(Journal& journal, const std::filesystem::path& stateDir, std::int64_t sectionId) {
+    auto l = latest(journal, sectionId, false);
+    if (!l)
+        return l.error();
+    auto file = storedFile(stateDir, l->first.imagePath);
+    if (!file)
+        return file.error();
+    auto info = core::readTiffPyramidInfo(*file);
+    if (!info)
+        return makeError(info.error().code == ErrorCode::NotFound ? ErrorCode::IoError
+                                                                  : info.error().code,
+                         info.error().message);
+    if (!info->tiled || info->tileSize.width <= 0 || info->tileSize.width > 4096)
+        return makeError(ErrorCode::Unsupported, "the image of section " +
+                                                     std::to_string(sectionId) +
+                                                     " is not tiled (written before pyramids)");
+    return std::make_pair(*file, *info);
+}
+
+/// 16-bit to 8-bit by the 0.5 and 99.5 percentiles of the smallest level (one mapping for
+/// every tile of an image, so that tiles side by side match).
+Result<cv::Mat> stretchTile(const std::filesystem::path& file, const core::TiffPyramidInfo& info,
+                            const cv::Mat& tile) {
+    const int top = static_cast<int>(info.levels.size()) - 1;
+    const cv::Size size = info.levels.back();
+    const int t = info.tileSize.width;
+    std::vector<std::uint16_t> samples;
+    for (int ty = 0; ty * t < size.height; ++ty)
+        for (int tx = 0; tx * t < size.width; ++tx) {
+            auto part = core::readTiffTile(file, top, tx, ty);
+            if (!part)
+                return part.error();
+            for (int y = 0; y < part->rows; ++y)
+                for (int x = 0; x < part->cols; x += 3)
+                    samples.push_back(part->at<std::uint16_t>(y, x));
+        }
+    if (samples.empty())
+        return makeError(ErrorCode::IoError, "empty top level");
+    const auto at = [&](double q) {
+        auto k = samples.begin() + static_cast<std::ptrdiff_t>(q * (samples.size() - 1));
+        std::nth_element(samples.begin(), k, samples.end());
+        return static_cast<double>(*k);
+    };
+    const double lo = at(0.005);
+    const double hi = std::max(at(0.995), lo + 1);
+    cv::Mat out;
+    tile.convertTo(out, CV_8U, 255.0 / (hi - lo), -lo * 255.0 / (hi - lo));
+    return out;
+}
+
 } // namespace
 
 Result<std::string> Station::sectionCounts(std::int64_t sectionId) {
@@ -127,6 +182,28 @@ Result<std::string> Station::runCounts(std::int64_t runId) {
         return r.error();
     return readText(parts_.stateDir / "runs" / std::to_string(runId) / "run-counts.csv",
                     "run " + std::to_string(runId));
+}
+
+Result<ImagePyramid> Station::sectionPyramid(std::int64_t sectionId) {
+    auto image = tiledImage(*journal_, parts_.stateDir, sectionId);
+    if (!image)
+        return image.error();
+    return ImagePyramid{image->second.tileSize.width, image->second.levels};
+}
+
+Result<cv::Mat> Station::sectionTile(std::int64_t sectionId, int level, int x, int y) {
+    auto image = tiledImage(*journal_, parts_.stateDir, sectionId);
+    if (!image)
+        return image.error();
+    const auto& [file, info] = *image;
+    auto tile = core::readTiffTile(file, level, x, y);
+    if (!tile)
+        return tile.error();
+    if (tile->depth() == CV_8U)
+        return tile;
+    if (tile->channels() != 1)
+        return makeError(ErrorCode::Unsupported, "16-bit colour tiles are not shown");
+    return stretchTile(file, info, *tile);
 }
 
 Result<RegionAtPixel> Station::regionAt(std::int64_t sectionId, int x, int y, int ofWidth) {
@@ -182,6 +259,14 @@ nlohmann::json Station::status() {
         j["open_alerts"] = a->size();
     if (auto f = parts_.freeSpace(parts_.stateDir))
         j["free_mb"] = static_cast<double>(*f) / (1 << 20);
+    {
+        std::lock_guard lock(stageMutex_);
+        if (stage_)
+            j["stage"] = {{"x_um", stage_->xUm},
+                          {"y_um", stage_->yUm},
+                          {"z_um", stage_->zUm},
+                          {"moving", stageMoving_}};
+    }
     j["phases"] = stats_.summary();
     if (active)
         if (auto r = journal_->run(*active))

@@ -6,6 +6,7 @@
 
 #include "slicestation/core/image_file.hpp"
 #include "slicestation/core/tiff_file.hpp"
+#include "slicestation/daemon/version.hpp"
 
 #include <opencv2/core.hpp>
 
@@ -76,14 +77,16 @@ core::Result<void> validate(const fs::path& path, const cv::Mat& image, const Om
                          what + "acquiredUtc '" + info.acquiredUtc +
                              "' is not an ISO 8601 date-time (YYYY-MM-DDThh:mm:ss[.f][Z|+hh:mm])");
     }
-    if (hasControlCharacters(info.name) || hasControlCharacters(info.channel)) {
+    if (hasControlCharacters(info.name) || hasControlCharacters(info.channel) ||
+        hasControlCharacters(info.objective)) {
         return makeError(ErrorCode::InvalidArgument,
-                         what + "name and channel must not hold control characters");
+                         what + "name, channel and objective must not hold control characters");
     }
     return {};
 }
 
-core::Result<void> writeAtomic(const fs::path& path, const cv::Mat& image, OmeTiffInfo info) {
+core::Result<void> writeAtomic(const fs::path& path, const cv::Mat& image, OmeTiffInfo info,
+                               const OmeTiffLayout& layout) {
     if (auto valid = validate(path, image, info); !valid)
         return valid;
     if (info.acquiredUtc.empty())
@@ -91,10 +94,12 @@ core::Result<void> writeAtomic(const fs::path& path, const cv::Mat& image, OmeTi
     const std::string xml = makeOmeXml(image.cols, image.rows, image.type(), info);
 
     // Never over an existing file: it may be an image the journal refers to (EEXIST instead).
-    const core::TiffTags tags{xml, "slicestation", info.umPerPx};
+    const core::TiffTags tags{xml, std::string("slicestation ") + kVersion, info.umPerPx};
     auto r = core::replaceAtomically(
         path,
-        [&](int fd, const fs::path& tmp) { return core::writeTiffPage(fd, tmp, image, tags); },
+        [&](int fd, const fs::path& tmp) {
+            return core::writeTiffPyramid(fd, tmp, image, tags, layout);
+        },
         core::Replace::Never);
     // This writer's contract: a missing directory is an IoError (with ENOENT) like any other.
     if (!r && r.error().code == ErrorCode::NotFound)
@@ -164,9 +169,9 @@ void setOmeTiffWriteFaultForTesting(int err) noexcept {
 }
 
 core::Result<void> writeOmeTiffAtomic(const std::filesystem::path& path, const cv::Mat& image,
-                                      const OmeTiffInfo& info) {
+                                      const OmeTiffInfo& info, const OmeTiffLayout& layout) {
     try {
-        return writeAtomic(path, image, info);
+        return writeAtomic(path, image, info, layout);
     } catch (const cv::Exception& e) {
         return makeError(ErrorCode::Internal,
                          "cannot write OME-TIFF " + quoted(path) + ": OpenCV: " + e.what());

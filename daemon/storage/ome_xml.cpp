@@ -3,6 +3,8 @@
 
 #include "ome_text.hpp"
 
+#include "slicestation/daemon/version.hpp"
+
 #include <opencv2/core.hpp>
 #include <opencv2/imgproc.hpp>
 
@@ -167,6 +169,52 @@ std::optional<double> timeToUs(std::string_view unit) {
     return std::nullopt;
 }
 
+/// The magnification an objective's name states ("4x", "10X", "20x/0.75"), if it states one.
+std::optional<double> magnificationOf(std::string_view objective) {
+    const auto x = objective.find_first_of("xX");
+    if (x == std::string_view::npos || x == 0)
+        return std::nullopt;
+    const auto v = parseDouble(objective.substr(0, x));
+    return v && *v > 0 ? v : std::nullopt;
+}
+
+/// OME's Color: the RGBA bytes as one signed 32-bit integer (xsd:int; -1 is opaque white).
+std::string omeColor(std::uint32_t rgba) {
+    return std::to_string(static_cast<std::int32_t>(rgba));
+}
+
+/// A Channel@Color back to 0xRRGGBBAA; IoError unless it is a 32-bit integer.
+core::Result<std::uint32_t> parseColor(const char* text) {
+    const auto v = parseDouble(text);
+    if (!v || !(*v >= -2147483648.0 && *v <= 2147483647.0 && *v == std::floor(*v)))
+        return makeError(ErrorCode::IoError,
+                         "OME-XML: Color=\"" + std::string(text) + "\" is not a 32-bit integer");
+    return static_cast<std::uint32_t>(static_cast<std::int32_t>(*v));
+}
+
+/// The first Channel's name, colour and gain into `info` (none: defaults kept).
+core::Result<void> readChannel(pugi::xml_node channel, OmeTiffInfo& info) {
+    if (!channel)
+        return {};
+    if (const char* n = attribute(channel, "Name"))
+        info.channel = n;
+    if (const char* color = attribute(channel, "Color")) {
+        auto rgba = parseColor(color);
+        if (!rgba)
+            return rgba.error();
+        info.channelRgba = *rgba;
+    }
+    const pugi::xml_node ds = child(channel, "DetectorSettings");
+    if (const char* gain = ds ? attribute(ds, "Gain") : nullptr) {
+        const auto v = parseDouble(gain);
+        if (!v)
+            return makeError(ErrorCode::IoError,
+                             "OME-XML: Gain=\"" + std::string(gain) + "\" is not a number");
+        info.gain = *v;
+    }
+    return {};
+}
+
 const char* pixelType(int cvType) {
     return CV_MAT_DEPTH(cvType) == CV_16U ? "uint16" : "uint8";
 }
@@ -182,18 +230,30 @@ std::string makeOmeXml(int width, int height, int cvType, const OmeTiffInfo& inf
          "xmlns:xsi=\"http://www.w3.org/2001/XMLSchema-instance\" "
          "xsi:schemaLocation=\"http://www.openmicroscopy.org/Schemas/OME/2016-06 "
          "http://www.openmicroscopy.org/Schemas/OME/2016-06/ome.xsd\" "
-         "Creator=\"slicestation\" UUID=\"urn:uuid:" +
-         randomUuid() + "\">\n";
-    // Element order follows the schema's sequences: Instrument before Image; in Image,
-    // AcquisitionDate, InstrumentRef, Pixels; in Pixels, Channel, TiffData, Plane.
+         "Creator=\"slicestation " +
+         std::string(kVersion) + "\" UUID=\"urn:uuid:" + randomUuid() + "\">\n";
+    // Element order follows the schema's sequences: Instrument before Image; in Instrument,
+    // Detector before Objective; in Image, AcquisitionDate, InstrumentRef, ObjectiveSettings,
+    // StageLabel, Pixels; in Pixels, Channel, TiffData, Plane.
     x += "  <Instrument ID=\"Instrument:0\">\n";
     x += "    <Detector ID=\"Detector:0:0\" Type=\"CMOS\"/>\n";
+    if (!info.objective.empty()) {
+        x += "    <Objective ID=\"Objective:0:0\" Model=\"" + xmlEscape(info.objective) + "\"";
+        if (const auto m = magnificationOf(info.objective))
+            x += " NominalMagnification=\"" + formatDouble(*m) + "\"";
+        x += "/>\n";
+    }
     x += "  </Instrument>\n";
     x += "  <Image ID=\"Image:0\" Name=\"" + xmlEscape(info.name) + "\">\n";
     if (!info.acquiredUtc.empty()) {
         x += "    <AcquisitionDate>" + xmlEscape(info.acquiredUtc) + "</AcquisitionDate>\n";
     }
     x += "    <InstrumentRef ID=\"Instrument:0\"/>\n";
+    if (!info.objective.empty())
+        x += "    <ObjectiveSettings ID=\"Objective:0:0\"/>\n";
+    x += "    <StageLabel Name=\"image centre\" X=\"" + formatDouble(info.stage.xUm) +
+         "\" XUnit=\"" + um + "\" Y=\"" + formatDouble(info.stage.yUm) + "\" YUnit=\"" + um +
+         "\" Z=\"" + formatDouble(info.stage.zUm) + "\" ZUnit=\"" + um + "\"/>\n";
     x += "    <Pixels ID=\"Pixels:0\" DimensionOrder=\"XYCZT\" Type=\"" +
          std::string(pixelType(cvType)) + "\" SignificantBits=\"" +
          std::to_string(CV_MAT_DEPTH(cvType) == CV_16U ? 16 : 8) + "\" BigEndian=\"" +
@@ -204,7 +264,8 @@ std::string makeOmeXml(int width, int height, int cvType, const OmeTiffInfo& inf
          "\" PhysicalSizeXUnit=\"" + um + "\" PhysicalSizeY=\"" + formatDouble(info.umPerPx) +
          "\" PhysicalSizeYUnit=\"" + um + "\">\n";
     x += "      <Channel ID=\"Channel:0:0\" Name=\"" + xmlEscape(info.channel) +
-         "\" SamplesPerPixel=\"" + (rgb ? "3" : "1") + "\">\n";
+         "\" SamplesPerPixel=\"" + (rgb ? "3" : "1") + "\" Color=\"" + omeColor(info.channelRgba) +
+         "\">\n";
     x += "        <DetectorSettings ID=\"Detector:0:0\" Gain=\"" + formatDouble(info.gain) +
          "\"/>\n";
     x += "      </Channel>\n";
@@ -282,17 +343,11 @@ core::Result<OmeXmlContent> parseOmeXml(std::string_view xml) {
         return bad("PhysicalSizeX must be > 0");
     info.umPerPx = *sizeUm;
 
-    if (const pugi::xml_node channel = child(pixels, "Channel")) {
-        if (const char* n = attribute(channel, "Name"))
-            info.channel = n;
-        if (const pugi::xml_node ds = child(channel, "DetectorSettings");
-            ds && attribute(ds, "Gain") != nullptr) {
-            auto gain = number(ds, "Gain");
-            if (!gain)
-                return gain.error();
-            info.gain = *gain;
-        }
-    }
+    if (const pugi::xml_node objective = child(child(*doc, "Instrument"), "Objective"))
+        if (const char* model = attribute(objective, "Model"))
+            info.objective = model;
+    if (auto channel = readChannel(child(pixels, "Channel"), info); !channel)
+        return channel.error();
     if (const pugi::xml_node plane = child(pixels, "Plane")) {
         double* targets[] = {&info.stage.xUm, &info.stage.yUm, &info.stage.zUm};
         const char* keys[] = {"PositionX", "PositionY", "PositionZ"};

@@ -352,6 +352,15 @@ core::Result<SectionMatch> matchSection(const SectionFeatures& sec,
     };
     std::vector<MatchCandidate> byIndex(slices.size());
     std::vector<bool> done(slices.size(), false);
+    int usableCount = 0;
+    for (int i = options.first; i <= last; ++i)
+        usableCount += usable(i) ? 1 : 0;
+    int stepsDone = 0;
+    int stepsTotal = usableCount + std::min(usableCount, std::max(1, options.shortlist) + 6);
+    const auto stepDone = [&] {
+        if (options.progress)
+            options.progress(std::min(++stepsDone, stepsTotal), stepsTotal);
+    };
     MatchCandidate seed;
     seed.overlap = -1;
     for (int i = options.first; i <= last; i += 3) {
@@ -373,6 +382,7 @@ core::Result<SectionMatch> matchSection(const SectionFeatures& sec,
             inits.push_back(placement(sec.box, sl.box, p.sMaj, p.sMin, p.swap, scaleFor(sl)));
         byIndex[size_t(i)] = align(i, inits);
         done[size_t(i)] = true;
+        stepDone();
         if (byIndex[size_t(i)].overlap > seed.overlap)
             seed = byIndex[size_t(i)];
     }
@@ -400,6 +410,7 @@ core::Result<SectionMatch> matchSection(const SectionFeatures& sec,
                                 L * cv::Vec2d(sec.box.centre.x, sec.box.centre.y);
             byIndex[size_t(i)] =
                 align(i, {cv::Matx23d(L(0, 0), L(0, 1), c[0], L(1, 0), L(1, 1), c[1])});
+            stepDone();
         }
         all.push_back(byIndex[size_t(i)]);
     }
@@ -446,12 +457,14 @@ core::Result<SectionMatch> matchSection(const SectionFeatures& sec,
         c.score = combinedScore(c);
     };
     lap("overlap");
+    stepsTotal = stepsDone + static_cast<int>(std::count(chosen.begin(), chosen.end(), true));
     std::vector<MatchCandidate> scored;
     for (size_t k = 0; k < all.size(); ++k) {
         if (!chosen[k])
             continue;
         refine(all[k]);
         scored.push_back(all[k]);
+        stepDone();
     }
     std::sort(scored.begin(), scored.end(),
               [](const MatchCandidate& a, const MatchCandidate& b) { return a.score > b.score; });

@@ -12,6 +12,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <functional>
 #include <limits>
 
 namespace slicestation::pipeline {
@@ -21,21 +22,30 @@ using core::ErrorCode;
 using core::makeError;
 using Clock = std::chrono::steady_clock;
 
+/// Times each step and reports it done to the options' progress callback.
 class StepTimer {
 public:
-    explicit StepTimer(std::vector<std::pair<std::string, double>>& out) : out_(out) {}
+    StepTimer(std::vector<std::pair<std::string, double>>& out,
+              const std::function<void(int, int)>& progress)
+        : out_(out), progress_(progress) {}
     void lap(const char* name) {
         const auto now = Clock::now();
         out_.emplace_back(name, std::chrono::duration<double, std::milli>(now - last_).count());
         last_ = now;
+        if (progress_)
+            progress_(std::min(++done_, kRegistrationSteps), kRegistrationSteps);
     }
     void total() {
         out_.emplace_back("total",
                           std::chrono::duration<double, std::milli>(Clock::now() - start_).count());
+        if (progress_)
+            progress_(kRegistrationSteps, kRegistrationSteps);
     }
 
 private:
     std::vector<std::pair<std::string, double>>& out_;
+    const std::function<void(int, int)>& progress_;
+    int done_ = 0;
     Clock::time_point start_ = Clock::now(), last_ = start_;
 };
 
@@ -390,7 +400,7 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         return makeError(ErrorCode::InvalidArgument, "atlas slice has no labelled brain");
 
     Registration reg;
-    StepTimer timer(reg.timingsMs);
+    StepTimer timer(reg.timingsMs, options.progress);
     auto prepared = prepareSection(section, options.workingMaxSide);
     if (!prepared)
         return prepared.error();

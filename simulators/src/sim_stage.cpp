@@ -98,6 +98,8 @@ core::Result<hw::StagePosition> SimStage::waitSettled(const hw::StagePosition& t
     std::string lastReason = "not started";
     for (;;) {
         const auto now = clock.now();
+        if (observer_)
+            observer_(peekPosition(), now);
         bool settled = true;
         {
             std::lock_guard lock(mutex_);

@@ -4,8 +4,11 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <future>
+#include <utility>
+#include <vector>
 
 namespace slicestation::sim {
 namespace {
@@ -38,6 +41,31 @@ TEST(SimStage, MovesTakeTimeOnTheInjectedClock) {
     const double seconds = std::chrono::duration<double>(clock->now() - t0).count();
     // 20 mm at 20 mm/s with 100 mm/s^2 ramps: 1.2 s of motion plus the settle time.
     EXPECT_NEAR(seconds, 1.2 + 0.02, 0.03);
+}
+
+// The live position (issue 23): every poll of the wait reports the feedback on the stage clock,
+// through FaultyStage too; the positions travel from start to target in order.
+TEST(SimStage, MovesReportTheirFeedbackWhileTheyWait) {
+    auto clock = std::make_shared<core::VirtualClock>();
+    auto s = FaultyStage::create(makeSim(clock), clock).value();
+    std::vector<std::pair<double, core::TimePoint>> seen;
+    s->setMoveObserver(
+        [&](const hw::StagePosition& p, core::TimePoint at) { seen.emplace_back(p.xUm, at); });
+    ASSERT_TRUE(s->moveTo({20'000, 0, 0}, 10s));
+    // 1.22 s of motion and settling polled every 5 ms.
+    ASSERT_GE(seen.size(), 200u);
+    EXPECT_EQ(seen.front().first, 0.0);
+    EXPECT_NEAR(seen.back().first, 20'000, 1.0);
+    for (std::size_t k = 1; k < seen.size(); ++k) {
+        EXPECT_GE(seen[k].first, seen[k - 1].first) << k;
+        EXPECT_GT(seen[k].second, seen[k - 1].second) << k;
+    }
+    const auto half =
+        std::find_if(seen.begin(), seen.end(), [](const auto& e) { return e.first >= 10'000; });
+    ASSERT_NE(half, seen.end());
+    // Half way after 0.6 s (a symmetric trapezoid), on the stage clock.
+    EXPECT_NEAR(std::chrono::duration<double>(half->second - seen.front().second).count(), 0.6,
+                0.01);
 }
 
 TEST(SimStage, StallTimesOut) {

@@ -195,6 +195,19 @@ TEST_F(PageControl, RunControlsAndWhatTheTechnicianLooksAt) {
         return browser.text(*browser.find("#stage-pos")).find("12345.5") != std::string::npos;
     })) << browser.text(*browser.find("#stage-pos"));
     EXPECT_NE(browser.text(*browser.find("#stage-pos")).find("6789.3"), std::string::npos);
+    // While the stage moves, its positions arrive as events and replace it at once.
+    station_.publish("stage_position",
+                     {{"x_um", 20'500.25}, {"y_um", 3'000}, {"z_um", 2'500}, {"moving", true}});
+    ASSERT_TRUE(waitFor([&] {
+        return browser.text(*browser.find("#stage-pos")) ==
+               "x 20500.3 \u00b5m, y 3000.0 \u00b5m, z 2500.0 \u00b5m (moving)";
+    })) << browser.text(*browser.find("#stage-pos"));
+    station_.publish("stage_position",
+                     {{"x_um", 21'000}, {"y_um", 3'000}, {"z_um", 2'500}, {"moving", false}});
+    ASSERT_TRUE(waitFor([&] {
+        return browser.text(*browser.find("#stage-pos")).rfind("x 21000.0", 0) == 0 &&
+               browser.text(*browser.find("#stage-pos")).find("moving") == std::string::npos;
+    })) << browser.text(*browser.find("#stage-pos"));
     EXPECT_EQ(browser.text(*browser.find("#step")), "moving to s04");
     ASSERT_TRUE(waitFor([&] {
         return browser.text(*browser.find("#focus")).find("found, score 0.750") !=
@@ -251,6 +264,67 @@ TEST_F(PageControl, RunControlsAndWhatTheTechnicianLooksAt) {
     EXPECT_NEAR(scale2 / scale0, 2.25, 1e-6) << "each step magnifies 1.5 times";
     browser.screenshot(kArtefacts / "page-zoom.png");
     browser.clickCss("#zoom-close");
+
+    // With outlines off the zoom draws tiles of the image's pyramid: zoomed in, full-resolution
+    // tiles (level 0) cover the view; the one under the frame's centre is the tile the view's
+    // geometry asks for, fetched from the tile route and drawn with its own pixels.
+    browser.clickCss("#outlines");
+    ASSERT_TRUE(waitFor(
+        [&] { return src().find("/api/sections/103/image.jpg") != std::string::npos; }, 2s));
+    browser.clickCss("#zoom-open");
+    ASSERT_TRUE(waitFor([&] {
+        return browser.execute("const i = document.getElementById('zoom-img'); "
+                               "return i.complete && i.dataset.fitted === 'yes';") == true;
+    }));
+    for (int i = 0; i < 3; ++i)
+        browser.clickCss("#zoom-in");
+    // The tile under the centre: its key from the page's own transform, its pixel from a canvas.
+    const char* centreTile = R"(
+        const f = document.getElementById('zoom-frame').getBoundingClientRect();
+        const cx = f.left + f.width / 2, cy = f.top + f.height / 2;
+        for (const t of document.querySelectorAll('#zoom-tiles img.tile')) {
+          const r = t.getBoundingClientRect();
+          if (t.dataset.drawn !== 'yes' || cx < r.left || cx >= r.right || cy < r.top || cy >= r.bottom) continue;
+          const c = document.createElement('canvas'); c.width = 1; c.height = 1;
+          const g = c.getContext('2d'); g.drawImage(t, 5, 5, 1, 1, 0, 0, 1, 1);
+          const d = g.getImageData(0, 0, 1, 1).data;
+          const img = document.getElementById('zoom-img');
+          const s = parseFloat(img.dataset.scale) * img.naturalWidth / 2400;
+          const m = /translate\(([-0-9.e]+)px, *([-0-9.e]+)px\)/.exec(img.style.transform);
+          const fx = (cx - f.left - parseFloat(m[1])) / s, fy = (cy - f.top - parseFloat(m[2])) / s;
+          return {key: t.dataset.key, rgb: [d[0], d[1], d[2]],
+                  expected: t.dataset.level + '/' + Math.floor(fx / 512 / (1 << +t.dataset.level)) + '_' +
+                            Math.floor(fy / 512 / (1 << +t.dataset.level))};
+        }
+        return null;)";
+    nlohmann::json centre;
+    ASSERT_TRUE(waitFor([&] {
+        centre = browser.execute(centreTile);
+        return centre.is_object() && centre["key"].get<std::string>().rfind("0/", 0) == 0;
+    })) << "a full-resolution tile is drawn under the centre; got "
+        << centre.dump() << ", level " << browser.text(*browser.find("#zoom-level"));
+    EXPECT_EQ(centre["key"], centre["expected"]) << centre.dump();
+    const std::string key = centre["key"];
+    const int tx = std::stoi(key.substr(2, key.find('_') - 2));
+    const int ty = std::stoi(key.substr(key.find('_') + 1));
+    EXPECT_TRUE(station_.called("tile 103 " + key)) << "fetched from the tile route";
+    EXPECT_EQ(centre["rgb"], nlohmann::json::array({250, 20 + 40 * ty, 20 + 40 * tx}))
+        << "the tile's own pixels are drawn";
+    EXPECT_NE(browser.text(*browser.find("#zoom-level")).find("level 0"), std::string::npos);
+    browser.screenshot(kArtefacts / "page-zoom-tiles.png");
+    // Zoomed out to a quarter of full resolution: the reduced level replaces them.
+    for (int i = 0; i < 6; ++i)
+        browser.clickCss("#zoom-out");
+    ASSERT_TRUE(waitFor([&] {
+        return browser.execute("return document.querySelectorAll('#zoom-tiles "
+                               "img.tile[data-level=\"1\"][data-drawn=\"yes\"]').length > 0 && "
+                               "document.querySelectorAll('#zoom-tiles "
+                               "img.tile[data-level=\"0\"]').length === 0;") == true;
+    })) << browser.text(*browser.find("#zoom-level"));
+    EXPECT_TRUE(station_.called("tile 103 1/0_0"));
+    browser.screenshot(kArtefacts / "page-zoom-tiles-level1.png");
+    browser.clickCss("#zoom-close");
+    browser.clickCss("#outlines");
 
     // History: both runs, times in the browser's local time zone (UTC+5:30 here), labelled.
     ASSERT_TRUE(waitFor([&] { return browser.findAll("#history tr[data-run-id]").size() == 2; }));

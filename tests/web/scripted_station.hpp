@@ -72,11 +72,14 @@ public:
 
     // What the test does ---------------------------------------------------------------------
     /// Sends an event to every listener (the event stream), now.
+    /// A "stage_position" is also the status's stage from then on, as the station keeps it.
     void publish(const std::string& type, const nlohmann::json& data) {
         std::vector<std::function<void(const StationEvent&)>> ls;
         {
             std::lock_guard lock(m_);
             ls = listeners_;
+            if (type == "stage_position")
+                stage_ = data;
         }
         for (auto& l : ls)
             l({type, data});
@@ -129,6 +132,8 @@ public:
         if (state_ == "scanning")
             j["run"] = toJson(runs_[1]);
         j["simulated"] = {{"stage", true}, {"camera", true}};
+        if (!stage_.is_null())
+            j["stage"] = stage_;
         return j;
     }
     core::Result<std::vector<RunRecord>> runs() override {
@@ -215,6 +220,25 @@ public:
             cv::rectangle(m, {100, 100}, {2300, 1500}, cv::Scalar(255, 255, 255), 20);
         return m;
     }
+    /// The pyramid of those images: 512 px tiles, levels 2400 x 1600 and 1200 x 800.
+    core::Result<ImagePyramid> sectionPyramid(std::int64_t) override {
+        return ImagePyramid{512, {{2400, 1600}, {1200, 800}}};
+    }
+    /// Tile (x, y) of a level: BGR (20 + 40 x, 20 + 40 y, 250 - 100 level), so that the page's
+    /// pixels tell which tile was drawn where.
+    core::Result<cv::Mat> sectionTile(std::int64_t id, int level, int x, int y) override {
+        const cv::Size size = level == 0 ? cv::Size(2400, 1600) : cv::Size(1200, 800);
+        if (level < 0 || level > 1 || x < 0 || y < 0 || x * 512 >= size.width ||
+            y * 512 >= size.height)
+            return core::makeError(core::ErrorCode::NotFound, "no such tile");
+        {
+            std::lock_guard lock(m_);
+            calls_.push_back("tile " + std::to_string(id) + " " + std::to_string(level) + "/" +
+                             std::to_string(x) + "_" + std::to_string(y));
+        }
+        return cv::Mat(std::min(512, size.height - 512 * y), std::min(512, size.width - 512 * x),
+                       CV_8UC3, cv::Scalar(20 + 40 * x, 20 + 40 * y, 250 - 100 * level));
+    }
     core::Result<RegionAtPixel> regionAt(std::int64_t, int x, int y, int) override {
         return RegionAtPixel{315, x, y, "Isocortex", "Isocortex"};
     }
@@ -278,6 +302,7 @@ private:
     }
 
     mutable std::mutex m_;
+    nlohmann::json stage_; ///< the last "stage_position" published (null: none)
     std::string state_ = "scanning", activity_ = "capturing s01";
     std::vector<RunRecord> runs_;
     std::vector<SectionRecord> sections_;

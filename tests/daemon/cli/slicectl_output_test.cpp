@@ -2,7 +2,10 @@
 // process over a scripted station), local times, exit codes, "did you mean", --action checked,
 // --version of both programs, plain numbers, and the progress line.
 #include "../../web/scripted_station.hpp"
+#include "slicestation/daemon/cli/atlas_command.hpp"
 #include "slicestation/daemon/cli/cli_output.hpp"
+#include "slicestation/daemon/cli/demo_command.hpp"
+#include "slicestation/daemon/cli/register_command.hpp"
 #include "slicestation/daemon/http/http_api.hpp"
 
 #include <gtest/gtest.h>
@@ -14,6 +17,8 @@
 #include <cstdio>
 #include <cstdlib>
 #include <string>
+#include <utility>
+#include <vector>
 
 using namespace slicestation;
 using namespace slicestation::daemon;
@@ -221,4 +226,70 @@ TEST(SlicectlOutput, TheProgressLineAndItsSilenceOffATerminal) {
     EXPECT_EQ(r.all.find('\r'), std::string::npos) << r.all;
     std::filesystem::remove_all(std::filesystem::temp_directory_path() /
                                 ("slst_progress_" + std::to_string(::getpid())));
+}
+
+// The bars of `register` and `atlas match` (issue 23 item 4): registration reports its steps
+// done of kRegistrationSteps, matching its candidates done of a total that is exact once the
+// shortlist is chosen; both end full, never go back, and the line draws them as a bar.
+TEST(SlicectlOutput, RegistrationAndMatchingReportProgressForTheBar) {
+    const auto dir =
+        std::filesystem::temp_directory_path() / ("slst_bars_" + std::to_string(::getpid()));
+    std::filesystem::remove_all(dir);
+    DemoRequest demo;
+    demo.outputDir = dir;
+    ASSERT_TRUE(runDemo(demo));
+    const auto increasing = [](const std::vector<std::pair<int, int>>& calls) {
+        for (std::size_t k = 1; k < calls.size(); ++k)
+            if (calls[k].first < calls[k - 1].first || calls[k].first > calls[k].second)
+                return false;
+        return true;
+    };
+    RegisterRequest rq;
+    rq.atlas = dir / "atlas-labels.tif";
+    rq.image = dir / "section.tif";
+    rq.output = dir / "again.json";
+    std::vector<std::pair<int, int>> steps;
+    rq.progress = [&](int done, int total) { steps.emplace_back(done, total); };
+    auto reg = runRegister(rq);
+    ASSERT_TRUE(reg) << reg.error().message;
+    ASSERT_GE(steps.size(), 8u) << "a call after each step";
+    EXPECT_TRUE(increasing(steps));
+    EXPECT_EQ(steps.back(),
+              std::make_pair(pipeline::kRegistrationSteps, pipeline::kRegistrationSteps));
+    for (const auto& s : steps)
+        EXPECT_EQ(s.second, pipeline::kRegistrationSteps);
+
+    AtlasSliceRequest slice;
+    slice.builtin = true;
+    slice.intervalUm = 500;
+    slice.output = dir / "stack";
+    ASSERT_TRUE(runAtlasSlice(slice));
+    AtlasMatchRequest match;
+    match.stack = dir / "stack";
+    match.image = dir / "section.tif";
+    match.output = dir / "match.json";
+    std::vector<std::pair<int, int>> candidates;
+    std::vector<std::string> phases;
+    match.progress = [&](const std::string& phase, int done, int total) {
+        if (phases.empty() || phases.back() != phase)
+            phases.push_back(phase);
+        if (phase == "matching against the slices")
+            candidates.emplace_back(done, total);
+    };
+    auto m = runAtlasMatch(match);
+    ASSERT_TRUE(m) << m.error().message;
+    EXPECT_EQ(phases, (std::vector<std::string>{"reading the stack's slices",
+                                                "matching against the slices"}));
+    ASSERT_GE(candidates.size(), 5u);
+    EXPECT_TRUE(increasing(candidates));
+    EXPECT_EQ(candidates.back().first, candidates.back().second) << "the bar ends full";
+    std::cout << "register: " << steps.size()
+              << " progress calls; atlas match: " << candidates.size() << " of "
+              << candidates.back().second << "\n";
+
+    Progress bar("atlas match", true);
+    bar.phase("matching against the slices", 20);
+    bar.advance(5, 40); // the total became exact
+    EXPECT_NE(bar.line().find("[###                     ] 5/40"), std::string::npos) << bar.line();
+    std::filesystem::remove_all(dir);
 }

@@ -5,9 +5,12 @@
 
 #include "slicestation/core/image_file.hpp"
 #include "slicestation/core/unique_fd.hpp"
+#include "slicestation/daemon/storage/ome_tiff.hpp"
 
 #include <gtest/gtest.h>
 #include <httplib.h>
+
+#include <opencv2/imgcodecs.hpp>
 
 #include <arpa/inet.h>
 #include <netinet/in.h>
@@ -21,6 +24,7 @@
 #include <mutex>
 #include <string>
 #include <thread>
+#include <tuple>
 #include <vector>
 
 using namespace slicestation;
@@ -178,6 +182,65 @@ TEST_F(HttpHostileTest, ARegionPixelThatOverflowsOnceScaledIsA400NotACrash) {
     ASSERT_EQ(scaled->status, 200) << scaled->body;
     EXPECT_EQ(nlohmann::json::parse(scaled->body)["x"], 768);
     EXPECT_EQ(nlohmann::json::parse(scaled->body)["id"], 769);
+}
+
+// The zoom's tiles (issue 23 item 3): a real pyramid served tile by tile, and every number a
+// hostile client may put in the path answered 400 or 404, never a crash or a huge allocation.
+TEST_F(HttpHostileTest, PyramidTilesAreServedAndBadTileRequestsAre404) {
+    startApi();
+    const std::int64_t section = registeredSection(8, 8);
+    // The capture's image: a 16-bit OME-TIFF pyramid (2600 x 1900: levels 1300, 650 px).
+    cv::Mat image(1900, 2600, CV_16UC1);
+    cv::randu(image, 1000, 3000);
+    daemon::OmeTiffInfo info;
+    info.umPerPx = 2;
+    ASSERT_TRUE(daemon::writeOmeTiffAtomic(rig_.dir / "big.tif", image, info));
+    httplib::Client cli("127.0.0.1", port_);
+    const std::string base = "/api/sections/" + std::to_string(section);
+    auto pyramid = cli.Get(base + "/pyramid");
+    ASSERT_TRUE(pyramid);
+    ASSERT_EQ(pyramid->status, 200) << pyramid->body;
+    const auto pj = nlohmann::json::parse(pyramid->body);
+    EXPECT_EQ(pj["tile_px"], 512);
+    EXPECT_EQ(pj["levels"], nlohmann::json::parse("[[2600,1900],[1300,950],[650,475]]"));
+    for (const auto& [path, w, h] : {std::tuple{"/tiles/0/0_0.png", 512, 512},
+                                     std::tuple{"/tiles/0/5_3.png", 2600 - 5 * 512, 1900 - 3 * 512},
+                                     std::tuple{"/tiles/2/1_0.png", 650 - 512, 475}}) {
+        auto r = cli.Get(base + path);
+        ASSERT_TRUE(r) << path;
+        ASSERT_EQ(r->status, 200) << path << ": " << r->body;
+        EXPECT_EQ(r->get_header_value("Content-Type"), "image/png");
+        const cv::Mat png =
+            cv::imdecode(std::vector<uchar>(r->body.begin(), r->body.end()), cv::IMREAD_UNCHANGED);
+        ASSERT_EQ(png.type(), CV_8UC1) << path << ": 16-bit is stretched to 8-bit for display";
+        EXPECT_EQ(png.size(), cv::Size(w, h)) << path;
+    }
+    for (const std::string& path : std::vector<std::string>{
+             "/tiles/3/0_0.png", "/tiles/99/0_0.png", "/tiles/0/6_0.png", "/tiles/0/0_4.png",
+             "/tiles/2/2_0.png", "/tiles/0/999999_999999.png", "/tiles/-1/0_0.png",
+             "/tiles/0/-1_0.png", "/tiles/0/9999999999_0.png", "/tiles/100/0_0.png",
+             "/tiles/0/0_0.jpg", "/tiles/0/0.png", "/tiles/0/0_0_0.png", "/tiles/0/%ff_0.png",
+             "/tiles/0/0x10_0.png", "/tiles/" + std::string(5000, '1') + "/0_0.png"}) {
+        auto r = cli.Get(base + path);
+        ASSERT_TRUE(r) << path << ": no answer (the daemon died?)";
+        EXPECT_EQ(r->status, 404) << path << ": " << r->body;
+    }
+    for (const char* path : {"/api/sections/0/tiles/0/0_0.png", "/api/sections/abc/tiles/0/0_0.png",
+                             "/api/sections/99999999999999999999/pyramid"}) {
+        auto r = cli.Get(path);
+        ASSERT_TRUE(r) << path;
+        EXPECT_EQ(r->status, 400) << path << ": " << r->body;
+    }
+    auto unknown = cli.Get("/api/sections/999/tiles/0/0_0.png");
+    ASSERT_TRUE(unknown);
+    EXPECT_EQ(unknown->status, 404) << unknown->body;
+    // An image written before pyramids (stripped) has none: 400 with a reason, not a crash.
+    std::filesystem::remove(rig_.dir / "big.tif");
+    ASSERT_TRUE(core::writeImage(rig_.dir / "big.tif", image));
+    auto stripped = cli.Get(base + "/tiles/0/0_0.png");
+    ASSERT_TRUE(stripped);
+    EXPECT_EQ(stripped->status, 400) << stripped->body;
+    EXPECT_NE(stripped->body.find("not tiled"), std::string::npos) << stripped->body;
 }
 
 // Finding 4 (second half): bytes that are not UTF-8 in what the API echoes made the JSON dump

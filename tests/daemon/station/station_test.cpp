@@ -4,6 +4,7 @@
 #include "full_disk_vfs.hpp"
 #include "station_fixture.hpp"
 
+#include "slicestation/core/tiff_file.hpp"
 #include "slicestation/core/unique_fd.hpp"
 #include "slicestation/daemon/storage/ome_tiff.hpp"
 
@@ -56,6 +57,15 @@ TEST_F(StationTest, AWholeRunStoresEverySectionRegistersItAndFlagsTheTornOne) {
         EXPECT_NEAR(img->info.stage.xUm, s.xUm, 1.0);
         EXPECT_NEAR(img->info.stage.yUm, s.yUm, 1.0);
         EXPECT_EQ(img->image.cols, 1280);
+        // Written as QuPath reads it (docs/images.md): the objective of the station file, the
+        // fluorescence channel green, 512 px tiles and one reduced level (1280 -> 640 px).
+        EXPECT_EQ(img->info.objective, rig_.station->settings().scan.objective.name);
+        EXPECT_EQ(img->info.channelRgba, 0x00FF00FFu);
+        auto pyramid = core::readTiffPyramidInfo(rig_.dir / c.imagePath);
+        ASSERT_TRUE(pyramid) << pyramid.error().message;
+        EXPECT_TRUE(pyramid->tiled);
+        EXPECT_EQ(pyramid->tileSize, cv::Size(512, 512));
+        EXPECT_EQ(pyramid->levels, (std::vector<cv::Size>{{1280, 1024}, {640, 512}}));
         // Focus found near the simulated focal surface (2500 + 0.002 x - 0.001 y).
         EXPECT_TRUE(c.focusFound);
         EXPECT_NEAR(c.stage.zUm, 2'500 + 0.002 * s.xUm - 0.001 * s.yUm, 10.0);
@@ -681,4 +691,68 @@ TEST_F(StationTest, RestartRemovesTheTemporaryFilesOfEveryWriter) {
     for (const auto& p : kept)
         EXPECT_TRUE(fs::exists(p)) << p;
     EXPECT_TRUE(fs::exists(rig_.dir / "journal.sqlite"));
+}
+
+// The page's live stage position (issue 23 item 3): while the simulated stage travels (20 mm/s,
+// a finite speed) the station publishes where it is, at most every 200 ms of stage time, then
+// where the move ended; /api/status carries the last position seen.
+TEST_F(StationTest, StagePositionsArePublishedDuringAMoveAtMostFiveTimesASecond) {
+    build();
+    // Shared with the listener, which outlives this body until TearDown stops the station.
+    struct Seen {
+        std::mutex m;
+        std::vector<nlohmann::json> events;
+        bool captured = false;
+        std::condition_variable cv;
+    };
+    auto state = std::make_shared<Seen>();
+    rig_.station->notifier().addListener([state](const StationEvent& e) {
+        std::lock_guard lock(state->m);
+        if (e.type == "stage_position")
+            state->events.push_back(e.data);
+        if (e.type == "section_captured")
+            state->captured = true;
+        state->cv.notify_all();
+    });
+    auto plan = planFor({0});
+    auto id = rig_.station->submitPlan(plan, "plan");
+    ASSERT_TRUE(id) << id.error().message;
+    rig_.station->start();
+    std::vector<nlohmann::json> events;
+    {
+        std::unique_lock lock(state->m);
+        ASSERT_TRUE(state->cv.wait_for(lock, 60s, [&] { return state->captured; }));
+        events = state->events;
+    }
+    (void)rig_.station->scanner().pause(*id);
+    // The first move: from the start (0, 0) to the section, then where it ended.
+    auto settled = std::find_if(events.begin(), events.end(),
+                                [](const nlohmann::json& e) { return !e["moving"].get<bool>(); });
+    ASSERT_NE(settled, events.end()) << "the end of the first move is published";
+    const auto during = static_cast<std::size_t>(settled - events.begin());
+    ASSERT_GE(during, 2u) << "positions arrive while the stage travels";
+    const double endX = (*settled)["x_um"], endY = (*settled)["y_um"];
+    EXPECT_NEAR(endX, plan["slides"][0]["sections"][0]["x_um"].get<double>(), 1.0);
+    const double distanceUm = std::hypot(endX, endY);
+    double lastX = -1;
+    for (std::size_t k = 0; k < during; ++k) {
+        const double x = events[k]["x_um"], y = events[k]["y_um"];
+        EXPECT_TRUE(events[k]["moving"].get<bool>());
+        EXPECT_GE(x, lastX) << "positions follow the travel";
+        if (k > 0) { // strictly on the way: neither at the start nor at the end
+            EXPECT_LT(std::hypot(x - endX, y - endY), distanceUm - 1.0) << k;
+        }
+        EXPECT_GT(std::hypot(x - endX, y - endY), 1.0) << k;
+        lastX = x;
+    }
+    // 20 mm/s with 100 mm/s^2 ramps: the move lasts distance / speed + 0.2 s (+ settling; 0.4 s
+    // allowed); at 5 Hz that is this many events (unthrottled, the 5 ms polls give 40 times more).
+    const double seconds = distanceUm / 20'000.0 + 0.4;
+    EXPECT_LE(static_cast<double>(during), seconds / 0.2 + 1.0)
+        << during << " events over " << distanceUm << " um";
+    std::cout << "stage_position: " << during << " events during a " << distanceUm
+              << " um move (at most " << seconds << " s)\n";
+    const nlohmann::json status = rig_.station->status();
+    ASSERT_TRUE(status.contains("stage")) << status.dump();
+    EXPECT_TRUE(status["stage"].contains("moving"));
 }

@@ -11,6 +11,7 @@
 
 #include <chrono>
 #include <cstdint>
+#include <functional>
 #include <optional>
 #include <string>
 
@@ -44,9 +45,18 @@ struct StageAlarm {
 /// before sending or moving anything.
 core::Result<void> checkWithinLimits(const StageLimits& limits, const StagePosition& target);
 
+/// Receives feedback positions read while a move or homing is under way, with the stage clock's
+/// time of the read. Called on the thread that called moveTo/home; must not block.
+using MoveObserver =
+    std::function<void(const StagePosition&, std::chrono::steady_clock::time_point)>;
+
 class Stage {
 public:
     virtual ~Stage() = default;
+    /// Models that read feedback while they wait for a move report each read to `observer`
+    /// (SimStage); the others ignore it (ModbusStage polls status only, and reads the position
+    /// once settled). Call from the owning thread, before moves.
+    virtual void setMoveObserver(MoveObserver observer) { (void)observer; }
     /// Soft limits, fixed after create().
     virtual StageLimits limits() const = 0;
     /// Feedback position. Blocks for at most `timeout`.

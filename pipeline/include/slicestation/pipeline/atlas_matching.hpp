@@ -13,6 +13,7 @@
 
 #include <opencv2/core.hpp>
 
+#include <functional>
 #include <string>
 #include <utility>
 #include <vector>
@@ -71,6 +72,10 @@ struct MatchOptions {
     /// Tilt is estimated from the positions the two halves of the section match best, when the
     /// stack is at most this far apart (micrometres); 0 disables it.
     double tiltMaxIntervalUm = 100;
+    /// Called on the calling thread after each candidate alignment and each shortlist scoring:
+    /// (candidates done, candidates in total). The total is every usable slice plus the
+    /// shortlist, exact once the shortlist is chosen. For progress bars; may be empty.
+    std::function<void(int done, int total)> progress;
 };
 
 struct MatchCandidate {

@@ -14,6 +14,7 @@
 #include <opencv2/core.hpp>
 
 #include <cstdint>
+#include <functional>
 #include <string>
 #include <utility>
 #include <vector>
@@ -67,7 +68,14 @@ struct RegistrationOptions {
     /// A gap with one part on one side and another on the other is not damage.
     std::vector<std::vector<std::int32_t>> separateParts{
         {315, 698, 1080, 822, 703}, {549, 958, 313, 771, 354}, {519, 528}};
+    /// Called on the calling thread after each step (prepare, edges, ... damage) with the steps
+    /// done and kRegistrationSteps; (total, total) when done. For progress bars; may be empty.
+    std::function<void(int stepsDone, int stepsTotal)> progress;
 };
+
+/// The steps registerSection reports to RegistrationOptions::progress (steps skipped by the
+/// options are counted as done when registration ends).
+inline constexpr int kRegistrationSteps = 10;
 
 struct RegistrationQuality {
     int correspondences = 0;         ///< tight correspondences that drive the warp

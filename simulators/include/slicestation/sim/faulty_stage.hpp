@@ -35,6 +35,9 @@ public:
                                            std::chrono::milliseconds timeout) override;
     core::Result<hw::StagePosition> home(std::chrono::milliseconds timeout) override;
     void stop() noexcept override;
+    void setMoveObserver(hw::MoveObserver observer) override {
+        inner_->setMoveObserver(std::move(observer));
+    }
     core::Result<hw::StageAlarm> alarm(std::chrono::milliseconds timeout) override;
     core::Result<void> resetAlarm(std::chrono::milliseconds timeout) override;
 

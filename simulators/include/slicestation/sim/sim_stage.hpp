@@ -37,6 +37,8 @@ public:
     void stop() noexcept override;
     core::Result<hw::StageAlarm> alarm(std::chrono::milliseconds timeout) override;
     core::Result<void> resetAlarm(std::chrono::milliseconds timeout) override;
+    /// Reports the feedback at every poll of a move's wait (pollInterval, stage clock).
+    void setMoveObserver(hw::MoveObserver observer) override { observer_ = std::move(observer); }
 
     /// The axis models, for fault injection ('x', 'y', 'z'). Call from the owning thread.
     SimAxis& axis(char name);
@@ -53,6 +55,7 @@ private:
     mutable std::mutex mutex_; // guards the axes: stop() and peekPosition() come from elsewhere
     mutable SimAxis axes_[3];
     core::StopSignal stop_;
+    hw::MoveObserver observer_;
 };
 
 } // namespace slicestation::sim

@@ -30,6 +30,7 @@ namespace slicestation::daemon {
 /// A station event for listeners (the web page's event stream, tests).
 struct StationEvent {
     std::string type; ///< section_captured, section_registered, section_damaged, run_state,
+                      ///< stage_position (while moving, <= 5 Hz, and where a move ended),
                       ///< alert_raised, alert_acknowledged
     nlohmann::json data;
 };

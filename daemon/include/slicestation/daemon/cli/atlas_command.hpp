@@ -58,6 +58,9 @@ struct AtlasMatchRequest {
     int window = 5;               ///< slices either side of expectedIndex to search, >= 0
     double imageUmPerPx = 0;      ///< 0 = unknown: the scale is then found per slice
     std::filesystem::path output; ///< MATCH.json
+    /// Progress for a bar: phase "features" (done, total slices; total 0 while unknown), then
+    /// "matching" (candidates done of total, pipeline::MatchOptions::progress). May be empty.
+    std::function<void(const std::string& phase, int done, int total)> progress;
 };
 
 /// Matches the section against the stack (pipeline::matchSection) and writes MATCH.json:

@@ -61,6 +61,8 @@ public:
     /// A new phase; total 0 when unknown (spinner).
     void phase(std::string name, int total = 0);
     void advance(int done);
+    /// Also a new total (a total that becomes exact on the way), the phase kept.
+    void advance(int done, int total);
     bool enabled() const noexcept { return enabled_; }
     /// The line as it is drawn now (without the carriage return).
     std::string line() const;

@@ -46,6 +46,9 @@ struct RegisterRequest {
     /// The atlas is this slice of a stack: result.json then records the slice (index, position,
     /// frame) and, for a stack cut from a CCF volume, every point's "ccf_um".
     std::optional<AtlasSliceFrame> atlasSlice;
+    /// Registration steps done of steps total (pipeline::RegistrationOptions::progress), for
+    /// slicectl's bar. May be empty.
+    std::function<void(int done, int total)> progress;
 };
 
 /// A section registered, typed; `document` is what was written to RESULT.json.

@@ -79,6 +79,9 @@ public:
     [[nodiscard]] core::Result<cv::Mat> sectionImage(std::int64_t sectionId, bool overlay) override;
     [[nodiscard]] core::Result<std::string> sectionCounts(std::int64_t sectionId) override;
     [[nodiscard]] core::Result<std::string> runCounts(std::int64_t runId) override;
+    [[nodiscard]] core::Result<ImagePyramid> sectionPyramid(std::int64_t sectionId) override;
+    [[nodiscard]] core::Result<cv::Mat> sectionTile(std::int64_t sectionId, int level, int x,
+                                                    int y) override;
     [[nodiscard]] core::Result<RegionAtPixel> regionAt(std::int64_t sectionId, int x, int y,
                                                        int ofWidth) override;
     /// Validates and journals a plan (TOML/JSON already parsed) with a snapshot of the scan
@@ -131,6 +134,15 @@ private:
     std::unique_ptr<Scanner> scanner_;
     mutable std::mutex liveMutex_;
     std::shared_ptr<const hw::Frame> live_;
+    /// A stage position seen: `at` (stage clock) for a read during a move, nullopt for the
+    /// settled position after one. Kept for status(); published as "stage_position".
+    void noteStagePosition(const hw::StagePosition& p,
+                           std::optional<std::chrono::steady_clock::time_point> at);
+    std::mutex stageMutex_;
+    std::optional<hw::StagePosition> stage_;
+    bool stageMoving_ = false;
+    bool stageAnnounced_ = false; ///< a move's position was published: publish where it ended
+    std::optional<std::chrono::steady_clock::time_point> lastStageEvent_;
     std::mutex labelsMutex_; ///< the labels regionAt() read last, kept for the next pixel
     std::string labelsPath_;
     cv::Mat labels_;

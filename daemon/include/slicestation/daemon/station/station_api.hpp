@@ -33,6 +33,12 @@ struct RegionAtPixel {
     std::string name, acronym; ///< empty when the ontology lacks the id (or id 0)
 };
 
+/// The tile pyramid of a section's stored image (OME-TIFF sub-resolutions, docs/images.md).
+struct ImagePyramid {
+    int tileSizePx = 0;
+    std::vector<cv::Size> levels; ///< level 0: full resolution; each next one half the size
+};
+
 class StationApi {
 public:
     virtual ~StationApi() = default;
@@ -74,6 +80,19 @@ public:
     [[nodiscard]] virtual core::Result<std::string> runCounts(std::int64_t runId) {
         return core::makeError(core::ErrorCode::NotFound,
                                "run " + std::to_string(runId) + " has no cell counts");
+    }
+
+    /// The pyramid of the section's latest image. NotFound as sectionImage; Unsupported: the
+    /// stored image is not tiled (written before pyramids); IoError: unreadable.
+    [[nodiscard]] virtual core::Result<ImagePyramid> sectionPyramid(std::int64_t /*sectionId*/) {
+        return core::makeError(core::ErrorCode::Unsupported, "no image pyramids here");
+    }
+    /// Tile (x, y) of `level` of the section's latest image, 8-bit for display (grey or BGR;
+    /// deeper images stretched by the percentiles of the smallest level, the same for every
+    /// tile). NotFound as sectionImage, or no such level or tile; Unsupported: not tiled.
+    [[nodiscard]] virtual core::Result<cv::Mat> sectionTile(std::int64_t /*sectionId*/,
+                                                            int /*level*/, int /*x*/, int /*y*/) {
+        return core::makeError(core::ErrorCode::Unsupported, "no image pyramids here");
     }
 
     // Controls.
