@@ -238,9 +238,18 @@ std::vector<DamageRegion> thinCracks(const cv::Mat& grey, const cv::Mat& tissue,
     cv::dilate(
         ventricles, nearVentricle,
         cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * slack + 1, 2 * slack + 1)));
-    const cv::Mat thin = glassPx & closed & expected.brain & ~nearVentricle;
+    cv::Mat thin = glassPx & closed & expected.brain & ~nearVentricle;
     const int ringPx =
         std::max(1, static_cast<int>(std::lround(params.fissureRingFrac * brainWidthPx)));
+    // The midline's fissure (and the cleft between the bulbs) is no crack; a crack that starts
+    // from it is judged on the part beyond it.
+    if (midline.a != midline.b) {
+        const cv::Point2f u = midline.b - midline.a;
+        const cv::Point2f far = u * (10.0f * float(std::max(grey.rows, grey.cols)) /
+                                     std::max(1e-3f, std::hypot(u.x, u.y)));
+        cv::line(thin, cv::Point(midline.a - far), cv::Point(midline.a + far), cv::Scalar(0),
+                 2 * ringPx + 1);
+    }
     cv::Mat tissueParts;
     if (!expected.parts.empty()) {
         tissueParts = cv::Mat::zeros(tissue.size(), CV_8U);
