@@ -7,6 +7,7 @@
 #include <sys/socket.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <filesystem>
 #include <fstream>
 #include <thread>
@@ -235,6 +236,30 @@ TEST(ModbusStage, AClientHangingUpBeforeItsRepliesLeavesTheServerServing) {
     ASSERT_TRUE(stage) << stage.error().message;
     auto p = (*stage)->position(1s);
     EXPECT_TRUE(p) << p.error().message;
+}
+
+TEST(ModbusStage, AMoveReportsItsFeedbackOnTheWayAtMostFiveTimesASecond) {
+    // 2 mm at 2 mm/s: about a second on the way, read from the drives' feedback registers.
+    ModbusRig rig = makeRig("oriental-az", true, /*slow=*/true);
+    ASSERT_TRUE(rig.stage);
+    std::vector<std::pair<double, std::chrono::steady_clock::time_point>> seen;
+    rig.stage->setMoveObserver(
+        [&](const hw::StagePosition& p, auto at) { seen.emplace_back(p.xUm, at); });
+    auto r = rig.stage->moveTo({2000, 0, 0}, 10s);
+    ASSERT_TRUE(r) << r.error().message;
+    ASSERT_GE(seen.size(), 3u); // positions on the way, not only the end
+    EXPECT_LE(seen.size(), 7u); // at most every 200 ms over about 1 s
+    for (size_t i = 1; i < seen.size(); ++i) {
+        EXPECT_GE(seen[i].first, seen[i - 1].first); // along the move, in order
+        EXPECT_GE(seen[i].second - seen[i - 1].second, 190ms);
+    }
+    // The first read may come before the drive starts; later ones lie on the way.
+    const auto onTheWay = std::count_if(
+        seen.begin(), seen.end(), [](const auto& s) { return s.first > 1.0 && s.first < 1999.0; });
+    EXPECT_GE(onTheWay, 2);
+    // Without an observer nothing extra is read.
+    rig.stage->setMoveObserver({});
+    ASSERT_TRUE(rig.stage->moveTo({0, 0, 0}, 10s));
 }
 
 TEST(ModbusStage, ConnectionRefusedIsDisconnected) {

@@ -81,6 +81,11 @@ struct ModbusStage::Impl {
     std::mutex bus; // one request at a time: the owner thread and stop()
     bool connected = false;
     core::StopSignal stopSignal;
+    /// Told the feedback position while a move is under way (setMoveObserver), at most every
+    /// kObserveEvery: each report costs one position read per axis on the bus.
+    hw::MoveObserver observer;
+    Clock::time_point lastObserved{};
+    static constexpr std::chrono::milliseconds kObserveEvery{200};
 
     std::string describe() const {
         return cfg.transport == ModbusStageConfig::Transport::Tcp
@@ -367,6 +372,14 @@ struct ModbusStage::Impl {
                     }
                 }
             }
+            if (observer && !settled && Clock::now() - lastObserved >= kObserveEvery) {
+                // The position on the way, for whoever shows it; a failed read is not the
+                // move's failure (the status poll decides that).
+                if (auto on = readPosition(std::min(deadline, Clock::now() + kObserveEvery))) {
+                    lastObserved = Clock::now();
+                    observer(*on, lastObserved);
+                }
+            }
             const auto now = Clock::now();
             if (settled) {
                 if (!settling)
@@ -392,6 +405,10 @@ struct ModbusStage::Impl {
 };
 
 ModbusStage::ModbusStage(std::unique_ptr<Impl> impl) : impl_(std::move(impl)) {}
+
+void ModbusStage::setMoveObserver(hw::MoveObserver observer) {
+    impl_->observer = std::move(observer);
+}
 ModbusStage::~ModbusStage() = default;
 
 core::Result<std::unique_ptr<ModbusStage>> ModbusStage::create(ModbusStageConfig cfg) {

@@ -54,8 +54,8 @@ class Stage {
 public:
     virtual ~Stage() = default;
     /// Models that read feedback while they wait for a move report each read to `observer`
-    /// (SimStage); the others ignore it (ModbusStage polls status only, and reads the position
-    /// once settled). Call from the owning thread, before moves.
+    /// (SimStage at every poll, ModbusStage at most every 200 ms); the others ignore it. Call
+    /// from the owning thread, before moves.
     virtual void setMoveObserver(MoveObserver observer) { (void)observer; }
     /// Soft limits, fixed after create().
     virtual StageLimits limits() const = 0;

@@ -56,6 +56,9 @@ public:
     static core::Result<std::unique_ptr<ModbusStage>> create(ModbusStageConfig config);
     ~ModbusStage() override;
 
+    /// Reads the feedback position at most every 200 ms while a move or homing is under way
+    /// (one read per axis, between status polls) and reports it.
+    void setMoveObserver(hw::MoveObserver observer) override;
     hw::StageLimits limits() const override;
     core::Result<hw::StagePosition> position(std::chrono::milliseconds timeout) override;
     core::Result<hw::StagePosition> moveTo(const hw::StagePosition& target,
