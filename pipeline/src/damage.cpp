@@ -41,6 +41,21 @@ cv::Rect grown(const cv::Rect& box, int margin, cv::Size size) {
            cv::Rect(0, 0, size.width, size.height);
 }
 
+/// The glass of `grey` over `where`: its median level and noise (1.4826 x the median absolute
+/// deviation from that level, at least 1e-6).
+struct GlassStats {
+    float level = 0;
+    float noise = 0;
+};
+GlassStats glassStats(const cv::Mat& grey, const cv::Mat& where) {
+    GlassStats g;
+    g.level = percentile(grey, 0.5, where);
+    cv::Mat dev;
+    cv::absdiff(grey, cv::Scalar(g.level), dev);
+    g.noise = std::max(1e-6f, 1.4826f * percentile(dev, 0.5, where));
+    return g;
+}
+
 } // namespace
 
 std::string_view toString(DamageKind kind) noexcept {
@@ -221,11 +236,9 @@ std::vector<DamageRegion> thinCracks(const cv::Mat& grey, const cv::Mat& tissue,
         return out;
     cv::Mat light;
     cv::GaussianBlur(grey, light, cv::Size(), 0.7);
-    const float glass = percentile(light, 0.5, exterior);
-    cv::Mat dev;
-    cv::absdiff(light, cv::Scalar(glass), dev);
-    const float noise = std::max(1e-6f, 1.4826f * percentile(dev, 0.5, exterior));
-    const cv::Mat glassPx = light < glass + static_cast<float>(params.glassNoiseUnits) * noise;
+    const GlassStats glass = glassStats(light, exterior);
+    const cv::Mat glassPx =
+        light < glass.level + static_cast<float>(params.glassNoiseUnits) * glass.noise;
     // Glass narrower than the closing disc, with tissue on both sides.
     const int half = std::max(1, static_cast<int>(std::lround(params.crackMaxWidthPx / 2)));
     cv::Mat closed;
@@ -525,10 +538,9 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const AtlasExp
     // from dim tissue (a pale fibre tract) that the tissue mask left out.
     float glassMedian = 0, glassNoise = 0, tissueMedian = 0;
     if (!grey.empty() && cv::countNonZero(outside) > 64) {
-        glassMedian = percentile(grey, 0.5, outside);
-        cv::Mat dev;
-        cv::absdiff(grey, cv::Scalar(glassMedian), dev);
-        glassNoise = std::max(1e-6f, 1.4826f * percentile(dev, 0.5, outside));
+        const GlassStats glass = glassStats(grey, outside);
+        glassMedian = glass.level;
+        glassNoise = glass.noise;
         tissueMedian = percentile(grey, 0.5, tissueMask);
     }
     // The parts where the section has tissue: a fissure opened has tissue on both sides.
