@@ -209,6 +209,11 @@ TEST(SeriesModel, FewSectionsAndBadInput) {
     SeriesModelOptions slack;
     slack.spacingSlack = 1.5;
     EXPECT_FALSE(fitSeries(series(range(4), 0, 300, 0, 1), slack).ok());
+    SeriesModelOptions place;
+    place.placeScoreRatio = -0.5;
+    const auto p = fitSeries(series(range(4), 0, 300, 0, 1), place);
+    ASSERT_FALSE(p.ok());
+    EXPECT_EQ(p.error().code, slicestation::core::ErrorCode::InvalidArgument);
 }
 
 TEST(SeriesModel, AWrongMatchOnTheLostSlotDoesNotHideTheSkip) {
