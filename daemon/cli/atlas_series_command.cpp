@@ -112,6 +112,7 @@ core::Result<json> runSeries(const SeriesRequest& rq) {
                         {"timings_ms", {{"match", ms}, {"search", q.ms}}},
                         {"series",
                          {{"slot", s.slot},
+                          {"position_um", s.positionUm},
                           {"line_position_um", s.predictedUm},
                           {"residual_um", s.residualUm},
                           {"on_line", s.inlier},
@@ -161,12 +162,13 @@ CommandRunner addAtlasSeriesCommand(CLI::App& app) {
         if (!r)
             return reportError("atlas match-series", r.error());
         const json& out = *r;
-        std::printf("%-28s %6s %9s %9s %6s %6s %7s %7s  %s\n", "image", "slice", "pos_um",
-                    "line_um", "slot", "score", "tiltLR", "tiltDV", "anomaly");
+        std::printf("%-28s %6s %9s %9s %9s %6s %6s %7s %7s  %s\n", "image", "slice", "pos_um",
+                    "series_um", "line_um", "slot", "score", "tiltLR", "tiltDV", "anomaly");
         for (const auto& s : out["sections"]) {
             const std::string name = fs::path(s["image"].get<std::string>()).filename().string();
-            std::printf("%-28s %6d %9.0f %9.0f %6d %6.3f %7.1f %7.1f  %s\n", name.c_str(),
+            std::printf("%-28s %6d %9.0f %9.0f %9.0f %6d %6.3f %7.1f %7.1f  %s\n", name.c_str(),
                         s["index"].get<int>(), s["position_um"].get<double>(),
+                        s["series"]["position_um"].get<double>(),
                         s["series"]["line_position_um"].get<double>(),
                         s["series"]["slot"].get<int>(), s["score"].get<double>(),
                         s["tilt_lr_deg"].get<double>(), s["tilt_dv_deg"].get<double>(),

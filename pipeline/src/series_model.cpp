@@ -100,6 +100,59 @@ std::vector<size_t> longestIncreasing(const std::vector<int>& values) {
     return out;
 }
 
+/// Order from the plan: a section whose own match breaks the cutting order (off the line, out
+/// of order, a duplicate) with a score under `ratio` x the median score on the line is placed at
+/// the free slot between its neighbours in the run (`online[run[...]]`), counted from the one
+/// before it as if the run went on regularly. Sections placed earlier bound the later ones, so
+/// the placed run stays in order. No free slot between them: left as it was.
+void placeWeakContradictions(const std::vector<SeriesObservation>& obs, double ratio,
+                             const std::vector<size_t>& online, const std::vector<size_t>& run,
+                             SeriesFit& fit) {
+    if (ratio <= 0 || run.empty())
+        return;
+    std::vector<double> scores;
+    for (size_t k : online)
+        scores.push_back(obs[k].score);
+    const double weak = ratio * median(scores);
+    const size_t n = obs.size();
+    std::vector<bool> fixed(n, false);
+    for (size_t r : run)
+        fixed[online[r]] = true;
+    for (size_t k = 0; k < n; ++k) {
+        SeriesSectionFit& s = fit.sections[k];
+        const bool contradicts = s.anomaly == SeriesAnomaly::OffLine ||
+                                 s.anomaly == SeriesAnomaly::OutOfOrder ||
+                                 s.anomaly == SeriesAnomaly::Duplicate;
+        if (!contradicts || obs[k].score >= weak)
+            continue;
+        size_t before = n, after = n;
+        for (size_t j = k; j-- > 0;)
+            if (fixed[j]) {
+                before = j;
+                break;
+            }
+        for (size_t j = k + 1; j < n; ++j)
+            if (fixed[j]) {
+                after = j;
+                break;
+            }
+        const int lo = before < n ? fit.sections[before].slot + 1 : -(1 << 30);
+        const int hi = after < n ? fit.sections[after].slot - 1 : (1 << 30);
+        if (lo > hi)
+            continue;
+        const int want = before < n ? fit.sections[before].slot + int(k - before)
+                                    : fit.sections[after].slot - int(after - k);
+        if (s.inlier)
+            --fit.inliers;
+        s.slot = std::clamp(want, lo, hi);
+        s.predictedUm = fit.positionOfSlot(s.slot);
+        s.residualUm = obs[k].positionUm - s.predictedUm;
+        s.inlier = false;
+        s.anomaly = SeriesAnomaly::Placed;
+        fixed[k] = true;
+    }
+}
+
 } // namespace
 
 std::string_view toString(SeriesAnomaly anomaly) noexcept {
@@ -116,6 +169,8 @@ std::string_view toString(SeriesAnomaly anomaly) noexcept {
         return "out-of-order";
     case SeriesAnomaly::Duplicate:
         return "duplicate";
+    case SeriesAnomaly::Placed:
+        return "placed-on-line";
     }
     return "unknown";
 }
@@ -144,6 +199,8 @@ core::Result<SeriesFit> fitSeries(const std::vector<SeriesObservation>& obs,
     if (!std::isfinite(options.spacingSlack) || options.spacingSlack <= 0 ||
         options.spacingSlack >= 1)
         return makeError(ErrorCode::InvalidArgument, "spacing slack must be in (0, 1)");
+    if (!std::isfinite(options.placeScoreRatio) || options.placeScoreRatio < 0)
+        return makeError(ErrorCode::InvalidArgument, "place score ratio must be finite and >= 0");
     if (!std::isfinite(options.inlierUm) || options.inlierUm < 0)
         return makeError(ErrorCode::InvalidArgument, "inlier distance must be finite and >= 0");
     std::vector<double> scores;
@@ -320,6 +377,7 @@ core::Result<SeriesFit> fitSeries(const std::vector<SeriesObservation>& obs,
         const bool dup = std::count(onlineSlots.begin(), onlineSlots.end(), s.slot) > 1;
         s.anomaly = dup ? SeriesAnomaly::Duplicate : SeriesAnomaly::OutOfOrder;
     }
+    placeWeakContradictions(obs, options.placeScoreRatio, online, run, fit);
     // Skips: slots between consecutive sections of the run that no section took, beyond the
     // sections between them that are off the line or out of order (which may belong there).
     for (size_t r = 1; r < run.size(); ++r) {
@@ -334,6 +392,9 @@ core::Result<SeriesFit> fitSeries(const std::vector<SeriesObservation>& obs,
             for (size_t a = 0; a < online.size(); ++a)
                 taken =
                     taken || (onlineSlots[a] == slot && online[a] + 1 >= k1 && online[a] <= k2 + 1);
+            for (size_t k = k1 + 1; k < k2; ++k)
+                taken = taken || (fit.sections[k].anomaly == SeriesAnomaly::Placed &&
+                                  fit.sections[k].slot == slot);
             missing += !taken;
         }
         int elsewhere = 0; // sections between them in arrival order but not in the run
@@ -347,6 +408,10 @@ core::Result<SeriesFit> fitSeries(const std::vector<SeriesObservation>& obs,
             fit.sections[k2].missingBefore = missing;
         }
     }
+    for (size_t k = 0; k < n; ++k)
+        fit.sections[k].positionUm = fit.sections[k].anomaly == SeriesAnomaly::Placed
+                                         ? fit.sections[k].predictedUm
+                                         : obs[k].positionUm;
     return fit;
 }
 

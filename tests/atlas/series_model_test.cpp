@@ -55,7 +55,8 @@ TEST(SeriesModel, FitsACleanSeries) {
 
 TEST(SeriesModel, ReportsSkipSwapAndWrongMatch) {
     // Slot 6 lost, slots 11 and 12 swapped, and section 16's match 2.5 spacings off the line
-    // (half way between two slots: a wrong match, not a section from another slot).
+    // (half way between two slots: a wrong match, not a section from another slot) with a third
+    // of the usual score: not believed, it is placed on the line between its neighbours.
     std::vector<int> slots;
     for (int s = 0; s < 22; ++s)
         if (s != 6)
@@ -72,7 +73,7 @@ TEST(SeriesModel, ReportsSkipSwapAndWrongMatch) {
     for (size_t k = 0; k < obs.size(); ++k) {
         const SeriesAnomaly want = k == 6               ? SeriesAnomaly::Skipped
                                    : k == 10 || k == 11 ? SeriesAnomaly::Swapped
-                                   : k == 16            ? SeriesAnomaly::OffLine
+                                   : k == 16            ? SeriesAnomaly::Placed
                                                         : SeriesAnomaly::None;
         EXPECT_EQ(f->sections[k].anomaly, want) << "section " << k;
     }
@@ -81,6 +82,46 @@ TEST(SeriesModel, ReportsSkipSwapAndWrongMatch) {
     EXPECT_EQ(f->sections[11].slot, 11);
     EXPECT_FALSE(f->sections[16].inlier);
     EXPECT_EQ(f->inliers, 20);
+    // The series' answer for it is the line's position at the slot after its predecessor's.
+    EXPECT_EQ(f->sections[16].slot, 17);
+    EXPECT_DOUBLE_EQ(f->sections[16].positionUm, f->positionOfSlot(17));
+    EXPECT_DOUBLE_EQ(f->sections[3].positionUm, obs[3].positionUm);
+
+    // The same wrong match with the usual score is an alert, not placed.
+    obs[16].score = 0.3;
+    auto confident = fitSeries(obs, o);
+    ASSERT_TRUE(confident.ok());
+    EXPECT_EQ(confident->sections[16].anomaly, SeriesAnomaly::OffLine);
+    EXPECT_DOUBLE_EQ(confident->sections[16].positionUm, obs[16].positionUm);
+    // And with placing turned off.
+    obs[16].score = 0.1;
+    o.placeScoreRatio = 0;
+    auto never = fitSeries(obs, o);
+    ASSERT_TRUE(never.ok());
+    EXPECT_EQ(never->sections[16].anomaly, SeriesAnomaly::OffLine);
+}
+
+TEST(SeriesModel, WeakMatchesThatBreakTheOrderArePlacedInOrder) {
+    // Sections 5 and 6 (slots 5, 6) matched weakly two and four slots back, onto slots 3 and 2:
+    // placed on slots 5 and 6, in order, and no skip reported around them.
+    auto obs = series(range(16), 1000, 300, 20, 7);
+    obs[5].positionUm = 1000 + 300 * 3 + 10;
+    obs[5].score = 0.05;
+    obs[6].positionUm = 1000 + 300 * 2 - 10;
+    obs[6].score = 0.08;
+    SeriesModelOptions o;
+    o.intervalUm = 300;
+    auto f = fitSeries(obs, o);
+    ASSERT_TRUE(f.ok());
+    for (size_t k = 0; k < obs.size(); ++k) {
+        const SeriesAnomaly want = k == 5 || k == 6 ? SeriesAnomaly::Placed : SeriesAnomaly::None;
+        EXPECT_EQ(f->sections[k].anomaly, want) << "section " << k;
+        EXPECT_EQ(f->sections[k].slot, int(k)) << k;
+        if (k > 0) {
+            EXPECT_GT(f->sections[k].positionUm, f->sections[k - 1].positionUm) << k;
+        }
+    }
+    EXPECT_EQ(f->inliers, 14);
 }
 
 TEST(SeriesModel, ASectionFarOutOfOrderIsReported) {
@@ -102,6 +143,22 @@ TEST(SeriesModel, ASectionFarOutOfOrderIsReported) {
             EXPECT_EQ(f->sections[k].anomaly, SeriesAnomaly::None) << k;
         }
     }
+}
+
+TEST(SeriesModel, AWeakSectionWithNoFreeSlotStaysOutOfOrder) {
+    // As above, but the section's match scores a fifth of the others'. Its neighbours in the run
+    // hold consecutive slots (3 and 4), so there is no place between them to put it: it stays
+    // out of order rather than pushing the run.
+    std::vector<int> slots = range(16);
+    slots.erase(slots.begin() + 11);
+    slots.insert(slots.begin() + 4, 11);
+    auto obs = series(slots, 1000, 250, 20, 3);
+    obs[4].score = 0.06;
+    auto f = fitSeries(obs, {});
+    ASSERT_TRUE(f.ok());
+    EXPECT_EQ(f->sections[4].anomaly, SeriesAnomaly::OutOfOrder);
+    EXPECT_EQ(f->sections[4].slot, 11);
+    EXPECT_DOUBLE_EQ(f->sections[4].positionUm, obs[4].positionUm);
 }
 
 TEST(SeriesModel, BackToFrontGivesANegativeSpacing) {
@@ -152,6 +209,11 @@ TEST(SeriesModel, FewSectionsAndBadInput) {
     SeriesModelOptions slack;
     slack.spacingSlack = 1.5;
     EXPECT_FALSE(fitSeries(series(range(4), 0, 300, 0, 1), slack).ok());
+    SeriesModelOptions place;
+    place.placeScoreRatio = -0.5;
+    const auto p = fitSeries(series(range(4), 0, 300, 0, 1), place);
+    ASSERT_FALSE(p.ok());
+    EXPECT_EQ(p.error().code, slicestation::core::ErrorCode::InvalidArgument);
 }
 
 TEST(SeriesModel, AWrongMatchOnTheLostSlotDoesNotHideTheSkip) {

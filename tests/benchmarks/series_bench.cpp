@@ -34,6 +34,9 @@ using Clock = std::chrono::steady_clock;
 namespace {
 
 constexpr double kPi = 3.14159265358979323846;
+/// ABBA's slicing positions start 15% of the atlas' half-length (13.2 mm along AP) before the
+/// volume's front (see the gerbi truth below).
+constexpr double kAbbaMarginUm = 0.15 * 13200 / 2;
 
 double msSince(Clock::time_point t) {
     return std::chrono::duration<double, std::milli>(Clock::now() - t).count();
@@ -71,6 +74,17 @@ double spearman(const std::vector<double>& p) {
         d2 += (rank[i] - double(i)) * (rank[i] - double(i));
     const double nn = double(n);
     return n > 1 ? 1 - 6 * d2 / (nn * (nn * nn - 1)) : 1;
+}
+
+/// The generated series' cutting sequence: 22 planned slots, slot 8 lost, slots 14 and 15
+/// mounted swapped (arrival index 13 and 14 after the skip).
+std::vector<int> skipAndSwapSlots() {
+    std::vector<int> slots;
+    for (int s = 0; s < 22; ++s)
+        if (s != 8)
+            slots.push_back(s);
+    std::swap(slots[13], slots[14]);
+    return slots;
 }
 
 struct Stack {
@@ -116,8 +130,9 @@ core::Result<RunResult> runSeries(const std::vector<cv::Mat>& images,
 }
 
 void printTable(const RunResult& r, const std::vector<double>& truthUm) {
-    std::printf("%4s %9s %9s %9s %7s %6s %6s %6s %11s %7s %8s  %s\n", "sec", "truth_um", "match_um",
-                "line_um", "err_um", "slot", "score", "tiltC", "tiltR", "window", "ms", "anomaly");
+    std::printf("%4s %9s %9s %9s %9s %7s %6s %6s %6s %6s %11s %7s %8s  %s\n", "sec", "truth_um",
+                "match_um", "series_um", "line_um", "err_um", "slot", "score", "tiltC", "tiltR",
+                "window", "prep", "ms", "anomaly");
     for (size_t i = 0; i < r.matches.size(); ++i) {
         const auto& m = r.matches[i];
         const auto& s = r.fit.sections[i];
@@ -128,9 +143,9 @@ void printTable(const RunResult& r, const std::vector<double>& truthUm) {
             std::snprintf(window, sizeof window, "%d-%d%s", q.first, q.last, q.fellBack ? "*" : "");
         else
             std::snprintf(window, sizeof window, "all");
-        std::printf("%4zu %9.0f %9.0f %9.0f %7.0f %6d %6.3f %6.1f %6.1f %11s %7.0f %8.0f  %s",
-                    i + 1, t, m.positionUm, s.predictedUm, m.positionUm - t, s.slot, m.score,
-                    m.tiltColumnsDeg, m.tiltRowsDeg, window, r.prepareMs[i], q.ms,
+        std::printf("%4zu %9.0f %9.0f %9.0f %9.0f %7.0f %6d %6.3f %6.1f %6.1f %11s %7.0f %8.0f  %s",
+                    i + 1, t, m.positionUm, s.positionUm, s.predictedUm, s.positionUm - t, s.slot,
+                    m.score, m.tiltColumnsDeg, m.tiltRowsDeg, window, r.prepareMs[i], q.ms,
                     std::string(pipeline::toString(s.anomaly)).c_str());
         if (s.missingBefore > 0)
             std::printf(" (%d)", s.missingBefore);
@@ -161,11 +176,15 @@ int main(int argc, char** argv) {
     std::uint64_t seed = 5;
     double genTiltLr = 2.0, genTiltDv = -1.5;
     app.add_option("--shared", shared, "Shared data directory");
-    app.add_option("--data", data, "generated|gerbi|mouse|all");
+    app.add_option("--data", data, "generated|template|gerbi|mouse|all");
     app.add_option("--interval-um", intervalUm, "Stack interval");
     app.add_option("--seed", seed, "Generated series seed");
     app.add_option("--tilt-lr", genTiltLr, "Generated series: tilt toward the columns (deg)");
     app.add_option("--tilt-dv", genTiltDv, "Generated series: tilt toward the rows (deg)");
+    double placeRatio = pipeline::SeriesModelOptions{}.placeScoreRatio;
+    app.add_option("--place-ratio", placeRatio,
+                   "Series model: place weak order-breaking matches on the line below this "
+                   "fraction of the median score (0 = never)");
     app.add_flag("--finish,!--no-finish", finish, "Re-match off-line sections at the end");
     app.add_flag("--prior,!--no-prior", usePrior,
                  "Give the model the series' spacing as the plan's interval");
@@ -235,11 +254,7 @@ int main(int argc, char** argv) {
         // 22 planned sections from 1800 um every 300 um, tilted (default 2.0 deg LR, -1.5 DV);
         // the section in slot 8 is lost (skip) and slots 14 and 15 are mounted swapped.
         const double spacing = 300, start = 1800, tiltC = genTiltLr, tiltR = genTiltDv;
-        std::vector<int> slots;
-        for (int s = 0; s < 22; ++s)
-            if (s != 8)
-                slots.push_back(s);
-        std::swap(slots[13], slots[14]); // slots 14 and 15 (index 13, 14 after the skip)
+        const std::vector<int> slots = skipAndSwapSlots();
         std::vector<cv::Mat> images;
         std::vector<double> umPerPx, truth;
         for (size_t i = 0; i < slots.size(); ++i) {
@@ -267,6 +282,7 @@ int main(int argc, char** argv) {
             truth.push_back(pos);
         }
         pipeline::SeriesMatchOptions o;
+        o.model.placeScoreRatio = placeRatio;
         o.model.intervalUm = usePrior ? spacing : 0;
         std::printf("\n== generated series: %zu sections, spacing %.0f um, tilt LR %.1f DV %.1f "
                     "deg, slot 8 skipped, slots 14/15 swapped\n",
@@ -284,10 +300,19 @@ int main(int argc, char** argv) {
         const bool skip = f[8].anomaly == pipeline::SeriesAnomaly::Skipped;
         const bool swap = f[13].anomaly == pipeline::SeriesAnomaly::Swapped &&
                           f[14].anomaly == pipeline::SeriesAnomaly::Swapped;
-        int falseAlarms = 0;
-        for (size_t i = 0; i < f.size(); ++i)
-            falseAlarms +=
-                i != 8 && i != 13 && i != 14 && f[i].anomaly != pipeline::SeriesAnomaly::None;
+        int falseAlarms = 0, placed = 0;
+        for (size_t i = 0; i < f.size(); ++i) {
+            placed += f[i].anomaly == pipeline::SeriesAnomaly::Placed;
+            falseAlarms += i != 8 && i != 13 && i != 14 &&
+                           f[i].anomaly != pipeline::SeriesAnomaly::None &&
+                           f[i].anomaly != pipeline::SeriesAnomaly::Placed;
+        }
+        std::vector<double> seriesErr;
+        for (size_t i = 0; i < truth.size(); ++i)
+            seriesErr.push_back(std::abs(f[i].positionUm - truth[i]));
+        std::printf("generated, series answer (placed sections on the line): error median %.0f "
+                    "um, 90th pct %.0f um; %d placed\n",
+                    percentile(seriesErr, 0.5), percentile(seriesErr, 0.9), placed);
         std::printf("generated: position error median %.0f um, 90th pct %.0f um; skip detected %s, "
                     "swap detected %s, other sections flagged %d; spacing %.1f um (true %.0f); "
                     "tilt error LR %.2f DV %.2f deg\n",
@@ -301,13 +326,93 @@ int main(int argc, char** argv) {
                             e->tiltColumnsDeg - tiltC, e->tiltRowsDeg - tiltR);
     }
 
+    if (data == "template" || data == "all") {
+        // Real contrast with known positions: planes of the Allen average template (two-photon
+        // autofluorescence, 100 um voxels) at the generated series' slots, tilt and pixel size,
+        // rotated and noised a little. Tells whether the matcher, given real tissue contrast
+        // rather than the generator's painted regions, places sections with a bias.
+        auto tmpl = core::readNrrd(atlasDir / "average_template_100.nrrd");
+        if (!tmpl) {
+            std::fprintf(stderr, "template: %s\n", tmpl.error().message.c_str());
+            return 1;
+        }
+        const double spacing = 300, start = 1800;
+        const std::vector<int> slots = skipAndSwapSlots();
+        std::vector<cv::Mat> images;
+        std::vector<double> umPerPx, truth;
+        std::mt19937 rng(static_cast<unsigned>(seed));
+        std::uniform_real_distribution<double> angle(-15, 15);
+        for (size_t i = 0; i < slots.size(); ++i) {
+            const double pos = start + spacing * slots[i];
+            auto g = pipeline::planeGeometry(
+                *tmpl, pipeline::VolumeAxes::Allen,
+                {pipeline::PlaneOrientation::Coronal, pos, genTiltLr, genTiltDv, 50});
+            auto v = g ? pipeline::sampleLabels(*tmpl, pipeline::VolumeAxes::Allen, *g)
+                       : core::Result<cv::Mat>(g.error());
+            if (!v) {
+                std::fprintf(stderr, "%s\n", v.error().message.c_str());
+                return 1;
+            }
+            cv::Mat f, big, rotated, img;
+            v->convertTo(f, CV_32F);
+            double lo = 0, hi = 0;
+            cv::minMaxLoc(f, &lo, &hi);
+            cv::resize(f, big, {}, 4, 4, cv::INTER_CUBIC); // 12.5 um per pixel
+            const cv::Point2f c(float(big.cols) / 2, float(big.rows) / 2);
+            const int side = int(std::max(big.cols, big.rows) * 1.2);
+            cv::Mat rot = cv::getRotationMatrix2D(c, angle(rng), 1.0);
+            rot.at<double>(0, 2) += (side - big.cols) / 2.0;
+            rot.at<double>(1, 2) += (side - big.rows) / 2.0;
+            cv::warpAffine(big, rotated, rot, {side, side}, cv::INTER_LINEAR, cv::BORDER_CONSTANT,
+                           0);
+            cv::Mat noise(rotated.size(), CV_32F);
+            cv::randn(noise, 0, 0.03 * hi);
+            rotated += noise;
+            rotated.convertTo(img, CV_8U, 255.0 / std::max(hi, 1.0));
+            images.push_back(img);
+            umPerPx.push_back(12.5);
+            truth.push_back(pos);
+        }
+        pipeline::SeriesMatchOptions o;
+        o.model.placeScoreRatio = placeRatio;
+        o.model.intervalUm = usePrior ? spacing : 0;
+        std::printf("\n== template series: %zu sections of the average template, spacing %.0f "
+                    "um, tilt LR %.1f DV %.1f deg, slot 8 skipped, slots 14/15 swapped\n",
+                    images.size(), spacing, genTiltLr, genTiltDv);
+        auto r = runSeries(images, umPerPx, stack, o, finish);
+        if (!r) {
+            std::fprintf(stderr, "%s\n", r.error().message.c_str());
+            return 1;
+        }
+        printTable(*r, truth);
+        std::vector<double> own, series, signedOwn;
+        for (size_t i = 0; i < truth.size(); ++i) {
+            own.push_back(std::abs(r->matches[i].positionUm - truth[i]));
+            signedOwn.push_back(r->matches[i].positionUm - truth[i]);
+            series.push_back(std::abs(r->fit.sections[i].positionUm - truth[i]));
+        }
+        const auto& f = r->fit.sections;
+        std::printf("template: own matches error median %.0f um, 90th pct %.0f, median signed "
+                    "%+.0f um; series answer median %.0f, 90th pct %.0f; skip detected %s, swap "
+                    "detected %s; spacing %.1f um\n",
+                    percentile(own, 0.5), percentile(own, 0.9), percentile(signedOwn, 0.5),
+                    percentile(series, 0.5), percentile(series, 0.9),
+                    f[8].anomaly == pipeline::SeriesAnomaly::Skipped ? "yes" : "NO",
+                    f[13].anomaly == pipeline::SeriesAnomaly::Swapped &&
+                            f[14].anomaly == pipeline::SeriesAnomaly::Swapped
+                        ? "yes"
+                        : "NO",
+                    r->fit.spacingUm);
+        printTimes(*r);
+    }
+
     if (data == "gerbi" || data == "all") {
         const fs::path dir = fs::path(shared) / "sections" / "abba-gerbi-series";
         std::ifstream csv(dir / "sections.csv");
         std::string line;
         std::getline(csv, line);
         std::vector<cv::Mat> images;
-        std::vector<double> umPerPx, truth;
+        std::vector<double> umPerPx, truth, abbaMm;
         while (std::getline(csv, line)) {
             std::stringstream ss(line);
             std::vector<std::string> f;
@@ -322,12 +427,17 @@ int main(int argc, char** argv) {
             }
             images.push_back(*img);
             umPerPx.push_back(std::stod(f[4]));
-            // ABBA: mm from the front of the atlas; the stack: um from the 50 um volume's first
-            // voxel centre, 25 um behind the front.
-            truth.push_back(std::stod(f[5]) * 1000 - 25);
+            // ABBA's slicing-axis position, mm. ABBA (ReslicedAtlas.computeReslicedSources)
+            // extends the atlas' extent along the slicing axis by 15% of its half-length on each
+            // side and counts positions from the extended front: 0.15 x 13.2 mm / 2 = 0.99 mm
+            // before the CCFv3 volume's front (docs/atlas.md). The stack counts from the first
+            // voxel's centre (CCF coordinates: the NRRD's space origin is 0).
+            abbaMm.push_back(std::stod(f[5]));
+            truth.push_back(std::stod(f[5]) * 1000 - kAbbaMarginUm);
         }
         const double abbaSpacing = 335.8;
         pipeline::SeriesMatchOptions o;
+        o.model.placeScoreRatio = placeRatio;
         o.model.intervalUm = usePrior ? 300 : 0; // a nominal plan, not ABBA's spacing
         std::printf("\n== gerbi series: %zu sections (prior interval %.0f um)\n", images.size(),
                     o.model.intervalUm);
@@ -337,37 +447,40 @@ int main(int argc, char** argv) {
             return 1;
         }
         printTable(*r, truth);
-        std::vector<double> err, lineErr, pos;
-        for (size_t i = 0; i < truth.size(); ++i) {
-            err.push_back(std::abs(r->matches[i].positionUm - truth[i]));
-            lineErr.push_back(std::abs(r->fit.sections[i].predictedUm - truth[i]));
-            pos.push_back(r->matches[i].positionUm);
-        }
         // ABBA: rotationX 0.042 rad about the left-right axis (the normal leans dorso-ventrally),
         // rotationY 0.0015 rad about the dorso-ventral axis (leans left-right). Signs of ABBA's
         // frame against ours are not established: compared by magnitude.
         const double abbaDv = 0.042 * 180 / kPi, abbaLr = 0.0015 * 180 / kPi;
-        std::printf("gerbi: matched position error median %.0f um, 90th pct %.0f um, max %.0f; "
-                    "line position error median %.0f, 90th pct %.0f; inversions %d, Spearman "
-                    "%.4f; spacing %.1f um (ABBA %.1f, %+.1f%%); |tilt| LR %.2f DV %.2f deg "
-                    "(ABBA %.2f / %.2f)\n",
-                    percentile(err, 0.5), percentile(err, 0.9),
-                    *std::max_element(err.begin(), err.end()), percentile(lineErr, 0.5),
-                    percentile(lineErr, 0.9), inversions(pos), spearman(pos), r->fit.spacingUm,
-                    abbaSpacing, 100 * (r->fit.spacingUm / abbaSpacing - 1),
-                    std::abs(r->fit.tiltColumnsDeg), std::abs(r->fit.tiltRowsDeg), abbaLr, abbaDv);
-        // The matches sit about a millimetre anterior of ABBA's positions through the whole
-        // series (see docs/atlas.md); the errors once that one constant is taken out:
-        std::vector<double> signedErr;
-        for (size_t i = 0; i < truth.size(); ++i)
-            signedErr.push_back(r->matches[i].positionUm - truth[i]);
-        const double offset = percentile(signedErr, 0.5);
-        std::vector<double> shifted;
-        for (double e : signedErr)
-            shifted.push_back(std::abs(e - offset));
-        std::printf("gerbi, with the median offset %.0f um removed: error median %.0f um, 90th "
-                    "pct %.0f um\n",
-                    offset, percentile(shifted, 0.5), percentile(shifted, 0.9));
+        std::vector<double> own, series, signedOwn, readme, pos, ownPos;
+        int placed = 0, flagged = 0;
+        for (size_t i = 0; i < truth.size(); ++i) {
+            const auto& s = r->fit.sections[i];
+            own.push_back(std::abs(r->matches[i].positionUm - truth[i]));
+            series.push_back(std::abs(s.positionUm - truth[i]));
+            signedOwn.push_back(r->matches[i].positionUm - truth[i]);
+            readme.push_back(std::abs(s.positionUm - abbaMm[i] * 1000));
+            pos.push_back(s.positionUm);
+            ownPos.push_back(r->matches[i].positionUm);
+            placed += s.anomaly == pipeline::SeriesAnomaly::Placed;
+            flagged += s.anomaly != pipeline::SeriesAnomaly::None &&
+                       s.anomaly != pipeline::SeriesAnomaly::Placed;
+        }
+        std::printf("gerbi (ABBA frame: abba_position_mm - %.0f um): series answer error median "
+                    "%.0f um, 90th pct %.0f um, max %.0f; own matches median %.0f, 90th pct %.0f, "
+                    "median signed %+.0f um\n",
+                    kAbbaMarginUm, percentile(series, 0.5), percentile(series, 0.9),
+                    *std::max_element(series.begin(), series.end()), percentile(own, 0.5),
+                    percentile(own, 0.9), percentile(signedOwn, 0.5));
+        std::printf("gerbi (abba_position_mm read as CCF mm, as the README says): series answer "
+                    "error median %.0f um, 90th pct %.0f um\n",
+                    percentile(readme, 0.5), percentile(readme, 0.9));
+        std::printf("gerbi: series answer inversions %d (Spearman %.4f), own matches %d (%.4f); "
+                    "%d placed on the line, %d flagged; spacing %.1f um (ABBA %.1f, %+.1f%%); "
+                    "|tilt| LR %.2f DV %.2f deg (ABBA %.2f / %.2f)\n",
+                    inversions(pos), spearman(pos), inversions(ownPos), spearman(ownPos), placed,
+                    flagged, r->fit.spacingUm, abbaSpacing,
+                    100 * (r->fit.spacingUm / abbaSpacing - 1), std::abs(r->fit.tiltColumnsDeg),
+                    std::abs(r->fit.tiltRowsDeg), abbaLr, abbaDv);
         printTimes(*r);
         if (tiltSearch)
             if (auto e = searchTilt(*r))
@@ -392,6 +505,7 @@ int main(int argc, char** argv) {
             umPerPx.push_back(20);
         }
         pipeline::SeriesMatchOptions o;
+        o.model.placeScoreRatio = placeRatio;
         o.model.intervalUm = 0; // no plan known for this series
         std::printf("\n== mouse series: 20 sections (no interval given)\n");
         auto r = runSeries(images, umPerPx, stack, o, finish);
@@ -400,9 +514,19 @@ int main(int argc, char** argv) {
             return 1;
         }
         printTable(*r, {});
-        std::vector<double> pos, steps;
-        for (const auto& m : r->matches)
-            pos.push_back(m.positionUm);
+        std::vector<double> pos, steps, ownPos;
+        int placed = 0, flagged = 0;
+        for (size_t i = 0; i < r->matches.size(); ++i) {
+            const auto& s = r->fit.sections[i];
+            pos.push_back(s.positionUm);
+            ownPos.push_back(r->matches[i].positionUm);
+            placed += s.anomaly == pipeline::SeriesAnomaly::Placed;
+            flagged += s.anomaly != pipeline::SeriesAnomaly::None &&
+                       s.anomaly != pipeline::SeriesAnomaly::Placed;
+        }
+        std::printf("mouse: own matches inversions %d (Spearman %.4f); series answer: %d placed "
+                    "on the line, %d flagged\n",
+                    inversions(ownPos), spearman(ownPos), placed, flagged);
         double worst = 0;
         for (size_t i = 1; i < pos.size(); ++i) {
             steps.push_back(pos[i] - pos[i - 1]);
@@ -410,8 +534,9 @@ int main(int argc, char** argv) {
         }
         std::vector<double> absRes;
         for (const auto& s : r->fit.sections)
-            absRes.push_back(std::abs(s.residualUm) / std::abs(r->fit.spacingUm));
-        std::printf("mouse: inversions %d, Spearman %.4f; spacing %.1f um; consecutive steps "
+            absRes.push_back(std::abs(s.positionUm - s.predictedUm) / std::abs(r->fit.spacingUm));
+        std::printf("mouse, series answer: inversions %d, Spearman %.4f; spacing %.1f um; "
+                    "consecutive steps "
                     "median %.0f, min %.0f, max %.0f um (worst %.0f%% off the fit); residual / "
                     "spacing median %.0f%%, max %.0f%%\n",
                     inversions(pos), spearman(pos), r->fit.spacingUm, percentile(steps, 0.5),

@@ -33,6 +33,12 @@ struct SeriesModelOptions {
     /// A section further than this from its slot's position is off the line (an outlier);
     /// 0 = 0.4 x spacing.
     double inlierUm = 0;
+    /// Order from the plan: a section whose own match breaks the cutting order (off the line,
+    /// out of order, a duplicate) but scores under this fraction of the median score of the
+    /// sections on the line is not believed: it is placed on the line at the free slot between
+    /// its neighbours in the run (`Placed`). A match scoring at least this much stays an alert.
+    /// 0 = never place.
+    double placeScoreRatio = 0.5;
 };
 
 /// What the model says about one section.
@@ -43,6 +49,7 @@ enum class SeriesAnomaly {
     Swapped,    ///< exchanged with its neighbour
     OutOfOrder, ///< its slot breaks the cutting order (not a neighbour swap)
     Duplicate,  ///< the same slot as another section
+    Placed,     ///< its own match broke the order with a weak score: placed on the line instead
 };
 std::string_view toString(SeriesAnomaly anomaly) noexcept;
 
@@ -53,6 +60,9 @@ struct SeriesSectionFit {
     bool inlier = false;    ///< within inlierUm of its slot and in order
     SeriesAnomaly anomaly = SeriesAnomaly::None;
     int missingBefore = 0; ///< for Skipped: slots missing just before this section
+    /// The series' answer for the section: its own match, or the line's position at its slot
+    /// when `Placed`.
+    double positionUm = 0;
 };
 
 struct SeriesFit {
