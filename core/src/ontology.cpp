@@ -252,4 +252,10 @@ Result<Ontology> readOntologyCsv(const std::filesystem::path& path) {
     }
 }
 
+Result<Ontology> readOntologyCsvIfGiven(const std::filesystem::path& path) {
+    if (path.empty())
+        return Ontology{};
+    return readOntologyCsv(path);
+}
+
 } // namespace slicestation::core

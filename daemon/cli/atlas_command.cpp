@@ -70,13 +70,10 @@ core::Result<void> sliceVolumeFile(const AtlasSliceRequest& rq,
     auto volume = core::readNrrd(rq.volume);
     if (!volume)
         return volume.error();
-    core::Ontology ontology;
-    if (!rq.ontology.empty()) {
-        auto o = core::readOntologyCsv(rq.ontology);
-        if (!o)
-            return o.error();
-        ontology = std::move(*o);
-    }
+    auto ontologyRead = core::readOntologyCsvIfGiven(rq.ontology);
+    if (!ontologyRead)
+        return ontologyRead.error();
+    const core::Ontology& ontology = *ontologyRead;
     const pipeline::CuttingPlan plan{*orientation, rq.firstUm,   rq.intervalUm,
                                      rq.tiltLrDeg, rq.tiltDvDeg, rq.umPerPx};
     report(rq, "cutting slices", 0, 0);

@@ -1,16 +1,18 @@
 // `slicectl count`: cells per atlas region of one registered section (issue 22, docs/cells.md).
 //
-// RESULT.json keeps the affine but not the dense warp, so the mapping is rebuilt by registering
-// the section again to the result's atlas with the same options (the registration is
-// deterministic); the new affine is compared with the stored one and a difference over a pixel is
-// an error, so counts never come from a mapping other than the one the result shows.
+// The mapping is the one RESULT.json keeps (its "mapping": the affine and the displacement field
+// TIFF beside it), so counts come from the very mapping the result shows. Results written before
+// the mapping was kept are registered again with the same options (the registration is
+// deterministic) and the new affine is checked against the stored one (a note on stderr).
 #include "slicestation/core/atomic_file.hpp"
 #include "slicestation/core/image_file.hpp"
 #include "slicestation/daemon/cli/cli.hpp"
 #include "slicestation/daemon/cli/cli_output.hpp"
+#include "slicestation/daemon/export/section_export.hpp"
 #include "slicestation/daemon/station/cell_counts.hpp"
 #include "slicestation/daemon/station/registration_service.hpp"
 #include "slicestation/pipeline/atlas.hpp"
+#include "slicestation/pipeline/preprocess.hpp"
 
 #include <nlohmann/json.hpp>
 
@@ -79,6 +81,103 @@ core::Result<double> affineDifference(const json& stored, const cv::Matx23d& now
     return worst;
 }
 
+/// The registration that RESULT.json holds, from its saved mapping (the affine and the
+/// displacement field beside it): the section's tissue is segmented again as the registration
+/// did (pipeline::prepareSection at the mapping's working scale, deterministic), and the damage
+/// regions are read from the document. What countCells needs, without registering again.
+core::Result<pipeline::Registration>
+savedRegistration(const json& doc, const std::filesystem::path& resultDir, const cv::Mat& section) {
+    auto mapping = readSavedMapping(doc, resultDir);
+    if (!mapping)
+        return mapping.error();
+    if (mapping->imageSize != section.size())
+        return makeError(ErrorCode::InvalidArgument,
+                         "the image is " + std::to_string(section.cols) + " x " +
+                             std::to_string(section.rows) + " px, the result's mapping is for " +
+                             std::to_string(mapping->imageSize.width) + " x " +
+                             std::to_string(mapping->imageSize.height));
+    const int side = int(std::lround(mapping->workingScale * std::max(section.cols, section.rows)));
+    auto prepared = pipeline::prepareSection(section, side);
+    if (!prepared)
+        return prepared.error();
+    if (std::abs(prepared->scale - mapping->workingScale) > 1e-9 * mapping->workingScale)
+        return makeError(ErrorCode::Internal, "the tissue could not be segmented at the "
+                                              "working scale of the result's mapping");
+    pipeline::Registration reg;
+    reg.imageSize = mapping->imageSize;
+    reg.workingScale = mapping->workingScale;
+    reg.atlasFromWorking = mapping->atlasFromWorking;
+    if (!mapping->dx.empty())
+        reg.warp = pipeline::DisplacementField(mapping->dx, mapping->dy, mapping->cellPx);
+    reg.contrast = prepared->contrast;
+    reg.workingGrey = prepared->grey;
+    reg.workingTissueMask = prepared->tissueMask;
+    for (const json& d : doc.value("damage_regions", json::array())) {
+        pipeline::DamageRegion region;
+        for (const json& p : d.value("polygon", json::array())) {
+            if (!p.is_array() || p.size() != 2 || !p[0].is_number() || !p[1].is_number())
+                return makeError(ErrorCode::InvalidArgument,
+                                 "result: a \"damage_regions\" polygon point is not [x, y]");
+            region.polygon.emplace_back(p[0].get<float>(), p[1].get<float>());
+        }
+        reg.damage.push_back(std::move(region));
+    }
+    return reg;
+}
+
+/// The old way, for results written before the mapping was kept: register the section again to
+/// the result's atlas with the same options (the registration is deterministic) and check that
+/// the new affine is the stored one over the image corners (1 atlas px at most).
+core::Result<pipeline::Registration> registerAgain(const CountRequest& rq, const json& doc,
+                                                   const cv::Mat& section, const cv::Mat& labels) {
+    pipeline::RegistrationOptions ro;
+    // As registerSectionFiles: the pixel sizes are a prior only when both are known.
+    if (rq.atlasUmPerPx > 0) {
+        ro.imageUmPerPx = rq.options.imageUmPerPx;
+        ro.atlasUmPerPx = rq.atlasUmPerPx;
+    }
+    ro.workingMaxSide = rq.workingMaxSide;
+    ro.maxTurnDeg = rq.maxTurnDeg;
+    auto reg = pipeline::registerSection(section, labels, ro);
+    if (!reg)
+        return makeError(reg.error().code,
+                         "image " + rq.image.string() + ": " + reg.error().message);
+    auto diff = affineDifference(doc["affine_atlas_from_image"], reg->affineAtlasFromImage(),
+                                 section.size());
+    if (!diff)
+        return makeError(diff.error().code, rq.result.string() + ": " + diff.error().message);
+    if (*diff > 1.0)
+        return makeError(ErrorCode::InvalidArgument,
+                         "registering " + rq.image.string() + " again gives a mapping " +
+                             plainNumber(*diff, 3) + " atlas px away from " + rq.result.string() +
+                             ": pass the options register got (--atlas-um-per-px, "
+                             "--working-size, --max-turn)");
+    return std::move(*reg);
+}
+
+struct MappingUsed {
+    pipeline::Registration registration;
+    std::string source; ///< "saved" or "registered again"
+};
+
+/// The saved mapping when the result holds one, else (a note on stderr) registering again.
+core::Result<MappingUsed> mappingOf(const CountRequest& rq, const json& doc, const cv::Mat& section,
+                                    const cv::Mat& labels) {
+    if (doc.contains("mapping")) {
+        auto saved = savedRegistration(doc, rq.result.parent_path(), section);
+        if (!saved)
+            return makeError(saved.error().code, rq.result.string() + ": " + saved.error().message);
+        return MappingUsed{std::move(*saved), "saved"};
+    }
+    std::cerr << "note: " << rq.result.string()
+              << " holds no saved mapping (written before it was kept): registering the section "
+                 "again\n";
+    auto again = registerAgain(rq, doc, section, labels);
+    if (!again)
+        return again.error();
+    return MappingUsed{std::move(*again), "registered again"};
+}
+
 core::Result<json> runCount(CountRequest rq) {
     auto doc = readResult(rq.result);
     if (!doc)
@@ -92,13 +191,10 @@ core::Result<json> runCount(CountRequest rq) {
     if (rq.options.imageUmPerPx <= 0)
         return makeError(ErrorCode::InvalidArgument,
                          "--image-um-per-px is required: areas are given in mm^2");
-    core::Ontology ontology;
-    if (!rq.ontology.empty()) {
-        auto o = core::readOntologyCsv(rq.ontology);
-        if (!o)
-            return o.error();
-        ontology = std::move(*o);
-    }
+    auto ontologyRead = core::readOntologyCsvIfGiven(rq.ontology);
+    if (!ontologyRead)
+        return ontologyRead.error();
+    const core::Ontology& ontology = *ontologyRead;
     auto atlasImage = core::readImage(atlasPath);
     if (!atlasImage)
         return makeError(atlasImage.error().code,
@@ -113,28 +209,10 @@ core::Result<json> runCount(CountRequest rq) {
         return makeError(section.error().code,
                          "image " + rq.image.string() + ": " + section.error().message);
 
-    pipeline::RegistrationOptions ro;
-    // As registerSectionFiles: the pixel sizes are a prior only when both are known.
-    if (rq.atlasUmPerPx > 0) {
-        ro.imageUmPerPx = rq.options.imageUmPerPx;
-        ro.atlasUmPerPx = rq.atlasUmPerPx;
-    }
-    ro.workingMaxSide = rq.workingMaxSide;
-    ro.maxTurnDeg = rq.maxTurnDeg;
-    auto reg = pipeline::registerSection(*section, *labels, ro);
-    if (!reg)
-        return makeError(reg.error().code,
-                         "image " + rq.image.string() + ": " + reg.error().message);
-    auto diff = affineDifference((*doc)["affine_atlas_from_image"], reg->affineAtlasFromImage(),
-                                 section->size());
-    if (!diff)
-        return makeError(diff.error().code, rq.result.string() + ": " + diff.error().message);
-    if (*diff > 1.0)
-        return makeError(ErrorCode::InvalidArgument,
-                         "registering " + rq.image.string() + " again gives a mapping " +
-                             plainNumber(*diff, 3) + " atlas px away from " + rq.result.string() +
-                             ": pass the options register got (--atlas-um-per-px, "
-                             "--working-size, --max-turn)");
+    auto mapped = mappingOf(rq, *doc, *section, *labels);
+    if (!mapped)
+        return mapped.error();
+    const pipeline::Registration& reg = mapped->registration;
 
     rq.options.detector.polarity = rq.polarity == "bright" ? pipeline::CellPolarity::Bright
                                    : rq.polarity == "dark" ? pipeline::CellPolarity::Dark
@@ -142,7 +220,7 @@ core::Result<json> runCount(CountRequest rq) {
     rq.options.detector.method =
         rq.method == "threshold" ? pipeline::CellMethod::Threshold : pipeline::CellMethod::LoG;
     auto counts =
-        countSectionCells(*section, *reg, *labels, ontology, stackSliceOf(atlasPath), rq.options);
+        countSectionCells(*section, reg, *labels, ontology, stackSliceOf(atlasPath), rq.options);
     if (!counts)
         return counts.error();
     if (auto w = core::writeFileAtomically(rq.output, counts->countsCsv); !w)
@@ -159,7 +237,7 @@ core::Result<json> runCount(CountRequest rq) {
                 {"excluded_in_damage", counts->table.excludedCells},
                 {"regions", counts->table.regions.size()},
                 {"diameter_px", counts->diameterPx},
-                {"mapping_difference_atlas_px", *diff}};
+                {"mapping", mapped->source}};
 }
 
 } // namespace
@@ -202,7 +280,7 @@ CommandRunner addCountCommand(CLI::App& app) {
             return -1;
         auto r = [&] {
             Progress progress("count");
-            progress.phase("registering and counting " + rq->result.filename().string());
+            progress.phase("counting " + rq->result.filename().string());
             return runCount(*rq);
         }();
         if (!r)
@@ -211,7 +289,7 @@ CommandRunner addCountCommand(CLI::App& app) {
                   << (*r)["regions"].get<std::size_t>() << " regions -> " << rq->output.string()
                   << " (" << (*r)["excluded_in_damage"].get<std::int64_t>()
                   << " in damage left out; cells " << plainNumber((*r)["diameter_px"], 3)
-                  << " px)\n";
+                  << " px; mapping " << (*r)["mapping"].get<std::string>() << ")\n";
         return 0;
     };
 }

@@ -213,13 +213,10 @@ core::Result<nlohmann::json> countCellsBeside(const pipeline::Registration& reg,
     auto labels = pipeline::labelsFromImage(*atlasImage);
     if (!labels)
         return labels.error();
-    core::Ontology ontology;
-    if (!job.ontologyFile.empty()) {
-        auto o = core::readOntologyCsv(job.ontologyFile);
-        if (!o)
-            return o.error();
-        ontology = std::move(*o);
-    }
+    auto ontologyRead = core::readOntologyCsvIfGiven(job.ontologyFile);
+    if (!ontologyRead)
+        return ontologyRead.error();
+    const core::Ontology& ontology = *ontologyRead;
     auto counts =
         countSectionCells(*section, reg, *labels, ontology, stackSliceOf(job.atlas), job.options);
     if (!counts)

@@ -106,6 +106,114 @@ cv::Mat backgroundSubtracted(const cv::Mat& f, double diameterPx) {
     return out;
 }
 
+/// k-means (Lloyd) of `pixels` (weights `w`) into centres seeded with `centres` and, for the
+/// missing ones, the pixel farthest from every centre so far.
+std::vector<cv::Point2d> kMeans(const std::vector<cv::Point2d>& pixels, const std::vector<float>& w,
+                                std::vector<cv::Point2d> centres, size_t count) {
+    auto nearest = [&centres](const cv::Point2d& p) {
+        size_t best = 0;
+        for (size_t c = 1; c < centres.size(); ++c)
+            if (cv::norm(p - centres[c]) < cv::norm(p - centres[best]))
+                best = c;
+        return best;
+    };
+    while (centres.size() < count) {
+        size_t far = 0;
+        double farD = -1;
+        for (size_t i = 0; i < pixels.size(); ++i) {
+            const double d = cv::norm(pixels[i] - centres[nearest(pixels[i])]);
+            if (d > farD) {
+                farD = d;
+                far = i;
+            }
+        }
+        centres.push_back(pixels[far]);
+    }
+    for (int it = 0; it < 10; ++it) {
+        std::vector<cv::Point2d> sum(centres.size(), {0, 0});
+        std::vector<double> weight(centres.size(), 0);
+        for (size_t i = 0; i < pixels.size(); ++i) {
+            const size_t c = nearest(pixels[i]);
+            sum[c] += pixels[i] * double(w[i]);
+            weight[c] += w[i];
+        }
+        for (size_t c = 0; c < centres.size(); ++c)
+            if (weight[c] > 0)
+                centres[c] = sum[c] / weight[c];
+    }
+    return centres;
+}
+
+/// Touching cells closer than about 1.1 diameters give one LoG maximum (their sum has one peak,
+/// and the stain saturates between them): the area tells them apart. Each detection's blob is
+/// the connected set of pixels above half the brightest pixel within 0.75 diameters (the
+/// half-maximum outline of the cell it belongs to). A blob of k detections and n >= k + 1 times
+/// the median area of one-detection blobs holds n cells, placed by k-means over its pixels
+/// (weighted by brightness, seeded with the detections). Blobs of more than kMaxBlobCells cells
+/// are stain, not cells, and are left as found.
+std::vector<DetectedCell> splitTouching(std::vector<DetectedCell> cells, const cv::Mat& top,
+                                        const cv::Mat& mask, const CellDetectorOptions& o) {
+    constexpr double kMaxBlobCells = 6;
+    if (!(o.splitAt > 0) || cells.size() < 20)
+        return cells;
+    const int r = std::max(1, int(std::lround(0.75 * o.diameterPx)));
+    cv::Mat peak;
+    cv::dilate(top, peak,
+               cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * r + 1, 2 * r + 1)));
+    cv::Mat half = (top >= peak * 0.5) & (top > 0);
+    if (!mask.empty())
+        half &= mask != 0;
+    cv::Mat labels, stats, centroids;
+    const int n = cv::connectedComponentsWithStats(half, labels, stats, centroids, 8, CV_32S);
+    std::vector<std::vector<size_t>> members(static_cast<size_t>(n));
+    for (size_t i = 0; i < cells.size(); ++i) {
+        const int x = int(std::lround(cells[i].imagePx.x)),
+                  y = int(std::lround(cells[i].imagePx.y));
+        if (x >= 0 && y >= 0 && x < labels.cols && y < labels.rows && labels.at<int>(y, x) > 0)
+            members[size_t(labels.at<int>(y, x))].push_back(i);
+    }
+    std::vector<float> singles;
+    for (int l = 1; l < n; ++l)
+        if (members[size_t(l)].size() == 1)
+            singles.push_back(float(stats.at<int>(l, cv::CC_STAT_AREA)));
+    if (singles.size() < 10)
+        return cells;
+    const double cellArea = std::max(1.0, median(singles));
+    std::vector<DetectedCell> out;
+    std::vector<char> replaced(cells.size(), 0);
+    for (int l = 1; l < n; ++l) {
+        const auto& m = members[size_t(l)];
+        const double ratio = stats.at<int>(l, cv::CC_STAT_AREA) / cellArea;
+        const auto want = size_t(std::floor(ratio + 2 - o.splitAt));
+        if (m.empty() || want <= m.size() || ratio > kMaxBlobCells)
+            continue;
+        const cv::Rect box(stats.at<int>(l, cv::CC_STAT_LEFT), stats.at<int>(l, cv::CC_STAT_TOP),
+                           stats.at<int>(l, cv::CC_STAT_WIDTH),
+                           stats.at<int>(l, cv::CC_STAT_HEIGHT));
+        std::vector<cv::Point2d> pixels;
+        std::vector<float> weights;
+        for (int y = box.y; y < box.y + box.height; ++y)
+            for (int x = box.x; x < box.x + box.width; ++x)
+                if (labels.at<int>(y, x) == l) {
+                    pixels.emplace_back(x, y);
+                    weights.push_back(top.at<float>(y, x));
+                }
+        std::vector<cv::Point2d> seeds;
+        double response = 0;
+        for (size_t i : m) {
+            seeds.push_back(cells[i].imagePx);
+            response = std::max(response, cells[i].response);
+            replaced[i] = 1;
+        }
+        for (const cv::Point2d& c : kMeans(pixels, weights, seeds, want))
+            out.push_back({c, response, 1});
+    }
+    for (size_t i = 0; i < cells.size(); ++i)
+        if (!replaced[i])
+            out.push_back(cells[i]);
+    return out;
+}
+
 std::vector<DetectedCell> detectLoG(const cv::Mat& top, const cv::Mat& mask,
                                     const CellDetectorOptions& o) {
     // A disc of radius r answers most strongly at sigma = r / sqrt(2) (Lindeberg's scale
@@ -219,6 +327,7 @@ std::vector<DetectedCell> detectLoG(const cv::Mat& top, const cv::Mat& mask,
         grid[key(gx, gy)].push_back(c.imagePx);
         kept.push_back(c);
     }
+    kept = splitTouching(std::move(kept), top, mask, o);
     std::sort(kept.begin(), kept.end(), [](const DetectedCell& a, const DetectedCell& b) {
         return a.imagePx.y != b.imagePx.y ? a.imagePx.y < b.imagePx.y : a.imagePx.x < b.imagePx.x;
     });
@@ -295,6 +404,8 @@ core::Result<std::vector<DetectedCell>> detectCells(const cv::Mat& image,
         return makeError(ErrorCode::InvalidArgument, "cell minSnr must be in (0, 1000]");
     if (!(o.minSeparation > 0 && o.minSeparation <= 5))
         return makeError(ErrorCode::InvalidArgument, "cell minSeparation must be in (0, 5]");
+    if (!(o.splitAt == 0 || (o.splitAt >= 1 && o.splitAt <= 2)))
+        return makeError(ErrorCode::InvalidArgument, "cell splitAt must be 0 or in [1, 2]");
     if (o.minClusterPx < 1 || o.minClusterPx > 100000)
         return makeError(ErrorCode::InvalidArgument, "cell minClusterPx must be in [1, 100000]");
     if (!o.mask.empty() && (o.mask.size() != image.size() || o.mask.type() != CV_8U))

@@ -2,6 +2,7 @@
 // real binary: a stack of the built-in atlas is cut by `slicectl atlas slice`, sections are
 // generated from known planes of the same atlas, and the JSON the commands write is checked
 // against the truth.
+#include "../common/run_command.hpp"
 #include "slicestation/core/image_file.hpp"
 #include "slicestation/sim/builtin_atlas.hpp"
 #include "slicestation/sim/section_generator.hpp"
@@ -11,12 +12,10 @@
 #include <opencv2/core.hpp>
 #include <zlib.h>
 
-#include <array>
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
-#include <sys/wait.h>
 #include <unistd.h>
 
 using namespace slicestation;
@@ -26,22 +25,8 @@ namespace {
 
 constexpr double kLengthUm = 8000, kIntervalUm = 200, kAtlasUmPerPx = 25;
 
-struct CommandResult {
-    int exitCode = -1;
-    std::string output;
-};
-
-CommandResult slicectl(const std::string& args) {
-    CommandResult r;
-    const std::string cmd = std::string(SLICECTL_PATH) + " " + args + " 2>&1";
-    FILE* p = ::popen(cmd.c_str(), "r");
-    std::array<char, 4096> buf{};
-    while (p && std::fgets(buf.data(), buf.size(), p))
-        r.output += buf.data();
-    const int status = p ? ::pclose(p) : -1;
-    r.exitCode = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-    return r;
-}
+using testing_cli::CommandResult;
+using testing_cli::slicectl;
 
 nlohmann::json readJson(const fs::path& path) {
     std::ifstream in(path);

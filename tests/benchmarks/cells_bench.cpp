@@ -143,7 +143,7 @@ int main(int argc, char** argv) {
     CLI::App app{"Cells per region benchmark (issue 22)"};
     std::string family = "all", size = "1500x1100", shared = SLST_SHARED_DIR, methods = "both";
     int cases = 8, minCells = 100;
-    double diameter = 6, density = 1500, contrast = 2.0, minSnr = 4, minSep = 0.6;
+    double diameter = 6, density = 1500, contrast = 2.0, minSnr = 4, minSep = 0.6, splitAt = 1.5;
     bool verbose = false;
     std::string dump;
     app.add_option("--family", family, "1, 2 or all")->check(CLI::IsMember({"1", "2", "all"}));
@@ -155,6 +155,7 @@ int main(int argc, char** argv) {
     app.add_option("--contrast", contrast, "Cell contrast (generator)");
     app.add_option("--min-snr", minSnr, "Detector threshold, robust noise units");
     app.add_option("--min-separation", minSep, "Detector NMS radius, x diameter");
+    app.add_option("--split-at", splitAt, "Detector: blob area / cell area splitting (0 = off)");
     app.add_option("--min-cells", minCells, "Regions with fewer true cells are not scored");
     app.add_option("--methods", methods, "log, threshold or both")
         ->check(CLI::IsMember({"log", "threshold", "both"}));
@@ -192,8 +193,9 @@ int main(int argc, char** argv) {
     cellOpt.contrast = contrast;
 
     std::printf("atlas %s; %s; cells %.1f px, %.0f per Mpx, contrast %.2f; detector min-snr %.1f "
-                "min-separation %.2f\n",
-                atlas->name.c_str(), size.c_str(), diameter, density, contrast, minSnr, minSep);
+                "min-separation %.2f split-at %.2f\n",
+                atlas->name.c_str(), size.c_str(), diameter, density, contrast, minSnr, minSep,
+                splitAt);
     std::printf("%-6s %-4s %-9s %-28s %6s %6s %6s %7s %7s %7s %8s %8s\n", "family", "case",
                 "method", "section", "true", "found", "TP", "prec", "recall", "regions", "err_med%",
                 "err_max%");
@@ -248,6 +250,7 @@ int main(int argc, char** argv) {
             d.diameterPx = diameter;
             d.minSnr = minSnr;
             d.minSeparation = minSep;
+            d.splitAt = splitAt;
             d.method = m;
             d.mask = tissue;
             // Brightfield: the blue channel, where the brown label absorbs most (as a user picks

@@ -3,6 +3,8 @@
 #include "slicestation/pipeline/cells.hpp"
 
 #include <gtest/gtest.h>
+
+#include <iostream>
 #include <opencv2/imgproc.hpp>
 
 #include <cmath>
@@ -125,6 +127,31 @@ TEST(CellDetector, SplitsTouchingPairsLoGByShapeThresholdByMedianArea) {
     }
     EXPECT_NEAR(double(cells), double(truth.size()), 6.0);
     EXPECT_GE(clusters, 25); // the pairs were split by area
+}
+
+TEST(CellDetector, LoGSplitsPairsThatGaveOneMaximumByArea) {
+    // 0.8 diameters apart (the generator's closest cells): one LoG maximum per pair. Without the
+    // split a pair is one cell; with it (splitAt, docs/cells.md) both are found near their centres.
+    const cv::Size size(600, 450);
+    const std::vector<cv::Point2d> truth = pairs(0.8);
+    ASSERT_EQ(truth.size(), 120u);
+    const cv::Mat img = blobs(size, truth, 8, 80, 3, 5);
+    CellDetectorOptions o;
+    o.diameterPx = 8;
+    o.splitAt = 0;
+    auto whole = detectCells(img, o);
+    ASSERT_TRUE(whole.ok());
+    std::cout << "no split: " << whole->size() << " for " << truth.size() << "\n";
+    EXPECT_LT(double(whole->size()), 0.9 * double(truth.size())) << "pairs merge without it";
+    o.splitAt = 1.5;
+    auto split = detectCells(img, o);
+    ASSERT_TRUE(split.ok());
+    std::cout << "split: " << split->size() << ", " << matched(*split, truth, 3.0)
+              << " within 3 px of a true centre\n";
+    EXPECT_NEAR(double(split->size()), double(truth.size()), 8.0);
+    EXPECT_GE(matched(*split, truth, 3.0), int(truth.size()) - 12);
+    o.splitAt = 0.5;
+    EXPECT_FALSE(detectCells(img, o).ok()) << "splitAt is 0 or in [1, 2]";
 }
 
 TEST(CellDetector, DarkCellsOnBrightGlassAndTheChosenChannel) {

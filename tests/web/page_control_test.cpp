@@ -449,3 +449,68 @@ TEST_F(PageControl, DamageBannersAndTheSectionPanelShowTheScoreAndTheVerdict) {
     std::filesystem::create_directories(kArtefacts);
     browser.screenshot(kArtefacts / "page-damage-score.png");
 }
+
+TEST_F(PageControl, TheSectionDetailAndTheRunShowCellsPerRegion) {
+    // COUNTS.csv as the station writes it (docs/cells.md): every ancestor summed, names quoted
+    // where they hold a comma.
+    const std::string head = "id,acronym,name,parent_id,depth,count,area_mm2,density_per_mm2\n";
+    station_.setCounts(101, head + "997,root,root,,0,450,6,75\n"
+                                   "8,grey,Basic cell groups and regions,997,1,430,5.5,78.18\n"
+                                   "315,Isocortex,Isocortex,8,2,250,2.5,100\n"
+                                   "549,TH,Thalamus,8,2,150,1.5,100\n"
+                                   "485,STRd,\"Striatum, dorsal region\",8,2,30,1.5,20\n"
+                                   "1009,fiber tracts,fiber tracts,997,1,20,0.5,40\n");
+    station_.setRunCounts(head + "997,root,root,,0,1210,12,100.83\n"
+                                 "8,grey,Basic cell groups and regions,997,1,1170,11,106.36\n"
+                                 "315,Isocortex,Isocortex,8,2,700,5,140\n"
+                                 "549,TH,Thalamus,8,2,470,6,78.33\n"
+                                 "1009,fiber tracts,fiber tracts,997,1,40,1,40\n");
+    station_.registerSection(101, false);
+    station_.registerSection(103, false);   // registered, not counted
+    webdriver::Session browser(1280, 1500); // tall: the run's and the section's tables in one shot
+    browser.navigate(base_);
+    ASSERT_TRUE(waitFor([&] { return browser.findAll("#grid .cell").size() == 4; }));
+    ASSERT_TRUE(
+        waitFor([&] { return browser.execute("return document.body.dataset.stream;") == "open"; }));
+    auto rows = [&](const std::string& table) {
+        return browser
+            .execute("return [...document.querySelectorAll(arguments[0] + ' tr')].slice(1)"
+                     ".map(r => [...r.children].map(c => c.textContent));",
+                     {table})
+            .get<std::vector<std::vector<std::string>>>();
+    };
+
+    // The run's totals under the grid: the finest regions, most cells first, then the total.
+    ASSERT_TRUE(waitFor([&] { return browser.find("#run-counts-table").has_value(); }))
+        << "the run's counts are shown";
+    auto run = rows("#run-counts-table");
+    ASSERT_EQ(run.size(), 4u);
+    EXPECT_EQ(run[0], (std::vector<std::string>{"Isocortex (Isocortex)", "700", "140"}));
+    EXPECT_EQ(run[1], (std::vector<std::string>{"Thalamus (TH)", "470", "78"}));
+    EXPECT_EQ(run[2][0], "fiber tracts (fiber tracts)");
+    EXPECT_EQ(run[3], (std::vector<std::string>{"All regions", "1,210", "101"}));
+
+    // A section's detail: its own top regions (the quoted name read whole) and its total.
+    browser.clickCss("#grid .cell[data-section-id=\"101\"]");
+    ASSERT_TRUE(waitFor([&] { return browser.find("#sec-counts-table").has_value(); }));
+    auto sec = rows("#sec-counts-table");
+    ASSERT_EQ(sec.size(), 5u);
+    EXPECT_EQ(sec[0], (std::vector<std::string>{"Isocortex (Isocortex)", "250", "100"}));
+    EXPECT_EQ(sec[2], (std::vector<std::string>{"Striatum, dorsal region (STRd)", "30", "20"}));
+    EXPECT_EQ(sec[4], (std::vector<std::string>{"All regions", "450", "75"}));
+    browser.screenshot(kArtefacts / "page-cell-counts.png");
+
+    // A registered section without counts (counting off, or not done yet): no table...
+    browser.clickCss("#grid .cell[data-section-id=\"103\"]");
+    ASSERT_TRUE(waitFor(
+        [&] { return browser.text(*browser.find("#detail")).find("s03") != std::string::npos; }));
+    EXPECT_FALSE(browser.find("#sec-counts-table").has_value());
+    // ...until the station publishes that it counted it: the open detail shows them at once.
+    station_.setCounts(103,
+                       head + "997,root,root,,0,12,1,12\n315,Isocortex,Isocortex,997,1,12,1,12\n");
+    station_.publish("cells_counted", {{"section_id", 103}, {"run_id", 7}, {"counted", 12}});
+    ASSERT_TRUE(waitFor([&] { return browser.find("#sec-counts-table").has_value(); }, 3s))
+        << "the counts appear when the station publishes them";
+    EXPECT_EQ(rows("#sec-counts-table").back(),
+              (std::vector<std::string>{"All regions", "12", "12"}));
+}

@@ -102,6 +102,15 @@ public:
             }));
         damage_[id] = damageFraction;
     }
+    /// Section `id`'s COUNTS.csv (GET /api/sections/{id}/counts); the run's with setRunCounts.
+    void setCounts(std::int64_t id, const std::string& csv) {
+        std::lock_guard lock(m_);
+        counts_[id] = csv;
+    }
+    void setRunCounts(const std::string& csv) {
+        std::lock_guard lock(m_);
+        runCounts_ = csv;
+    }
     void addAlert(const AlertRecord& a) {
         std::lock_guard lock(m_);
         alerts_.push_back(a);
@@ -199,6 +208,19 @@ public:
                     {{"kind", "tear"}, {"share", damage_[id]}, {"score", *r.damageScore - 0.12}}};
         }
         return j;
+    }
+    core::Result<std::string> sectionCounts(std::int64_t id) override {
+        std::lock_guard lock(m_);
+        auto it = counts_.find(id);
+        if (it == counts_.end())
+            return core::makeError(core::ErrorCode::NotFound, "no cell counts");
+        return it->second;
+    }
+    core::Result<std::string> runCounts(std::int64_t id) override {
+        std::lock_guard lock(m_);
+        if (id != kRun || runCounts_.empty())
+            return core::makeError(core::ErrorCode::NotFound, "no cell counts");
+        return runCounts_;
     }
     core::Result<std::vector<AlertRecord>> alerts(bool openOnly) override {
         std::lock_guard lock(m_);
@@ -309,6 +331,8 @@ private:
     std::map<std::int64_t, double> damage_;
     std::map<std::int64_t, std::pair<std::optional<double>, std::string>> scores_;
     std::vector<AlertRecord> alerts_;
+    std::map<std::int64_t, std::string> counts_;
+    std::string runCounts_;
     std::vector<std::string> calls_;
     std::shared_ptr<const hw::Frame> frame_;
     std::vector<std::function<void(const StationEvent&)>> listeners_;

@@ -1,4 +1,5 @@
 // slicectl register, end to end through the real binary and real files.
+#include "../../common/run_command.hpp"
 #include "slicestation/core/image_file.hpp"
 #include "slicestation/sim/builtin_atlas.hpp"
 #include "slicestation/sim/section_generator.hpp"
@@ -10,14 +11,12 @@
 #include <zlib.h>
 
 #include <algorithm>
-#include <array>
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
 #include <limits>
 #include <sstream>
-#include <sys/wait.h>
 #include <unistd.h>
 
 using namespace slicestation;
@@ -25,22 +24,8 @@ namespace fs = std::filesystem;
 
 namespace {
 
-struct CommandResult {
-    int exitCode = -1;
-    std::string output;
-};
-
-CommandResult slicectl(const std::string& args) {
-    CommandResult r;
-    const std::string cmd = std::string(SLICECTL_PATH) + " " + args + " 2>&1";
-    FILE* p = ::popen(cmd.c_str(), "r");
-    std::array<char, 4096> buf{};
-    while (p && std::fgets(buf.data(), buf.size(), p))
-        r.output += buf.data();
-    const int status = p ? ::pclose(p) : -1;
-    r.exitCode = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-    return r;
-}
+using testing_cli::CommandResult;
+using testing_cli::slicectl;
 
 class SlicectlRegister : public ::testing::Test {
 protected:

@@ -62,4 +62,7 @@ private:
 ///         number and the column.
 [[nodiscard]] Result<Ontology> readOntologyCsv(const std::filesystem::path& path);
 
+/// readOntologyCsv for an optional file: an empty path gives an empty ontology (no roll-up).
+[[nodiscard]] Result<Ontology> readOntologyCsvIfGiven(const std::filesystem::path& path);
+
 } // namespace slicestation::core

@@ -30,9 +30,8 @@ enum class CellMethod {
     /// background-subtracted plane (white top-hat), local maxima (non-maximum suppression over
     /// the cell's own disc) above a multiple of the response's local robust noise, answering
     /// 1.7 times more at the cell's scale than at half of it (smaller texture is not a cell).
-    /// Touching cells
-    /// keep
-    /// their own maxima, so clusters are split by shape rather than by area.
+    /// Touching cells closer than about 1.1 diameters give one maximum: blobs larger than one
+    /// cell are split by area (CellDetectorOptions::splitAt).
     LoG,
     /// The paper's rule: threshold the background-subtracted plane, drop clusters under
     /// minClusterPx, count each cluster as round(area / median cluster area) cells at its
@@ -56,6 +55,12 @@ struct CellDetectorOptions {
     double minSnr = 4;
     /// Two maxima closer than this x diameterPx are one cell (LoG only).
     double minSeparation = 0.6;
+    /// LoG only: touching cells that gave one maximum are split by area. Each detection's blob
+    /// is the connected set of pixels above half the brightest pixel near them (a cell's
+    /// half-maximum outline); a blob of k detections whose area is n >= k + 1 times the median
+    /// area of one-detection blobs (rounded at splitAt - 1 above an integer) holds n cells,
+    /// placed by k-means over its pixels. 0 = no splitting.
+    double splitAt = 1.5;
     int minClusterPx = 5; ///< Threshold only: smaller clusters are noise (the paper's 5 px)
     /// CV_8U of the image's size, non-zero = search here (e.g. the tissue). Empty = everywhere.
     cv::Mat mask;
