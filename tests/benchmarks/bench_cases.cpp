@@ -196,6 +196,17 @@ cv::Mat templatePlane100(const AtlasSource& atlas, int plane) {
     return atlas.templatePlanes100[size_t(plane)];
 }
 
+cv::Mat templateOnLabelGrid(const AtlasSource& atlas, int plane, cv::Size size) {
+    const cv::Mat t100 = templatePlane100(atlas, plane);
+    if (t100.empty())
+        return {};
+    // The centre of 100 um voxel i is 25 um pixel 4 i + 1.5.
+    cv::Mat t25;
+    cv::warpAffine(t100, t25, cv::Matx23d(0.25, 0, -1.5 / 4, 0, 0.25, -1.5 / 4), size,
+                   cv::INTER_LINEAR | cv::WARP_INVERSE_MAP, cv::BORDER_CONSTANT, 0);
+    return t25;
+}
+
 std::vector<BenchCase> makeCasesB(int count, int planes, cv::Size size) {
     std::vector<BenchCase> cases;
     const sim::StainB stains[] = {sim::StainB::Immuno, sim::StainB::Nissl,

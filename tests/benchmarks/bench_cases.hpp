@@ -36,6 +36,10 @@ struct AtlasSource {
 /// atlas.templatePlanes100[plane]; an empty Mat when there is none.
 cv::Mat templatePlane100(const AtlasSource& atlas, int plane);
 
+/// templatePlane100(atlas, plane) resampled (bilinear) onto the 25 um label grid of `size`, as the
+/// registration's atlas intensity; empty when there is none.
+cv::Mat templateOnLabelGrid(const AtlasSource& atlas, int plane, cv::Size size);
+
 /// Generator families of the benchmark: the first (sim::generateSection), the second
 /// (sim::generateSectionB, stains other than the template) and the second family rendered from
 /// the Allen average template.

@@ -16,9 +16,11 @@
 #include <opencv2/imgproc.hpp>
 
 #include <algorithm>
+#include <array>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <cstdlib>
 #include <filesystem>
 #include <fstream>
 #include <iostream>
@@ -60,8 +62,85 @@ double nonAffineRms(const std::vector<sim::Landmark>& lms) {
     return std::sqrt((rx.dot(rx) + ry.dot(ry)) / double(A.rows));
 }
 
+/// Where the error of one case lies (`--diagnose`): atlas px.
+struct Diagnosis {
+    double affine = 0; ///< RMSE of our affine alone
+    double best = 0;  ///< RMSE of the best affine fit to the true landmarks (no affine does better)
+    double local = 0; ///< RMSE of our final errors minus their best cubic polynomial in x, y
+    double rim = 0;   ///< RMSE of our final errors within 3% of the tissue width of the outline
+    double interior = 0; ///< RMSE of our final errors further inside
+};
+
+/// RMS of the error vectors `e` at image points `p` after removing their least-squares cubic
+/// polynomial in (x, y): what a smooth field with about 4 x 4 degrees of freedom cannot fix.
+double localPart(const std::vector<cv::Point2d>& p, const std::vector<cv::Point2d>& e) {
+    if (p.size() < 20)
+        return 0;
+    cv::Point2d c(0, 0);
+    for (const auto& q : p)
+        c += q;
+    c *= 1.0 / double(p.size());
+    double scale = 1;
+    for (const auto& q : p)
+        scale = std::max(scale, cv::norm(q - c));
+    cv::Mat A(int(p.size()), 10, CV_64F), bx(int(p.size()), 1, CV_64F),
+        by(int(p.size()), 1, CV_64F);
+    for (int i = 0; i < A.rows; ++i) {
+        const double x = (p[size_t(i)].x - c.x) / scale, y = (p[size_t(i)].y - c.y) / scale;
+        const double t[10] = {1,     x,         y,         x * x,     x * y,
+                              y * y, x * x * x, x * x * y, x * y * y, y * y * y};
+        for (int j = 0; j < 10; ++j)
+            A.at<double>(i, j) = t[j];
+        bx.at<double>(i) = e[size_t(i)].x;
+        by.at<double>(i) = e[size_t(i)].y;
+    }
+    cv::Mat cx, cy;
+    cv::solve(A, bx, cx, cv::DECOMP_SVD);
+    cv::solve(A, by, cy, cv::DECOMP_SVD);
+    const cv::Mat rx = A * cx - bx, ry = A * cy - by;
+    return std::sqrt((rx.dot(rx) + ry.dot(ry)) / double(A.rows));
+}
+
+Diagnosis diagnose(const sim::GroundTruth& truth, const pipeline::Registration& reg) {
+    Diagnosis d;
+    d.best = nonAffineRms(truth.landmarks);
+    cv::Mat dist;
+    cv::distanceTransform(truth.tissueMask != 0, dist, cv::DIST_L2, 3);
+    const std::vector<cv::Point2f> outline = pipeline::outerContourPoints(truth.tissueMask);
+    const cv::RotatedRect box = cv::minAreaRect(outline);
+    const double rimPx = 0.03 * std::max(box.size.width, box.size.height);
+    const cv::Matx23d A = reg.affineAtlasFromImage();
+    std::vector<cv::Point2d> pts, err;
+    double sa = 0, sr = 0, si = 0;
+    int nr = 0, ni = 0;
+    for (const auto& l : truth.landmarks) {
+        const cv::Point2d a(A(0, 0) * l.image.x + A(0, 1) * l.image.y + A(0, 2),
+                            A(1, 0) * l.image.x + A(1, 1) * l.image.y + A(1, 2));
+        sa += std::pow(cv::norm(a - l.atlas), 2);
+        const cv::Point2d e = reg.atlasFromImage(l.image) - l.atlas;
+        pts.push_back(l.image);
+        err.push_back(e);
+        const double d2 = e.dot(e);
+        const cv::Point q(cvRound(l.image.x), cvRound(l.image.y));
+        if (dist.at<float>(q) < rimPx) {
+            sr += d2;
+            ++nr;
+        } else {
+            si += d2;
+            ++ni;
+        }
+    }
+    const double n = std::max<double>(1, double(truth.landmarks.size()));
+    d.affine = std::sqrt(sa / n);
+    d.local = localPart(pts, err);
+    d.rim = nr ? std::sqrt(sr / nr) : 0;
+    d.interior = ni ? std::sqrt(si / ni) : 0;
+    return d;
+}
+
 struct Row {
     double truthNonAffine = 0; ///< nonAffineRms of the case's truth
+    Diagnosis diag;            ///< filled with --diagnose
     std::string family;
     std::string method;
     bool damaged = false;
@@ -226,6 +305,42 @@ void printDamage(const std::vector<DamageRow>& d, const std::vector<Row>& rows) 
                 ms.empty() ? 0.0 : *std::max_element(ms.begin(), ms.end()));
 }
 
+/// Applies "key=value" settings to the dense refinement's options; false on an unknown key.
+bool applyDenseSettings(const std::vector<std::string>& settings, pipeline::DenseRefineOptions& o) {
+    for (const std::string& kv : settings) {
+        const size_t eq = kv.find('=');
+        if (eq == std::string::npos)
+            return false;
+        const std::string key = kv.substr(0, eq);
+        const double v = std::atof(kv.c_str() + eq + 1);
+        if (key == "grid")
+            o.gridMaxSide = int(v);
+        else if (key == "sigma")
+            o.levels.back().imageSigma = v;
+        else if (key == "window")
+            o.levels.back().window = int(v);
+        else if (key == "iterations")
+            o.levels.back().iterations = int(v);
+        else if (key == "prior")
+            o.priorAtlasPx = v;
+        else if (key == "step")
+            o.maxStepGridPx = v;
+        else if (key == "min-gain")
+            o.minGain = v;
+        else if (key == "hold-out")
+            o.holdOutBlockPx = int(v);
+        else if (key == "field-sigma")
+            o.fieldSigma = v;
+        else if (key == "bias")
+            o.biasSigma = v;
+        else if (key == "robust-k")
+            o.robustK = v;
+        else
+            return false;
+    }
+    return true;
+}
+
 } // namespace
 
 int main(int argc, char** argv) {
@@ -246,6 +361,25 @@ int main(int argc, char** argv) {
                    "Run only these case indices of the --cases set (to look into them)");
     std::string overlayDir, refineMode = "on", nonLinearMode = "on", smoothMode = "off";
     std::string damageLogPath;
+    bool diagnoseErrors = false;
+    std::vector<std::string> smoothSettings;
+    app.add_option("--smooth-opt", smoothSettings,
+                   "Smooth warp options as key=value (spacing, stiffness, robust-k), for choosing "
+                   "them");
+    std::string templateIntensity = "off";
+    app.add_option("--template-intensity", templateIntensity,
+                   "Give ours the nearest 100 um average-template plane (elastix's moving image, "
+                   "on the labels' 25 um grid) as the atlas intensity: off | template (template "
+                   "family only) | all (every family)")
+        ->check(CLI::IsMember({"off", "template", "all"}));
+    std::vector<std::string> denseSettings;
+    app.add_option("--dense", denseSettings,
+                   "Dense refinement options as key=value (grid, sigma, window, iterations, "
+                   "prior, step, min-gain, hold-out, field-sigma, bias, robust-k), for choosing "
+                   "them");
+    app.add_flag("--diagnose", diagnoseErrors,
+                 "Print where each case's error lies (affine, best affine, the part no cubic "
+                 "field fixes, outline rim and interior) and their averages");
     app.add_option("--nonlinear", nonLinearMode,
                    "Ours with its non-linear stages (Laplace warp, dense refinement): on | off "
                    "(off: the affine alone)")
@@ -373,6 +507,28 @@ int main(int argc, char** argv) {
         ro.denseRefine = refineMode == "on" && nonLinearMode == "on";
         ro.nonLinear = nonLinearMode == "on";
         ro.smoothWarp = smoothMode == "on";
+        if (templateIntensity == "all" ||
+            (templateIntensity == "template" && c.family == bench::Family::Template))
+            ro.atlasIntensity = bench::templateOnLabelGrid(*atlas, c.plane, plane.size());
+        for (const std::string& kv : smoothSettings) {
+            const size_t eq = kv.find('=');
+            const std::string key = kv.substr(0, eq);
+            const double v = eq == std::string::npos ? 0 : std::atof(kv.c_str() + eq + 1);
+            if (key == "spacing")
+                ro.smooth.nodeSpacing = v;
+            else if (key == "stiffness")
+                ro.smooth.stiffness = v;
+            else if (key == "robust-k")
+                ro.smooth.robustK = v;
+            else {
+                std::cerr << "bad --smooth-opt setting\n";
+                return 2;
+            }
+        }
+        if (!applyDenseSettings(denseSettings, ro.dense)) {
+            std::cerr << "bad --dense setting\n";
+            return 2;
+        }
         auto reg = pipeline::registerSection(gen->image, plane, ro);
         ours.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
         if (reg) {
@@ -380,6 +536,14 @@ int main(int argc, char** argv) {
             for (const auto& p : pts)
                 mapped.push_back(reg->atlasFromImage(p));
             ours.err = bench::landmarkErrors(gen->truth.landmarks, mapped);
+            if (diagnoseErrors) {
+                ours.diag = diagnose(gen->truth, *reg);
+                std::fprintf(stderr,
+                             "%-45s diag affine %.2f best-affine %.2f final %.2f local %.2f rim "
+                             "%.2f interior %.2f\n",
+                             c.describe().c_str(), ours.diag.affine, ours.diag.best, ours.err.rmse,
+                             ours.diag.local, ours.diag.rim, ours.diag.interior);
+            }
         } else {
             ours.failed = true;
             std::cerr << c.describe() << ": ours failed: " << reg.error().message << "\n";
@@ -516,6 +680,24 @@ int main(int argc, char** argv) {
     for (const auto& [f, v] : nonAffine)
         std::printf(" %s %.2f", f.c_str(), v.first / v.second);
     std::printf("\n");
+    if (diagnoseErrors) {
+        std::map<std::string, std::array<double, 7>> sums;
+        for (const auto& r : rows)
+            if (r.method == "ours") {
+                auto& a = sums[r.family + (r.damaged ? " damaged" : " clean")];
+                const double v[6] = {r.diag.affine, r.diag.best, r.err.rmse,
+                                     r.diag.local,  r.diag.rim,  r.diag.interior};
+                for (int i = 0; i < 6; ++i)
+                    a[size_t(i)] += v[i];
+                a[6] += 1;
+            }
+        std::printf("\nwhere the error lies (averages of per-section RMSE, atlas px):\n%-18s "
+                    "%7s %7s %7s %7s %7s %7s\n",
+                    "", "affine", "best-aff", "final", "local", "rim", "interior");
+        for (const auto& [name, a] : sums)
+            std::printf("%-18s %7.2f %7.2f %7.2f %7.2f %7.2f %7.2f\n", name.c_str(), a[0] / a[6],
+                        a[1] / a[6], a[2] / a[6], a[3] / a[6], a[4] / a[6], a[5] / a[6]);
+    }
     for (const auto& [family, d] : damageRows) {
         std::vector<Row> familyRows;
         for (const auto& r : rows)

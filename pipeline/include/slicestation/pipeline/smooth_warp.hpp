@@ -40,10 +40,10 @@ struct SmoothWarpLevel {
 
 struct SmoothWarpOptions {
     /// Control point spacing (cubic B-spline) as a fraction of the domain's longer side.
-    double nodeSpacing = 0.25;
+    double nodeSpacing = 0.12;
     /// Membrane stiffness: weight of (neighbouring control points' difference)^2 per unit of
     /// match weight, relative to the number of matches per control point. Larger = stiffer.
-    double stiffness = 0.1;
+    double stiffness = 0.01;
     /// Residuals beyond this many robust sigmas weigh under one half (Cauchy weights).
     double robustK = 2.0;
     std::vector<SmoothWarpLevel> levels; ///< loosest first; empty = no field
