@@ -281,6 +281,10 @@ int main(int argc, char** argv) {
         ->check(CLI::Range(0.0, 180.0));
     app.add_option("--smooth", smoothMode, "The registration's smooth (B-spline) warp: on | off")
         ->check(CLI::IsMember({"on", "off"}));
+    double crackDarkness = pipeline::DamageParams{}.crackDarkness;
+    app.add_option("--crack-darkness", crackDarkness,
+                   "DamageParams::crackDarkness (0: cracks must show glass, as before 2026-12-02)")
+        ->check(CLI::Range(0.0, 1.0));
     bool damageOnly = false;
     app.add_flag("--damage", damageOnly,
                  "Register each original only and print its damage verdict, score and regions "
@@ -342,6 +346,7 @@ int main(int argc, char** argv) {
             ro.atlasUmPerPx = 25;
             ro.maxTurnDeg = maxTurnDeg;
             ro.smoothWarp = smoothMode == "on";
+            ro.damage.crackDarkness = crackDarkness;
             const auto t0 = std::chrono::steady_clock::now();
             auto reg0 = pipeline::registerSection(s.image, s.atlas, ro);
             const double sec0 =
