@@ -198,6 +198,26 @@ bool alongMidline(const cv::Mat& region, cv::Point offset, const Midline& midlin
     const double cosTurn = std::abs(std::cos(angle) * u.x + std::sin(angle) * u.y);
     return cosTurn >= std::cos(20.0 * 3.14159265358979 / 180.0);
 }
+/// The area of the dim (dark, not glass) pieces that `region` touches: a crack's are its own
+/// blurred flanks; the thin end of a dim structure (a dark fibre tract narrowing) leads into the
+/// structure's wide body.
+double dimBodyArea(const cv::Mat& region, const cv::Mat& dimLabels, const cv::Mat& dimStats) {
+    cv::Mat near;
+    cv::dilate(region, near, cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(5, 5)));
+    std::vector<int> seen;
+    double area = 0;
+    for (int y = 0; y < near.rows; ++y) {
+        const std::uint8_t* m = near.ptr<std::uint8_t>(y);
+        const std::int32_t* l = dimLabels.ptr<std::int32_t>(y);
+        for (int x = 0; x < near.cols; ++x)
+            if (m[x] && l[x] > 0 && std::find(seen.begin(), seen.end(), l[x]) == seen.end()) {
+                seen.push_back(l[x]);
+                area += dimStats.at<int>(l[x], cv::CC_STAT_AREA);
+            }
+    }
+    return area;
+}
+
 } // namespace
 
 std::vector<DamageRegion> thinCracks(const cv::Mat& grey, const cv::Mat& tissue,
@@ -239,11 +259,25 @@ std::vector<DamageRegion> thinCracks(const cv::Mat& grey, const cv::Mat& tissue,
     const GlassStats glass = glassStats(light, exterior);
     const cv::Mat glassPx =
         light < glass.level + static_cast<float>(params.glassNoiseUnits) * glass.noise;
-    // Glass narrower than the closing disc, with tissue on both sides.
     const int half = std::max(1, static_cast<int>(std::lround(params.crackMaxWidthPx / 2)));
+    // A crack narrower than the optics' blur never reaches the glass level: its middle is a dark
+    // valley (darkValleys), as deep as the glass share of the blurred line.
+    cv::Mat crackPx = glassPx;
+    cv::Mat dimLabels, dimStats; // dark pixels that are not glass, 8-connected
+    if (params.crackDarkness > 0) {
+        DamageParams valley = params;
+        valley.threadDarkness = params.crackDarkness;
+        const GreyLevels levels{glass.level, percentile(light, 0.5, tissue)};
+        crackPx = glassPx | (darkValleys(grey, levels, valley, 2 * half + 3) & tissue);
+        const cv::Mat dim = (light < levels.glass + static_cast<float>(params.crackDarkness) *
+                                                        (levels.tissue - levels.glass)) &
+                            ~glassPx;
+        cv::Mat dimCentroids;
+        cv::connectedComponentsWithStats(dim, dimLabels, dimStats, dimCentroids, 8, CV_32S);
+    }
     cv::Mat closed;
     cv::morphologyEx(
-        ~glassPx, closed, cv::MORPH_CLOSE,
+        ~crackPx, closed, cv::MORPH_CLOSE,
         cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * half + 1, 2 * half + 1)));
     // Where a crack may be: inside the mapped brain, away from the mapped ventricles.
     const int slack = std::max(1, static_cast<int>(std::lround(params.slackFrac * brainWidthPx)));
@@ -251,7 +285,7 @@ std::vector<DamageRegion> thinCracks(const cv::Mat& grey, const cv::Mat& tissue,
     cv::dilate(
         ventricles, nearVentricle,
         cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * slack + 1, 2 * slack + 1)));
-    cv::Mat thin = glassPx & closed & expected.brain & ~nearVentricle;
+    cv::Mat thin = crackPx & closed & expected.brain & ~nearVentricle;
     const int ringPx =
         std::max(1, static_cast<int>(std::lround(params.fissureRingFrac * brainWidthPx)));
     // The midline's fissure (and the cleft between the bulbs) is no crack; a crack that starts
@@ -307,6 +341,9 @@ std::vector<DamageRegion> thinCracks(const cv::Mat& grey, const cv::Mat& tissue,
         const double besideGlass = cv::countNonZero(beside & glassPx(roi)) /
                                    std::max(1.0, double(cv::countNonZero(beside)));
         if (besideGlass > params.crackWallGlass)
+            continue;
+        if (!dimLabels.empty() &&
+            dimBodyArea(region, dimLabels(roi), dimStats) > params.crackDimBody * area)
             continue;
         if (alongMidline(region, roi.tl(), midline, ringPx))
             continue;
@@ -432,7 +469,8 @@ GreyLevels greyLevels(const cv::Mat& grey, const cv::Mat& tissueMask) {
     return out;
 }
 
-cv::Mat darkValleys(const cv::Mat& grey, GreyLevels levels, const DamageParams& params) {
+cv::Mat darkValleys(const cv::Mat& grey, GreyLevels levels, const DamageParams& params,
+                    int discPx) {
     CV_Assert(grey.type() == CV_32F);
     if (levels.tissue <= levels.glass)
         return cv::Mat::zeros(grey.size(), CV_8U);
@@ -442,7 +480,7 @@ cv::Mat darkValleys(const cv::Mat& grey, GreyLevels levels, const DamageParams& 
     cv::Mat sharp, closed;
     cv::GaussianBlur(grey, sharp, cv::Size(), 0.7);
     cv::morphologyEx(sharp, closed, cv::MORPH_CLOSE,
-                     cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(5, 5)));
+                     cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(discPx, discPx)));
     const float span = levels.tissue - levels.glass;
     const float darkBelow = levels.glass + static_cast<float>(params.threadDarkness) * span;
     const float deeperThan = static_cast<float>(params.threadDepth) * span;
@@ -784,7 +822,7 @@ double damageEvidence(const DamageRegion& region, double brainWidthPx, const Dam
     if (region.kind == DamageKind::Tear && brainWidthPx > 0 && params.deepTearFrac > 0 &&
         region.lengthPx >= params.crackElongation * region.thicknessPx)
         e = std::max(e, region.lengthPx / (params.deepTearFrac * brainWidthPx));
-    return e;
+    return e * (1.0 - std::clamp(region.persistence, 0.0, 1.0));
 }
 
 double scoreFromEvidence(double evidence) {
@@ -798,7 +836,7 @@ double damageScore(std::vector<DamageRegion>& regions, double brainWidthPx,
     for (DamageRegion& r : regions) {
         const double e = damageEvidence(r, brainWidthPx, params);
         r.score = scoreFromEvidence(e);
-        share += r.share;
+        share += r.share * (1.0 - std::clamp(r.persistence, 0.0, 1.0));
         crack = std::max(crack, e);
     }
     const double summed = params.damagedShare > 0 ? share / params.damagedShare : 0;

@@ -150,6 +150,11 @@ std::optional<core::Error> validate(const cv::Mat& labels, const GeneratorOption
     for (const auto& c : checks)
         if (c)
             return c;
+    for (const auto& c :
+         {checkRange("anatomy.ventricleGrowthFrac", o.anatomy.ventricleGrowthFrac, 0.0, 0.05),
+          checkRange("anatomy.fissureOpenFrac", o.anatomy.fissureOpenFrac, 0.0, 0.03)})
+        if (c)
+            return c;
     if (o.stain != Stain::Fluorescence && o.stain != Stain::Brightfield)
         return makeError(ErrorCode::InvalidArgument, "GeneratorOptions::stain: unknown value");
     if (o.cells.enabled)
@@ -238,7 +243,7 @@ Placement placeSection(const AtlasTissue& tissue, const GeneratorOptions& o, Rng
     cv::Mat sv;
     cv::SVD::compute(cv::Mat(unit), sv, cv::SVD::NO_UV);
     const double stretch = sv.at<double>(0);
-    const double fragmentRoom = o.damage.fragment ? 0.13 : 0.0;
+    const double fragmentRoom = o.damage.fragment || o.damage.smallFragment ? 0.13 : 0.0;
     const double margin =
         8.0 + targetScale * tissue.width * (1.3 * o.warpAmplitudeFrac * stretch + fragmentRoom);
 
@@ -559,13 +564,15 @@ struct Fragment {
     cv::Matx23d motion;
 };
 
-/// Cuts a cap of 5-10% of the section off along a wavy line and pushes it outwards until it is
-/// clear of the rest. Returns nothing when no placement inside the image works.
+/// Cuts a cap of `minFraction` to `maxFraction` of the section off along a wavy line and pushes
+/// it outwards until it is clear of the rest. Returns nothing when no placement inside the image
+/// works.
 std::optional<Fragment> fragmentAt(const Layers& layers, const DamageContext& ctx,
-                                   double atlasAngle, Rng& rng) {
+                                   double atlasAngle, Rng& rng, double minFraction = 0.05,
+                                   double maxFraction = 0.10) {
     const cv::Point2d n = imageDirection(ctx, atlasAngle);
     const cv::Point2d t(-n.y, n.x);
-    const double fraction = rng.uniform(0.05, 0.10);
+    const double fraction = rng.uniform(minFraction, maxFraction);
     const double wave = 0.02 * ctx.size, waveLength = rng.uniform(0.25, 0.45) * ctx.size;
     const double wavePhase = rng.uniform(0.0, 2.0 * kPi);
     const cv::Mat& outline = layers.outline;
@@ -618,10 +625,28 @@ std::optional<Fragment> fragmentAt(const Layers& layers, const DamageContext& ct
     return std::nullopt;
 }
 
+void moveFragment(Layers& layers, const Fragment& fr, GroundTruth& truth);
+
+/// Clears the tissue under `shape` (glass shows) and records it as damage of `kind`.
+void removeTissue(Layers& layers, const cv::Mat& shape, DamageKind kind, std::uint8_t code,
+                  GroundTruth& truth) {
+    const cv::Mat removed = shape & layers.outline;
+    const int area = cv::countNonZero(removed);
+    if (area == 0)
+        return;
+    DamageRegion region{kind, outlineOf(removed), static_cast<double>(area), {1, 0, 0, 0, 1, 0}};
+    truth.damage.push_back(std::move(region));
+    truth.damageMask.setTo(code, removed);
+    const cv::Mat cleared = shape & layers.support;
+    layers.coverage.setTo(0.0f, cleared);
+    layers.support.setTo(0, cleared);
+    layers.tissue.setTo(0, removed);
+    layers.outline.setTo(0, removed);
+}
+
 /// Paints the requested damage on `layers` and records it in `truth`.
 void paintDamage(Layers& layers, const DamageContext& ctx, const GeneratorOptions& o, Rng& rng,
                  GroundTruth& truth) {
-    truth.damageMask = cv::Mat::zeros(layers.tissue.size(), CV_8U);
     if (!o.damage.tear && !o.damage.missing && !o.damage.fragment)
         return;
     // Spread the kinds around the section; atlas angle 0 points to the atlas' right side, so
@@ -634,19 +659,7 @@ void paintDamage(Layers& layers, const DamageContext& ctx, const GeneratorOption
         (rng.chance(0.5) ? 90.0 : -90.0) * kDeg + rng.symmetric(25.0) * kDeg;
 
     const auto removeFrom = [&](const cv::Mat& shape, DamageKind kind, std::uint8_t code) {
-        const cv::Mat removed = shape & layers.outline;
-        const int area = cv::countNonZero(removed);
-        if (area == 0)
-            return;
-        DamageRegion region{
-            kind, outlineOf(removed), static_cast<double>(area), {1, 0, 0, 0, 1, 0}};
-        truth.damage.push_back(std::move(region));
-        truth.damageMask.setTo(code, removed);
-        const cv::Mat cleared = shape & layers.support;
-        layers.coverage.setTo(0.0f, cleared);
-        layers.support.setTo(0, cleared);
-        layers.tissue.setTo(0, removed);
-        layers.outline.setTo(0, removed);
+        removeTissue(layers, shape, kind, code, truth);
     };
     if (o.damage.tear)
         removeFrom(tearMask(layers, ctx, tearAngle, rng), DamageKind::Tear, 1);
@@ -656,32 +669,305 @@ void paintDamage(Layers& layers, const DamageContext& ctx, const GeneratorOption
         std::optional<Fragment> f;
         for (int attempt = 0; attempt < 8 && !f; ++attempt)
             f = fragmentAt(layers, ctx, fragmentAngle + attempt * 0.7, rng);
-        if (!f)
-            return;
-        const auto move = [&](const cv::Mat& src, int interpolation) {
-            cv::Mat part = cv::Mat::zeros(src.size(), src.type()), moved;
-            src.copyTo(part, f->piece);
-            cv::warpAffine(part, moved, f->motion, src.size(), interpolation, cv::BORDER_CONSTANT,
-                           cv::Scalar(0));
-            // Replace, not add: the layers hold values outside the tissue too.
-            cv::Mat kept = src.clone();
-            kept.setTo(0, f->piece | f->moved);
-            return cv::Mat(kept + moved);
-        };
-        layers.coverage = move(layers.coverage, cv::INTER_LINEAR);
-        layers.signal = move(layers.signal, cv::INTER_LINEAR);
-        layers.nuclei = move(layers.nuclei, cv::INTER_LINEAR);
-        layers.level = move(layers.level, cv::INTER_LINEAR);
-        if (!layers.labelled.empty())
-            layers.labelled = move(layers.labelled, cv::INTER_LINEAR);
-        layers.tissue = move(layers.tissue, cv::INTER_NEAREST);
-        layers.outline = move(layers.outline, cv::INTER_NEAREST);
-        layers.support = move(layers.support, cv::INTER_NEAREST);
-        truth.damageMask.setTo(3, f->pieceTissue | (f->moved & layers.outline));
-        truth.damage.push_back(DamageRegion{DamageKind::Fragment, outlineOf(f->pieceTissue),
-                                            static_cast<double>(cv::countNonZero(f->pieceTissue)),
-                                            f->motion});
+        if (f)
+            moveFragment(layers, *f, truth);
     }
+}
+
+/// Moves the piece of `f` on every layer and records it in `truth`.
+void moveFragment(Layers& layers, const Fragment& fr, GroundTruth& truth) {
+    const Fragment* f = &fr;
+    const auto move = [&](const cv::Mat& src, int interpolation) {
+        cv::Mat part = cv::Mat::zeros(src.size(), src.type()), moved;
+        src.copyTo(part, f->piece);
+        cv::warpAffine(part, moved, f->motion, src.size(), interpolation, cv::BORDER_CONSTANT,
+                       cv::Scalar(0));
+        // Replace, not add: the layers hold values outside the tissue too.
+        cv::Mat kept = src.clone();
+        kept.setTo(0, f->piece | f->moved);
+        return cv::Mat(kept + moved);
+    };
+    layers.coverage = move(layers.coverage, cv::INTER_LINEAR);
+    layers.signal = move(layers.signal, cv::INTER_LINEAR);
+    layers.nuclei = move(layers.nuclei, cv::INTER_LINEAR);
+    layers.level = move(layers.level, cv::INTER_LINEAR);
+    if (!layers.labelled.empty())
+        layers.labelled = move(layers.labelled, cv::INTER_LINEAR);
+    layers.tissue = move(layers.tissue, cv::INTER_NEAREST);
+    layers.outline = move(layers.outline, cv::INTER_NEAREST);
+    layers.support = move(layers.support, cv::INTER_NEAREST);
+    truth.damageMask.setTo(3, f->pieceTissue | (f->moved & layers.outline));
+    truth.damage.push_back(DamageRegion{DamageKind::Fragment, outlineOf(f->pieceTissue),
+                                        static_cast<double>(cv::countNonZero(f->pieceTissue)),
+                                        f->motion});
+}
+
+// ---------------------------------------------------------------------------------------------
+// The damage models of issue 18 and anatomy that is not damage.
+
+/// Width scale: the models' pixel widths are given at a 1500 px wide image.
+double pxScale(const Layers& layers) {
+    return layers.tissue.cols / 1500.0;
+}
+
+/// A random pixel of `mask` at least `minDistance` px inside it, or nothing.
+std::optional<cv::Point> pixelInside(const cv::Mat& mask, double minDistance, Rng& rng) {
+    cv::Mat dist;
+    cv::distanceTransform(mask, dist, cv::DIST_L2, 3);
+    std::vector<cv::Point> candidates;
+    cv::findNonZero(dist > minDistance, candidates);
+    if (candidates.empty())
+        return std::nullopt;
+    return candidates[static_cast<size_t>(rng.index(static_cast<int>(candidates.size())))];
+}
+
+/// A thin crack crossing the tissue: from a point inside, wandering both ways, 2-5 px wide
+/// (at 1500 px) in its middle and tapering to 1 px at both ends.
+cv::Mat thinCrackMask(const Layers& layers, const DamageContext& ctx, Rng& rng) {
+    cv::Mat m = cv::Mat::zeros(layers.tissue.size(), CV_8U);
+    const auto start = pixelInside(layers.tissue, 0.04 * ctx.size, rng);
+    if (!start)
+        return m;
+    const double length = rng.uniform(0.12, 0.3) * ctx.size;
+    const double scale = pxScale(layers);
+    const double wMid = rng.uniform(2.0, 5.0) * scale, wEnd = std::max(1.0, scale);
+    const double heading0 = rng.uniform(0.0, 2.0 * kPi);
+    constexpr int kSteps = 30; // per half
+    for (int half = 0; half < 2; ++half) {
+        double heading = heading0 + half * kPi, turn = 0;
+        cv::Point2d p(start->x, start->y);
+        for (int i = 0; i < kSteps; ++i) {
+            turn = 0.7 * turn + rng.symmetric(0.08);
+            heading += turn;
+            const cv::Point2d q =
+                p + cv::Point2d(std::cos(heading), std::sin(heading)) * (0.5 * length / kSteps);
+            const double w = wMid + (wEnd - wMid) * i / (kSteps - 1);
+            cv::line(m, cv::Point(cvRound(p.x * 16), cvRound(p.y * 16)),
+                     cv::Point(cvRound(q.x * 16), cvRound(q.y * 16)), cv::Scalar(255),
+                     std::max(1, static_cast<int>(std::lround(w))), cv::LINE_8, 4);
+            p = q;
+        }
+    }
+    return m;
+}
+
+/// A wedge of glass out of the largest ventricle: its wall torn open, 1.5-3% of the tissue
+/// width wide at the ventricle and 8-15% long, away from the ventricle's centre.
+cv::Mat tornVentricleMask(const Layers& layers, const DamageContext& ctx, Rng& rng) {
+    cv::Mat m = cv::Mat::zeros(layers.tissue.size(), CV_8U);
+    const cv::Mat ventricle = largestComponent(layers.outline & ~layers.tissue);
+    const cv::Moments mo = cv::moments(ventricle, true);
+    if (mo.m00 < 20)
+        return m;
+    const cv::Point2d vc(mo.m10 / mo.m00, mo.m01 / mo.m00);
+    std::vector<cv::Point> rim;
+    cv::Mat grown;
+    cv::dilate(ventricle, grown, cv::getStructuringElement(cv::MORPH_ELLIPSE, {3, 3}));
+    cv::findNonZero(grown & ~ventricle & layers.tissue, rim);
+    if (rim.empty())
+        return m;
+    const cv::Point r = rim[static_cast<size_t>(rng.index(static_cast<int>(rim.size())))];
+    cv::Point2d dir = cv::Point2d(r.x, r.y) - vc;
+    const double n = std::hypot(dir.x, dir.y);
+    dir = n > 0 ? dir / n : cv::Point2d(1, 0);
+    double heading = std::atan2(dir.y, dir.x) + rng.symmetric(0.4);
+    const double length = rng.uniform(0.08, 0.15) * ctx.size;
+    const double width = rng.uniform(0.015, 0.03) * ctx.size;
+    constexpr int kSteps = 24;
+    // Start a little inside the ventricle so the wedge opens into it.
+    cv::Point2d p = cv::Point2d(r.x, r.y) - cv::Point2d(std::cos(heading), std::sin(heading)) * 3;
+    std::vector<cv::Point> left, right;
+    double turn = 0;
+    for (int i = 0; i <= kSteps; ++i) {
+        const double w = 0.5 * width * std::pow(1.0 - double(i) / kSteps, 1.2);
+        const cv::Point2d nn(-std::sin(heading), std::cos(heading));
+        left.emplace_back(cvRound(p.x + nn.x * w), cvRound(p.y + nn.y * w));
+        right.emplace_back(cvRound(p.x - nn.x * w), cvRound(p.y - nn.y * w));
+        turn = 0.8 * turn + rng.symmetric(0.05);
+        heading += turn;
+        p += cv::Point2d(std::cos(heading), std::sin(heading)) * (length / kSteps);
+    }
+    std::vector<cv::Point> polygon(left);
+    polygon.insert(polygon.end(), right.rbegin(), right.rend());
+    cv::fillPoly(m, std::vector<std::vector<cv::Point>>{polygon}, cv::Scalar(255));
+    return m;
+}
+
+/// A flap beyond a chord near the edge folded back over the tissue (reflected about the fold
+/// line): the flap's place becomes glass, the band inside the line carries two layers (the
+/// flap's stain added with a gain of 0.85-1), and the edge moves to the line.
+void paintFold(Layers& layers, const DamageContext& ctx, Rng& rng, GroundTruth& truth) {
+    const cv::Point2d n = imageDirection(ctx, rng.uniform(0.0, 2.0 * kPi));
+    const cv::Point2d edge = boundaryPoint(layers.outline, ctx.centre, n);
+    const double depth = rng.uniform(0.03, 0.06) * ctx.size;
+    const double halfLength = rng.uniform(0.08, 0.15) * ctx.size;
+    const float gain = static_cast<float>(rng.uniform(0.85, 1.0));
+    const cv::Point2d lineP = edge - n * depth, tangent(-n.y, n.x);
+    const Layers before{layers.coverage.clone(), layers.signal.clone(),   layers.nuclei.clone(),
+                        layers.level.clone(),    layers.labelled.clone(), layers.tissue.clone(),
+                        layers.outline.clone(),  layers.support.clone()};
+    cv::Mat flapPlace = cv::Mat::zeros(layers.tissue.size(), CV_8U);
+    cv::Mat band = flapPlace.clone();
+    const int rows = layers.tissue.rows, cols = layers.tissue.cols;
+    for (int y = 0; y < rows; ++y)
+        for (int x = 0; x < cols; ++x) {
+            const cv::Point2d p(x, y);
+            const double s = (p - lineP).dot(n);
+            if (std::abs((p - lineP).dot(tangent)) > halfLength || s > 2.5 * depth ||
+                s < -2.5 * depth)
+                continue;
+            if (s > 0) {
+                if (before.support.at<std::uint8_t>(y, x)) {
+                    flapPlace.at<std::uint8_t>(y, x) = 255;
+                    layers.coverage.at<float>(y, x) = 0;
+                    layers.support.at<std::uint8_t>(y, x) = 0;
+                    layers.tissue.at<std::uint8_t>(y, x) = 0;
+                    layers.outline.at<std::uint8_t>(y, x) = 0;
+                }
+                continue;
+            }
+            const cv::Point2d q = p - n * (2 * s); // the flap pixel now lying on p
+            const int qx = cvRound(q.x), qy = cvRound(q.y);
+            if (qx < 0 || qy < 0 || qx >= cols || qy >= rows || (q - lineP).dot(n) <= 0 ||
+                !before.support.at<std::uint8_t>(qy, qx))
+                continue;
+            const float cp = before.coverage.at<float>(y, x);
+            const float cq = gain * before.coverage.at<float>(qy, qx);
+            const float c = cp + cq;
+            if (c <= 0)
+                continue;
+            const auto mix = [&](cv::Mat& dst, const cv::Mat& src) {
+                if (!dst.empty())
+                    dst.at<float>(y, x) =
+                        (cp * src.at<float>(y, x) + cq * src.at<float>(qy, qx)) / c;
+            };
+            mix(layers.signal, before.signal);
+            mix(layers.nuclei, before.nuclei);
+            mix(layers.level, before.level);
+            mix(layers.labelled, before.labelled);
+            layers.coverage.at<float>(y, x) = c;
+            layers.support.at<std::uint8_t>(y, x) = 255;
+            if (before.tissue.at<std::uint8_t>(qy, qx)) {
+                layers.tissue.at<std::uint8_t>(y, x) = 255;
+                layers.outline.at<std::uint8_t>(y, x) = 255;
+                band.at<std::uint8_t>(y, x) = 255;
+            }
+        }
+    const cv::Mat flapTissue = flapPlace & before.outline;
+    if (cv::countNonZero(flapTissue) == 0)
+        return;
+    truth.damageMask.setTo(4, flapTissue | band);
+    truth.damage.push_back(DamageRegion{DamageKind::Fold,
+                                        outlineOf(flapTissue | band),
+                                        static_cast<double>(cv::countNonZero(flapTissue)),
+                                        {1, 0, 0, 0, 1, 0}});
+}
+
+/// Knife chatter: across a strip of the section perpendicular to the knife, the thickness
+/// (coverage) swings by 30-60% with a period of 1-2.5% of the tissue width.
+void paintChatter(Layers& layers, const DamageContext& ctx, Rng& rng, GroundTruth& truth) {
+    const cv::Point2d n = imageDirection(ctx, rng.uniform(0.0, 2.0 * kPi)); // across the bands
+    const double period = rng.uniform(0.01, 0.025) * ctx.size;
+    const double amplitude = rng.uniform(0.3, 0.6);
+    const double from = rng.uniform(-0.3, 0.1) * ctx.size,
+                 width = rng.uniform(0.15, 0.3) * ctx.size;
+    cv::Mat strip = cv::Mat::zeros(layers.tissue.size(), CV_8U);
+    for (int y = 0; y < strip.rows; ++y) {
+        auto* cov = layers.coverage.ptr<float>(y);
+        auto* st = strip.ptr<std::uint8_t>(y);
+        for (int x = 0; x < strip.cols; ++x) {
+            const double s = (cv::Point2d(x, y) - ctx.centre).dot(n) - from;
+            if (s < 0 || s > width)
+                continue;
+            st[x] = 255;
+            cov[x] *= static_cast<float>(1.0 - amplitude * 0.5 *
+                                                   (1.0 + std::sin(2.0 * kPi * s / period)));
+        }
+    }
+    const cv::Mat region = strip & layers.tissue;
+    if (cv::countNonZero(region) == 0)
+        return;
+    truth.damageMask.setTo(5, region);
+    truth.damage.push_back(DamageRegion{DamageKind::Chatter,
+                                        outlineOf(region),
+                                        static_cast<double>(cv::countNonZero(region)),
+                                        {1, 0, 0, 0, 1, 0}});
+}
+
+/// The damage models (DamageOptions::crack and after), painted after the first three kinds.
+void paintDamageModels(Layers& layers, const DamageContext& ctx, const GeneratorOptions& o,
+                       Rng& rng, GroundTruth& truth) {
+    if (o.damage.crack)
+        removeTissue(layers, thinCrackMask(layers, ctx, rng), DamageKind::Tear, 1, truth);
+    if (o.damage.tornVentricle)
+        removeTissue(layers, tornVentricleMask(layers, ctx, rng), DamageKind::Tear, 1, truth);
+    if (o.damage.fold)
+        paintFold(layers, ctx, rng, truth);
+    if (o.damage.smallFragment) {
+        std::optional<Fragment> f;
+        const double angle = rng.uniform(0.0, 2.0 * kPi);
+        for (int attempt = 0; attempt < 8 && !f; ++attempt)
+            f = fragmentAt(layers, ctx, angle + attempt * 0.7, rng, 0.01, 0.03);
+        if (f)
+            moveFragment(layers, *f, truth);
+    }
+    if (o.damage.chatter)
+        paintChatter(layers, ctx, rng, truth);
+}
+
+/// Anatomy that is not damage (AnatomyOptions): enlarged ventricles and an opened fissure.
+void paintAnatomy(Layers& layers, const DamageContext& ctx, const cv::Mat& labelsInImage,
+                  const AnatomyOptions& a, Rng& rng) {
+    const auto clear = [&](const cv::Mat& mask, bool outlineToo) {
+        layers.coverage.setTo(0.0f, mask);
+        layers.support.setTo(0, mask);
+        layers.tissue.setTo(0, mask);
+        if (outlineToo)
+            layers.outline.setTo(0, mask);
+    };
+    if (a.ventricleGrowthFrac > 0) {
+        const cv::Mat ventricles = layers.outline & ~layers.tissue;
+        const int r = std::max(1, cvRound(a.ventricleGrowthFrac * ctx.size));
+        cv::Mat grown;
+        cv::dilate(ventricles, grown,
+                   cv::getStructuringElement(cv::MORPH_ELLIPSE, {2 * r + 1, 2 * r + 1}));
+        clear(grown & layers.outline, false);
+    }
+    if (a.fissureOpenFrac <= 0 || a.parts.size() < 2)
+        return;
+    // The pair of parts touching along the longest interface; open a stretch of it.
+    const double half = 0.5 * a.fissureOpenFrac * ctx.size;
+    std::vector<cv::Mat> parts, dist;
+    for (const auto& ids : a.parts) {
+        cv::Mat m = cv::Mat::zeros(labelsInImage.size(), CV_8U);
+        for (std::int32_t id : ids)
+            m |= labelsInImage == id;
+        m &= layers.tissue;
+        cv::Mat d;
+        cv::distanceTransform(~m, d, cv::DIST_L2, 3);
+        parts.push_back(m);
+        dist.push_back(d);
+    }
+    cv::Mat bestInterface;
+    int bestLength = 0;
+    for (size_t i = 0; i < parts.size(); ++i)
+        for (size_t j = i + 1; j < parts.size(); ++j) {
+            const cv::Mat interface = parts[i] & (dist[j] <= 2.0f);
+            const int length = cv::countNonZero(interface);
+            if (length > bestLength) {
+                bestLength = length;
+                bestInterface =
+                    (parts[i] & (dist[j] <= float(half))) | (parts[j] & (dist[i] <= float(half)));
+            }
+        }
+    if (bestLength < 0.05 * ctx.size)
+        return;
+    const auto centre = pixelInside(bestInterface, 0.0, rng);
+    if (!centre)
+        return;
+    cv::Mat stretch = cv::Mat::zeros(bestInterface.size(), CV_8U);
+    cv::circle(stretch, *centre, cvRound(rng.uniform(0.1, 0.25) * ctx.size), cv::Scalar(255), -1);
+    clear(bestInterface & stretch, true);
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -915,6 +1201,8 @@ core::Result<GeneratedSection> generate(const cv::Mat& labels, const GeneratorOp
     Rng geometryRng(rng.bits()), lookRng(rng.bits()), damageRng(rng.bits()), debrisRng(rng.bits()),
         imagingRng(rng.bits()), landmarkRng(rng.bits());
     const std::uint64_t cellSeed = rng.bits(), noiseSeed = rng.bits();
+    // Drawn after the others, so that cases without the issue-18 models keep their bytes.
+    Rng modelsRng(rng.bits()), anatomyRng(rng.bits());
 
     const AtlasTissue tissue = describeTissue(labels);
     const Placement placement = placeSection(tissue, o, geometryRng);
@@ -939,6 +1227,13 @@ core::Result<GeneratedSection> generate(const cv::Mat& labels, const GeneratorOp
     for (const auto& [id, look] : looks)
         if (look.empty)
             layers.tissue.setTo(0, truth.labelsInImage == id);
+    const DamageContext ctx{[&] {
+                                const cv::Moments m = cv::moments(layers.outline, true);
+                                return cv::Point2d(m.m10 / m.m00, m.m01 / m.m00);
+                            }(),
+                            placement.tissueWidthPx, placement.linear};
+    // Not damage: the section's own anatomy, so landmarks avoid it like any glass.
+    paintAnatomy(layers, ctx, truth.labelsInImage, o.anatomy, anatomyRng);
     const cv::Mat tissueBefore = layers.tissue.clone();
 
     // Cell texture: nuclei as blurred impulses whose density follows the region, plus a fine
@@ -984,12 +1279,9 @@ core::Result<GeneratedSection> generate(const cv::Mat& labels, const GeneratorOp
             layers.labelled = blobs * o.cells.contrast;
     }
 
-    const DamageContext ctx{[&] {
-                                const cv::Moments m = cv::moments(layers.outline, true);
-                                return cv::Point2d(m.m10 / m.m00, m.m01 / m.m00);
-                            }(),
-                            placement.tissueWidthPx, placement.linear};
+    truth.damageMask = cv::Mat::zeros(layers.tissue.size(), CV_8U);
     paintDamage(layers, ctx, o, damageRng, truth);
+    paintDamageModels(layers, ctx, o, modelsRng, truth);
     truth.tissueMask = layers.tissue;
     markCounted(out.cells, truth.tissueMask, truth.damageMask);
     truth.landmarks =

@@ -21,14 +21,17 @@ const char* familyName(Family family) {
         return "2";
     case Family::Template:
         return "template";
+    case Family::FirstModels:
+        return "1m";
     }
     return "?";
 }
 
 std::string BenchCase::describe() const {
     std::ostringstream s;
-    if (family == Family::First) {
-        s << "case " << index << " seed " << seed << " plane " << plane
+    if (firstGenerator(family)) {
+        s << (family == Family::FirstModels ? "f1m " : "") << "case " << index << " seed " << seed
+          << " plane " << plane
           << (options.stain == sim::Stain::Brightfield ? " brightfield" : " fluorescence");
         if (options.damage.tear)
             s << " tear";
@@ -36,6 +39,18 @@ std::string BenchCase::describe() const {
             s << " missing";
         if (options.damage.fragment)
             s << " fragment";
+        const sim::DamageOptions& d = options.damage;
+        for (const auto& [on, name] : {std::pair{d.crack, " crack"},
+                                       {d.fold, " fold"},
+                                       {d.smallFragment, " small-fragment"},
+                                       {d.tornVentricle, " torn-ventricle"},
+                                       {d.chatter, " chatter"}})
+            if (on)
+                s << name;
+        if (options.anatomy.ventricleGrowthFrac > 0)
+            s << " (enlarged ventricles)";
+        if (options.anatomy.fissureOpenFrac > 0)
+            s << " (fissure opened)";
         return s.str();
     }
     s << "f" << familyName(family) << " case " << index << " seed " << seed << " plane " << plane
@@ -190,6 +205,51 @@ std::vector<BenchCase> makeCases(int count, int planes, cv::Size size) {
     return cases;
 }
 
+std::vector<BenchCase> makeCasesModels(int count, int planes, cv::Size size) {
+    std::vector<BenchCase> cases;
+    for (int i = 0; i < count; ++i) {
+        BenchCase c;
+        c.family = Family::FirstModels;
+        c.index = i;
+        c.seed = 2000 + static_cast<std::uint64_t>(i);
+        c.plane = (i / 2 * 7 + 3) % std::max(1, planes);
+        c.options.seed = c.seed;
+        c.options.imageSize = size;
+        c.options.stain =
+            (i % 8 == 2 || i % 8 == 3) ? sim::Stain::Brightfield : sim::Stain::Fluorescence;
+        const int anatomy = (i / 2) % 4;
+        if (anatomy == 1 || anatomy == 3)
+            c.options.anatomy.ventricleGrowthFrac = 0.01 + 0.002 * (i % 5);
+        if (anatomy == 2 || anatomy == 3)
+            c.options.anatomy.fissureOpenFrac = 0.006 + 0.002 * (i % 5);
+        if (i % 2 == 1) {
+            auto& d = c.options.damage;
+            switch ((i / 2) % 6) {
+            case 0:
+                d.crack = true;
+                break;
+            case 1:
+                d.fold = true;
+                break;
+            case 2:
+                d.smallFragment = true;
+                break;
+            case 3:
+                d.tornVentricle = true;
+                break;
+            case 4:
+                d.chatter = true;
+                break;
+            default:
+                d.crack = d.fold = true;
+                break;
+            }
+        }
+        cases.push_back(c);
+    }
+    return cases;
+}
+
 cv::Mat templatePlane100(const AtlasSource& atlas, int plane) {
     if (plane < 0 || size_t(plane) >= atlas.templatePlanes100.size())
         return {};
@@ -280,7 +340,7 @@ std::vector<BenchCase> makeCasesTemplate(int count, int planes, cv::Size size) {
 }
 
 core::Result<Section> generate(const BenchCase& c, const AtlasSource& atlas) {
-    if (c.family == Family::First) {
+    if (firstGenerator(c.family)) {
         auto g = sim::generateSection(atlas.planes[size_t(c.plane)], c.options);
         if (!g)
             return g.error();

@@ -41,9 +41,14 @@ cv::Mat templatePlane100(const AtlasSource& atlas, int plane);
 cv::Mat templateOnLabelGrid(const AtlasSource& atlas, int plane, cv::Size size);
 
 /// Generator families of the benchmark: the first (sim::generateSection), the second
-/// (sim::generateSectionB, stains other than the template) and the second family rendered from
-/// the Allen average template.
-enum class Family { First, Second, Template };
+/// (sim::generateSectionB, stains other than the template), the second family rendered from
+/// the Allen average template, and the first family with the damage models and not-damage
+/// anatomy of issue 18 (its own seeds; named "1m").
+enum class Family { First, Second, Template, FirstModels };
+/// The first family's generator renders it (First and FirstModels).
+inline bool firstGenerator(Family family) {
+    return family == Family::First || family == Family::FirstModels;
+}
 const char* familyName(Family family);
 
 struct BenchCase {
@@ -54,13 +59,13 @@ struct BenchCase {
     sim::GeneratorOptions options;   ///< first family
     sim::GeneratorOptionsB optionsB; ///< second family and template (templatePlane set later)
     bool brightfield() const {
-        return family == Family::First ? options.stain == sim::Stain::Brightfield
-                                       : optionsB.brightfield;
+        return firstGenerator(family) ? options.stain == sim::Stain::Brightfield
+                                      : optionsB.brightfield;
     }
     bool damaged() const {
-        if (family != Family::First)
+        if (!firstGenerator(family))
             return optionsB.damage.any();
-        return options.damage.tear || options.damage.missing || options.damage.fragment;
+        return options.damage.any();
     }
     std::string describe() const;
 };
@@ -81,6 +86,13 @@ std::vector<BenchCase> makeCasesB(int count, int planes, cv::Size size);
 /// The template family's `count` cases: seeds 9000 + i, all rendered from the average template
 /// (fluorescence), alternating clean and damaged (crack, bite, fragment, fold).
 std::vector<BenchCase> makeCasesTemplate(int count, int planes, cv::Size size);
+
+/// The first family with issue 18's models: `count` cases, seeds 2000 + i, alternating clean and
+/// damaged (crack, fold, small fragment, torn ventricle, chatter, crack + fold in turn); every
+/// case, clean or damaged, in turn plain, with enlarged ventricles, with a fissure opened, or
+/// both (per pair); a quarter brightfield. A damaged case whose model found no place to paint
+/// (no ventricle to tear) has no damage in its truth.
+std::vector<BenchCase> makeCasesModels(int count, int planes, cv::Size size);
 
 /// A generated section of any family.
 struct Section {

@@ -247,6 +247,20 @@ core::Result<std::vector<RealSection>> gerbiSeries(const fs::path& shared) {
 
 } // namespace
 
+/// One line per section: verdict, score and every region (kind, share, length and thickness as
+/// shares of the brain width, score).
+static void printDamage(const std::string& series, const std::string& name,
+                        const pipeline::Registration& reg) {
+    std::printf("damage %-6s %-16s %-8s score %.3f", series.c_str(), name.c_str(),
+                reg.damaged ? "DAMAGED" : "clean", reg.damageScore);
+    const double bw = std::max(1.0, reg.brainWidthPx);
+    for (const pipeline::DamageRegion& d : reg.damage)
+        std::printf(" [%s %.2f%% len %.3f thick %.3f score %.2f]",
+                    std::string(pipeline::toString(d.kind)).c_str(), 100 * d.share, d.lengthPx / bw,
+                    d.thicknessPx / bw, d.score);
+    std::printf("\n");
+}
+
 int main(int argc, char** argv) {
     CLI::App app{"Real-tissue consistency of the registration under known warps"};
     std::string shared = SLST_SHARED_DIR, seriesText = "all", csvPath, overlayDir;
@@ -267,6 +281,14 @@ int main(int argc, char** argv) {
         ->check(CLI::Range(0.0, 180.0));
     app.add_option("--smooth", smoothMode, "The registration's smooth (B-spline) warp: on | off")
         ->check(CLI::IsMember({"on", "off"}));
+    double crackDarkness = pipeline::DamageParams{}.crackDarkness;
+    app.add_option("--crack-darkness", crackDarkness,
+                   "DamageParams::crackDarkness (0: cracks must show glass, as before 2026-12-02)")
+        ->check(CLI::Range(0.0, 1.0));
+    bool damageOnly = false;
+    app.add_flag("--damage", damageOnly,
+                 "Register each original only and print its damage verdict, score and regions "
+                 "(no warps)");
     app.add_option("--shared", shared, "Path of ../shared");
     app.add_option("--series", seriesText, "mouse | gerbi | all")
         ->check(CLI::IsMember({"mouse", "gerbi", "all"}));
@@ -324,6 +346,7 @@ int main(int argc, char** argv) {
             ro.atlasUmPerPx = 25;
             ro.maxTurnDeg = maxTurnDeg;
             ro.smoothWarp = smoothMode == "on";
+            ro.damage.crackDarkness = crackDarkness;
             const auto t0 = std::chrono::steady_clock::now();
             auto reg0 = pipeline::registerSection(s.image, s.atlas, ro);
             const double sec0 =
@@ -344,6 +367,10 @@ int main(int argc, char** argv) {
                 cv::imwrite(path.string(), pipeline::renderOverlay(r, s.atlas));
             };
             writeOverlay(*reg0, "original");
+            if (damageOnly) {
+                printDamage(series, s.name, *reg0);
+                continue;
+            }
             if (!overlayDir.empty()) {
                 cv::Mat grey;
                 cv::Mat(s.atlas != 0).convertTo(grey, CV_32F, 0.5 / 255);

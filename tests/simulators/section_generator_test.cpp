@@ -398,6 +398,130 @@ TEST(SectionGenerator, AllDamageKindsTogetherAndLandmarksAvoidThem) {
     }
 }
 
+TEST(SectionGenerator, DamageModelsOfIssue18LeaveTheOldCasesUnchanged) {
+    sim::GeneratorOptions o;
+    o.seed = 22;
+    o.imageSize = kQuickSize;
+    o.damage.tear = true;
+    const auto before = generate(o);
+    // The models draw on their own random stream: asking for one keeps the first kinds' damage
+    // where it was, and every pixel away from the new crack's blur keeps its value.
+    sim::GeneratorOptions withModel = o;
+    withModel.damage.crack = true;
+    const auto after = generate(withModel);
+    ASSERT_EQ(after.truth.damage.size(), 2u);
+    EXPECT_EQ(after.truth.damage[0].polygon, before.truth.damage[0].polygon);
+    const cv::Mat away = ~dilated(after.truth.damageMask == 1, 10);
+    cv::Mat differs;
+    cv::compare(before.image, after.image, differs, cv::CMP_NE);
+    EXPECT_EQ(cv::countNonZero(differs & away), 0);
+    EXPECT_GT(cv::countNonZero(differs), 0);
+}
+
+TEST(SectionGenerator, ThinCrackCrossesTheTissueAFewPixelsWide) {
+    for (std::uint64_t seed : {23u, 24u, 25u}) {
+        sim::GeneratorOptions o;
+        o.seed = seed;
+        o.damage.crack = true; // 1500 px wide: the crack is 1-5 px
+        const auto g = generate(o);
+        const auto& t = g.truth;
+        ASSERT_EQ(t.damage.size(), 1u) << "seed " << seed;
+        EXPECT_EQ(t.damage[0].kind, sim::DamageKind::Tear);
+        const cv::Mat crack = t.damageMask == 1;
+        // Mean width: area over half the outline's length (a thin shape's length).
+        const double halfPerimeter = 0.5 * cv::arcLength(t.damage[0].polygon, true);
+        const double meanWidth = cv::countNonZero(crack) / std::max(1.0, halfPerimeter);
+        EXPECT_GE(meanWidth, 1.0) << "seed " << seed;
+        EXPECT_LE(meanWidth, 5.5) << "seed " << seed;
+        const cv::RotatedRect r = cv::minAreaRect(t.damage[0].polygon);
+        EXPECT_GT(std::max(r.size.width, r.size.height), 100.0) << "seed " << seed;
+        EXPECT_EQ(cv::countNonZero(t.tissueMask & crack), 0);
+    }
+}
+
+TEST(SectionGenerator, FoldDoublesABandAndMovesTheEdgeIn) {
+    int folds = 0;
+    for (std::uint64_t seed : {26u, 27u, 28u}) {
+        sim::GeneratorOptions o;
+        o.seed = seed;
+        o.imageSize = kQuickSize;
+        o.damage.fold = true;
+        const auto g = generate(o);
+        o.damage.fold = false;
+        const auto clean = generate(o);
+        const auto* fold = findDamage(g.truth, sim::DamageKind::Fold);
+        if (!fold)
+            continue;
+        ++folds;
+        const cv::Mat marked = g.truth.damageMask == 4;
+        const cv::Mat band = eroded(marked & g.truth.tissueMask, 3);
+        const cv::Mat place = eroded(marked & ~g.truth.tissueMask & intactTissue(g.truth), 3);
+        ASSERT_GT(cv::countNonZero(band), 50) << "seed " << seed;
+        ASSERT_GT(cv::countNonZero(place), 50) << "seed " << seed;
+        // The band carries two layers: what it gained is the flap's own stain (gain 0.85-1; means,
+        // since the fold adds: the flap's mirror image covers the band). Each image is exposed
+        // for its brightest tissue, so levels are taken relative to the tissue far from the fold.
+        const cv::Mat far = eroded(g.truth.tissueMask, 3) & ~dilated(marked, 40);
+        const auto level = [&](const cv::Mat& image, const cv::Mat& where) {
+            const double glassLevel = medianOf(image, ~dilated(g.truth.tissueMask, 20));
+            return (cv::mean(image, where)[0] - glassLevel) /
+                   (cv::mean(image, far)[0] - glassLevel);
+        };
+        const double gained = level(g.image, band) - level(clean.image, band);
+        const double flap = level(clean.image, place);
+        EXPECT_GT(gained / flap, 0.6) << "seed " << seed;
+        EXPECT_LT(gained / flap, 1.25) << "seed " << seed;
+        // The flap's place shows glass.
+        const double glass = medianOf(g.image, ~dilated(g.truth.tissueMask, 20));
+        const double tissue = medianOf(g.image, eroded(g.truth.tissueMask, 3));
+        EXPECT_LT(medianOf(g.image, place), glass + 0.1 * (tissue - glass)) << "seed " << seed;
+    }
+    EXPECT_GE(folds, 2);
+}
+
+TEST(SectionGenerator, SmallFragmentTornVentricleAndChatter) {
+    sim::GeneratorOptions o;
+    o.seed = 29;
+    o.imageSize = kQuickSize;
+    o.damage.smallFragment = o.damage.tornVentricle = o.damage.chatter = true;
+    const auto g = generate(o);
+    const auto& t = g.truth;
+    const double area = cv::countNonZero(t.labelsInImage > 0);
+    const auto* fragment = findDamage(t, sim::DamageKind::Fragment);
+    ASSERT_NE(fragment, nullptr);
+    EXPECT_LT(fragment->areaPx, 0.04 * area);
+    const auto* torn = findDamage(t, sim::DamageKind::Tear);
+    ASSERT_NE(torn, nullptr);
+    // The torn wall opens into a ventricle: the wedge touches its glass.
+    const cv::Mat ventricle = (t.labelsInImage > 0) & (t.labelsInImage == 73);
+    EXPECT_GT(cv::countNonZero(dilated(t.damageMask == 1, 4) & ventricle), 0);
+    const auto* chatter = findDamage(t, sim::DamageKind::Chatter);
+    ASSERT_NE(chatter, nullptr);
+    EXPECT_GT(cv::countNonZero((t.damageMask == 5) & t.tissueMask), 0);
+}
+
+TEST(SectionGenerator, EnlargedVentriclesAndAnOpenedFissureAreNotDamage) {
+    sim::GeneratorOptions o;
+    o.seed = 33;
+    o.imageSize = kQuickSize;
+    const auto plain = generate(o);
+    o.anatomy.ventricleGrowthFrac = 0.015;
+    o.anatomy.fissureOpenFrac = 0.01;
+    const auto g = generate(o);
+    EXPECT_TRUE(g.truth.damage.empty());
+    EXPECT_EQ(cv::countNonZero(g.truth.damageMask), 0);
+    const cv::Mat lost = plain.truth.tissueMask & ~g.truth.tissueMask;
+    EXPECT_GT(cv::countNonZero(lost), 0);
+    // The ventricles grew: glass beside the atlas's ventricles.
+    const cv::Mat ventricle = g.truth.labelsInImage == 73;
+    EXPECT_GT(cv::countNonZero(lost & dilated(ventricle, 3)), 0);
+    // Landmarks stay on tissue.
+    for (const auto& l : g.truth.landmarks)
+        EXPECT_EQ(g.truth.tissueMask.at<std::uint8_t>(cv::Point(l.image)), 255);
+    o.anatomy.fissureOpenFrac = 0.5;
+    EXPECT_FALSE(sim::generateSection(atlas(), o).ok());
+}
+
 TEST(SectionGenerator, DebrisNeverTouchesTheTissue) {
     for (std::uint64_t seed : {30u, 31u, 32u}) {
         sim::GeneratorOptions o;

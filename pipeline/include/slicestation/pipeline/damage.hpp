@@ -38,6 +38,10 @@ struct DamageRegion {
     /// How sure the region is damage, in [0, 1]: 0.5 where its evidence alone reaches the
     /// decision line (damageScore).
     double score = 0;
+    /// Series context (damage_series.hpp): the share of the run's already registered
+    /// neighbours showing damage at the same atlas place, in [0, 1]. Anatomy persists over
+    /// neighbouring sections, a tear does not: the evidence is scaled by (1 - persistence).
+    double persistence = 0;
 };
 
 /// Lengths are fractions of the brain width (the OBB's major extent of the section), so the rule
@@ -74,6 +78,15 @@ struct DamageParams {
     double crackMaxWidthPx = 7.0;
     /// and at least this share of the brain width long.
     double crackMinFrac = 0.05;
+    /// A crack narrower than the blur shows no glass: its pixels are also those of a dark
+    /// valley (darkValleys with threadDepth) below this share of the way from the glass to the
+    /// median tissue. 0: glass only (the default for now: at 0.4, measured in docs/damage.md, the
+    /// daemon's simulated crash test saw 3 damaged alerts where it expects 1).
+    double crackDarkness = 0.0;
+    /// The dark pixels (below crackDarkness) that are not glass and touch a crack are its
+    /// blurred flanks: at most this many times its area. More is the narrow end of a dim
+    /// structure (a dark fibre tract), not a crack.
+    double crackDimBody = 3.0;
     /// Beside a crack lies tissue: at most this share of glass-level pixels there. Dim textured
     /// tissue has glass-level grains between its cells, whose thin glass webs are no crack.
     double crackWallGlass = 0.02;
@@ -154,8 +167,10 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const AtlasExp
 /// Thin cracks at full resolution: lines of glass a few pixels wide crossing the tissue, where
 /// the section split and the slide shows through. A pixel is glass when its lightly blurred
 /// (0.7 px) level lies within params.glassNoiseUnits of the glass noise above the glass outside
-/// the section (both measured on `grey`); a crack is the glass that a closing of the rest by a
-/// disc of params.crackMaxWidthPx fills (glass narrower than that, with tissue on both sides),
+/// the section (both measured on `grey`), or when it lies in a dark valley as wide as a crack
+/// (darkValleys below params.crackDarkness, disc crackMaxWidthPx + 2: a crack narrower than the
+/// optics' blur never reaches the glass level); a crack is such pixels that a closing of the
+/// rest by a disc of params.crackMaxWidthPx fills (narrower than that, tissue on both sides),
 /// at least params.crackMinFrac of the brain width long and crackElongation times longer than
 /// wide, inside the mapped atlas brain, not beside a mapped ventricle (within slackFrac of the
 /// width; a ventricle's slit is glass too), not between two of `expected.parts` and not along
@@ -194,10 +209,12 @@ GreyLevels greyLevels(const cv::Mat& grey, const cv::Mat& tissueMask);
 
 /// Thin dark lines in tissue: pixels of `grey` (CV_32F, tissue bright, the whole section or a
 /// part) lightly blurred (0.7 px) below params.threadDarkness of the way from the glass to the
-/// tissue level, in a valley (black top-hat, 5 px disc) at least params.threadDepth of that
+/// tissue level, in a valley (black top-hat, `discPx` disc) at least params.threadDepth of that
 /// span deep. A crack narrower than a pixel is such a line; dim tissue and its edge against
 /// bright tissue are not. CV_8U.
-cv::Mat darkValleys(const cv::Mat& grey, GreyLevels levels, const DamageParams& params);
+/// `discPx`: the closing disc of the top-hat (a valley narrower than it counts).
+cv::Mat darkValleys(const cv::Mat& grey, GreyLevels levels, const DamageParams& params,
+                    int discPx = 5);
 
 /// The part of each pixel of `labels` (CV_32S atlas ids): 1 + the index of the group in `parts`
 /// holding its id, 0 for ids in none. CV_8U.
@@ -235,14 +252,16 @@ cv::Mat piecesInside(const cv::Mat& pieces, const cv::Mat& region, double share)
 
 /// The evidence of one region (1 at the decision line): its share of the tissue over
 /// damagedShare, or for a crack (a tear at least crackElongation times longer than its thickest
-/// width, DamageRegion::thicknessPx) its length over deepTearFrac of the brain width.
+/// width, DamageRegion::thicknessPx) its length over deepTearFrac of the brain width; times
+/// (1 - DamageRegion::persistence).
 double damageEvidence(const DamageRegion& region, double brainWidthPx, const DamageParams& params);
 
 /// Evidence e mapped to a score in [0, 1): 1 - 2^-e (0.5 at e = 1).
 double scoreFromEvidence(double evidence);
 
 /// Sets every region's score and returns the section's: the score of the larger of the regions'
-/// summed share over damagedShare and the strongest crack's evidence.
+/// summed share (each times 1 - persistence) over damagedShare and the strongest crack's
+/// evidence.
 double damageScore(std::vector<DamageRegion>& regions, double brainWidthPx,
                    const DamageParams& params);
 

@@ -34,6 +34,31 @@ struct DamageOptions {
     bool tear = false;     ///< a tapering crack from the boundary inwards, on one side
     bool missing = false;  ///< a chunk missing at the boundary
     bool fragment = false; ///< a boundary piece cut off and moved away from the rest
+    // The damage models of issue 18, each off by default (a case asking for none of them keeps
+    // its bytes). Painted after the three above, each on its own random stream.
+    bool crack = false; ///< a thin crack, 1-5 px wide at 1500 px, crossing the tissue (glass)
+    bool fold = false;  ///< a flap of the edge folded back: a band of doubled tissue, edge moved
+    bool smallFragment = false; ///< a piece of 1-3% of the tissue cut off and moved away
+    bool tornVentricle = false; ///< a ventricle's wall torn open: a wedge of glass out of it
+    bool chatter = false;       ///< knife chatter: bands of alternating thickness across a patch
+    bool any() const {
+        return tear || missing || fragment || crack || fold || smallFragment || tornVentricle ||
+               chatter;
+    }
+};
+
+/// Anatomy that looks like damage and is not (issue 18): never in GroundTruth::damage.
+struct AnatomyOptions {
+    /// The ventricles grown by this share of the tissue width (0: as the atlas has them); an
+    /// enlarged ventricle is glass where the atlas expects tissue. In [0, 0.05].
+    double ventricleGrowthFrac = 0;
+    /// A natural fissure opened: glass this wide (share of the tissue width) along the
+    /// interface of two of `parts`, where they touch. 0: none. In [0, 0.03].
+    double fissureOpenFrac = 0;
+    /// Groups of atlas ids that lie apart across natural fissures (the defaults: cerebral
+    /// cortex, brain stem without the hypothalamus, cerebellum, as collapsed Allen ids).
+    std::vector<std::vector<std::int32_t>> parts{
+        {315, 698, 1080, 822, 703}, {549, 958, 313, 771, 354}, {519, 528}};
 };
 
 struct GeneratorOptions {
@@ -49,6 +74,7 @@ struct GeneratorOptions {
     double noise = 1.0;      ///< scales shot and read noise; in [0, 10]
     int landmarkCount = 200; ///< in [0, 100000]; fewer when the tissue is too small
     DamageOptions damage;
+    AnatomyOptions anatomy;
     /// Labels rendered as fibre tracts (distinctly brighter or darker than their neighbours) and
     /// as ventricles (empty, like glass). The defaults are the Allen ids the built-in atlas and a
     /// collapsed Allen plane use.
@@ -58,7 +84,8 @@ struct GeneratorOptions {
     CellOptions cells;
 };
 
-enum class DamageKind { Tear, Missing, Fragment };
+/// Crack and torn ventricle appear as Tear, the small fragment as Fragment.
+enum class DamageKind { Tear, Missing, Fragment, Fold, Chatter };
 
 struct DamageRegion {
     DamageKind kind;
@@ -86,7 +113,8 @@ struct GroundTruth {
     cv::Mat tissueMask; ///< CV_8U 255 where tissue is present in the image (after damage;
                         ///< ventricles are not tissue)
     cv::Mat damageMask; ///< CV_8U: 0 none, 1 tear, 2 missing, 3 fragment (moved piece and the
-                        ///< hole it left)
+                        ///< hole it left), 4 fold (the flap's place and the doubled band),
+                        ///< 5 chatter
     std::vector<DamageRegion> damage;
     cv::Mat labelsInImage; ///< CV_32S atlas labels seen through the true map (before damage)
 };

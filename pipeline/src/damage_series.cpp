@@ -1,0 +1,65 @@
+#include "slicestation/pipeline/damage_series.hpp"
+
+#include <opencv2/imgproc.hpp>
+
+#include <algorithm>
+#include <cmath>
+
+namespace slicestation::pipeline {
+
+namespace {
+
+std::vector<cv::Point> shifted(const std::vector<cv::Point2f>& polygon, cv::Point2f origin) {
+    std::vector<cv::Point> out;
+    out.reserve(polygon.size());
+    for (const cv::Point2f& p : polygon)
+        out.emplace_back(cvRound(p.x - origin.x), cvRound(p.y - origin.y));
+    return out;
+}
+
+} // namespace
+
+double persistenceAmong(const std::vector<cv::Point2f>& region,
+                        const std::vector<AtlasDamageOutlines>& neighbours,
+                        const SeriesContextParams& params) {
+    if (region.size() < 3 || neighbours.empty())
+        return 0;
+    // Rasterise in the region's box grown by the slack: only neighbours' outlines there matter.
+    const int slack = std::max(0, static_cast<int>(std::lround(params.slackAtlasPx)));
+    const cv::Rect box = cv::boundingRect(region);
+    const cv::Point2f origin(float(box.x - slack - 1), float(box.y - slack - 1));
+    const cv::Size size(box.width + 2 * slack + 3, box.height + 2 * slack + 3);
+    cv::Mat mine = cv::Mat::zeros(size, CV_8U);
+    cv::fillPoly(mine, std::vector<std::vector<cv::Point>>{shifted(region, origin)},
+                 cv::Scalar(255));
+    const double area = cv::countNonZero(mine);
+    if (area <= 0)
+        return 0;
+    const cv::Mat grow =
+        cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * slack + 1, 2 * slack + 1));
+    int same = 0;
+    for (const AtlasDamageOutlines& section : neighbours) {
+        cv::Mat theirs = cv::Mat::zeros(size, CV_8U);
+        for (const auto& polygon : section)
+            if (polygon.size() >= 3)
+                cv::fillPoly(theirs, std::vector<std::vector<cv::Point>>{shifted(polygon, origin)},
+                             cv::Scalar(255));
+        if (slack > 0)
+            cv::dilate(theirs, theirs, grow);
+        if (cv::countNonZero(theirs & mine) >= params.samePlaceShare * area)
+            ++same;
+    }
+    return double(same) / double(neighbours.size());
+}
+
+double applySeriesContext(std::vector<DamageRegion>& regions,
+                          const AtlasDamageOutlines& regionsAtlas,
+                          const std::vector<AtlasDamageOutlines>& neighbours, double brainWidthPx,
+                          const DamageParams& damageParams, const SeriesContextParams& params) {
+    for (size_t i = 0; i < regions.size(); ++i)
+        regions[i].persistence =
+            i < regionsAtlas.size() ? persistenceAmong(regionsAtlas[i], neighbours, params) : 0.0;
+    return damageScore(regions, brainWidthPx, damageParams);
+}
+
+} // namespace slicestation::pipeline
