@@ -228,7 +228,9 @@ core::Result<std::vector<RealSection>> gerbiSeries(const fs::path& shared) {
         // (rows), rotationY 0.0015 rad toward left-right (columns).
         pipeline::CuttingPlane plane;
         plane.orientation = pipeline::PlaneOrientation::Coronal;
-        plane.positionUm = std::stod(f[5]) * 1000 - 7.5;
+        // ABBA counts its slicing positions from 15% of the atlas' half-length (0.99 mm) before
+        // the volume's front (docs/atlas.md, "The gerbi offset"), not from the front itself.
+        plane.positionUm = std::stod(f[5]) * 1000 - 0.15 * 13200 / 2 - 7.5;
         plane.tiltRowsDeg = 0.042 * 180 / kPi;
         plane.tiltColumnsDeg = 0.0015 * 180 / kPi;
         plane.umPerPx = 25;

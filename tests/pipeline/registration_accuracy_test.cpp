@@ -634,7 +634,8 @@ TEST(RegistrationAccuracy, TheMountingRuleKeepsRealSectionsTheWayTheyWereMounted
         ASSERT_TRUE(img.ok()) << name << ": " << img.error().message;
         pipeline::CuttingPlane plane;
         plane.orientation = pipeline::PlaneOrientation::Coronal;
-        plane.positionUm = positionMm * 1000 - 7.5;
+        // ABBA's positions start 0.99 mm before the volume's front (docs/atlas.md).
+        plane.positionUm = positionMm * 1000 - 0.15 * 13200 / 2 - 7.5;
         plane.tiltRowsDeg = 0.042 * 180 / CV_PI;
         plane.tiltColumnsDeg = 0.0015 * 180 / CV_PI;
         plane.umPerPx = 25;
