@@ -1,4 +1,5 @@
 // [camera] station configuration, openCamera, and slicectl camera capture through the binary.
+#include "../common/run_command.hpp"
 #include "slicestation/core/image_file.hpp"
 #include "slicestation/daemon/config/station_config.hpp"
 #include "slicestation/daemon/devices/devices.hpp"
@@ -6,9 +7,6 @@
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
 
-#include <sys/wait.h>
-
-#include <cstdio>
 #include <filesystem>
 #include <fstream>
 
@@ -18,25 +16,7 @@ namespace {
 using namespace std::chrono_literals;
 using core::ErrorCode;
 
-struct Run {
-    int exitCode = -1;
-    std::string out;
-};
-
-Run slicectl(const std::string& args) {
-    const std::string cmd = std::string(SLICECTL_PATH) + " " + args + " 2>&1";
-    Run r;
-    FILE* p = ::popen(cmd.c_str(), "r");
-    if (!p)
-        return r;
-    char buf[4096];
-    size_t n;
-    while ((n = std::fread(buf, 1, sizeof buf, p)) > 0)
-        r.out.append(buf, n);
-    const int status = ::pclose(p);
-    r.exitCode = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-    return r;
-}
+using testing_cli::slicectl;
 
 nlohmann::json jsonIn(const std::string& out) {
     const auto pos = out.find('{');
@@ -250,10 +230,10 @@ TEST(SlicectlCamera, CaptureWritesALosslessTiffAndPrintsJson) {
     std::filesystem::remove(out);
     auto r = slicectl("camera --config " + cfg.string() + " capture --output " + out.string() +
                       " --x-um 2400 --y-um 1900 --z-um 0");
-    ASSERT_EQ(r.exitCode, 0) << r.out;
-    EXPECT_NE(r.out.find("SIMULATED camera"), std::string::npos);
-    auto j = jsonIn(r.out);
-    ASSERT_FALSE(j.is_discarded()) << r.out;
+    ASSERT_EQ(r.exitCode, 0) << r.output;
+    EXPECT_NE(r.output.find("SIMULATED camera"), std::string::npos);
+    auto j = jsonIn(r.output);
+    ASSERT_FALSE(j.is_discarded()) << r.output;
     EXPECT_EQ(j["settings_used"]["width"], 320);
     EXPECT_EQ(j["settings_requested"]["exposure_us"], 20000);
     EXPECT_EQ(j["frame"]["format"], "mono16");
@@ -273,7 +253,7 @@ TEST(SlicectlCamera, RgbFramesAndPng) {
     const auto cfg = writeFile("sim_camera_rgb.toml", kStage + toml);
     const auto out = dir() / "frame.png";
     auto r = slicectl("camera --config " + cfg.string() + " capture --output " + out.string());
-    ASSERT_EQ(r.exitCode, 0) << r.out;
+    ASSERT_EQ(r.exitCode, 0) << r.output;
     auto img = core::readImage(out);
     ASSERT_TRUE(img);
     EXPECT_EQ(img->type(), CV_8UC3);
@@ -284,14 +264,14 @@ TEST(SlicectlCamera, BadInputsExitNonZeroWithTheReason) {
     auto r = slicectl("camera --config " + noCamera.string() + " capture --output " +
                       (dir() / "x.tif").string());
     EXPECT_EQ(r.exitCode, 2);
-    EXPECT_NE(r.out.find("[camera]"), std::string::npos) << r.out;
+    EXPECT_NE(r.output.find("[camera]"), std::string::npos) << r.output;
 
     const auto badWidth =
         writeFile("bad_width.toml", kStage + "[camera]\ndriver = \"sim\"\nwidth = -5\n");
     r = slicectl("camera --config " + badWidth.string() + " capture --output " +
                  (dir() / "x.tif").string());
     EXPECT_EQ(r.exitCode, 2);
-    EXPECT_NE(r.out.find("camera.width"), std::string::npos) << r.out;
+    EXPECT_NE(r.output.find("camera.width"), std::string::npos) << r.output;
 
     const auto v4l2 =
         writeFile("v4l2_missing.toml",
@@ -299,26 +279,26 @@ TEST(SlicectlCamera, BadInputsExitNonZeroWithTheReason) {
     r = slicectl("camera --config " + v4l2.string() + " capture --output " +
                  (dir() / "x.tif").string());
     EXPECT_NE(r.exitCode, 0);
-    EXPECT_NE(r.out.find("/dev/video-none-here"), std::string::npos) << r.out;
+    EXPECT_NE(r.output.find("/dev/video-none-here"), std::string::npos) << r.output;
 
     const auto libcam = writeFile("libcamera.toml", kStage + "[camera]\ndriver = \"libcamera\"\n");
     r = slicectl("camera --config " + libcam.string() + " capture --output " +
                  (dir() / "x.tif").string());
     EXPECT_NE(r.exitCode, 0);
-    EXPECT_NE(r.out.find("no camera found"), std::string::npos) << r.out;
+    EXPECT_NE(r.output.find("no camera found"), std::string::npos) << r.output;
 
     const auto sim = writeFile("sim_ok.toml", kStage + kSimCamera);
     r = slicectl("camera --config " + sim.string() + " capture --output " +
                  (dir() / "frame.jpg").string());
     EXPECT_EQ(r.exitCode, 2);
-    EXPECT_NE(r.out.find("lossless"), std::string::npos) << r.out;
+    EXPECT_NE(r.output.find("lossless"), std::string::npos) << r.output;
     r = slicectl("camera --config " + sim.string() +
                  " capture --output /nonexistent-dir/frame.tif");
     EXPECT_NE(r.exitCode, 0);
     r = slicectl("camera --config " + sim.string() + " capture --output " +
                  (dir() / "y.tif").string() + " --x-um 999999 --y-um 0");
     EXPECT_EQ(r.exitCode, 2);
-    EXPECT_NE(r.out.find("soft limits"), std::string::npos) << r.out;
+    EXPECT_NE(r.output.find("soft limits"), std::string::npos) << r.output;
     r = slicectl("camera --config " + (dir() / "missing.toml").string() +
                  " capture --output x.tif");
     EXPECT_NE(r.exitCode, 0);

@@ -1,13 +1,11 @@
 // slicectl stage commands against stage-sim (in this process) and the simulated stage.
+#include "../common/run_command.hpp"
 #include "slicestation/daemon/config/station_config.hpp"
 #include "slicestation/sim/modbus_stage_server.hpp"
 
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
 
-#include <sys/wait.h>
-
-#include <cstdio>
 #include <filesystem>
 #include <fstream>
 
@@ -16,25 +14,7 @@ namespace {
 
 using core::ErrorCode;
 
-struct Run {
-    int exitCode = -1;
-    std::string out;
-};
-
-Run slicectl(const std::string& args) {
-    const std::string cmd = std::string(SLICECTL_PATH) + " " + args + " 2>&1";
-    Run r;
-    FILE* p = ::popen(cmd.c_str(), "r");
-    if (!p)
-        return r;
-    char buf[4096];
-    size_t n;
-    while ((n = std::fread(buf, 1, sizeof buf, p)) > 0)
-        r.out.append(buf, n);
-    const int status = ::pclose(p);
-    r.exitCode = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-    return r;
-}
+using testing_cli::slicectl;
 
 nlohmann::json lastJson(const std::string& out) {
     const auto pos = out.find('{');
@@ -75,23 +55,23 @@ protected:
 
 TEST_F(SlicectlStage, MoveThenPosition) {
     auto r = slicectl(stage("move --x-um 1200 --y-um 800 --z-um 100"));
-    ASSERT_EQ(r.exitCode, 0) << r.out;
-    auto j = lastJson(r.out);
+    ASSERT_EQ(r.exitCode, 0) << r.output;
+    auto j = lastJson(r.output);
     EXPECT_NEAR(j["position"]["x_um"].get<double>(), 1200, 1);
     EXPECT_NEAR(server_->axisState(1).feedbackSteps, 2400, 1);
     r = slicectl(stage("position"));
-    ASSERT_EQ(r.exitCode, 0) << r.out;
-    EXPECT_NEAR(lastJson(r.out)["position"]["y_um"].get<double>(), 800, 1);
+    ASSERT_EQ(r.exitCode, 0) << r.output;
+    EXPECT_NEAR(lastJson(r.output)["position"]["y_um"].get<double>(), 800, 1);
     r = slicectl(stage("move --x-um 10 --y-um 20")); // z stays
-    ASSERT_EQ(r.exitCode, 0) << r.out;
-    EXPECT_NEAR(lastJson(r.out)["position"]["z_um"].get<double>(), 100, 1);
+    ASSERT_EQ(r.exitCode, 0) << r.output;
+    EXPECT_NEAR(lastJson(r.output)["position"]["z_um"].get<double>(), 100, 1);
 }
 
 TEST_F(SlicectlStage, MoveOutsideSoftLimitsSendsNothing) {
     const auto before = server_->requestCount();
     auto r = slicectl(stage("move --x-um 80000 --y-um 10"));
     EXPECT_NE(r.exitCode, 0);
-    EXPECT_NE(r.out.find("soft limits"), std::string::npos) << r.out;
+    EXPECT_NE(r.output.find("soft limits"), std::string::npos) << r.output;
     r = slicectl(stage("move --x-um 10 --y-um 10 --z-um -5"));
     EXPECT_NE(r.exitCode, 0);
     EXPECT_EQ(server_->requestCount(), before) << "a refused move reached the drives";
@@ -100,17 +80,17 @@ TEST_F(SlicectlStage, MoveOutsideSoftLimitsSendsNothing) {
 TEST_F(SlicectlStage, HomeStopAndResetAlarm) {
     ASSERT_EQ(slicectl(stage("move --x-um 500 --y-um 500")).exitCode, 0);
     auto r = slicectl(stage("home"));
-    ASSERT_EQ(r.exitCode, 0) << r.out;
-    EXPECT_TRUE(lastJson(r.out)["homed"].get<bool>());
+    ASSERT_EQ(r.exitCode, 0) << r.output;
+    EXPECT_TRUE(lastJson(r.output)["homed"].get<bool>());
     r = slicectl(stage("stop"));
-    ASSERT_EQ(r.exitCode, 0) << r.out;
+    ASSERT_EQ(r.exitCode, 0) << r.output;
     server_->armAlarm(2, 0x30);
     r = slicectl(stage("move --x-um 500 --y-um 500"));
     EXPECT_NE(r.exitCode, 0);
-    EXPECT_NE(r.out.find("alarm"), std::string::npos) << r.out;
+    EXPECT_NE(r.output.find("alarm"), std::string::npos) << r.output;
     r = slicectl(stage("reset-alarm"));
-    ASSERT_EQ(r.exitCode, 0) << r.out;
-    auto j = lastJson(r.out);
+    ASSERT_EQ(r.exitCode, 0) << r.output;
+    auto j = lastJson(r.output);
     EXPECT_TRUE(j["alarm_before"]["active"].get<bool>());
     EXPECT_EQ(j["alarm_before"]["code"].get<int>(), 0x30);
     EXPECT_FALSE(j["alarm_after"]["active"].get<bool>());
@@ -121,9 +101,9 @@ TEST(SlicectlStageConfig, SimulationIsAnnounced) {
         "station_sim.toml", "[stage]\ndriver = \"sim\"\n[stage.axes.x]\nmin_um = 0\nmax_um = 1000\n"
                             "[stage.axes.y]\nmin_um = 0\nmax_um = 1000\n");
     auto r = slicectl("stage --config " + f.string() + " move --x-um 100 --y-um 200");
-    ASSERT_EQ(r.exitCode, 0) << r.out;
-    EXPECT_NE(r.out.find("SIMULATED"), std::string::npos) << r.out;
-    EXPECT_TRUE(lastJson(r.out)["simulated"].get<bool>());
+    ASSERT_EQ(r.exitCode, 0) << r.output;
+    EXPECT_NE(r.output.find("SIMULATED"), std::string::npos) << r.output;
+    EXPECT_TRUE(lastJson(r.output)["simulated"].get<bool>());
 }
 
 TEST(SlicectlStageConfig, ConfigErrorsNameTheKey) {
@@ -132,7 +112,7 @@ TEST(SlicectlStageConfig, ConfigErrorsNameTheKey) {
     const auto f = writeConfig("station_bad.toml", text);
     auto r = slicectl("stage --config " + f.string() + " position");
     EXPECT_NE(r.exitCode, 0);
-    EXPECT_NE(r.out.find("stage.axes.y.slave"), std::string::npos) << r.out;
+    EXPECT_NE(r.output.find("stage.axes.y.slave"), std::string::npos) << r.output;
 
     auto c = daemon::parseStationConfig(modbusToml(5020, "nope"), "s.toml");
     ASSERT_FALSE(c);
@@ -162,7 +142,7 @@ TEST(SlicectlStageConfig, NoStageRunningIsAClearError) {
     const auto f = writeConfig("station_nothing.toml", modbusToml(port, "leadshine-pr"));
     auto r = slicectl("stage --config " + f.string() + " position");
     EXPECT_NE(r.exitCode, 0);
-    EXPECT_NE(r.out.find("cannot connect"), std::string::npos) << r.out;
+    EXPECT_NE(r.output.find("cannot connect"), std::string::npos) << r.output;
 }
 
 } // namespace
