@@ -817,12 +817,19 @@ cv::Mat piecesInside(const cv::Mat& pieces, const cv::Mat& region, double share)
     return out;
 }
 
+namespace {
+/// The part of a region's evidence that the series context leaves (DamageRegion::persistence).
+double novelty(const DamageRegion& region) {
+    return 1.0 - std::clamp(region.persistence, 0.0, 1.0);
+}
+} // namespace
+
 double damageEvidence(const DamageRegion& region, double brainWidthPx, const DamageParams& params) {
     double e = params.damagedShare > 0 ? region.share / params.damagedShare : 0;
     if (region.kind == DamageKind::Tear && brainWidthPx > 0 && params.deepTearFrac > 0 &&
         region.lengthPx >= params.crackElongation * region.thicknessPx)
         e = std::max(e, region.lengthPx / (params.deepTearFrac * brainWidthPx));
-    return e * (1.0 - std::clamp(region.persistence, 0.0, 1.0));
+    return e * novelty(region);
 }
 
 double scoreFromEvidence(double evidence) {
@@ -836,7 +843,7 @@ double damageScore(std::vector<DamageRegion>& regions, double brainWidthPx,
     for (DamageRegion& r : regions) {
         const double e = damageEvidence(r, brainWidthPx, params);
         r.score = scoreFromEvidence(e);
-        share += r.share * (1.0 - std::clamp(r.persistence, 0.0, 1.0));
+        share += r.share * novelty(r);
         crack = std::max(crack, e);
     }
     const double summed = params.damagedShare > 0 ? share / params.damagedShare : 0;

@@ -41,25 +41,49 @@ struct DamageRow {
     std::string kinds;
 };
 
-/// RMS distance (atlas px) of the true landmark positions from the best affine fit to them: how
-/// much of the true map no affine can explain.
-double nonAffineRms(const std::vector<sim::Landmark>& lms) {
-    if (lms.size() < 3)
-        return 0;
-    cv::Mat A(int(lms.size()), 3, CV_64F), bx(int(lms.size()), 1, CV_64F),
-        by(int(lms.size()), 1, CV_64F);
+/// RMS of the vectors `v` at points `p` after removing their least-squares polynomial of
+/// `degree` (1 or 3) in (x, y) (centred and scaled for the fit's conditioning; the residual does
+/// not depend on it).
+double polynomialResidualRms(const std::vector<cv::Point2d>& p, const std::vector<cv::Point2d>& v,
+                             int degree) {
+    CV_Assert(degree == 1 || degree == 3);
+    cv::Point2d c(0, 0);
+    for (const auto& q : p)
+        c += q;
+    c *= 1.0 / double(p.size());
+    double scale = 1;
+    for (const auto& q : p)
+        scale = std::max(scale, cv::norm(q - c));
+    const int terms = degree == 1 ? 3 : 10;
+    cv::Mat A(int(p.size()), terms, CV_64F), bx(int(p.size()), 1, CV_64F),
+        by(int(p.size()), 1, CV_64F);
     for (int i = 0; i < A.rows; ++i) {
-        A.at<double>(i, 0) = lms[size_t(i)].image.x;
-        A.at<double>(i, 1) = lms[size_t(i)].image.y;
-        A.at<double>(i, 2) = 1;
-        bx.at<double>(i) = lms[size_t(i)].atlas.x;
-        by.at<double>(i) = lms[size_t(i)].atlas.y;
+        const double x = (p[size_t(i)].x - c.x) / scale, y = (p[size_t(i)].y - c.y) / scale;
+        const double t[10] = {1,     x,         y,         x * x,     x * y,
+                              y * y, x * x * x, x * x * y, x * y * y, y * y * y};
+        for (int j = 0; j < terms; ++j)
+            A.at<double>(i, j) = t[j];
+        bx.at<double>(i) = v[size_t(i)].x;
+        by.at<double>(i) = v[size_t(i)].y;
     }
     cv::Mat cx, cy;
     cv::solve(A, bx, cx, cv::DECOMP_SVD);
     cv::solve(A, by, cy, cv::DECOMP_SVD);
     const cv::Mat rx = A * cx - bx, ry = A * cy - by;
     return std::sqrt((rx.dot(rx) + ry.dot(ry)) / double(A.rows));
+}
+
+/// RMS distance (atlas px) of the true landmark positions from the best affine fit to them: how
+/// much of the true map no affine can explain.
+double nonAffineRms(const std::vector<sim::Landmark>& lms) {
+    if (lms.size() < 3)
+        return 0;
+    std::vector<cv::Point2d> image, atlas;
+    for (const auto& l : lms) {
+        image.push_back(l.image);
+        atlas.push_back(l.atlas);
+    }
+    return polynomialResidualRms(image, atlas, 1);
 }
 
 /// Where the error of one case lies (`--diagnose`): atlas px.
@@ -74,31 +98,7 @@ struct Diagnosis {
 /// RMS of the error vectors `e` at image points `p` after removing their least-squares cubic
 /// polynomial in (x, y): what a smooth field with about 4 x 4 degrees of freedom cannot fix.
 double localPart(const std::vector<cv::Point2d>& p, const std::vector<cv::Point2d>& e) {
-    if (p.size() < 20)
-        return 0;
-    cv::Point2d c(0, 0);
-    for (const auto& q : p)
-        c += q;
-    c *= 1.0 / double(p.size());
-    double scale = 1;
-    for (const auto& q : p)
-        scale = std::max(scale, cv::norm(q - c));
-    cv::Mat A(int(p.size()), 10, CV_64F), bx(int(p.size()), 1, CV_64F),
-        by(int(p.size()), 1, CV_64F);
-    for (int i = 0; i < A.rows; ++i) {
-        const double x = (p[size_t(i)].x - c.x) / scale, y = (p[size_t(i)].y - c.y) / scale;
-        const double t[10] = {1,     x,         y,         x * x,     x * y,
-                              y * y, x * x * x, x * x * y, x * y * y, y * y * y};
-        for (int j = 0; j < 10; ++j)
-            A.at<double>(i, j) = t[j];
-        bx.at<double>(i) = e[size_t(i)].x;
-        by.at<double>(i) = e[size_t(i)].y;
-    }
-    cv::Mat cx, cy;
-    cv::solve(A, bx, cx, cv::DECOMP_SVD);
-    cv::solve(A, by, cy, cv::DECOMP_SVD);
-    const cv::Mat rx = A * cx - bx, ry = A * cy - by;
-    return std::sqrt((rx.dot(rx) + ry.dot(ry)) / double(A.rows));
+    return p.size() < 20 ? 0 : polynomialResidualRms(p, e, 3);
 }
 
 Diagnosis diagnose(const sim::GroundTruth& truth, const pipeline::Registration& reg) {
@@ -306,14 +306,20 @@ void printDamage(const std::vector<DamageRow>& d, const std::vector<Row>& rows) 
                 ms.empty() ? 0.0 : *std::max_element(ms.begin(), ms.end()));
 }
 
-/// Applies "key=value" settings to the dense refinement's options; false on an unknown key.
-bool applyDenseSettings(const std::vector<std::string>& settings, pipeline::DenseRefineOptions& o) {
+/// Applies "key=value" settings (`set(key, value)` false on an unknown key); false on a setting
+/// without '=' or with an unknown key.
+template <class Set> bool applySettings(const std::vector<std::string>& settings, Set set) {
     for (const std::string& kv : settings) {
         const size_t eq = kv.find('=');
-        if (eq == std::string::npos)
+        if (eq == std::string::npos || !set(kv.substr(0, eq), std::atof(kv.c_str() + eq + 1)))
             return false;
-        const std::string key = kv.substr(0, eq);
-        const double v = std::atof(kv.c_str() + eq + 1);
+    }
+    return true;
+}
+
+/// The dense refinement's options for choosing them (`--dense`).
+bool applyDenseSettings(const std::vector<std::string>& settings, pipeline::DenseRefineOptions& o) {
+    return applySettings(settings, [&o](const std::string& key, double v) {
         if (key == "grid")
             o.gridMaxSide = int(v);
         else if (key == "sigma")
@@ -338,8 +344,23 @@ bool applyDenseSettings(const std::vector<std::string>& settings, pipeline::Dens
             o.robustK = v;
         else
             return false;
-    }
-    return true;
+        return true;
+    });
+}
+
+/// The smooth warp's options for choosing them (`--smooth-opt`).
+bool applySmoothSettings(const std::vector<std::string>& settings, pipeline::SmoothWarpOptions& o) {
+    return applySettings(settings, [&o](const std::string& key, double v) {
+        if (key == "spacing")
+            o.nodeSpacing = v;
+        else if (key == "stiffness")
+            o.stiffness = v;
+        else if (key == "robust-k")
+            o.robustK = v;
+        else
+            return false;
+        return true;
+    });
 }
 
 } // namespace
@@ -453,6 +474,14 @@ int main(int argc, char** argv) {
                         regOptions.separateParts[p].push_back(id);
         }
     }
+    if (!applySmoothSettings(smoothSettings, regOptions.smooth)) {
+        std::cerr << "bad --smooth-opt setting\n";
+        return 2;
+    }
+    if (!applyDenseSettings(denseSettings, regOptions.dense)) {
+        std::cerr << "bad --dense setting\n";
+        return 2;
+    }
     std::vector<bench::BenchCase> all;
     const int planeCount = static_cast<int>(atlas->planes.size());
     if (familyText == "1" || familyText == "all")
@@ -515,25 +544,6 @@ int main(int argc, char** argv) {
         if (templateIntensity == "all" ||
             (templateIntensity == "template" && c.family == bench::Family::Template))
             ro.atlasIntensity = bench::templateOnLabelGrid(*atlas, c.plane, plane.size());
-        for (const std::string& kv : smoothSettings) {
-            const size_t eq = kv.find('=');
-            const std::string key = kv.substr(0, eq);
-            const double v = eq == std::string::npos ? 0 : std::atof(kv.c_str() + eq + 1);
-            if (key == "spacing")
-                ro.smooth.nodeSpacing = v;
-            else if (key == "stiffness")
-                ro.smooth.stiffness = v;
-            else if (key == "robust-k")
-                ro.smooth.robustK = v;
-            else {
-                std::cerr << "bad --smooth-opt setting\n";
-                return 2;
-            }
-        }
-        if (!applyDenseSettings(denseSettings, ro.dense)) {
-            std::cerr << "bad --dense setting\n";
-            return 2;
-        }
         auto reg = pipeline::registerSection(gen->image, plane, ro);
         ours.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
         if (reg) {

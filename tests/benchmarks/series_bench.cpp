@@ -87,6 +87,18 @@ std::vector<int> skipAndSwapSlots() {
     return slots;
 }
 
+/// Whether the fit found what skipAndSwapSlots planted: the skip before arrival 8, and arrivals
+/// 13 and 14 swapped.
+struct PlantedFound {
+    bool skip = false;
+    bool swap = false;
+};
+PlantedFound plantedFound(const std::vector<pipeline::SeriesSectionFit>& f) {
+    return {f[8].anomaly == pipeline::SeriesAnomaly::Skipped,
+            f[13].anomaly == pipeline::SeriesAnomaly::Swapped &&
+                f[14].anomaly == pipeline::SeriesAnomaly::Swapped};
+}
+
 struct Stack {
     std::vector<pipeline::SliceFeatures> features;
     double workUm = 0;
@@ -297,9 +309,7 @@ int main(int argc, char** argv) {
         for (size_t i = 0; i < truth.size(); ++i)
             err.push_back(std::abs(r->matches[i].positionUm - truth[i]));
         const auto& f = r->fit.sections;
-        const bool skip = f[8].anomaly == pipeline::SeriesAnomaly::Skipped;
-        const bool swap = f[13].anomaly == pipeline::SeriesAnomaly::Swapped &&
-                          f[14].anomaly == pipeline::SeriesAnomaly::Swapped;
+        const auto [skip, swap] = plantedFound(f);
         int falseAlarms = 0, placed = 0;
         for (size_t i = 0; i < f.size(); ++i) {
             placed += f[i].anomaly == pipeline::SeriesAnomaly::Placed;
@@ -391,18 +401,13 @@ int main(int argc, char** argv) {
             signedOwn.push_back(r->matches[i].positionUm - truth[i]);
             series.push_back(std::abs(r->fit.sections[i].positionUm - truth[i]));
         }
-        const auto& f = r->fit.sections;
+        const PlantedFound found = plantedFound(r->fit.sections);
         std::printf("template: own matches error median %.0f um, 90th pct %.0f, median signed "
                     "%+.0f um; series answer median %.0f, 90th pct %.0f; skip detected %s, swap "
                     "detected %s; spacing %.1f um\n",
                     percentile(own, 0.5), percentile(own, 0.9), percentile(signedOwn, 0.5),
-                    percentile(series, 0.5), percentile(series, 0.9),
-                    f[8].anomaly == pipeline::SeriesAnomaly::Skipped ? "yes" : "NO",
-                    f[13].anomaly == pipeline::SeriesAnomaly::Swapped &&
-                            f[14].anomaly == pipeline::SeriesAnomaly::Swapped
-                        ? "yes"
-                        : "NO",
-                    r->fit.spacingUm);
+                    percentile(series, 0.5), percentile(series, 0.9), found.skip ? "yes" : "NO",
+                    found.swap ? "yes" : "NO", r->fit.spacingUm);
         printTimes(*r);
     }
 

@@ -81,6 +81,14 @@ const sim::DamageRegion* findDamage(const sim::GroundTruth& t, sim::DamageKind k
     return nullptr;
 }
 
+/// A tenth of the way from the glass around the section (beyond 20 px) to its tissue (3 px
+/// inside): where a hole that shows the slide must lie below.
+double glassLine(const sim::GeneratedSection& g) {
+    const double glass = medianOf(g.image, ~dilated(g.truth.tissueMask, 20));
+    const double tissue = medianOf(g.image, eroded(g.truth.tissueMask, 3));
+    return glass + 0.1 * (tissue - glass);
+}
+
 } // namespace
 
 TEST(SectionGenerator, SameSeedGivesIdenticalBytesOtherSeedDiffers) {
@@ -307,9 +315,7 @@ TEST(SectionGenerator, TearIsAThinCrackFromTheBoundaryShowingGlass) {
         EXPECT_GE(tear->polygon.size(), 3u);
         EXPECT_EQ(cv::countNonZero(t.tissueMask & removed), 0);
         // The crack shows glass: as dark as the slide, far darker than tissue.
-        const double glass = medianOf(g.image, ~dilated(t.tissueMask, 20));
-        const double tissue = medianOf(g.image, eroded(t.tissueMask, 3));
-        EXPECT_LT(medianOf(g.image, eroded(removed, 3)), glass + 0.1 * (tissue - glass));
+        EXPECT_LT(medianOf(g.image, eroded(removed, 3)), glassLine(g));
         // Elongated: the crack reaches much further than its width.
         const cv::RotatedRect r = cv::minAreaRect(tear->polygon);
         EXPECT_GT(std::max(r.size.width, r.size.height), 3 * std::min(r.size.width, r.size.height));
@@ -334,9 +340,7 @@ TEST(SectionGenerator, MissingChunkSitsOnTheBoundary) {
     EXPECT_LT(missing->areaPx, 0.08 * tissueArea);
     // It touches the glass around the section (it is at the boundary).
     EXPECT_GT(cv::countNonZero(dilated(removed, 2) & (t.labelsInImage == 0)), 0);
-    const double glass = medianOf(g.image, ~dilated(t.tissueMask, 20));
-    const double tissue = medianOf(g.image, eroded(t.tissueMask, 3));
-    EXPECT_LT(medianOf(g.image, eroded(removed, 3)), glass + 0.1 * (tissue - glass));
+    EXPECT_LT(medianOf(g.image, eroded(removed, 3)), glassLine(g));
     EXPECT_EQ(cv::countNonZero((t.tissueMask != intactTissue(t)) & (t.damageMask == 0)), 0);
 }
 
@@ -362,9 +366,7 @@ TEST(SectionGenerator, FragmentIsCutOffAndMovedClearOfTheSection) {
             << "seed " << seed;
         EXPECT_EQ(cv::countNonZero(dilated(moved, 2) & main), 0) << "seed " << seed;
         const cv::Mat hole = (t.damageMask == 3) & ~t.tissueMask & tissueBefore;
-        const double glass = medianOf(g.image, ~dilated(t.tissueMask, 20));
-        const double tissue = medianOf(g.image, eroded(t.tissueMask, 3));
-        EXPECT_LT(medianOf(g.image, eroded(hole, 3)), glass + 0.1 * (tissue - glass));
+        EXPECT_LT(medianOf(g.image, eroded(hole, 3)), glassLine(g));
         // The motion takes the piece's centre to the moved piece's centre.
         const cv::Moments mp = cv::moments(fragment->polygon);
         const cv::Point2d pc(mp.m10 / mp.m00, mp.m01 / mp.m00);
@@ -472,9 +474,7 @@ TEST(SectionGenerator, FoldDoublesABandAndMovesTheEdgeIn) {
         EXPECT_GT(gained / flap, 0.6) << "seed " << seed;
         EXPECT_LT(gained / flap, 1.25) << "seed " << seed;
         // The flap's place shows glass.
-        const double glass = medianOf(g.image, ~dilated(g.truth.tissueMask, 20));
-        const double tissue = medianOf(g.image, eroded(g.truth.tissueMask, 3));
-        EXPECT_LT(medianOf(g.image, place), glass + 0.1 * (tissue - glass)) << "seed " << seed;
+        EXPECT_LT(medianOf(g.image, place), glassLine(g)) << "seed " << seed;
     }
     EXPECT_GE(folds, 2);
 }
