@@ -8,6 +8,7 @@
 // (100 um stack of the 50 um annotation, collapsed to the major regions, 25 um/px);
 // abba-gerbi-series from its curated position and tilt (sections.csv, README), sliced from the
 // 25 um annotation and collapsed the same way.
+#include "../common/abba_frame.hpp"
 #include "slicestation/core/image_file.hpp"
 #include "slicestation/core/nrrd.hpp"
 #include "slicestation/core/ontology.hpp"
@@ -228,9 +229,7 @@ core::Result<std::vector<RealSection>> gerbiSeries(const fs::path& shared) {
         // (rows), rotationY 0.0015 rad toward left-right (columns).
         pipeline::CuttingPlane plane;
         plane.orientation = pipeline::PlaneOrientation::Coronal;
-        // ABBA counts its slicing positions from 15% of the atlas' half-length (0.99 mm) before
-        // the volume's front (docs/atlas.md, "The gerbi offset"), not from the front itself.
-        plane.positionUm = std::stod(f[5]) * 1000 - 0.15 * 13200 / 2 - 7.5;
+        plane.positionUm = testing_abba::ccfUmFromAbbaMm(std::stod(f[5])) - 7.5;
         plane.tiltRowsDeg = 0.042 * 180 / kPi;
         plane.tiltColumnsDeg = 0.0015 * 180 / kPi;
         plane.umPerPx = 25;

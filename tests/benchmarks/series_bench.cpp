@@ -6,6 +6,7 @@
 //    the curated ABBA positions of sections.csv and ABBA's tilt;
 //  - mouse: ../shared/sections/abba-mouse-series (20 sections), order and evenness only.
 // Prints a table per section and the summary lines the targets are read from.
+#include "../common/abba_frame.hpp"
 #include "slicestation/core/image_file.hpp"
 #include "slicestation/core/nrrd.hpp"
 #include "slicestation/core/ontology.hpp"
@@ -34,9 +35,6 @@ using Clock = std::chrono::steady_clock;
 namespace {
 
 constexpr double kPi = 3.14159265358979323846;
-/// ABBA's slicing positions start 15% of the atlas' half-length (13.2 mm along AP) before the
-/// volume's front (see the gerbi truth below).
-constexpr double kAbbaMarginUm = 0.15 * 13200 / 2;
 
 double msSince(Clock::time_point t) {
     return std::chrono::duration<double, std::milli>(Clock::now() - t).count();
@@ -438,7 +436,7 @@ int main(int argc, char** argv) {
             // before the CCFv3 volume's front (docs/atlas.md). The stack counts from the first
             // voxel's centre (CCF coordinates: the NRRD's space origin is 0).
             abbaMm.push_back(std::stod(f[5]));
-            truth.push_back(std::stod(f[5]) * 1000 - kAbbaMarginUm);
+            truth.push_back(testing_abba::ccfUmFromAbbaMm(std::stod(f[5])));
         }
         const double abbaSpacing = 335.8;
         pipeline::SeriesMatchOptions o;
@@ -473,9 +471,9 @@ int main(int argc, char** argv) {
         std::printf("gerbi (ABBA frame: abba_position_mm - %.0f um): series answer error median "
                     "%.0f um, 90th pct %.0f um, max %.0f; own matches median %.0f, 90th pct %.0f, "
                     "median signed %+.0f um\n",
-                    kAbbaMarginUm, percentile(series, 0.5), percentile(series, 0.9),
-                    *std::max_element(series.begin(), series.end()), percentile(own, 0.5),
-                    percentile(own, 0.9), percentile(signedOwn, 0.5));
+                    testing_abba::kSlicingMarginUm, percentile(series, 0.5),
+                    percentile(series, 0.9), *std::max_element(series.begin(), series.end()),
+                    percentile(own, 0.5), percentile(own, 0.9), percentile(signedOwn, 0.5));
         std::printf("gerbi (abba_position_mm read as CCF mm, as the README says): series answer "
                     "error median %.0f um, 90th pct %.0f um\n",
                     percentile(readme, 0.5), percentile(readme, 0.9));

@@ -1,5 +1,6 @@
 // Ground-truth accuracy: real and built-in atlas planes warped by known transforms, rendered with
 // a stain unrelated to the atlas, optionally damaged; landmark errors in atlas pixels.
+#include "../common/abba_frame.hpp"
 #include "slicestation/core/image_file.hpp"
 #include "slicestation/core/nrrd.hpp"
 #include "slicestation/core/ontology.hpp"
@@ -634,8 +635,7 @@ TEST(RegistrationAccuracy, TheMountingRuleKeepsRealSectionsTheWayTheyWereMounted
         ASSERT_TRUE(img.ok()) << name << ": " << img.error().message;
         pipeline::CuttingPlane plane;
         plane.orientation = pipeline::PlaneOrientation::Coronal;
-        // ABBA's positions start 0.99 mm before the volume's front (docs/atlas.md).
-        plane.positionUm = positionMm * 1000 - 0.15 * 13200 / 2 - 7.5;
+        plane.positionUm = testing_abba::ccfUmFromAbbaMm(positionMm) - 7.5;
         plane.tiltRowsDeg = 0.042 * 180 / CV_PI;
         plane.tiltColumnsDeg = 0.0015 * 180 / CV_PI;
         plane.umPerPx = 25;
