@@ -214,8 +214,51 @@ std::vector<DetectedCell> splitTouching(std::vector<DetectedCell> cells, const c
     return out;
 }
 
+/// Detections for clipped blobs of a cell's size that no detection holds yet. A pixel at the
+/// sensor's ceiling says only "at least this bright": a labelled cell clipped on a bright,
+/// textured background answers the LoG with the clipped height alone, which the texture can
+/// match, so its signal-to-noise ratio falls under the threshold; but texture and noise clip in
+/// specks, not in discs of a cell's area. Each clipped connected piece of at least
+/// kClippedCellShare of a cell's disc (pi d^2 / 4) that holds no detection and has none within
+/// the separation of its centroid becomes one cell there. Run after the area split: a clipped
+/// piece is one cell (touching clipped cells the LoG did not find stay one).
+std::vector<DetectedCell> addClippedCells(std::vector<DetectedCell> cells, const cv::Mat& clipped,
+                                          const cv::Mat& mask, const CellDetectorOptions& o,
+                                          double response) {
+    // Half a cell's disc: a cell's clipped core; set from the cell's size, not tuned (the
+    // first generator family, where parameters are chosen, never clips a cell).
+    constexpr double kClippedCellShare = 0.5;
+    if (clipped.empty())
+        return cells;
+    cv::Mat pieces = clipped.clone();
+    if (!mask.empty())
+        pieces &= mask != 0;
+    cv::Mat labels, stats, centroids;
+    const int n = cv::connectedComponentsWithStats(pieces, labels, stats, centroids, 8, CV_32S);
+    const double minArea = kClippedCellShare * CV_PI * o.diameterPx * o.diameterPx / 4;
+    std::vector<char> held(static_cast<size_t>(n), 0);
+    const double sep = o.minSeparation * o.diameterPx;
+    for (const DetectedCell& c : cells) {
+        const int x = int(std::lround(c.imagePx.x)), y = int(std::lround(c.imagePx.y));
+        if (x >= 0 && y >= 0 && x < labels.cols && y < labels.rows)
+            held[size_t(labels.at<int>(y, x))] = 1;
+    }
+    const size_t found = cells.size();
+    for (int l = 1; l < n; ++l) {
+        if (held[size_t(l)] || stats.at<int>(l, cv::CC_STAT_AREA) < minArea)
+            continue;
+        const cv::Point2d centre(centroids.at<double>(l, 0), centroids.at<double>(l, 1));
+        bool near = false;
+        for (size_t i = 0; i < found && !near; ++i)
+            near = cv::norm(cells[i].imagePx - centre) < sep;
+        if (!near)
+            cells.push_back({centre, response, 1});
+    }
+    return cells;
+}
+
 std::vector<DetectedCell> detectLoG(const cv::Mat& top, const cv::Mat& mask,
-                                    const CellDetectorOptions& o) {
+                                    const cv::Mat& clipped, const CellDetectorOptions& o) {
     // A disc of radius r answers most strongly at sigma = r / sqrt(2) (Lindeberg's scale
     // selection); the response is scale-normalised (sigma^2).
     const double sigma = o.diameterPx / (2.0 * std::sqrt(2.0));
@@ -328,6 +371,7 @@ std::vector<DetectedCell> detectLoG(const cv::Mat& top, const cv::Mat& mask,
         kept.push_back(c);
     }
     kept = splitTouching(std::move(kept), top, mask, o);
+    kept = addClippedCells(std::move(kept), clipped, mask, o, threshold);
     std::sort(kept.begin(), kept.end(), [](const DetectedCell& a, const DetectedCell& b) {
         return a.imagePx.y != b.imagePx.y ? a.imagePx.y < b.imagePx.y : a.imagePx.x < b.imagePx.x;
     });
@@ -418,13 +462,18 @@ core::Result<std::vector<DetectedCell>> detectCells(const cv::Mat& image,
         cv::Mat f = *plane;
         const bool dark = o.polarity == CellPolarity::Dark ||
                           (o.polarity == CellPolarity::Auto && cellsDark(f, o.mask));
+        // Pixels at the integer format's ceiling (bright cells) or floor (dark cells that let
+        // no light through) are clipped: their true value lies beyond the bound.
+        cv::Mat clipped;
+        if (image.depth() != CV_32F)
+            clipped = dark ? f <= 0 : f >= (image.depth() == CV_8U ? 255 : 65535);
         if (dark) {
             double hi = 0;
             cv::minMaxLoc(f, nullptr, &hi);
             f = hi - f;
         }
         const cv::Mat top = backgroundSubtracted(f, o.diameterPx);
-        return o.method == CellMethod::LoG ? detectLoG(top, o.mask, o)
+        return o.method == CellMethod::LoG ? detectLoG(top, o.mask, clipped, o)
                                            : detectThreshold(top, o.mask, o);
     } catch (const cv::Exception& e) {
         return makeError(ErrorCode::Internal, std::string("cell detection: OpenCV: ") + e.what());

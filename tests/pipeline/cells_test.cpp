@@ -186,6 +186,47 @@ TEST(CellDetector, DarkCellsOnBrightGlassAndTheChosenChannel) {
     EXPECT_LE(green->size(), 2u);
 }
 
+// A labelled cell clipped at the sensor's ceiling on a bright, densely textured stain (a Nissl
+// counterstain under a strong label) answers the LoG with the clipped height alone, which the
+// texture matches; the clipped disc of a cell's size still tells it from texture, which clips
+// in specks. The same pixels as float (no ceiling known) show what the LoG alone finds.
+TEST(CellDetector, CellsClippedOnABrightTexturedStainAreFound) {
+    const cv::Size size(480, 480);
+    const double diameter = 6;
+    cv::Mat img(size, CV_32F);
+    cv::RNG rng(17);
+    rng.fill(img, cv::RNG::UNIFORM, 0, 1);
+    // Texture: specks of about 2 px over a bright level, heavy-tailed like a dense Nissl stain.
+    cv::pow(img, 6, img);
+    img = 38000 + 60000 * img;
+    cv::GaussianBlur(img, img, cv::Size(), 0.8);
+    const auto centres = spread(size, 60, 4 * diameter, 5);
+    const double s = diameter / 2.3548;
+    for (const auto& c : centres)
+        for (int y = int(c.y) - 12; y <= int(c.y) + 12; ++y)
+            for (int x = int(c.x) - 12; x <= int(c.x) + 12; ++x)
+                img.at<float>(y, x) += float(
+                    90000 * std::exp(-((x - c.x) * (x - c.x) + (y - c.y) * (y - c.y)) / (2 * s * s)));
+    cv::Mat sensor;
+    img.convertTo(sensor, CV_16U); // saturates at 65535: the cells clip
+    CellDetectorOptions o;
+    o.diameterPx = diameter;
+    o.polarity = CellPolarity::Bright;
+    auto clippedKnown = detectCells(sensor, o);
+    cv::Mat asFloat;
+    sensor.convertTo(asFloat, CV_32F);
+    auto logAlone = detectCells(asFloat, o);
+    ASSERT_TRUE(clippedKnown && logAlone);
+    const int found = matched(*clippedKnown, centres, 0.6 * diameter);
+    const int foundByLoG = matched(*logAlone, centres, 0.6 * diameter);
+    std::cout << "[ clipped  ] " << centres.size() << " cells: LoG alone " << foundByLoG << " of "
+              << logAlone->size() << " detections, with the clipped pieces " << found << " of "
+              << clippedKnown->size() << "\n";
+    EXPECT_GE(found, int(0.95 * double(centres.size())));
+    EXPECT_GE(found, int(0.9 * double(clippedKnown->size()))) << "texture clipped in specks counted";
+    EXPECT_LT(foundByLoG, found) << "the case needs the clipped pieces";
+}
+
 TEST(CellDetector, BadInputIsAnError) {
     const cv::Mat img(100, 100, CV_8U, cv::Scalar(0));
     CellDetectorOptions o;
