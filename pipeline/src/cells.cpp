@@ -257,8 +257,8 @@ std::vector<DetectedCell> addClippedCells(std::vector<DetectedCell> cells, const
     return cells;
 }
 
-std::vector<DetectedCell> detectLoG(const cv::Mat& top, const cv::Mat& mask,
-                                    const cv::Mat& clipped, const CellDetectorOptions& o) {
+std::vector<DetectedCell> detectLoG(const cv::Mat& top, const cv::Mat& mask, const cv::Mat& clipped,
+                                    const CellDetectorOptions& o) {
     // A disc of radius r answers most strongly at sigma = r / sqrt(2) (Lindeberg's scale
     // selection); the response is scale-normalised (sigma^2).
     const double sigma = o.diameterPx / (2.0 * std::sqrt(2.0));

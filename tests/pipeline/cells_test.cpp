@@ -205,8 +205,9 @@ TEST(CellDetector, CellsClippedOnABrightTexturedStainAreFound) {
     for (const auto& c : centres)
         for (int y = int(c.y) - 12; y <= int(c.y) + 12; ++y)
             for (int x = int(c.x) - 12; x <= int(c.x) + 12; ++x)
-                img.at<float>(y, x) += float(
-                    90000 * std::exp(-((x - c.x) * (x - c.x) + (y - c.y) * (y - c.y)) / (2 * s * s)));
+                img.at<float>(y, x) +=
+                    float(90000 *
+                          std::exp(-((x - c.x) * (x - c.x) + (y - c.y) * (y - c.y)) / (2 * s * s)));
     cv::Mat sensor;
     img.convertTo(sensor, CV_16U); // saturates at 65535: the cells clip
     CellDetectorOptions o;
@@ -223,7 +224,8 @@ TEST(CellDetector, CellsClippedOnABrightTexturedStainAreFound) {
               << logAlone->size() << " detections, with the clipped pieces " << found << " of "
               << clippedKnown->size() << "\n";
     EXPECT_GE(found, int(0.95 * double(centres.size())));
-    EXPECT_GE(found, int(0.9 * double(clippedKnown->size()))) << "texture clipped in specks counted";
+    EXPECT_GE(found, int(0.9 * double(clippedKnown->size())))
+        << "texture clipped in specks counted";
     EXPECT_LT(foundByLoG, found) << "the case needs the clipped pieces";
 }
 
