@@ -239,6 +239,25 @@ TEST_F(SlicectlAtlas, RegisterUsesTheStacksTemplatePlane) {
     EXPECT_TRUE(withJson.at("quality").at("intensity_affine_kept").get<bool>());
     EXPECT_LT(with, 0.8 * without) << "landmark RMSE " << without << " -> " << with;
 
+    // A plain label image with its plane given by --atlas-template registers as the stack does;
+    // a label image given as the plane is refused, naming the file.
+    r = slicectl("register --atlas " + p("plain/slice-014.tif") + " --atlas-template " +
+                 p("tstack/template-014.tif") + " --image " + p("tsection.tif") + " --points " +
+                 p("tpoints.csv") + " --output " + p("tplain.json"));
+    ASSERT_EQ(r.exitCode, 0) << r.output;
+    const auto plainPoints = readJson(p("tplain.json")).at("points");
+    ASSERT_EQ(plainPoints.size(), withJson.at("points").size());
+    for (size_t i = 0; i < plainPoints.size(); ++i)
+        for (const char* key : {"atlas_x", "atlas_y"})
+            EXPECT_DOUBLE_EQ(plainPoints[i].at(key).get<double>(),
+                             withJson.at("points")[i].at(key).get<double>());
+    r = slicectl("register --atlas " + p("plain/slice-014.tif") + " --atlas-template " +
+                 p("plain/slice-013.tif") + " --image " + p("tsection.tif") + " --output " +
+                 p("tbad.json"));
+    EXPECT_NE(r.exitCode, 0);
+    EXPECT_NE(r.output.find("slice-013.tif"), std::string::npos) << r.output;
+    EXPECT_FALSE(fs::exists(p("tbad.json")));
+
     // A bad template entry in the manifest is an error naming it; nothing is written.
     manifest["slices"][kSlice]["template"] = "missing.tif";
     std::ofstream(dir_ / "plain" / "manifest.json") << manifest.dump();
