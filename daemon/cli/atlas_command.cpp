@@ -83,6 +83,22 @@ core::Result<void> sliceVolumeFile(const AtlasSliceRequest& rq,
     if (!cut)
         return makeError(cut.error().code, rq.volume.string() + ": " + cut.error().message);
     slices = std::move(*cut);
+    if (!rq.templateVolume.empty()) {
+        report(rq, "cutting the template", 0, 0);
+        auto templ = core::readNrrd(rq.templateVolume);
+        if (!templ)
+            return templ.error();
+        auto offset = pipeline::intensityFrameOffsetUm(*volume, axes, *templ, axes);
+        if (!offset)
+            return makeError(offset.error().code, "--template " + rq.templateVolume.string() +
+                                                      ": " + offset.error().message);
+        const std::uint32_t top = *std::max_element(templ->data.begin(), templ->data.end());
+        if (top == 0)
+            return makeError(ErrorCode::InvalidArgument,
+                             "--template " + rq.templateVolume.string() + ": every voxel is 0");
+        for (auto& s : slices)
+            s.intensity = pipeline::sampleIntensity(*templ, axes, s.geometry, *offset, top);
+    }
     std::set<std::uint32_t> ids;
     if (rq.regions == "major") {
         const int n = static_cast<int>(slices.size());
@@ -126,6 +142,8 @@ core::Result<void> sliceVolumeFile(const AtlasSliceRequest& rq,
               {"tilt_lr_deg", rq.tiltLrDeg},
               {"tilt_dv_deg", rq.tiltDvDeg},
               {"regions", rq.regions}};
+    if (!rq.templateVolume.empty())
+        source["template"] = rq.templateVolume.string();
     return {};
 }
 
@@ -153,6 +171,9 @@ core::Result<json> runAtlasSlice(const AtlasSliceRequest& rq) {
         if (rq.plane != "coronal")
             return makeError(ErrorCode::InvalidArgument,
                              "--plane: the built-in atlas has coronal planes only");
+        if (!rq.templateVolume.empty())
+            return makeError(ErrorCode::InvalidArgument,
+                             "--template: the built-in atlas has no intensity volume");
         auto s = builtinStackSlices(rq.intervalUm, rq.firstUm);
         if (!s)
             return s.error();

@@ -34,6 +34,9 @@ CommandRunner addAtlasCommands(CLI::App& app) {
     slice->add_option("--um-per-px", sliceRq->umPerPx, "Pixel size of the slices")
         ->check(finiteRange(kMinSliceUmPerPx, kMaxUmPerPx));
     slice->add_option("--regions", sliceRq->regions, "major (paper's 20 + tracts, ventricles)|all");
+    slice->add_option("--template", sliceRq->templateVolume,
+                      "Intensity volume of the same space (NRRD, e.g. the Allen average "
+                      "template, axes as --axes): cut beside every slice as its atlas intensity");
     slice->add_option("--output", sliceRq->output, "Stack directory")->required();
 
     auto matchRq = std::make_shared<AtlasMatchRequest>();

@@ -41,7 +41,7 @@ int reportError(const char* command, const core::Error& e) {
 CommandRunner addRegisterCommand(CLI::App& app) {
     struct Opts {
         RegisterRequest rq;
-        std::string points, overlay, warped;
+        std::string points, overlay, warped, atlasTemplate;
         int slice = -1;
     };
     auto o = std::make_shared<Opts>();
@@ -50,6 +50,10 @@ CommandRunner addRegisterCommand(CLI::App& app) {
            "--atlas", o->rq.atlas,
            "Atlas label image (ids or colour-coded RGB), or a stack directory with --slice")
         ->required();
+    reg->add_option("--atlas-template", o->atlasTemplate,
+                    "Atlas intensity plane (e.g. the Allen average template cut like the labels; "
+                    "one-channel float32, 8- or 16-bit, the labels' size); a stack slice's own "
+                    "template is used without it");
     reg->add_option("--slice", o->slice, "Slice index when --atlas is a stack directory")
         ->check(CLI::Range(0, pipeline::kMaxStackSlices - 1));
     reg->add_option("--image", o->rq.image, "Section image (PNG or TIFF)")->required();
@@ -77,6 +81,8 @@ CommandRunner addRegisterCommand(CLI::App& app) {
             rq.overlay = o->overlay;
         if (!o->warped.empty())
             rq.warpedLabels = o->warped;
+        if (!o->atlasTemplate.empty())
+            rq.atlasTemplate = o->atlasTemplate;
         if (auto s = useStackSlice(rq, o->slice); !s)
             return reportError("register", s.error());
         auto r = [&] {

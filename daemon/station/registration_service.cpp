@@ -2,6 +2,7 @@
 
 #include "slicestation/core/atomic_file.hpp"
 #include "slicestation/core/image_file.hpp"
+#include "slicestation/daemon/storage/atlas_stack.hpp"
 #include "slicestation/daemon/version.hpp"
 #include "slicestation/pipeline/atlas.hpp"
 #include "slicestation/pipeline/overlay.hpp"
@@ -76,6 +77,30 @@ core::Result<void> checkSectionSize(const cv::Mat& section) {
     return {};
 }
 
+/// A template plane given as a file: one channel, float32 as is, 8/16-bit scaled to [0, 1], of
+/// the labels' size.
+core::Result<cv::Mat> readTemplateImage(const std::filesystem::path& path, cv::Size labels) {
+    auto image = core::readImage(path);
+    if (!image)
+        return inFile(image.error(), path, "atlas template");
+    if (image->channels() != 1 ||
+        (image->depth() != CV_32F && image->depth() != CV_8U && image->depth() != CV_16U))
+        return makeError(ErrorCode::InvalidArgument,
+                         "atlas template " + path.string() +
+                             ": expected a one-channel float32, 8- or 16-bit image");
+    if (image->size() != labels)
+        return makeError(ErrorCode::InvalidArgument,
+                         "atlas template " + path.string() + ": " + std::to_string(image->cols) +
+                             " x " + std::to_string(image->rows) + " px, the atlas labels are " +
+                             std::to_string(labels.width) + " x " + std::to_string(labels.height));
+    cv::Mat plane;
+    image->convertTo(plane, CV_32F,
+                     image->depth() == CV_8U    ? 1.0 / 255
+                     : image->depth() == CV_16U ? 1.0 / 65535
+                                                : 1.0);
+    return plane;
+}
+
 json affineJson(const cv::Matx23d& a) {
     return json::array(
         {json::array({a(0, 0), a(0, 1), a(0, 2)}), json::array({a(1, 0), a(1, 1), a(1, 2)})});
@@ -116,7 +141,11 @@ json resultDocument(const RegisterRequest& rq, const cv::Mat& section, const cv:
         if (!f.stackDir.empty())
             f.stackDir = relativeToResult(f.stackDir, rq);
         out["atlas"]["stack"] = sliceFrameJson(f);
+        if (!f.templateFile.empty() && !rq.atlasTemplate)
+            out["atlas"]["template"] = f.templateFile;
     }
+    if (rq.atlasTemplate)
+        out["atlas"]["template"] = relativeToResult(*rq.atlasTemplate, rq);
     const bool ccf = rq.atlasSlice && rq.atlasSlice->ccf;
     out["damaged"] = reg.damaged;
     out["damage_score"] = reg.damageScore;
@@ -156,6 +185,7 @@ json resultDocument(const RegisterRequest& rq, const cv::Mat& section, const cv:
                       {"atlas_boundary_matched", q.atlasBoundaryMatched},
                       {"section_edges_matched", q.sectionEdgesMatched},
                       {"tissue_overlap", q.tissueOverlap},
+                      {"intensity_affine_kept", q.intensityAffineKept},
                       {"scale_atlas_px_per_image_px", q.scaleAtlasPxPerImagePx}};
     return out;
 }
@@ -190,9 +220,25 @@ core::Result<RegisteredSection> registerSectionFiles(const RegisterRequest& rq,
             return p.error();
         points = std::move(*p);
     }
+    // A template plane (given, or the stack slice's own): the registration's atlas intensity
+    // (it polishes the affine and joins the dense refinement).
+    cv::Mat atlasIntensity;
+    if (rq.atlasTemplate) {
+        auto plane = readTemplateImage(*rq.atlasTemplate, labels->size());
+        if (!plane)
+            return plane.error();
+        atlasIntensity = std::move(*plane);
+    } else if (rq.atlasSlice && !rq.atlasSlice->templateFile.empty()) {
+        auto plane = readTemplatePlane(rq.atlasSlice->stackDir, rq.atlasSlice->index,
+                                       rq.atlasSlice->templateFile, labels->size());
+        if (!plane)
+            return plane.error();
+        atlasIntensity = std::move(*plane);
+    }
     const auto tLoaded = Clock::now();
 
     pipeline::RegistrationOptions opt;
+    opt.atlasIntensity = atlasIntensity;
     opt.imageUmPerPx = rq.imageUmPerPx;
     opt.atlasUmPerPx = rq.atlasUmPerPx;
     opt.workingMaxSide = rq.workingMaxSide;

@@ -60,10 +60,10 @@ core::Result<cv::Vec3d> vecField(const FieldReader& rd, const json& obj, const s
     return v;
 }
 
-/// A slice file name: relative, inside the stack directory, a plain name.
-core::Result<std::string> sliceFile(const FieldReader& rd, const json& obj,
-                                    const std::string& path) {
-    auto file = rd.string(obj, path, "file", std::nullopt);
+/// A slice file name (member `key`): relative, inside the stack directory, a plain name.
+core::Result<std::string> sliceFile(const FieldReader& rd, const json& obj, const std::string& path,
+                                    const char* key = "file") {
+    auto file = rd.string(obj, path, key, std::nullopt);
     if (!file)
         return file.error();
     const fs::path p(*file);
@@ -72,7 +72,7 @@ core::Result<std::string> sliceFile(const FieldReader& rd, const json& obj,
                            return part == ".." || part == ".";
                        });
     if (!plain)
-        return rd.bad(FieldReader::join(path, "file"),
+        return rd.bad(FieldReader::join(path, key),
                       "'" + file->substr(0, 80) +
                           "' is not a relative file name inside the stack directory");
     return file;
@@ -112,6 +112,13 @@ core::Result<StackSlice> sliceEntry(const FieldReader& rd, const json& e, size_t
     s.geometry.positionUm = *pos;
     s.geometry.normal = *normal;
     s.geometry.size = cv::Size(int(*width), int(*height));
+    // The atlas intensity plane is optional (stacks cut without --template have none).
+    if (e.contains("template")) {
+        auto t = sliceFile(rd, e, where, "template");
+        if (!t)
+            return t.error();
+        s.templateFile = *t;
+    }
     // The in-plane frame is optional (a hand-made stack may not know it).
     if (e.contains("origin_um")) {
         auto o = vecField(rd, e, where, "origin_um");
@@ -241,6 +248,18 @@ core::Result<AtlasStack> writeStack(const fs::path& dir,
             return w.error();
         const pipeline::SliceGeometry& g = slices[i].geometry;
         StackSlice s{int(i), name, g.positionUm, cv::norm(g.columnUm), g};
+        if (!slices[i].intensity.empty()) {
+            if (slices[i].intensity.type() != CV_32F ||
+                slices[i].intensity.size() != slices[i].labels.size())
+                return makeError(ErrorCode::InvalidArgument,
+                                 "slice " + std::to_string(i) +
+                                     ": the template plane must be float32 of the slice's size");
+            char templateName[48];
+            std::snprintf(templateName, sizeof templateName, "template-%03zu.tif", i);
+            if (auto w = core::writeImage(dir / templateName, slices[i].intensity); !w)
+                return w.error();
+            s.templateFile = templateName;
+        }
         js.push_back({{"index", s.index},
                       {"file", s.file},
                       {"position_um", s.positionUm},
@@ -251,6 +270,8 @@ core::Result<AtlasStack> writeStack(const fs::path& dir,
                       {"origin_um", vec(g.originUm)},
                       {"column_um", vec(g.columnUm)},
                       {"row_um", vec(g.rowUm)}});
+        if (!s.templateFile.empty())
+            js.back()["template"] = s.templateFile;
         stack.slices.push_back(std::move(s));
     }
     json jr = json::array();
@@ -312,6 +333,37 @@ core::Result<fs::path> stackSlicePath(const AtlasStack& stack, int index) {
                              stack.dir.string() + " (0.." +
                              std::to_string(int(stack.slices.size()) - 1) + ")");
     return stack.dir / stack.slices[size_t(index)].file;
+}
+
+core::Result<cv::Mat> readStackTemplate(const AtlasStack& stack, int index) {
+    if (index < 0 || index >= int(stack.slices.size()))
+        return makeError(ErrorCode::OutOfRange, "slice " + std::to_string(index) +
+                                                    " is not in the stack at " +
+                                                    stack.dir.string());
+    const StackSlice& s = stack.slices[size_t(index)];
+    if (s.templateFile.empty())
+        return cv::Mat();
+    return readTemplatePlane(stack.dir, index, s.templateFile, s.geometry.size);
+}
+
+core::Result<cv::Mat> readTemplatePlane(const fs::path& dir, int index, const std::string& file,
+                                        cv::Size size) {
+    const fs::path path = dir / file;
+    const std::string entry = (dir / "manifest.json").string() + ": slices[" +
+                              std::to_string(index) + "].template (" + path.string() + ")";
+    auto image = core::readImage(path);
+    if (!image)
+        return makeError(image.error().code, entry + ": " + image.error().message,
+                         image.error().sysErrno);
+    if (image->type() != CV_32F)
+        return makeError(ErrorCode::InvalidArgument,
+                         entry + ": expected a one-channel float32 image");
+    if (size.area() > 0 && image->size() != size)
+        return makeError(ErrorCode::InvalidArgument,
+                         entry + ": " + std::to_string(image->cols) + " x " +
+                             std::to_string(image->rows) + " px, the slice is " +
+                             std::to_string(size.width) + " x " + std::to_string(size.height));
+    return image;
 }
 
 core::Result<cv::Mat> readStackSlice(const AtlasStack& stack, int index) {

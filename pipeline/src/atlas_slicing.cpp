@@ -202,6 +202,77 @@ core::Result<cv::Mat> sampleLabels(const core::Volume& volume, VolumeAxes axes,
     return out;
 }
 
+core::Result<cv::Vec3d> intensityFrameOffsetUm(const core::Volume& labels, VolumeAxes labelAxes,
+                                               const core::Volume& intensity,
+                                               VolumeAxes intensityAxes) {
+    const AxisMap l = axisMap(labels, labelAxes), t = axisMap(intensity, intensityAxes);
+    cv::Vec3d offset;
+    for (int i = 0; i < 3; ++i) {
+        if (!(l.spacingUm[i] > 0) || !(t.spacingUm[i] > 0))
+            return makeError(ErrorCode::InvalidArgument,
+                             "a volume has no voxel size along atlas axis " + std::to_string(i));
+        const double el = l.size[i] * l.spacingUm[i], et = t.size[i] * t.spacingUm[i];
+        if (std::abs(el - et) > t.spacingUm[i]) {
+            std::ostringstream os;
+            os << "the intensity volume spans " << et << " um along atlas axis " << i
+               << ", the labels " << el << " um: not the same space";
+            return makeError(ErrorCode::InvalidArgument, os.str());
+        }
+        offset[i] = 0.5 * (l.spacingUm[i] - t.spacingUm[i]);
+    }
+    return offset;
+}
+
+cv::Mat sampleIntensity(const core::Volume& volume, VolumeAxes axes, const SliceGeometry& g,
+                        const cv::Vec3d& offsetUm, double scale) {
+    CV_Assert(scale > 0);
+    const AxisMap m = axisMap(volume, axes);
+    CV_Assert(volume.data.size() == size_t(m.size[0]) * m.size[1] * m.size[2]);
+    cv::Mat out(g.size, CV_32F, cv::Scalar(0));
+    cv::Vec3d o, du, dv;
+    for (int i = 0; i < 3; ++i) {
+        o[i] = (g.originUm[i] + offsetUm[i]) / m.spacingUm[i];
+        du[i] = g.columnUm[i] / m.spacingUm[i];
+        dv[i] = g.rowUm[i] / m.spacingUm[i];
+    }
+    const std::uint32_t* data = volume.data.data();
+    for (int r = 0; r < g.size.height; ++r) {
+        float* row = out.ptr<float>(r);
+        const cv::Vec3d start = o + double(r) * dv;
+        for (int c = 0; c < g.size.width; ++c) {
+            // Trilinear between the eight voxel centres round the point; a point beyond the
+            // outermost centres (within half a voxel) takes the nearest face's values.
+            std::array<int, 3> k0{};
+            std::array<double, 3> f{};
+            bool inside = true;
+            for (int i = 0; i < 3 && inside; ++i) {
+                const double x = start[i] + c * du[i];
+                inside = x >= -0.5 && x <= m.size[i] - 0.5;
+                const double xc = std::clamp(x, 0.0, double(m.size[i] - 1));
+                k0[size_t(i)] = std::min(int(xc), std::max(0, m.size[i] - 2));
+                f[size_t(i)] = m.size[i] > 1 ? xc - k0[size_t(i)] : 0.0;
+            }
+            if (!inside)
+                continue;
+            double v = 0;
+            for (int corner = 0; corner < 8; ++corner) {
+                std::int64_t offset = m.base;
+                double wgt = 1;
+                for (int i = 0; i < 3; ++i) {
+                    const int bit = (corner >> i) & 1;
+                    const int k = std::min(k0[size_t(i)] + bit, m.size[i] - 1);
+                    wgt *= bit ? f[size_t(i)] : 1 - f[size_t(i)];
+                    offset += std::int64_t(k) * m.stride[i];
+                }
+                if (wgt > 0)
+                    v += wgt * data[offset];
+            }
+            row[c] = float(v / scale);
+        }
+    }
+    return out;
+}
+
 core::Result<void> checkStackBudget(double slices, cv::Size size) {
     const double pixels = double(size.width) * size.height;
     const double bytes = slices * pixels * double(sizeof(std::int32_t));

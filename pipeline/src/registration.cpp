@@ -2,6 +2,7 @@
 
 #include "slicestation/pipeline/affine.hpp"
 #include "slicestation/pipeline/icp.hpp"
+#include "slicestation/pipeline/intensity_affine.hpp"
 #include "slicestation/pipeline/mask_ops.hpp"
 #include "slicestation/pipeline/obb.hpp"
 #include "slicestation/pipeline/point_grid.hpp"
@@ -287,6 +288,42 @@ DisplacementField addToWarp(const DisplacementField& warp, cv::Size working, con
     return DisplacementField(dx + ax, dy + ay, cell);
 }
 
+/// The reduced grid (longer side at most `maxSide`) the dense stages work on.
+cv::Size gridSize(cv::Size ws, int maxSide) {
+    const double f = std::min(1.0, double(maxSide) / std::max(ws.width, ws.height));
+    return {std::max(8, static_cast<int>(std::lround(ws.width * f))),
+            std::max(8, static_cast<int>(std::lround(ws.height * f)))};
+}
+
+/// Where the dense stages measure, on a grid of `gs` (CV_8U): the tissue (holes filled) and a
+/// glass band of 1% of the grid width round it, without excluded pixels, detached fragments
+/// (grown by the band) and deep damaged concavities. The masks are reduced first (a grid pixel
+/// counts when mostly tissue; any excluded share excludes it), then the band is grown there.
+cv::Mat measuredArea(cv::Size gs, const cv::Mat& tissueFilled, const cv::Mat& excludeMask,
+                     const cv::Mat& fragments, const cv::Mat& damagedOutline) {
+    cv::Mat weight, excluded;
+    cv::resize(tissueFilled, weight, gs, 0, 0, cv::INTER_AREA);
+    weight = weight > 127;
+    const int band = std::max(1, static_cast<int>(std::lround(gs.width / 100.0)));
+    cv::dilate(weight, weight,
+               cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * band + 1, 2 * band + 1)));
+    auto exclude = [&](const cv::Mat& mask, int grownBy) {
+        if (mask.empty())
+            return;
+        cv::resize(mask != 0, excluded, gs, 0, 0, cv::INTER_AREA);
+        excluded = excluded > 0;
+        if (grownBy > 0)
+            cv::dilate(excluded, excluded,
+                       cv::getStructuringElement(cv::MORPH_ELLIPSE,
+                                                 cv::Size(2 * grownBy + 1, 2 * grownBy + 1)));
+        weight.setTo(0, excluded);
+    };
+    exclude(excludeMask, 0);
+    exclude(fragments, band);
+    exclude(damagedOutline, 0);
+    return weight;
+}
+
 } // namespace
 
 cv::Point2d Registration::workingFromImage(cv::Point2d p) const {
@@ -385,16 +422,30 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
                                             options.atlasIntensity.size() != atlasLabels.size()))
         return makeError(ErrorCode::InvalidArgument,
                          "atlas intensity must be CV_32F and the size of the atlas labels");
-    if (options.denseRefine && (options.dense.gridMaxSide < 32 || options.dense.levels.empty() ||
-                                options.dense.fieldSigma < 0 || options.dense.damping < 0 ||
-                                std::any_of(options.dense.levels.begin(),
-                                            options.dense.levels.end(), [](const DenseLevel& l) {
+    // With an atlas intensity plane the dense refinement takes its own options.
+    const DenseRefineOptions& denseOptions =
+        options.atlasIntensity.empty() ? options.dense : options.denseWithIntensity;
+    if (options.denseRefine && (denseOptions.gridMaxSide < 32 || denseOptions.levels.empty() ||
+                                denseOptions.fieldSigma < 0 || denseOptions.damping < 0 ||
+                                std::any_of(denseOptions.levels.begin(), denseOptions.levels.end(),
+                                            [](const DenseLevel& l) {
                                                 return l.imageSigma < 0 || l.window < 1 ||
                                                        l.iterations < 0;
                                             })))
         return makeError(ErrorCode::InvalidArgument,
                          "dense refinement options: grid at least 32 px, at least one level, "
                          "windows at least 1, no negative sigma, damping or iterations");
+    if (options.intensityAffine &&
+        (options.intensity.gridMaxSide < 32 || options.intensity.levelSigmas.empty() ||
+         options.intensity.iterations < 0 || !(options.intensity.robustK > 0) ||
+         !(options.intensity.damping >= 0) || !(options.intensity.maxStepGridPx > 0) ||
+         options.intensity.holdOutBlockPx < 0 ||
+         std::any_of(options.intensity.levelSigmas.begin(), options.intensity.levelSigmas.end(),
+                     [](double sigma) { return !(sigma >= 0); })))
+        return makeError(ErrorCode::InvalidArgument,
+                         "intensity affine options: grid at least 32 px, at least one level, no "
+                         "negative sigma, iterations, damping or block size, positive robustness "
+                         "and step");
     const cv::Mat atlasMask = atlasLabels != 0;
     if (cv::countNonZero(atlasMask) < 16)
         return makeError(ErrorCode::InvalidArgument, "atlas slice has no labelled brain");
@@ -639,15 +690,38 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     }
     reg.atlasFromWorking = affine.targetFromSource;
     reg.quality.residualAffine = affine.rmsResidual;
+    reg.stageAffines.emplace_back("icp", reg.atlasFromWorking);
+    // With an atlas intensity plane (a template-like stain), the edge-based affine is polished
+    // against the plane over the tissue, damage left out (intensity_affine.hpp); kept only when
+    // it explains more of the section on held-out blocks.
+    if (options.intensityAffine && !options.atlasIntensity.empty()) {
+        const cv::Size ws = reg.workingGrey.size();
+        const cv::Size gs = gridSize(ws, options.intensity.gridMaxSide);
+        cv::Mat grey;
+        cv::resize(reg.workingGrey, grey, gs, 0, 0, cv::INTER_AREA);
+        const cv::Mat weight =
+            measuredArea(gs, tissueFilled, options.excludeMask, fragments, damagedOutline);
+        const double sx = double(ws.width) / gs.width, sy = double(ws.height) / gs.height;
+        const cv::Matx23d workingFromGrid(sx, 0, 0.5 * sx - 0.5, 0, sy, 0.5 * sy - 0.5);
+        const IntensityAffine ia =
+            refineAffineByIntensity(grey, weight, compose(reg.atlasFromWorking, workingFromGrid),
+                                    options.atlasIntensity, options.intensity);
+        reg.quality.intensityExplainedBefore = ia.explainedBefore;
+        reg.quality.intensityExplainedAfter = ia.explainedAfter;
+        reg.quality.intensityAffineKept = ia.accepted;
+        if (ia.accepted) {
+            reg.atlasFromWorking = compose(ia.atlasFromGrid, invert(workingFromGrid));
+            reg.stageAffines.emplace_back("intensity", reg.atlasFromWorking);
+        }
+    }
     // Through the affine alone: the warp leaves it as it is. It also decides the outline pull.
     reg.quality.tissueOverlap = overlap(tissueFilled, atlasMask, reg.atlasFromWorking);
-    reg.stageAffines.emplace_back("icp", reg.atlasFromWorking);
     timer.lap("icp");
 
     // Non-linear: tight correspondences become Dirichlet conditions of Laplace's equation; a few
     // rounds let the warp bring in matches the affine left outside the thresholds.
     const double finalDist = atlasH / 60;
-    if (options.nonLinear) {
+    if (options.nonLinear && (options.edgeWarpAfterIntensity || !reg.quality.intensityAffineKept)) {
         LaplaceOptions lo;
         lo.cellPx = std::max(2.0, std::max(reg.workingGrey.cols, reg.workingGrey.rows) / 200.0);
         // Point-to-line targets: an edge only says where the boundary is across it, so the
@@ -712,39 +786,15 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     // Dense refinement (beyond the paper): the atlas regions are fitted to the section's own
     // contrast inside the tissue on a reduced grid; damaged and excluded parts stay out.
     if (options.denseRefine) {
-        // Work on the refinement grid from the start: the masks are reduced first (a grid
-        // pixel counts when mostly tissue; any excluded share excludes it), then the glass
-        // band is grown there.
         const cv::Size ws = reg.workingGrey.size();
-        const double f =
-            std::min(1.0, double(options.dense.gridMaxSide) / std::max(ws.width, ws.height));
-        const cv::Size gs(std::max(8, static_cast<int>(std::lround(ws.width * f))),
-                          std::max(8, static_cast<int>(std::lround(ws.height * f))));
-        cv::Mat grey, weight, excluded, mx, my;
+        const cv::Size gs = gridSize(ws, denseOptions.gridMaxSide);
+        cv::Mat grey, mx, my;
         cv::resize(reg.workingGrey, grey, gs, 0, 0, cv::INTER_AREA);
-        cv::resize(tissueFilled, weight, gs, 0, 0, cv::INTER_AREA);
-        weight = weight > 127;
-        const int band = std::max(1, static_cast<int>(std::lround(gs.width / 100.0)));
-        cv::dilate(
-            weight, weight,
-            cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * band + 1, 2 * band + 1)));
-        auto exclude = [&](const cv::Mat& mask, int grownBy) {
-            if (mask.empty())
-                return;
-            cv::resize(mask != 0, excluded, gs, 0, 0, cv::INTER_AREA);
-            excluded = excluded > 0;
-            if (grownBy > 0)
-                cv::dilate(excluded, excluded,
-                           cv::getStructuringElement(cv::MORPH_ELLIPSE,
-                                                     cv::Size(2 * grownBy + 1, 2 * grownBy + 1)));
-            weight.setTo(0, excluded);
-        };
-        exclude(options.excludeMask, 0);
-        exclude(fragments, band);
-        exclude(damagedOutline, 0);
+        const cv::Mat weight =
+            measuredArea(gs, tissueFilled, options.excludeMask, fragments, damagedOutline);
         reg.atlasMaps(gs, mx, my);
         const DenseRefinement dense =
-            refineDense(grey, weight, mx, my, atlasLabels, options.atlasIntensity, options.dense);
+            refineDense(grey, weight, mx, my, atlasLabels, options.atlasIntensity, denseOptions);
         reg.quality.explainedBeforeRefine = dense.explainedBefore;
         reg.quality.explainedAfterRefine = dense.explainedAfter;
         reg.quality.refined = dense.accepted;

@@ -1,6 +1,7 @@
 // Atlas stacks on disk: `atlas slice` on the real volume and the built-in atlas, manifest
 // round trip, and the errors a user can provoke.
 #include "slicestation/core/image_file.hpp"
+#include "slicestation/core/nrrd.hpp"
 #include "slicestation/daemon/cli/atlas_command.hpp"
 #include "slicestation/daemon/storage/atlas_stack.hpp"
 #include "slicestation/pipeline/atlas.hpp"
@@ -9,6 +10,9 @@
 
 #include <gtest/gtest.h>
 
+#include <nlohmann/json.hpp>
+
+#include <algorithm>
 #include <climits>
 #include <filesystem>
 #include <fstream>
@@ -239,4 +243,102 @@ TEST_F(AtlasStackTest, MatchWindowOfIntMaxSearchesTheWholeStack) {
     ASSERT_TRUE(r.ok()) << r.error().message;
     // 11 slices; the ends may hold no brain and are skipped.
     EXPECT_GE(r->at("candidates").size(), 9u) << "the whole stack searched";
+}
+
+TEST_F(AtlasStackTest, TheTemplatePlaneIsCutBesideEverySliceAndReadBack) {
+    if (!fs::exists(kAtlasDir / "annotation_100.nrrd") ||
+        !fs::exists(kAtlasDir / "average_template_100.nrrd"))
+        GTEST_SKIP() << "no Allen annotation or template at " << kAtlasDir << " (SLST_SHARED_DIR)";
+    AtlasSliceRequest rq;
+    rq.volume = kAtlasDir / "annotation_100.nrrd";
+    rq.ontology = kAtlasDir / "structure_tree_safe_2017.csv";
+    rq.templateVolume = kAtlasDir / "average_template_100.nrrd";
+    rq.intervalUm = 500;
+    rq.firstUm = 300;
+    rq.umPerPx = 100;
+    rq.output = dir_;
+    auto r = runAtlasSlice(rq);
+    ASSERT_TRUE(r.ok()) << r.error().message;
+    auto stack = readStack(dir_);
+    ASSERT_TRUE(stack.ok()) << stack.error().message;
+    ASSERT_EQ(stack->slices.size(), 26u);
+    EXPECT_EQ(stack->source.at("template"), rq.templateVolume.string());
+    auto templ = core::readNrrd(rq.templateVolume);
+    ASSERT_TRUE(templ.ok());
+    const double top = *std::max_element(templ->data.begin(), templ->data.end());
+    for (int index : {2, 10, 20}) {
+        EXPECT_EQ(stack->slices[size_t(index)].templateFile,
+                  "template-0" + std::to_string(index / 10) + std::to_string(index % 10) + ".tif");
+        auto plane = readStackTemplate(*stack, index);
+        ASSERT_TRUE(plane.ok()) << plane.error().message;
+        auto labels = readStackSlice(*stack, index);
+        ASSERT_TRUE(labels.ok());
+        ASSERT_EQ(plane->type(), CV_32F);
+        ASSERT_EQ(plane->size(), labels->size());
+        // Same voxel size and grid as the labels: an untilted plane is the template's plane.
+        const int ap = (300 + 500 * index) / 100;
+        for (const auto& [row, col] : {std::pair{40, 57}, std::pair{20, 30}, std::pair{60, 90}})
+            EXPECT_NEAR(plane->at<float>(row, col), templ->at(ap, row, col) / top, 1e-5)
+                << "slice " << index << " pixel " << row << ", " << col;
+        // The template is bright in the brain and dark outside it.
+        EXPECT_GT(cv::mean(*plane, *labels != 0)[0], 2 * cv::mean(*plane, *labels == 0)[0]);
+    }
+    // The registration gets the plane through the stack: written beside the labels in the
+    // manifest, read back by the slice's entry.
+    std::ifstream in(dir_ / "manifest.json");
+    nlohmann::json manifest = nlohmann::json::parse(in);
+    EXPECT_EQ(manifest["slices"][10]["template"], "template-010.tif");
+
+    // Manifests come from outside: every bad template entry names itself.
+    auto rewrite = [&](const nlohmann::json& value) {
+        nlohmann::json m = manifest;
+        m["slices"][3]["template"] = value;
+        std::ofstream(dir_ / "manifest.json") << m.dump();
+    };
+    for (const nlohmann::json& bad :
+         {nlohmann::json("../template-003.tif"), nlohmann::json("/etc/passwd"), nlohmann::json(5),
+          nlohmann::json("")}) {
+        rewrite(bad);
+        auto s = readStack(dir_);
+        ASSERT_FALSE(s.ok()) << bad.dump();
+        EXPECT_EQ(s.error().code, core::ErrorCode::InvalidArgument);
+        EXPECT_NE(s.error().message.find("slices[3].template"), std::string::npos)
+            << s.error().message;
+    }
+    // A template file that is missing, a label image, or of another size.
+    ASSERT_TRUE(core::writeImage(dir_ / "labels-as-template.tif", *readStackSlice(*stack, 3)).ok());
+    ASSERT_TRUE(core::writeImage(dir_ / "small-template.tif", cv::Mat(8, 8, CV_32F, 0.5f)).ok());
+    for (const auto& [file, code] :
+         {std::pair{"nothing.tif", core::ErrorCode::NotFound},
+          std::pair{"labels-as-template.tif", core::ErrorCode::InvalidArgument},
+          std::pair{"small-template.tif", core::ErrorCode::InvalidArgument}}) {
+        rewrite(file);
+        auto s = readStack(dir_);
+        ASSERT_TRUE(s.ok()) << s.error().message;
+        auto plane = readStackTemplate(*s, 3);
+        ASSERT_FALSE(plane.ok()) << file;
+        EXPECT_EQ(plane.error().code, code) << plane.error().message;
+        EXPECT_NE(plane.error().message.find("slices[3].template"), std::string::npos)
+            << plane.error().message;
+        EXPECT_NE(plane.error().message.find(file), std::string::npos) << plane.error().message;
+    }
+}
+
+TEST_F(AtlasStackTest, StacksWithoutATemplateKeepWorking) {
+    AtlasSliceRequest rq;
+    rq.builtin = true;
+    rq.intervalUm = 400;
+    rq.output = dir_;
+    ASSERT_TRUE(runAtlasSlice(rq).ok());
+    auto stack = readStack(dir_);
+    ASSERT_TRUE(stack.ok()) << stack.error().message;
+    auto plane = readStackTemplate(*stack, 5);
+    ASSERT_TRUE(plane.ok()) << plane.error().message;
+    EXPECT_TRUE(plane->empty());
+    EXPECT_EQ(readStackTemplate(*stack, 99).error().code, core::ErrorCode::OutOfRange);
+    // The built-in atlas has no intensity volume to cut.
+    rq.templateVolume = dir_ / "template.nrrd";
+    auto r = runAtlasSlice(rq);
+    ASSERT_FALSE(r.ok());
+    EXPECT_NE(r.error().message.find("--template"), std::string::npos);
 }

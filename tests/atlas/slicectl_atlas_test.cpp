@@ -10,6 +10,7 @@
 #include <gtest/gtest.h>
 #include <nlohmann/json.hpp>
 #include <opencv2/core.hpp>
+#include <opencv2/imgproc.hpp>
 #include <zlib.h>
 
 #include <cmath>
@@ -165,6 +166,106 @@ TEST_F(SlicectlAtlas, RegisterStackErrors) {
         EXPECT_NE(r.output.find(c.needle), std::string::npos) << r.output;
         EXPECT_FALSE(fs::exists(p("bad.json"))) << c.needle;
     }
+}
+
+TEST_F(SlicectlAtlas, RegisterUsesTheStacksTemplatePlane) {
+    // A stack of the real annotation cut with the Allen average template beside every slice; a
+    // section stained like the template, generated from slice 18's labels and template plane.
+    // slicectl register --atlas STACK --slice 18 must hand the plane to the registration (the
+    // result says so) and land the landmarks closer than the same stack without it.
+    const fs::path atlasDir = fs::path(SLST_SHARED_DIR) / "atlas" / "allen-ccf-2017";
+    if (!fs::exists(atlasDir / "annotation_50.nrrd") ||
+        !fs::exists(atlasDir / "average_template_100.nrrd"))
+        GTEST_SKIP() << "no Allen annotation or template under " << atlasDir;
+    CommandResult r =
+        slicectl("atlas slice --volume " + (atlasDir / "annotation_50.nrrd").string() +
+                 " --ontology " + (atlasDir / "structure_tree_safe_2017.csv").string() +
+                 " --axes allen --interval-um 500 --first-um 300 --um-per-px 25 --template " +
+                 (atlasDir / "average_template_100.nrrd").string() + " --output " + p("tstack"));
+    ASSERT_EQ(r.exitCode, 0) << r.output;
+    constexpr int kSlice = 14; // 7300 um: thalamus, hippocampus
+    auto labels = core::readImage(dir_ / "tstack" / "slice-014.tif");
+    auto plane = core::readImage(dir_ / "tstack" / "template-014.tif");
+    ASSERT_TRUE(labels.ok() && plane.ok());
+    sim::GeneratorOptions o;
+    o.seed = 31;
+    o.imageSize = {1200, 900};
+    auto gen = sim::generateSection(*labels, o);
+    ASSERT_TRUE(gen.ok()) << gen.error().message;
+    cv::Mat img;
+    cv::remap(*plane, img, gen->truth.atlasX, gen->truth.atlasY, cv::INTER_LINEAR,
+              cv::BORDER_CONSTANT, 0);
+    cv::Mat noise(img.size(), CV_32F);
+    cv::RNG(31).fill(noise, cv::RNG::NORMAL, 0.04, 0.03);
+    img = img + noise;
+    cv::Mat img16;
+    img.convertTo(img16, CV_16U, 60000);
+    ASSERT_TRUE(core::writeImage(dir_ / "tsection.tif", img16).ok());
+    {
+        std::ofstream pts(dir_ / "tpoints.csv");
+        pts << "x,y\n";
+        for (const auto& l : gen->truth.landmarks)
+            pts << l.image.x << "," << l.image.y << "\n";
+    }
+    // The same stack without its template planes: a stack cut before --template existed.
+    fs::create_directories(dir_ / "plain");
+    for (const auto& e : fs::directory_iterator(dir_ / "tstack"))
+        if (e.path().filename().string().rfind("slice-", 0) == 0)
+            fs::copy_file(e.path(), dir_ / "plain" / e.path().filename());
+    nlohmann::json manifest = readJson(dir_ / "tstack" / "manifest.json");
+    for (auto& s : manifest["slices"])
+        s.erase("template");
+    std::ofstream(dir_ / "plain" / "manifest.json") << manifest.dump();
+
+    auto rmseOf = [&](const std::string& stack, const std::string& out) {
+        const CommandResult rr = slicectl("register --atlas " + p(stack) + " --slice " +
+                                          std::to_string(kSlice) + " --image " + p("tsection.tif") +
+                                          " --points " + p("tpoints.csv") + " --output " + p(out));
+        EXPECT_EQ(rr.exitCode, 0) << rr.output;
+        const auto j = readJson(p(out));
+        const auto& points = j.at("points");
+        double ss = 0;
+        for (size_t i = 0; i < points.size(); ++i) {
+            const cv::Point2d a(points[i].at("atlas_x").get<double>(),
+                                points[i].at("atlas_y").get<double>());
+            ss += std::pow(cv::norm(a - gen->truth.landmarks[i].atlas), 2);
+        }
+        return std::make_pair(std::sqrt(ss / double(points.size())), j);
+    };
+    const auto [with, withJson] = rmseOf("tstack", "twith.json");
+    const auto [without, withoutJson] = rmseOf("plain", "twithout.json");
+    EXPECT_EQ(withJson.at("atlas").at("template"), "template-014.tif");
+    EXPECT_FALSE(withoutJson.at("atlas").contains("template"));
+    EXPECT_TRUE(withJson.at("quality").at("intensity_affine_kept").get<bool>());
+    EXPECT_LT(with, 0.8 * without) << "landmark RMSE " << without << " -> " << with;
+
+    // A plain label image with its plane given by --atlas-template registers as the stack does;
+    // a label image given as the plane is refused, naming the file.
+    r = slicectl("register --atlas " + p("plain/slice-014.tif") + " --atlas-template " +
+                 p("tstack/template-014.tif") + " --image " + p("tsection.tif") + " --points " +
+                 p("tpoints.csv") + " --output " + p("tplain.json"));
+    ASSERT_EQ(r.exitCode, 0) << r.output;
+    const auto plainPoints = readJson(p("tplain.json")).at("points");
+    ASSERT_EQ(plainPoints.size(), withJson.at("points").size());
+    for (size_t i = 0; i < plainPoints.size(); ++i)
+        for (const char* key : {"atlas_x", "atlas_y"})
+            EXPECT_DOUBLE_EQ(plainPoints[i].at(key).get<double>(),
+                             withJson.at("points")[i].at(key).get<double>());
+    r = slicectl("register --atlas " + p("plain/slice-014.tif") + " --atlas-template " +
+                 p("plain/slice-013.tif") + " --image " + p("tsection.tif") + " --output " +
+                 p("tbad.json"));
+    EXPECT_NE(r.exitCode, 0);
+    EXPECT_NE(r.output.find("slice-013.tif"), std::string::npos) << r.output;
+    EXPECT_FALSE(fs::exists(p("tbad.json")));
+
+    // A bad template entry in the manifest is an error naming it; nothing is written.
+    manifest["slices"][kSlice]["template"] = "missing.tif";
+    std::ofstream(dir_ / "plain" / "manifest.json") << manifest.dump();
+    r = slicectl("register --atlas " + p("plain") + " --slice " + std::to_string(kSlice) +
+                 " --image " + p("tsection.tif") + " --output " + p("tbad.json"));
+    EXPECT_NE(r.exitCode, 0);
+    EXPECT_NE(r.output.find("slices[14].template"), std::string::npos) << r.output;
+    EXPECT_FALSE(fs::exists(p("tbad.json")));
 }
 
 TEST_F(SlicectlAtlas, HostileVolumesPlansAndOptionsExitTwo) {

@@ -363,6 +363,42 @@ bool applySmoothSettings(const std::vector<std::string>& settings, pipeline::Smo
     });
 }
 
+/// The intensity affine's options for choosing them (`--intensity-opt`).
+bool applyIntensitySettings(const std::vector<std::string>& settings,
+                            pipeline::RegistrationOptions& ro) {
+    pipeline::IntensityAffineOptions& o = ro.intensity;
+    return applySettings(settings, [&o, &ro](const std::string& key, double v) {
+        if (key == "edge-warp")
+            ro.edgeWarpAfterIntensity = v != 0;
+        else if (key == "grid")
+            o.gridMaxSide = int(v);
+        else if (key == "coarsest") {
+            // Levels halve from this sigma down to the finest.
+            const double finest = o.levelSigmas.back();
+            o.levelSigmas.clear();
+            for (double sg = v; sg > finest * 1.01; sg /= 2)
+                o.levelSigmas.push_back(sg);
+            o.levelSigmas.push_back(finest);
+        } else if (key == "finest")
+            o.levelSigmas.back() = v;
+        else if (key == "iterations")
+            o.iterations = int(v);
+        else if (key == "robust-k")
+            o.robustK = v;
+        else if (key == "damping")
+            o.damping = v;
+        else if (key == "step")
+            o.maxStepGridPx = v;
+        else if (key == "min-gain")
+            o.minGain = v;
+        else if (key == "hold-out")
+            o.holdOutBlockPx = int(v);
+        else
+            return false;
+        return true;
+    });
+}
+
 } // namespace
 
 int main(int argc, char** argv) {
@@ -394,6 +430,17 @@ int main(int argc, char** argv) {
                    "on the labels' 25 um grid) as the atlas intensity: off | template (template "
                    "family only) | all (every family)")
         ->check(CLI::IsMember({"off", "template", "all"}));
+    std::vector<std::string> intensitySettings;
+    app.add_option("--intensity-opt", intensitySettings,
+                   "Intensity affine options as key=value (edge-warp 0/1, grid, coarsest, finest, "
+                   "iterations, "
+                   "robust-k, damping, step, min-gain, hold-out), for choosing them; finest "
+                   "before coarsest");
+    std::string intensityAffineMode = "on";
+    app.add_option("--intensity-affine", intensityAffineMode,
+                   "The intensity affine of ours (runs only with an atlas intensity plane, see "
+                   "--template-intensity): on | off")
+        ->check(CLI::IsMember({"on", "off"}));
     std::vector<std::string> denseSettings;
     app.add_option("--dense", denseSettings,
                    "Dense refinement options as key=value (grid, sigma, window, iterations, "
@@ -478,7 +525,13 @@ int main(int argc, char** argv) {
         std::cerr << "bad --smooth-opt setting\n";
         return 2;
     }
-    if (!applyDenseSettings(denseSettings, regOptions.dense)) {
+    if (!applyIntensitySettings(intensitySettings, regOptions)) {
+        std::cerr << "bad --intensity-opt setting\n";
+        return 2;
+    }
+    regOptions.intensityAffine = intensityAffineMode == "on";
+    if (!applyDenseSettings(denseSettings, regOptions.dense) ||
+        !applyDenseSettings(denseSettings, regOptions.denseWithIntensity)) {
         std::cerr << "bad --dense setting\n";
         return 2;
     }
@@ -637,6 +690,13 @@ int main(int argc, char** argv) {
                           reg->quality.explainedBeforeRefine, reg->quality.explainedAfterRefine,
                           reg->quality.refined ? " kept" : "");
             steps += refined;
+            if (ro.intensityAffine && !ro.atlasIntensity.empty()) {
+                std::snprintf(refined, sizeof refined, " | intensity %.3f -> %.3f%s",
+                              reg->quality.intensityExplainedBefore,
+                              reg->quality.intensityExplainedAfter,
+                              reg->quality.intensityAffineKept ? " kept" : "");
+                steps += refined;
+            }
             steps += " | damage " + std::string(d.flagged ? "FLAGGED " : "clean ") + d.kinds;
         }
         std::fprintf(stderr, "%-45s ours    rmse %6.2f max %6.2f  %.3f s (ms:%s)\n",

@@ -73,6 +73,22 @@ cv::Vec3d volumeExtentUm(const core::Volume& volume, VolumeAxes axes);
 [[nodiscard]] core::Result<cv::Mat> sampleLabels(const core::Volume& volume, VolumeAxes axes,
                                                  const SliceGeometry& geometry);
 
+/// Where the atlas frame of `labels` (origin at the centre of its first voxel) lies in the frame
+/// of `intensity`, another volume of the same space at another voxel size (e.g. the Allen average
+/// template at 100 um beside a 25 um annotation): both start at the same corner, so the offset
+/// is half a label voxel less half an intensity voxel per axis.
+/// \return InvalidArgument (a volume without voxel size, or extents that differ by more than one
+///         intensity voxel along an axis: not the same space; the message gives both).
+[[nodiscard]] core::Result<cv::Vec3d> intensityFrameOffsetUm(const core::Volume& labels,
+                                                             VolumeAxes labelAxes,
+                                                             const core::Volume& intensity,
+                                                             VolumeAxes intensityAxes);
+
+/// Intensities of `volume` along `geometry` (a plane of the labels' frame; `offsetUm` from
+/// intensityFrameOffsetUm), trilinear, divided by `scale` (> 0), 0 outside the volume. CV_32F.
+cv::Mat sampleIntensity(const core::Volume& volume, VolumeAxes axes, const SliceGeometry& geometry,
+                        const cv::Vec3d& offsetUm, double scale);
+
 /// An evenly spaced cutting plan: planes from `firstUm` every `intervalUm` while inside the
 /// volume along the normal.
 struct CuttingPlan {
@@ -99,6 +115,9 @@ inline constexpr std::int64_t kMaxStackBytes = std::int64_t{2} << 30;
 struct AtlasSlice {
     cv::Mat labels; ///< CV_32S
     SliceGeometry geometry;
+    /// Optional intensity plane of the same pixels (CV_32F, e.g. the Allen average template):
+    /// the registration's atlas intensity. Empty = none.
+    cv::Mat intensity = {};
 };
 
 /// Called after each plane is cut: (planes done, planes in the plan).

@@ -7,6 +7,7 @@
 #include "slicestation/pipeline/dense_refine.hpp"
 #include "slicestation/pipeline/edge_points.hpp"
 #include "slicestation/pipeline/edges.hpp"
+#include "slicestation/pipeline/intensity_affine.hpp"
 #include "slicestation/pipeline/laplace_warp.hpp"
 #include "slicestation/pipeline/preprocess.hpp"
 #include "slicestation/pipeline/smooth_warp.hpp"
@@ -20,6 +21,15 @@
 #include <vector>
 
 namespace slicestation::pipeline {
+
+/// The dense refinement's options with an atlas intensity plane: 24 steps of at most 0.5 grid
+/// px, the rest as DenseRefineOptions.
+inline DenseRefineOptions denseOptionsWithIntensity() {
+    DenseRefineOptions o;
+    o.levels = {{3.0, 18, 24}};
+    o.maxStepGridPx = 0.5;
+    return o;
+}
 
 struct RegistrationOptions {
     int workingMaxSide = 1024; ///< the section is reduced to this longer side for the work
@@ -54,8 +64,23 @@ struct RegistrationOptions {
     bool smoothWarp = false;
     SmoothWarpOptions smooth;
     /// Optional atlas intensity plane (CV_32F, the size of the atlas labels, e.g. a plane of the
-    /// Allen average template): a second term of the dense refinement. Empty = none.
+    /// Allen average template): it polishes the affine (intensityAffine) and is a second term of
+    /// the dense refinement. Empty = none.
     cv::Mat atlasIntensity;
+    /// With an atlas intensity plane: refine the ICP affine so that the section's grey image and
+    /// the plane agree over the tissue (intensity_affine.hpp), kept only when it explains more of
+    /// the section on held-out blocks. Parameters chosen on the template family's cases 0-23.
+    bool intensityAffine = true;
+    IntensityAffineOptions intensity;
+    /// When the intensity affine is kept: still run the edge-driven warps (smooth warp, Laplace
+    /// warp) after it. Off: the template stain's soft edges lie off the label boundaries, so the
+    /// edges pull a well-placed atlas off again; the dense refinement (with the plane) then does
+    /// the non-linear part alone.
+    bool edgeWarpAfterIntensity = false;
+    /// The dense refinement's options when an atlas intensity plane is given (in place of
+    /// `dense`): the plane is strong evidence, so more and longer steps (24 of at most 0.5 grid
+    /// px; chosen on the template family's cases 0-23, docs/registration.md).
+    DenseRefineOptions denseWithIntensity = denseOptionsWithIntensity();
     bool detectDamage = true; ///< find damage and keep its edges out of the matching
     DamageParams damage;
     /// Atlas ids that are ventricles (empty like glass in a section): the major-region id 73.
@@ -94,6 +119,11 @@ struct RegistrationQuality {
     /// dense refinement (0 when it did not run).
     double explainedBeforeRefine = 0, explainedAfterRefine = 0;
     bool refined = false; ///< the dense refinement ran and was kept
+    /// The intensity affine (with an atlas intensity plane): held-out share of the section's
+    /// variance the plane explains under the ICP affine and under the refined one, and whether
+    /// the refined one was kept (0, 0, false when it did not run).
+    double intensityExplainedBefore = 0, intensityExplainedAfter = 0;
+    bool intensityAffineKept = false;
     /// The smooth stage: RMS point-to-line distance (atlas px) of its first matches before and
     /// after the fitted field, and how many matches its last iteration had (0 = not run).
     double smoothBefore = 0, smoothAfter = 0;

@@ -37,7 +37,11 @@ struct AtlasSliceRequest {
     double tiltDvDeg = 0; ///< the normal leans toward the image rows (coronal: DV)
     double umPerPx = 25;
     std::string regions = "major"; ///< major | all
-    std::filesystem::path output;  ///< stack directory
+    /// Optional intensity volume of the same space (e.g. average_template_100.nrrd, the same
+    /// axis convention as `volume`): every plane is cut from it too (trilinear, divided by the
+    /// volume's largest value) and stored beside its labels as the slice's atlas intensity.
+    std::filesystem::path templateVolume;
+    std::filesystem::path output; ///< stack directory
     /// Told each phase ("reading the volume", "cutting slices", "collapsing regions", "writing
     /// the stack") with done/total (total 0: not counted); may be empty.
     std::function<void(const std::string& phase, int done, int total)> progress;

@@ -73,6 +73,9 @@ struct AtlasSliceFrame {
     /// The atlas frame's left-right coordinate of the midline (the volume's centre).
     double midlineLrUm = 0;
     std::string stackDir; ///< as given (result.json holds it relative to its own directory)
+    /// The slice's atlas intensity plane as the manifest names it (relative to stackDir), empty
+    /// when the stack holds none: the registration service then gives it to the registration.
+    std::string templateFile = {};
 };
 
 AtlasSliceFrame sliceFrame(const AtlasStack& stack, int index);

@@ -32,7 +32,11 @@ inline constexpr int kMaxSectionSidePx = 8000;
 
 struct RegisterRequest {
     std::filesystem::path atlas; ///< label image (8/16/32-bit ids or colour-coded RGB)
-    std::filesystem::path image; ///< section image (PNG or TIFF)
+    /// The atlas's intensity plane (e.g. the Allen average template cut like the labels): a
+    /// one-channel float32, 8- or 16-bit image of the labels' size, given to the registration
+    /// as its atlas intensity. Without it, a stack slice's own template plane (atlasSlice) is.
+    std::optional<std::filesystem::path> atlasTemplate;
+    std::filesystem::path image;                       ///< section image (PNG or TIFF)
     std::optional<std::filesystem::path> points;       ///< CSV x,y to map (read by loadPoints)
     std::filesystem::path output;                      ///< RESULT.json
     std::optional<std::filesystem::path> overlay;      ///< PNG

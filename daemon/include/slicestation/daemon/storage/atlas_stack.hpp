@@ -5,7 +5,8 @@
 /// manifest.json:
 /// ```
 /// {"slices": [{"index", "file", "position_um", "normal", "um_per_px",
-///              "width", "height", "origin_um", "column_um", "row_um"}...],
+///              "width", "height", "origin_um", "column_um", "row_um",
+///              "template" (optional: the atlas intensity plane, float32 TIFF)}...],
 ///  "regions": [{"id", "name", "acronym", "color": "#RRGGBB", "path": [root, ..., id]}...],
 ///  "source": {"kind": "volume"|"builtin", "plane", "interval_um", ...}}
 /// ```
@@ -41,6 +42,10 @@ struct StackSlice {
     double positionUm = 0;
     double umPerPx = 0;
     pipeline::SliceGeometry geometry;
+    /// The slice's atlas intensity plane (float32 TIFF of the slice's size, e.g. the Allen
+    /// average template cut along the same plane), relative to the stack directory; empty =
+    /// none (stacks written without --template).
+    std::string templateFile = {};
 };
 
 struct AtlasStack {
@@ -72,6 +77,16 @@ std::string colorHex(std::uint32_t rgb);
 /// The labels of slice `index`, CV_32S. \return OutOfRange (no such index), the errors of
 /// core::readImage, InvalidArgument (not a label image).
 [[nodiscard]] core::Result<cv::Mat> readStackSlice(const AtlasStack& stack, int index);
+
+/// The atlas intensity plane of slice `index` (CV_32F, the slice's size), or an empty Mat when
+/// the stack holds none for it. \return OutOfRange (no such index), the errors of
+/// core::readImage, InvalidArgument (not a one-channel float image of the slice's size); every
+/// message names the manifest entry (slices[i].template) and the file.
+[[nodiscard]] core::Result<cv::Mat> readStackTemplate(const AtlasStack& stack, int index);
+/// readStackTemplate for slice `index` of the stack at `dir` whose manifest names `file` (not
+/// empty) and gives the slice `size` (an empty size is not checked).
+[[nodiscard]] core::Result<cv::Mat> readTemplatePlane(const std::filesystem::path& dir, int index,
+                                                      const std::string& file, cv::Size size);
 
 /// Path of slice `index`'s label image. \return OutOfRange for an unknown index.
 [[nodiscard]] core::Result<std::filesystem::path> stackSlicePath(const AtlasStack& stack,
