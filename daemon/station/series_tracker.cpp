@@ -99,9 +99,9 @@ core::Result<SeriesTracker::Placement> SeriesTracker::place(const RunRecord& run
             return r.error();
     const auto planAt = std::find(planOrder_.begin(), planOrder_.end(), section.id);
     if (planAt == planOrder_.end())
-        return core::makeError(core::ErrorCode::NotFound,
-                               "section " + std::to_string(section.id) + " is not in run " +
-                                   std::to_string(run.id));
+        return core::makeError(core::ErrorCode::NotFound, "section " + std::to_string(section.id) +
+                                                              " is not in run " +
+                                                              std::to_string(run.id));
     const auto planIndex = static_cast<std::size_t>(planAt - planOrder_.begin());
     if (rebuild) {
         // After a restart: the sections journalled before this one, in plan order, through the
@@ -151,10 +151,13 @@ core::Result<SeriesTracker::Placement> SeriesTracker::place(const RunRecord& run
     return out;
 }
 
-void SeriesTracker::recorded(std::int64_t sectionId, std::int64_t registrationId) {
+void SeriesTracker::recorded(std::int64_t sectionId, std::int64_t registrationId,
+                             int registeredSlice) {
     for (Entry& e : entries_)
-        if (e.sectionId == sectionId && e.registrationId == 0)
+        if (e.sectionId == sectionId && e.registrationId == 0) {
             e.registrationId = registrationId;
+            e.registeredSlice = registeredSlice;
+        }
 }
 
 std::vector<SeriesTracker::Settled> SeriesTracker::settle(std::int64_t runId, bool runComplete) {

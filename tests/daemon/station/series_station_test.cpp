@@ -90,8 +90,10 @@ TEST_F(StationTest, TheSeriesModelPlacesEachSectionAndASwapIsRecordedAndAlertedO
         ASSERT_TRUE(r.matchedSlice.has_value());
         ASSERT_TRUE(r.matchedPositionUm.has_value());
         EXPECT_NEAR(r.series->positionUm, kTruthUm[i], 200.0);
-        EXPECT_EQ(r.atlasSlice, static_cast<int>(std::lround(r.series->positionUm / 100.0)))
-            << "registered to the slice the series says, not the planned one";
+        // Registered to the slice the series says when it is beyond the tolerance (2 slices)
+        // from the planned one, else to the planned one.
+        const int found = static_cast<int>(std::lround(r.series->positionUm / 100.0));
+        EXPECT_EQ(r.atlasSlice, std::abs(found - *r.plannedSlice) > 2 ? found : *r.plannedSlice);
         EXPECT_DOUBLE_EQ(r.foundPositionUm.value_or(-1), 100.0 * r.atlasSlice);
         // The series' word, as confirmed by the section after it (the last by itself).
         const bool swapped = i == 4 || i == 5;

@@ -2,8 +2,9 @@
 /// The series model of the run being registered (issue 19, item 4; docs/atlas.md, "The daemon:
 /// the series model in a run"). The registration worker feeds each captured section to one
 /// pipeline::SeriesMatcher per run, in scan (plan) order, with the plan's interval as the prior,
-/// and registers the section to the plane the model says: its position rounded to the stack's
-/// nearest slice. The stack's slices are straight; the series' tilt is recorded, not applied.
+/// and gives the plane the model says: its position rounded to the stack's nearest slice (the
+/// worker registers to it unless it lies within the tolerance of the planned slice). The
+/// stack's slices are straight; the series' tilt is recorded, not applied.
 ///
 /// - A section already in the model (a rescan) keeps its place: it is matched on its own against
 ///   the whole stack and registered to the model's current position for it.
@@ -51,18 +52,19 @@ public:
     /// Matches the capture of `section` (of `run`) with the run's series model.
     /// \return the errors of reading the image (NotFound, IoError), of matching (NoTissue,
     ///         InvalidArgument) and of the journal (during a rebuild).
-    [[nodiscard]] core::Result<Placement>
-    place(const RunRecord& run, const SectionRecord& section, const CaptureRecord& capture);
+    [[nodiscard]] core::Result<Placement> place(const RunRecord& run, const SectionRecord& section,
+                                                const CaptureRecord& capture);
 
-    /// The section's registration was journalled as `registrationId`: settle() will update it.
-    void recorded(std::int64_t sectionId, std::int64_t registrationId);
+    /// The section's registration was journalled as `registrationId`, registered to
+    /// `registeredSlice`: settle() will update it.
+    void recorded(std::int64_t sectionId, std::int64_t registrationId, int registeredSlice);
 
     /// A section whose word the model has confirmed.
     struct Settled {
         std::int64_t sectionId = 0;
         std::int64_t registrationId = 0; ///< 0 when its registration was not journalled
         SeriesPlacement series;
-        int slice = 0;          ///< the stack slice nearest to series.positionUm
+        int slice = 0;           ///< the stack slice nearest to series.positionUm
         int registeredSlice = 0; ///< the slice it was registered to (the word then)
         int matchedSlice = 0;
     };
