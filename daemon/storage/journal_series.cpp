@@ -37,9 +37,9 @@ Result<void> Journal::writeSeries(std::int64_t id, const SeriesPlacement& p) {
     up.bind(5, p.tiltLrDeg).bind(6, p.tiltDvDeg).bind(7, id);
     if (up.step() != SQLITE_DONE) {
         if (sqlite3_errcode(db_) == SQLITE_CONSTRAINT)
-            return makeError(ErrorCode::InvalidArgument,
-                             "journal " + file_.string() + ": series anomaly \"" + p.anomaly +
-                                 "\" is not one the journal knows");
+            return makeError(ErrorCode::InvalidArgument, "journal " + file_.string() +
+                                                             ": series anomaly \"" + p.anomaly +
+                                                             "\" is not one the journal knows");
         return sqlError(db_, file_, "store the series placement");
     }
     if (sqlite3_changes(db_) == 0)

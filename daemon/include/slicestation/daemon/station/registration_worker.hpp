@@ -4,11 +4,11 @@
 /// For each capture: with check_atlas_match (or no planned slice) the section goes through the
 /// run's series model (SeriesTracker, issue 19) and is registered to the slice the model says
 /// when that lies beyond the tolerance from the planned one (recorded as a warning) or nothing
-/// is planned; within the tolerance, and without matching, to its planned slice. Writes result JSON (with the planned, matched
-/// and found planes), overlay PNG and atlas labels in the image frame (each file atomically),
-/// then journals the registration. Once the model has confirmed its word on a section (the next
-/// section arrived, or the run's last one), the journal's series columns are updated and a
-/// section off the plan or flagged skipped/swapped/out of order/duplicate raises one
+/// is planned; within the tolerance, and without matching, to its planned slice. Writes result JSON
+/// (with the planned, matched and found planes), overlay PNG and atlas labels in the image frame
+/// (each file atomically), then journals the registration. Once the model has confirmed its word on
+/// a section (the next section arrived, or the run's last one), the journal's series columns are
+/// updated and a section off the plan or flagged skipped/swapped/out of order/duplicate raises one
 /// "atlas_mismatch" alert. A damaged section raises a "damaged" alert (re-mount). A section that
 /// cannot be registered is marked failed with the reason and alerted.
 ///
