@@ -299,6 +299,8 @@ Result<nlohmann::json> Station::sectionDetail(std::int64_t sectionId) {
             rj["quality_detail"] = r.result["quality"];
         j["registrations"].push_back(rj);
     }
+    // The section's planes (planned, own match, found, series) as its latest registration has them.
+    j["plane"] = regs->empty() ? nlohmann::json() : planeJson(regs->back());
     return j;
 }
 

@@ -119,8 +119,8 @@ CREATE TABLE station_settings (
 CREATE INDEX alerts_by_kind ON alerts(kind, raised_utc);
 )sql";
 
-constexpr std::array<const char*, 2> kMigrations = {kMigration1, kMigration2};
-static_assert(kMigrations.size() == Journal::kSchemaVersion);
+const std::array<const char*, 3> kMigrations = {kMigration1, kMigration2, kMigration3};
+static_assert(std::tuple_size_v<decltype(kMigrations)> == Journal::kSchemaVersion);
 
 } // namespace
 
@@ -452,17 +452,22 @@ Result<std::int64_t> Journal::recordRegistration(RegistrationRecord r) {
                   "INSERT INTO registrations (capture_id, atlas_slice, matched_slice, damaged, "
                   "damage_fraction, summary, warning, quality, result_path, overlay_path, "
                   "labels_path, result_json, registered_utc, damage_score, damage_verdict, "
-                  "flag_score) VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?)");
+                  "flag_score, planned_slice, planned_position_um, matched_position_um, "
+                  "found_position_um) VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?)");
     ins.bind(1, r.captureId).bind(2, r.atlasSlice).bind(3, r.matchedSlice);
     ins.bind(4, r.damaged ? 1 : 0).bind(5, r.damageFraction).bind(6, r.summary).bind(7, r.warning);
     ins.bind(8, r.quality).bind(9, r.resultPath).bind(10, r.overlayPath).bind(11, r.labelsPath);
     ins.bind(12, r.result.dump()).bind(13, r.registeredUtc).bind(14, r.damageScore);
     ins.bind(15, r.damageVerdict.empty() ? std::optional<std::string>()
                                          : std::optional<std::string>(r.damageVerdict));
-    ins.bind(16, r.flagScore);
+    ins.bind(16, r.flagScore).bind(17, r.plannedSlice).bind(18, r.plannedPositionUm);
+    ins.bind(19, r.matchedPositionUm).bind(20, r.foundPositionUm);
     if (ins.step() != SQLITE_DONE)
         return sqlError(db_, file_, "insert registration");
     const std::int64_t id = sqlite3_last_insert_rowid(db_);
+    if (r.series)
+        if (auto s = writeSeries(id, *r.series); !s)
+            return s.error();
     // Only a section still waiting for this registration changes state: a rescan requested in
     // the meantime wins.
     Statement up(db_,

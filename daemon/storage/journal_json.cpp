@@ -72,6 +72,31 @@ nlohmann::json toJson(const RegistrationRecord& r) {
     j["damage_verdict"] =
         r.damageVerdict.empty() ? nlohmann::json() : nlohmann::json(r.damageVerdict);
     j["flag_score"] = r.flagScore ? nlohmann::json(*r.flagScore) : nlohmann::json();
+    j["plane"] = planeJson(r);
+    return j;
+}
+
+nlohmann::json planeJson(const RegistrationRecord& r) {
+    const auto slicePlane = [](std::optional<int> slice, std::optional<double> positionUm) {
+        if (!slice && !positionUm)
+            return nlohmann::json();
+        return nlohmann::json{
+            {"slice", slice ? nlohmann::json(*slice) : nlohmann::json()},
+            {"position_um", positionUm ? nlohmann::json(*positionUm) : nlohmann::json()}};
+    };
+    nlohmann::json j;
+    j["planned"] = slicePlane(r.plannedSlice, r.plannedPositionUm);
+    j["matched"] = slicePlane(r.matchedSlice, r.matchedPositionUm);
+    // The stack's slices are straight: the series' tilt is recorded, not applied.
+    j["found"] = slicePlane(r.atlasSlice, r.foundPositionUm);
+    j["found"]["tilted"] = false;
+    if (r.series)
+        j["series"] = {
+            {"position_um", r.series->positionUm}, {"slot", r.series->slot},
+            {"anomaly", r.series->anomaly},        {"missing_before", r.series->missingBefore},
+            {"tilt_lr_deg", r.series->tiltLrDeg},  {"tilt_dv_deg", r.series->tiltDvDeg}};
+    else
+        j["series"] = nullptr;
     return j;
 }
 

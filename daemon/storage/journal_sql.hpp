@@ -183,7 +183,16 @@ inline CaptureRecord readCapture(const Statement& st) {
 constexpr const char* kRegistrationColumns =
     "id, capture_id, atlas_slice, matched_slice, damaged, damage_fraction, summary, warning, "
     "quality, result_path, overlay_path, labels_path, result_json, registered_utc, damage_score, "
-    "damage_verdict, flag_score";
+    "damage_verdict, flag_score, planned_slice, planned_position_um, matched_position_um, "
+    "found_position_um, series_position_um, series_slot, series_anomaly, series_missing_before, "
+    "series_tilt_lr_deg, series_tilt_dv_deg";
+
+/// Schema version 3 (journal_series.cpp): the planes of every registration.
+extern const char* const kMigration3;
+
+inline std::optional<double> optionalF64(const Statement& st, int c) {
+    return st.isNull(c) ? std::nullopt : std::optional<double>(st.f64(c));
+}
 
 inline RegistrationRecord readRegistration(const Statement& st) {
     RegistrationRecord r;
@@ -207,6 +216,21 @@ inline RegistrationRecord readRegistration(const Statement& st) {
     r.damageVerdict = st.text(15);
     if (!st.isNull(16))
         r.flagScore = st.f64(16);
+    if (!st.isNull(17))
+        r.plannedSlice = st.i32(17);
+    r.plannedPositionUm = optionalF64(st, 18);
+    r.matchedPositionUm = optionalF64(st, 19);
+    r.foundPositionUm = optionalF64(st, 20);
+    if (!st.isNull(21)) {
+        SeriesPlacement p;
+        p.positionUm = st.f64(21);
+        p.slot = st.i32(22);
+        p.anomaly = st.text(23);
+        p.missingBefore = st.i32(24);
+        p.tiltLrDeg = st.f64(25);
+        p.tiltDvDeg = st.f64(26);
+        r.series = p;
+    }
     return r;
 }
 

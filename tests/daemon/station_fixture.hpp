@@ -20,6 +20,7 @@
 #include <cmath>
 #include <filesystem>
 #include <mutex>
+#include <optional>
 #include <thread>
 
 namespace slicestation::testing_station {
@@ -100,6 +101,8 @@ protected:
         sim::SimStageConfig sc;
         sc.clock = std::make_shared<core::VirtualClock>(); // moves complete at once
         sc.start = {0, 0, 2'500};
+        if (stageLimits_)
+            sc.limits = *stageLimits_;
         auto simStage = sim::SimStage::create(sc);
         ASSERT_TRUE(simStage);
         auto stage = sim::FaultyStage::create(std::move(*simStage), nullptr);
@@ -113,7 +116,7 @@ protected:
             std::lock_guard lock(*mu);
             return *pos;
         };
-        auto simCamera = sim::SimCamera::create(slide(), cc);
+        auto simCamera = sim::SimCamera::create(*slide_, cc);
         ASSERT_TRUE(simCamera) << simCamera.error().message;
         auto camera = sim::FaultyCamera::create(std::move(*simCamera),
                                                 std::make_shared<core::VirtualClock>());
@@ -180,6 +183,9 @@ protected:
     }
 
     Rig rig_;
+    /// What the camera sees and how far the stage goes; set before build().
+    const sim::VirtualSlide* slide_ = &slide();
+    std::optional<hw::StageLimits> stageLimits_;
 };
 
 } // namespace slicestation::testing_station

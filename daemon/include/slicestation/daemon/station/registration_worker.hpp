@@ -1,11 +1,16 @@
 #pragma once
 /// Registers captured sections on its own thread, so the stage never waits for registration.
 ///
-/// For each capture: (optionally) checks which atlas slice the section really matches and
-/// records a warning beyond the tolerance, registers it to its expected slice (the plan is the
-/// authority), writes result JSON, overlay PNG and atlas labels in the image frame (each file
-/// atomically), then journals the registration. A damaged section raises a "damaged" alert
-/// (re-mount). A section that cannot be registered is marked failed with the reason and alerted.
+/// For each capture: with check_atlas_match (or no planned slice) the section goes through the
+/// run's series model (SeriesTracker, issue 19) and is registered to the slice the model says
+/// when that lies beyond the tolerance from the planned one (recorded as a warning) or nothing
+/// is planned; within the tolerance, and without matching, to its planned slice. Writes result JSON
+/// (with the planned, matched and found planes), overlay PNG and atlas labels in the image frame
+/// (each file atomically), then journals the registration. Once the model has confirmed its word on
+/// a section (the next section arrived, or the run's last one), the journal's series columns are
+/// updated and a section off the plan or flagged skipped/swapped/out of order/duplicate raises one
+/// "atlas_mismatch" alert. A damaged section raises a "damaged" alert (re-mount). A section that
+/// cannot be registered is marked failed with the reason and alerted.
 ///
 /// Crash safety: the queue is not persistent: after a restart the daemon re-enqueues
 /// Journal::capturesAwaitingRegistration().
@@ -13,6 +18,7 @@
 #include "slicestation/daemon/alerts/notifier.hpp"
 #include "slicestation/daemon/config/daemon_settings.hpp"
 #include "slicestation/daemon/station/phase_stats.hpp"
+#include "slicestation/daemon/station/series_tracker.hpp"
 #include "slicestation/daemon/storage/atlas_stack.hpp"
 #include "slicestation/daemon/storage/journal.hpp"
 #include "slicestation/pipeline/atlas_matching.hpp"
@@ -56,27 +62,38 @@ public:
                                double flagScore);
     /// The message of the damaged or check_registration alert, with the score (2 decimals).
     static std::string damageAlertText(const RegistrationRecord& rec, const std::string& label);
+    /// The atlas_mismatch alert on a section whose series word is settled: when the series flags
+    /// it (skipped-before, swapped, out-of-order, duplicate) or places it beyond
+    /// `toleranceSlices` from `plannedSlice`; "" when neither.
+    static std::string seriesAlertText(const std::string& label,
+                                       const SeriesTracker::Settled& settled,
+                                       std::optional<int> plannedSlice, int toleranceSlices);
 
 private:
     void loop();
     void process(std::int64_t captureId);
-    /// The slice to register to: the planned one; the matched one when none is planned. With
-    /// settings.checkAtlasMatch the whole stack is searched and a match beyond the tolerance
-    /// gives a warning. InvalidArgument-like errors when no slice is planned and matching fails.
+    /// The slice to register to: the series model's (when matching runs and succeeds), else the
+    /// planned one. A found slice beyond the tolerance from the planned one gives a warning.
+    /// The error of matching when no slice is planned and matching fails.
     struct SliceChoice {
-        std::optional<int> slice;   ///< set on success
-        std::optional<int> matched; ///< what matching found, when it ran and succeeded
+        std::optional<int> slice;                          ///< set on success
+        std::optional<SeriesTracker::Placement> placement; ///< when matching ran and succeeded
         std::string warning;
     };
-    core::Result<SliceChoice> chooseSlice(const SectionRecord& section,
+    core::Result<SliceChoice> chooseSlice(const RunRecord& run, const SectionRecord& section,
                                           const CaptureRecord& capture,
                                           const ScanSettings& settings);
+    /// The planes of the registration: found (`choice.slice`), planned, own match, series word.
+    void setPlanes(RegistrationRecord& rec, const SectionRecord& section,
+                   const SliceChoice& choice) const;
+    /// Journals the series' confirmed word on each section and raises its alert (once).
+    void settleSeries(const RunRecord& run, bool runComplete, int toleranceSlices);
+    static std::string sectionLabel(const SectionRecord& section, std::int64_t runId);
     /// Journals the registration and tells: an event, and alerts for a mismatch or damage.
     void record(RegistrationRecord& rec, const RunRecord& run, const SectionRecord& section,
                 const std::string& label);
-    /// The stack slice the image matches best (within `window` of `expected` when given).
-    core::Result<int> matchToStack(const std::filesystem::path& image, double umPerPx,
-                                   std::optional<int> expected, int window);
+    /// Computes the stack's matching features once.
+    core::Result<void> loadFeatures();
 
     Journal& journal_;
     Notifier& notifier_;
@@ -90,6 +107,7 @@ private:
     bool stopping_ = false;
     std::thread thread_;
     std::vector<pipeline::SliceFeatures> features_; ///< worker thread only
+    SeriesTracker series_;                          ///< worker thread only; uses features_
 };
 
 } // namespace slicestation::daemon

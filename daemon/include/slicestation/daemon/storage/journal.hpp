@@ -9,7 +9,9 @@
 /// Schema versions live in `PRAGMA user_version`; open() applies the migrations a file lacks, all
 /// in one transaction, and refuses a file written by a newer version (Unsupported). Version 2
 /// (issue 18) adds the damage score, verdict and flag score of every registration (NULL, unknown,
-/// for older rows) and the station settings kept in the journal.
+/// for older rows) and the station settings kept in the journal. Version 3 (issue 19) adds each
+/// registration's atlas plane: the planned one, the section's own match and the series model's
+/// (NULL for older rows and for registrations made without matching).
 ///
 /// Threading: every method is thread-safe (one connection behind a mutex); calls are short.
 /// Errors: IoError (SQLite failure, message carries SQLite's text and the file), NotFound (no such
@@ -102,6 +104,18 @@ struct CaptureRecord {
     std::string capturedUtc;
 };
 
+/// The series model's word on one section (pipeline/series_model.hpp), as the journal keeps it.
+struct SeriesPlacement {
+    double positionUm = 0; ///< the series' answer: its own match, or the line's when placed
+    int slot = 0;          ///< place in the cutting sequence
+    /// pipeline::toString(SeriesAnomaly): "none", "off-line", "skipped-before", "swapped",
+    /// "out-of-order", "duplicate" or "placed-on-line" (the only values the journal accepts).
+    std::string anomaly = "none";
+    int missingBefore = 0; ///< for "skipped-before"
+    double tiltLrDeg = 0;  ///< the series' cutting angle so far (not applied: straight slices)
+    double tiltDvDeg = 0;
+};
+
 struct RegistrationRecord {
     std::int64_t id = 0;
     std::int64_t captureId = 0;
@@ -121,6 +135,16 @@ struct RegistrationRecord {
     std::optional<double> damageScore;
     std::string damageVerdict;
     std::optional<double> flagScore;
+    /// Schema version 3 (issue 19): the planes. `atlasSlice` is the slice registered to (the
+    /// found plane: the series' position rounded to the nearest stack slice). The planned slice
+    /// and its position (the plan's, when it gives one); the section's own match (`matchedSlice`
+    /// and its refined position); the series model's word, updated once the next section has
+    /// confirmed it (Journal::updateSeries). All unknown for rows journalled before version 3.
+    std::optional<int> plannedSlice;
+    std::optional<double> plannedPositionUm;
+    std::optional<double> matchedPositionUm;
+    std::optional<double> foundPositionUm; ///< position of the slice registered to
+    std::optional<SeriesPlacement> series;
 };
 
 /// A damage alert (kind damaged or check_registration) on a section and how it was answered,
@@ -160,7 +184,7 @@ public:
     Journal(const Journal&) = delete;
     Journal& operator=(const Journal&) = delete;
 
-    static constexpr int kSchemaVersion = 2;
+    static constexpr int kSchemaVersion = 3;
 
     // Runs ----------------------------------------------------------------------------------
     /// Journals a new queued run with its sections in one transaction.
@@ -200,6 +224,11 @@ public:
     [[nodiscard]] core::Result<std::vector<RegistrationRecord>>
     registrations(std::int64_t sectionId);
     /// Marks a section failed with a reason (capture or registration gave up).
+    /// Replaces the series model's word on a journalled registration (the model refits as later
+    /// sections arrive; the slice registered to stays). NotFound, InvalidArgument (an anomaly
+    /// the journal does not know).
+    [[nodiscard]] core::Result<void> updateSeries(std::int64_t registrationId,
+                                                  const SeriesPlacement& series);
     [[nodiscard]] core::Result<void> failSection(std::int64_t sectionId, const std::string& reason);
     /// After re-mounting: the section is captured again (its old records stay). A finished run
     /// is reopened (queued). InvalidArgument when the section is still pending or captured.
@@ -237,6 +266,8 @@ public:
 private:
     Journal(sqlite3* db, std::filesystem::path file) : db_(db), file_(std::move(file)) {}
     core::Result<void> migrate();
+    /// The series columns of registration `id`; the caller holds the mutex (and a transaction).
+    core::Result<void> writeSeries(std::int64_t id, const SeriesPlacement& series);
     sqlite3* db_;
     std::filesystem::path file_;
     std::mutex mutex_;
@@ -245,7 +276,12 @@ private:
 nlohmann::json toJson(const RunRecord& r);
 nlohmann::json toJson(const SectionRecord& s);
 nlohmann::json toJson(const CaptureRecord& c);
-nlohmann::json toJson(const RegistrationRecord& r); ///< without the full result
+nlohmann::json toJson(const RegistrationRecord& r); ///< without the full result; with "plane"
+/// The planes of a registration (docs/atlas.md, "The daemon: the series model in a run"):
+/// {"planned": {"slice", "position_um"} | null, "matched": {"slice", "position_um"} | null,
+///  "found": {"slice", "position_um", "tilted": false}, "series": {"position_um", "slot",
+///  "anomaly", "missing_before", "tilt_lr_deg", "tilt_dv_deg"} | null}.
+nlohmann::json planeJson(const RegistrationRecord& r);
 nlohmann::json toJson(const AlertRecord& a);
 
 } // namespace slicestation::daemon

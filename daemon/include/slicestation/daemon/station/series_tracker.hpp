@@ -1,0 +1,106 @@
+#pragma once
+/// The series model of the run being registered (issue 19, item 4; docs/atlas.md, "The daemon:
+/// the series model in a run"). The registration worker feeds each captured section to one
+/// pipeline::SeriesMatcher per run, in scan (plan) order, with the plan's interval as the prior,
+/// and gives the plane the model says: its position rounded to the stack's nearest slice (the
+/// worker registers to it unless it lies within the tolerance of the planned slice). The
+/// stack's slices are straight; the series' tilt is recorded, not applied.
+///
+/// - A section already in the model (a rescan) keeps its place: it is matched on its own against
+///   the whole stack and registered to the model's current position for it.
+/// - A section that arrives after sections later in the plan (its first capture failed and was
+///   rescanned) is not added (the model's slots follow arrival order): its own whole-stack match
+///   is the found plane, and it has no series word.
+/// - After a restart (or when another run's section arrives) the model is rebuilt from the run's
+///   journalled sections before this one, matching their first registered images again.
+///
+/// The model's word on a section changes as later sections arrive (a swap first looks like a
+/// skip), so settle() hands out each section's word once it is confirmed: when the next section
+/// has been added, or at once for the run's last section.
+///
+/// Threading: the registration worker's thread only. Blocking: image reads and matching (about
+/// 0.5 s per section; a rebuild costs that per journalled section).
+#include "slicestation/core/result.hpp"
+#include "slicestation/daemon/storage/atlas_stack.hpp"
+#include "slicestation/daemon/storage/journal.hpp"
+#include "slicestation/pipeline/atlas_matching.hpp"
+#include "slicestation/pipeline/series_matching.hpp"
+
+#include <cstdint>
+#include <filesystem>
+#include <memory>
+#include <optional>
+#include <vector>
+
+namespace slicestation::daemon {
+
+class SeriesTracker {
+public:
+    /// `stack` and `slices` (its matching features, stackFeatures) must outlive the tracker.
+    SeriesTracker(Journal& journal, const AtlasStack& stack,
+                  const std::vector<pipeline::SliceFeatures>& slices,
+                  std::filesystem::path stateDir);
+
+    /// Where a section lies and the slice to register it to.
+    struct Placement {
+        int slice = 0;         ///< the found plane: the stack slice nearest to positionUm
+        double positionUm = 0; ///< the series' answer (or the own match without a series word)
+        int matchedSlice = 0;  ///< the section's own match
+        double matchedPositionUm = 0;
+        std::optional<SeriesPlacement> series; ///< the model's word now; none when not in it
+    };
+    /// Matches the capture of `section` (of `run`) with the run's series model.
+    /// \return the errors of reading the image (NotFound, IoError), of matching (NoTissue,
+    ///         InvalidArgument) and of the journal (during a rebuild).
+    [[nodiscard]] core::Result<Placement> place(const RunRecord& run, const SectionRecord& section,
+                                                const CaptureRecord& capture);
+
+    /// The section's registration was journalled as `registrationId`, registered to
+    /// `registeredSlice`: settle() will update it.
+    void recorded(std::int64_t sectionId, std::int64_t registrationId, int registeredSlice);
+
+    /// A section whose word the model has confirmed.
+    struct Settled {
+        std::int64_t sectionId = 0;
+        std::int64_t registrationId = 0; ///< 0 when its registration was not journalled
+        SeriesPlacement series;
+        int slice = 0;           ///< the stack slice nearest to series.positionUm
+        int registeredSlice = 0; ///< the slice it was registered to (the word then)
+        int matchedSlice = 0;
+    };
+    /// The sections of `runId` confirmed since the last call, each once: all but the newest, and
+    /// the newest too when `runComplete` (it is the last of the plan). Empty for another run.
+    std::vector<Settled> settle(std::int64_t runId, bool runComplete);
+
+    /// The plan's interval for the model's prior: the median distance between consecutive
+    /// planned positions (in plan order), 0 when fewer than two sections have one.
+    static double planIntervalUm(const std::vector<SectionRecord>& sections,
+                                 const AtlasStack& stack);
+    /// The stack slice nearest to `positionUm` (slices are in position order).
+    static int nearestSlice(const AtlasStack& stack, double positionUm);
+
+private:
+    struct Entry {
+        std::int64_t sectionId = 0;
+        std::size_t planIndex = 0;
+        std::int64_t registrationId = 0;
+        int registeredSlice = 0;
+        int matchedSlice = 0;
+        bool settled = false;
+    };
+    core::Result<void> reset(const RunRecord& run);
+    core::Result<pipeline::SectionFeatures> featuresOf(const CaptureRecord& capture) const;
+    core::Result<pipeline::SectionMatch> matchWhole(const pipeline::SectionFeatures& f) const;
+    SeriesPlacement wordOn(std::size_t entry) const;
+
+    Journal& journal_;
+    const AtlasStack& stack_;
+    const std::vector<pipeline::SliceFeatures>& slices_;
+    std::filesystem::path stateDir_;
+    std::int64_t runId_ = 0;
+    std::vector<std::int64_t> planOrder_; ///< the run's section ids in plan order
+    std::unique_ptr<pipeline::SeriesMatcher> matcher_;
+    std::vector<Entry> entries_; ///< in the order added to the matcher
+};
+
+} // namespace slicestation::daemon

@@ -1,0 +1,184 @@
+#include "slicestation/daemon/station/series_tracker.hpp"
+
+#include "slicestation/core/image_file.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <string>
+
+namespace slicestation::daemon {
+
+SeriesTracker::SeriesTracker(Journal& journal, const AtlasStack& stack,
+                             const std::vector<pipeline::SliceFeatures>& slices,
+                             std::filesystem::path stateDir)
+    : journal_(journal), stack_(stack), slices_(slices), stateDir_(std::move(stateDir)) {}
+
+double SeriesTracker::planIntervalUm(const std::vector<SectionRecord>& sections,
+                                     const AtlasStack& stack) {
+    std::vector<double> steps;
+    std::optional<double> previous;
+    for (const SectionRecord& s : sections) {
+        if (!s.expectedSlice || *s.expectedSlice < 0 ||
+            *s.expectedSlice >= static_cast<int>(stack.slices.size())) {
+            previous.reset(); // only neighbours in the plan give a step
+            continue;
+        }
+        const double at = stack.slices[static_cast<std::size_t>(*s.expectedSlice)].positionUm;
+        if (previous && std::abs(at - *previous) > 0)
+            steps.push_back(std::abs(at - *previous));
+        previous = at;
+    }
+    if (steps.empty())
+        return 0;
+    std::nth_element(steps.begin(), steps.begin() + static_cast<long>(steps.size() / 2),
+                     steps.end());
+    return steps[steps.size() / 2];
+}
+
+int SeriesTracker::nearestSlice(const AtlasStack& stack, double positionUm) {
+    int best = 0;
+    for (std::size_t i = 0; i < stack.slices.size(); ++i)
+        if (std::abs(stack.slices[i].positionUm - positionUm) <
+            std::abs(stack.slices[static_cast<std::size_t>(best)].positionUm - positionUm))
+            best = static_cast<int>(i);
+    return best;
+}
+
+core::Result<pipeline::SectionFeatures>
+SeriesTracker::featuresOf(const CaptureRecord& capture) const {
+    auto image = core::readImage(stateDir_ / capture.imagePath);
+    if (!image)
+        return image.error();
+    return pipeline::sectionFeatures(*image, capture.umPerPx, slices_.front().workUmPerPx);
+}
+
+core::Result<pipeline::SectionMatch>
+SeriesTracker::matchWhole(const pipeline::SectionFeatures& f) const {
+    // The whole stack: a section outside the series must show where it belongs.
+    return pipeline::matchSection(f, slices_, {});
+}
+
+SeriesPlacement SeriesTracker::wordOn(std::size_t entry) const {
+    const pipeline::SeriesFit& fit = matcher_->fit();
+    const pipeline::SeriesSectionFit& s = fit.sections[entry];
+    SeriesPlacement p;
+    p.positionUm = s.positionUm;
+    p.slot = s.slot;
+    p.anomaly = std::string(pipeline::toString(s.anomaly));
+    p.missingBefore = s.missingBefore;
+    p.tiltLrDeg = fit.tiltColumnsDeg;
+    p.tiltDvDeg = fit.tiltRowsDeg;
+    return p;
+}
+
+core::Result<void> SeriesTracker::reset(const RunRecord& run) {
+    runId_ = 0;
+    entries_.clear();
+    planOrder_.clear();
+    matcher_.reset();
+    auto sections = journal_.sections(run.id);
+    if (!sections)
+        return sections.error();
+    for (const SectionRecord& s : *sections)
+        planOrder_.push_back(s.id);
+    pipeline::SeriesMatchOptions options;
+    options.model.intervalUm = planIntervalUm(*sections, stack_);
+    matcher_ = std::make_unique<pipeline::SeriesMatcher>(slices_, options);
+    runId_ = run.id;
+    return {};
+}
+
+core::Result<SeriesTracker::Placement> SeriesTracker::place(const RunRecord& run,
+                                                            const SectionRecord& section,
+                                                            const CaptureRecord& capture) {
+    if (slices_.empty())
+        return core::makeError(core::ErrorCode::InvalidArgument, "empty atlas stack");
+    const bool rebuild = run.id != runId_ || !matcher_;
+    if (rebuild)
+        if (auto r = reset(run); !r)
+            return r.error();
+    const auto planAt = std::find(planOrder_.begin(), planOrder_.end(), section.id);
+    if (planAt == planOrder_.end())
+        return core::makeError(core::ErrorCode::NotFound, "section " + std::to_string(section.id) +
+                                                              " is not in run " +
+                                                              std::to_string(run.id));
+    const auto planIndex = static_cast<std::size_t>(planAt - planOrder_.begin());
+    if (rebuild) {
+        // After a restart: the sections journalled before this one, in plan order, through the
+        // model again (their word was settled and alerted before).
+        for (std::size_t k = 0; k < planIndex; ++k) {
+            auto regs = journal_.registrations(planOrder_[k]);
+            if (!regs || regs->empty())
+                continue;
+            auto cap = journal_.capture(regs->front().captureId);
+            auto f = cap ? featuresOf(*cap) : core::Result<pipeline::SectionFeatures>(cap.error());
+            if (!f || !matcher_->add(*f))
+                continue; // a section that cannot be matched again is left out, as it was then
+            entries_.push_back({planOrder_[k], k, regs->front().id, regs->front().atlasSlice,
+                                regs->front().matchedSlice.value_or(0), true});
+        }
+    }
+    auto features = featuresOf(capture);
+    if (!features)
+        return features.error();
+    Placement out;
+    const auto known = std::find_if(entries_.begin(), entries_.end(),
+                                    [&](const Entry& e) { return e.sectionId == section.id; });
+    if (known != entries_.end() || (!entries_.empty() && entries_.back().planIndex > planIndex)) {
+        // A rescan keeps its place in the model; a late section stays out of it.
+        auto m = matchWhole(*features);
+        if (!m)
+            return m.error();
+        out.matchedSlice = m->index;
+        out.matchedPositionUm = m->positionUm;
+        out.positionUm = m->positionUm;
+        if (known != entries_.end()) {
+            out.series = wordOn(static_cast<std::size_t>(known - entries_.begin()));
+            out.positionUm = out.series->positionUm;
+        }
+        out.slice = nearestSlice(stack_, out.positionUm);
+        return out;
+    }
+    auto m = matcher_->add(*features);
+    if (!m)
+        return m.error();
+    out.matchedSlice = m->index;
+    out.matchedPositionUm = m->positionUm;
+    out.series = wordOn(matcher_->matches().size() - 1);
+    out.positionUm = out.series->positionUm;
+    out.slice = nearestSlice(stack_, out.positionUm);
+    entries_.push_back({section.id, planIndex, 0, out.slice, m->index, false});
+    return out;
+}
+
+void SeriesTracker::recorded(std::int64_t sectionId, std::int64_t registrationId,
+                             int registeredSlice) {
+    for (Entry& e : entries_)
+        if (e.sectionId == sectionId && e.registrationId == 0) {
+            e.registrationId = registrationId;
+            e.registeredSlice = registeredSlice;
+        }
+}
+
+std::vector<SeriesTracker::Settled> SeriesTracker::settle(std::int64_t runId, bool runComplete) {
+    std::vector<Settled> out;
+    if (runId != runId_ || !matcher_)
+        return out;
+    for (std::size_t k = 0; k < entries_.size(); ++k) {
+        Entry& e = entries_[k];
+        if (e.settled || (k + 1 == entries_.size() && !runComplete))
+            continue;
+        e.settled = true;
+        Settled s;
+        s.sectionId = e.sectionId;
+        s.registrationId = e.registrationId;
+        s.series = wordOn(k);
+        s.slice = nearestSlice(stack_, s.series.positionUm);
+        s.registeredSlice = e.registeredSlice;
+        s.matchedSlice = e.matchedSlice;
+        out.push_back(s);
+    }
+    return out;
+}
+
+} // namespace slicestation::daemon
