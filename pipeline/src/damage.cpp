@@ -853,7 +853,90 @@ double damageScore(std::vector<DamageRegion>& regions, double brainWidthPx,
 bool isDamaged(const std::vector<DamageRegion>& regions, double brainWidthPx,
                const DamageParams& params) {
     std::vector<DamageRegion> copy = regions;
-    return damageScore(copy, brainWidthPx, params) >= params.flagScore;
+    return decideDamage(copy, brainWidthPx, params).verdict == DamageVerdict::Damaged;
+}
+
+void markMisfit(std::vector<DamageRegion>& regions, const cv::Mat& tissueMask,
+                const AtlasExpectation& expected, double brainWidthPx, const DamageParams& params,
+                const cv::Mat& fragments, double polygonScale) {
+    CV_Assert(tissueMask.type() == CV_8U && expected.tissue.size() == tissueMask.size() &&
+              expected.brain.size() == tissueMask.size() &&
+              (fragments.empty() || fragments.size() == tissueMask.size()));
+    const cv::Size size = tissueMask.size();
+    const int r = std::max(1, static_cast<int>(std::lround(params.slackFrac * brainWidthPx)));
+    const auto inMasks = [&](const DamageRegion& d) {
+        std::vector<cv::Point> poly;
+        for (const cv::Point2f& p : d.polygon)
+            poly.emplace_back(cvRound((p.x + 0.5) * polygonScale - 0.5),
+                              cvRound((p.y + 0.5) * polygonScale - 0.5));
+        return poly;
+    };
+    // Misplaced tissue: the section's tissue where the atlas expects none, beyond the slack
+    // (the expected tissue grown by it, as the gaps are found in it shrunk by it, so that slack
+    // along a boundary that fits counts on neither side). Detached pieces are damage of their
+    // own, not a boundary placed wrong.
+    const cv::Mat disc =
+        cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * r + 1, 2 * r + 1));
+    cv::Mat grownTissue, grownBrain;
+    cv::dilate(expected.tissue, grownTissue, disc);
+    cv::dilate(expected.brain, grownBrain, disc);
+    cv::Mat excess = tissueMask & ~grownTissue;
+    if (!fragments.empty())
+        excess &= ~fragments;
+    for (const DamageRegion& d : regions)
+        if (const auto poly = inMasks(d); d.kind == DamageKind::Fragment && poly.size() >= 3) {
+            // The polygon is the piece's outline; its edge pixels go with it.
+            cv::fillPoly(excess, std::vector<std::vector<cv::Point>>{poly}, cv::Scalar(0));
+            cv::polylines(excess, std::vector<std::vector<cv::Point>>{poly}, true, cv::Scalar(0),
+                          3);
+        }
+    const cv::Mat inVentricle = excess & grownBrain;
+    for (DamageRegion& d : regions) {
+        if (d.kind != DamageKind::Tear && d.kind != DamageKind::Missing)
+            continue;
+        const std::vector<cv::Point> poly = inMasks(d);
+        if (poly.size() < 3)
+            continue;
+        // A structure placed wrong leaves its misplaced tissue across itself from the glass: a
+        // hole of width w shifted by s has a crescent of glass and one of tissue, w - s apart,
+        // each as long as the hole; a boundary pushed out leaves its tissue beside the band it
+        // left. So within half the gap's length of it, plus the slack on either side.
+        const int reach = static_cast<int>(std::ceil(0.5 * d.lengthPx * polygonScale)) + 2 * r;
+        const cv::Rect roi = grown(cv::boundingRect(poly), reach + 1, size);
+        if (roi.area() <= 0)
+            continue;
+        cv::Mat gap = cv::Mat::zeros(roi.size(), CV_8U);
+        cv::fillPoly(gap, std::vector<std::vector<cv::Point>>{poly}, cv::Scalar(255), cv::LINE_8, 0,
+                     -roi.tl());
+        const double gapArea = cv::countNonZero(gap);
+        if (gapArea <= 0)
+            continue;
+        // Within `reach` of the gap: a distance transform, since the reach can be a large disc.
+        cv::Mat away;
+        cv::distanceTransform(~gap, away, cv::DIST_L2, cv::DIST_MASK_PRECISE);
+        const cv::Mat near = away <= reach;
+        d.excessShare = cv::countNonZero(near & excess(roi)) / gapArea;
+        d.excessVentricleShare = cv::countNonZero(near & inVentricle(roi)) / gapArea;
+        d.misfit = d.excessShare >= params.misfitExcess;
+    }
+}
+
+DamageDecision decideDamage(std::vector<DamageRegion>& regions, double brainWidthPx,
+                            const DamageParams& params) {
+    std::vector<DamageRegion> trusted;
+    for (const DamageRegion& r : regions)
+        if (!r.misfit)
+            trusted.push_back(r);
+    DamageDecision out;
+    out.score = damageScore(trusted, brainWidthPx, params);
+    const double all = damageScore(regions, brainWidthPx, params);
+    if (out.score >= params.flagScore) {
+        out.verdict = DamageVerdict::Damaged;
+    } else if (all >= params.flagScore) {
+        out.verdict = DamageVerdict::CheckRegistration;
+        out.score = all;
+    }
+    return out;
 }
 
 std::string_view toString(DamageVerdict verdict) noexcept {

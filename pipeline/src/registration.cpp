@@ -888,9 +888,13 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
             for (DamageRegion& d : cracks)
                 regions.push_back(std::move(d));
         }
-        reg.damageScore = damageScore(regions, brainWidth / s, options.damage);
-        reg.damaged = reg.damageScore >= options.damage.flagScore;
-        reg.damageVerdict = reg.damaged ? DamageVerdict::Damaged : DamageVerdict::Clean;
+        // Misfit is not damage: a gap with tissue beside it where the atlas expects none lies
+        // where the atlas fit cannot be trusted (markMisfit, in working px).
+        markMisfit(regions, sectionTissue, expected, brainWidth, options.damage, fragments, s);
+        const DamageDecision decision = decideDamage(regions, brainWidth / s, options.damage);
+        reg.damageScore = decision.score;
+        reg.damageVerdict = decision.verdict;
+        reg.damaged = decision.verdict == DamageVerdict::Damaged;
         reg.damageSummary = damageSummary(regions);
         for (const DamageRegion& d : regions)
             reg.damageFraction += d.share;

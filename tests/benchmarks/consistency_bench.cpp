@@ -252,13 +252,18 @@ core::Result<std::vector<RealSection>> gerbiSeries(const fs::path& shared) {
 /// shares of the brain width, score).
 static void printDamage(const std::string& series, const std::string& name,
                         const pipeline::Registration& reg) {
-    std::printf("damage %-6s %-16s %-8s score %.3f", series.c_str(), name.c_str(),
-                reg.damaged ? "DAMAGED" : "clean", reg.damageScore);
+    const char* verdict = reg.damageVerdict == pipeline::DamageVerdict::Damaged ? "DAMAGED"
+                          : reg.damageVerdict == pipeline::DamageVerdict::CheckRegistration
+                              ? "CHECK_REG"
+                              : "clean";
+    std::printf("damage %-6s %-16s %-9s score %.3f", series.c_str(), name.c_str(), verdict,
+                reg.damageScore);
     const double bw = std::max(1.0, reg.brainWidthPx);
     for (const pipeline::DamageRegion& d : reg.damage)
-        std::printf(" [%s %.2f%% len %.3f thick %.3f score %.2f]",
+        std::printf(" [%s %.2f%% len %.3f thick %.3f score %.2f excess %.2f (vent %.2f)%s]",
                     std::string(pipeline::toString(d.kind)).c_str(), 100 * d.share, d.lengthPx / bw,
-                    d.thicknessPx / bw, d.score);
+                    d.thicknessPx / bw, d.score, d.excessShare, d.excessVentricleShare,
+                    d.misfit ? " MISFIT" : "");
     std::printf("\n");
 }
 

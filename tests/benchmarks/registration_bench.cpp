@@ -33,6 +33,7 @@ namespace {
 /// Damage detection outcome of one case (ours only).
 struct DamageRow {
     bool truth = false, flagged = false;
+    bool checkRegistration = false; ///< the verdict "check the registration" (not a flag)
     /// The painted damage is large enough for the decision rule itself, measured on the true
     /// removed tissue (a painted tear can leave no more than a shallow notch).
     bool truthByRule = false;
@@ -295,6 +296,11 @@ void printDamage(const std::vector<DamageRow>& d, const std::vector<Row>& rows) 
         ++(r.damaged ? nd : nc);
     }
     std::printf("\ndamage flag: %s\n", flagScore(d, &DamageRow::truth).c_str());
+    int checkClean = 0, checkDamaged = 0;
+    for (const auto& r : d)
+        (r.truth ? checkDamaged : checkClean) += r.checkRegistration;
+    std::printf("  check_registration (not a flag): %d clean, %d damaged\n", checkClean,
+                checkDamaged);
     std::printf("  against the painted damage the decision rule counts on the truth (%d damaged "
                 "cases below it): %s\n",
                 below, flagScore(d, &DamageRow::truthByRule).c_str());
@@ -476,7 +482,8 @@ int main(int argc, char** argv) {
     FILE* damageLog = damageLogPath.empty() ? nullptr : std::fopen(damageLogPath.c_str(), "w");
     if (damageLog)
         std::fprintf(damageLog, "family,case,damaged,flag,kind,share,length_w,thick_w,open,score,"
-                                "ring_confidence,painted,level_share,level_noise\n");
+                                "ring_confidence,painted,level_share,level_noise,excess,"
+                                "excess_ventricle,misfit\n");
     int w = 0, h = 0;
     if (std::sscanf(sizeText.c_str(), "%dx%d", &w, &h) != 2 || w < 300 || h < 300) {
         std::cerr << "--size must be WxH with both at least 300\n";
@@ -628,6 +635,7 @@ int main(int argc, char** argv) {
             d.truth = c.damaged() &&
                       (c.family != bench::Family::FirstModels || !gen->truth.damage.empty());
             d.flagged = reg->damaged;
+            d.checkRegistration = reg->damageVerdict == pipeline::DamageVerdict::CheckRegistration;
             for (const auto& [name, ms] : reg->timingsMs)
                 if (name.rfind("damage", 0) == 0)
                     d.ms += ms;
@@ -670,11 +678,14 @@ int main(int argc, char** argv) {
                     }
                     const double bw = std::max(1.0, reg->brainWidthPx);
                     std::fprintf(damageLog,
-                                 "%s,%d,%d,%s,%s,%.5f,%.4f,%.4f,%.3f,%.3f,%.3f,%.3f,%.3f,%.1f\n",
-                                 family.c_str(), c.index, int(d.truth), d.flagged ? "flag" : "-",
+                                 "%s,%d,%d,%s,%s,%.5f,%.4f,%.4f,%.3f,%.3f,%.3f,%.3f,%.3f,%.1f,"
+                                 "%.3f,%.3f,%d\n",
+                                 family.c_str(), c.index, int(d.truth),
+                                 d.flagged ? "flag" : (d.checkRegistration ? "check" : "-"),
                                  std::string(pipeline::toString(r.kind)).c_str(), r.share,
                                  r.lengthPx / bw, r.thicknessPx / bw, r.openShare, r.score, conf,
-                                 painted, r.levelShare, r.levelNoiseUnits);
+                                 painted, r.levelShare, r.levelNoiseUnits, r.excessShare,
+                                 r.excessVentricleShare, int(r.misfit));
                 }
             }
             if (!overlayDir.empty()) {
@@ -697,7 +708,11 @@ int main(int argc, char** argv) {
                               reg->quality.intensityAffineKept ? " kept" : "");
                 steps += refined;
             }
-            steps += " | damage " + std::string(d.flagged ? "FLAGGED " : "clean ") + d.kinds;
+            steps += " | damage " +
+                     std::string(d.flagged             ? "FLAGGED "
+                                 : d.checkRegistration ? "CHECK "
+                                                       : "clean ") +
+                     d.kinds;
         }
         std::fprintf(stderr, "%-45s ours    rmse %6.2f max %6.2f  %.3f s (ms:%s)\n",
                      c.describe().c_str(), ours.err.rmse, ours.err.max, ours.seconds,

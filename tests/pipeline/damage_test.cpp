@@ -451,3 +451,85 @@ TEST(Damage, AFoldIsADoubledBandBesideAGapAlongTheEdgeAndASliverIsNot) {
     grey = noisySection(tissue, 0.5f, 0.01f, 12);
     EXPECT_TRUE(foldBands(grey, tissue, expected, labels, 500, p).empty());
 }
+
+namespace {
+/// The atlas of the misfit tests: a brain (ellipse) with a ventricle left of its centre.
+struct MisfitScene {
+    cv::Size size{600, 400};
+    cv::Mat brain = ellipseMask(size, {300, 200}, {250, 160});
+    cv::Mat ventricle = ellipseMask(size, {220, 200}, {30, 45});
+    AtlasExpectation expected() const { return {brain & ~ventricle, brain, {}}; }
+};
+} // namespace
+
+TEST(Damage, AGapBesideTissueWhereTheAtlasExpectsNoneIsAMisfitNotDamage) {
+    const MisfitScene scene;
+    DamageParams p;
+    // The section's ventricle lies 30 px right of the atlas's: glass where the atlas expects
+    // tissue on the right, tissue where it expects the ventricle on the left.
+    const cv::Mat tissue = scene.brain & ~ellipseMask(scene.size, {250, 200}, {30, 45});
+    std::vector<DamageRegion> regions = tissueDamage(tissue, scene.expected(), 500, p);
+    ASSERT_FALSE(regions.empty());
+    markMisfit(regions, tissue, scene.expected(), 500, p);
+    for (const DamageRegion& r : regions) {
+        EXPECT_TRUE(r.misfit) << toString(r.kind) << " " << r.share;
+        EXPECT_GT(r.excessShare, 0.5);
+    }
+    const DamageDecision decision = decideDamage(regions, 500, p);
+    EXPECT_EQ(decision.verdict, DamageVerdict::CheckRegistration);
+    EXPECT_GE(decision.score, p.flagScore);
+    // The same gaps without the rule are damage: the verdict above is the rule's doing.
+    p.misfitExcess = 1e9;
+    markMisfit(regions, tissue, scene.expected(), 500, p);
+    EXPECT_EQ(decideDamage(regions, 500, p).verdict, DamageVerdict::Damaged);
+}
+
+TEST(Damage, AGapWithTheAtlasFittingAroundItStaysDamage) {
+    const MisfitScene scene;
+    const DamageParams p;
+    // The ventricle where the atlas has it, and a hole of the same size torn beside it.
+    const cv::Mat tissue =
+        scene.brain & ~scene.ventricle & ~ellipseMask(scene.size, {340, 200}, {30, 45});
+    std::vector<DamageRegion> regions = tissueDamage(tissue, scene.expected(), 500, p);
+    ASSERT_FALSE(regions.empty());
+    markMisfit(regions, tissue, scene.expected(), 500, p);
+    for (const DamageRegion& r : regions) {
+        EXPECT_FALSE(r.misfit);
+        EXPECT_LT(r.excessShare, 0.1);
+    }
+    EXPECT_EQ(decideDamage(regions, 500, p).verdict, DamageVerdict::Damaged);
+    // A bite out of the edge and a thin crack, the outline fitting on either side: damage too.
+    cv::Mat bitten = scene.brain & ~scene.ventricle;
+    cv::circle(bitten, {300, 360}, 45, cv::Scalar(0), cv::FILLED);
+    cv::line(bitten, {400, 150}, {500, 230}, cv::Scalar(0), 4);
+    regions = tissueDamage(bitten, scene.expected(), 500, p);
+    ASSERT_EQ(regions.size(), 2u);
+    markMisfit(regions, bitten, scene.expected(), 500, p);
+    for (const DamageRegion& r : regions)
+        EXPECT_FALSE(r.misfit) << toString(r.kind) << " excess " << r.excessShare;
+    EXPECT_EQ(decideDamage(regions, 500, p).verdict, DamageVerdict::Damaged);
+}
+
+TEST(Damage, TrustedDamageDecidesWhateverMisfitLiesBesideIt) {
+    const MisfitScene scene;
+    const DamageParams p;
+    // The displaced ventricle (misfit) and a fragment pushed off the brain, which lies where
+    // the atlas expects no tissue but is damage, not misplaced tissue.
+    cv::Mat tissue = scene.brain & ~ellipseMask(scene.size, {250, 200}, {30, 45});
+    cv::ellipse(tissue, {60, 40}, {25, 15}, 0, 0, 360, cv::Scalar(255), cv::FILLED);
+    std::vector<DamageRegion> regions = tissueDamage(tissue, scene.expected(), 500, p);
+    markMisfit(regions, tissue, scene.expected(), 500, p);
+    int fragments = 0, misfits = 0;
+    for (const DamageRegion& r : regions) {
+        fragments += r.kind == DamageKind::Fragment;
+        misfits += r.misfit;
+        EXPECT_EQ(r.misfit, r.kind != DamageKind::Fragment);
+    }
+    EXPECT_EQ(fragments, 1);
+    EXPECT_GE(misfits, 1);
+    EXPECT_EQ(decideDamage(regions, 500, p).verdict, DamageVerdict::Damaged);
+    // Neither kind at all: clean.
+    std::vector<DamageRegion> none;
+    EXPECT_EQ(decideDamage(none, 500, p).verdict, DamageVerdict::Clean);
+    EXPECT_EQ(decideDamage(none, 500, p).score, 0.0);
+}

@@ -193,6 +193,87 @@ TEST(DamageGroundTruth, EachKindIsFlaggedLocatedAndKeptOutOfTheFit) {
     }
 }
 
+namespace {
+/// `atlas` with its largest ventricle (id 73) moved `shiftPx` to the right and grown by 2 px:
+/// the place it left takes the labels around it, the place it moves to becomes ventricle
+/// (inside the brain only).
+cv::Mat withVentricleMoved(const cv::Mat& atlas, int shiftPx) {
+    cv::Mat vent = atlas == sim::kVentricularSystemsId, labels, stats, centroids;
+    const int n = cv::connectedComponentsWithStats(vent, labels, stats, centroids, 8, CV_32S);
+    int largest = 0;
+    for (int i = 1; i < n; ++i)
+        if (largest == 0 ||
+            stats.at<int>(i, cv::CC_STAT_AREA) > stats.at<int>(largest, cv::CC_STAT_AREA))
+            largest = i;
+    cv::Mat out = atlas.clone();
+    if (largest == 0)
+        return out;
+    cv::Mat hole = labels == largest;
+    // Fill the ventricle from its rim inwards with the labels around it.
+    for (int round = 0; round < 1000 && cv::countNonZero(hole) > 0; ++round) {
+        cv::Mat next = out.clone();
+        for (int y = 1; y + 1 < out.rows; ++y)
+            for (int x = 1; x + 1 < out.cols; ++x) {
+                if (!hole.at<std::uint8_t>(y, x))
+                    continue;
+                for (const cv::Point d :
+                     {cv::Point(1, 0), cv::Point(-1, 0), cv::Point(0, 1), cv::Point(0, -1)}) {
+                    const cv::Point q(x + d.x, y + d.y);
+                    if (!hole.at<std::uint8_t>(q) && out.at<std::int32_t>(q) != 0) {
+                        next.at<std::int32_t>(y, x) = out.at<std::int32_t>(q);
+                        break;
+                    }
+                }
+            }
+        hole &= next == sim::kVentricularSystemsId;
+        out = next;
+    }
+    const cv::Matx23d shift(1, 0, shiftPx, 0, 1, 0);
+    cv::Mat moved;
+    cv::warpAffine(labels == largest, moved, shift, labels.size(), cv::INTER_NEAREST);
+    // A little wider too: a ventricle thinner than twice the registration slack is not seen.
+    cv::dilate(moved, moved, cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(5, 5)));
+    out.setTo(sim::kVentricularSystemsId, moved & (out != 0));
+    return out;
+}
+} // namespace
+
+TEST(DamageGroundTruth, AVentricleTheAtlasPutsElsewhereIsCheckRegistrationNotDamage) {
+    // Issue 18, item 1: the section is intact, but the atlas it is registered to has its
+    // ventricle moved, so the section's ventricle is glass where the atlas expects tissue. That
+    // is a misfit (check the registration), not a tear.
+    const cv::Mat atlas = sim::builtinAtlasPlane(0.45);
+    sim::GeneratorOptions o;
+    o.seed = 51;
+    auto gen = sim::generateSection(atlas, o);
+    ASSERT_TRUE(gen.ok());
+    // The ventricle moved by its own width, so that the atlas places it beside the section's.
+    const cv::Mat misplaced = withVentricleMoved(atlas, 12);
+    pipeline::RegistrationOptions ro;
+    auto reg = pipeline::registerSection(gen->image, misplaced, ro);
+    ASSERT_TRUE(reg.ok()) << reg.error().message;
+    int misfits = 0;
+    for (const auto& r : reg->damage)
+        misfits += r.misfit;
+    EXPECT_GE(misfits, 1) << reg->damageSummary;
+    EXPECT_EQ(reg->damageVerdict, pipeline::DamageVerdict::CheckRegistration)
+        << reg->damageSummary << " score " << reg->damageScore;
+    EXPECT_FALSE(reg->damaged);
+    // Without the rule the same registration flags it as damaged.
+    ro.damage.misfitExcess = 1e9;
+    auto plain = pipeline::registerSection(gen->image, misplaced, ro);
+    ASSERT_TRUE(plain.ok());
+    EXPECT_EQ(plain->damageVerdict, pipeline::DamageVerdict::Damaged) << plain->damageSummary;
+    // A real hole torn into the same section, against the true atlas, stays damage.
+    o.damage = {false, true, false};
+    o.seed = 62;
+    auto torn = sim::generateSection(atlas, o);
+    ASSERT_TRUE(torn.ok());
+    auto tornReg = pipeline::registerSection(torn->image, atlas);
+    ASSERT_TRUE(tornReg.ok());
+    EXPECT_EQ(tornReg->damageVerdict, pipeline::DamageVerdict::Damaged) << tornReg->damageSummary;
+}
+
 TEST(RegistrationAccuracy, SmallSectionsRegisterToo) {
     // A 400 x 300 capture has fewer pixels than the atlas slice: errors stay near a pixel.
     sim::GeneratorOptions o;

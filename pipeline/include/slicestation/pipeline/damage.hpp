@@ -42,6 +42,17 @@ struct DamageRegion {
     /// neighbours showing damage at the same atlas place, in [0, 1]. Anatomy persists over
     /// neighbouring sections, a tear does not: the evidence is scaled by (1 - persistence).
     double persistence = 0;
+    /// Gaps: within half the gap's length around it, the section's tissue lying where the
+    /// mapped atlas expects none (outside its brain, or in a ventricle) over the glass lying
+    /// where it expects tissue (at least the gap's own area), both as they are, without slack.
+    /// A structure of the atlas placed wrong moves as much area each way (about 1: a crescent
+    /// of glass on one side, one of tissue on the other); lost tissue leaves only the glass
+    /// (about 0, what slack along a boundary that fits shows).
+    double excessShare = 0;
+    double excessVentricleShare = 0; ///< the part of excessShare lying in mapped ventricles
+    /// The atlas cannot be trusted around this gap (excessShare >= DamageParams::misfitExcess):
+    /// the gap may be the registration's misfit, not lost tissue (decideDamage).
+    bool misfit = false;
 };
 
 /// Lengths are fractions of the brain width (the OBB's major extent of the section), so the rule
@@ -93,6 +104,10 @@ struct DamageParams {
     /// Folds (foldBands): the band along the edge at least this many times as far above the
     /// glass as the same region behind it; 2 is tissue doubled, 1 none, 1.5 half way.
     double foldRatio = 1.5;
+    /// A gap with at least this much misplaced tissue beside it (DamageRegion::excessShare) is
+    /// a misfit: a boundary shifted leaves as much tissue where the atlas expects glass as glass
+    /// where it expects tissue (share 1); lost tissue leaves none (0). 0.5: half way, not tuned.
+    double misfitExcess = 0.5;
     /// The section is flagged when its damage score reaches this (a station setting; 0.5 is the
     /// documented decision line of damagedShare and deepTearFrac).
     double flagScore = 0.5;
@@ -265,12 +280,39 @@ double scoreFromEvidence(double evidence);
 double damageScore(std::vector<DamageRegion>& regions, double brainWidthPx,
                    const DamageParams& params);
 
-/// The documented decision: damageScore(...) >= params.flagScore. With the default 0.5: damaged
+/// The documented decision: decideDamage(...).verdict == Damaged (all regions trusted:
+/// damageScore(...) >= params.flagScore). With the default 0.5: damaged
 /// when the regions together cover at least damagedShare of the tissue, or one tear is a crack
 /// at least deepTearFrac of the brain width long and at least crackElongation times longer than
 /// its thickest width.
 bool isDamaged(const std::vector<DamageRegion>& regions, double brainWidthPx,
                const DamageParams& params);
+
+/// Misfit (issue 18, item 1): sets DamageRegion::excessShare, excessVentricleShare and misfit
+/// of every gap (Tear and Missing) of `regions`. `tissueMask`: the section's tissue (CV_8U);
+/// `expected`: the mapped atlas (tissue and brain) at that size; `fragments` (CV_8U or empty)
+/// and the Fragment regions: detached pieces, which lie outside the atlas brain by being damage
+/// and do not count as misplaced tissue. Region polygons and lengths are in pixels of a frame
+/// `polygonScale` times coarser than the masks' (polygon px x polygonScale = mask px).
+void markMisfit(std::vector<DamageRegion>& regions, const cv::Mat& tissueMask,
+                const AtlasExpectation& expected, double brainWidthPx, const DamageParams& params,
+                const cv::Mat& fragments = cv::Mat(), double polygonScale = 1.0);
+
+/// The section's verdict and score.
+struct DamageDecision {
+    DamageVerdict verdict = DamageVerdict::Clean;
+    /// Damaged and Clean: damageScore over the regions the fit is trusted around (misfit false);
+    /// CheckRegistration: damageScore over all regions (how much tissue looks missing).
+    double score = 0;
+};
+
+/// The verdict (issue 18, item 1): Damaged when the regions the atlas fit can be trusted around
+/// reach params.flagScore on their own (true damage decides, whatever misfit lies beside it);
+/// otherwise CheckRegistration when all regions together reach it (the tissue looks missing
+/// only with the gaps where the atlas is not trusted); otherwise Clean. Sets every region's
+/// score (damageEvidence of the region alone).
+DamageDecision decideDamage(std::vector<DamageRegion>& regions, double brainWidthPx,
+                            const DamageParams& params);
 
 /// A short human-readable summary ("tear 3.1%, missing 1.2% of the tissue" / "no damage").
 std::string damageSummary(const std::vector<DamageRegion>& regions);
