@@ -218,6 +218,22 @@ double dimBodyArea(const cv::Mat& region, const cv::Mat& dimLabels, const cv::Ma
     return area;
 }
 
+/// darkValleys on a grey image already blurred by 0.7 px.
+cv::Mat valleysOf(const cv::Mat& sharp, GreyLevels levels, const DamageParams& params, int discPx) {
+    if (levels.tissue <= levels.glass)
+        return cv::Mat::zeros(sharp.size(), CV_8U);
+    // A line under a pixel wide is only darker than the tissue beside it: dark against the
+    // tissue's level, and a valley, darker than the tissue on both sides (the black top-hat of a
+    // 5 px disc), which neither dim tissue nor its edge against bright tissue is.
+    cv::Mat closed;
+    cv::morphologyEx(sharp, closed, cv::MORPH_CLOSE,
+                     cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(discPx, discPx)));
+    const float span = levels.tissue - levels.glass;
+    const float darkBelow = levels.glass + static_cast<float>(params.threadDarkness) * span;
+    const float deeperThan = static_cast<float>(params.threadDepth) * span;
+    return (sharp < darkBelow) & ((closed - sharp) > deeperThan);
+}
+
 } // namespace
 
 std::vector<DamageRegion> thinCracks(const cv::Mat& grey, const cv::Mat& tissue,
@@ -227,7 +243,8 @@ std::vector<DamageRegion> thinCracks(const cv::Mat& grey, const cv::Mat& tissue,
     CV_Assert(grey.type() == CV_32F && tissue.type() == CV_8U && tissue.size() == grey.size() &&
               expected.brain.size() == grey.size() && ventricles.size() == grey.size() &&
               (known.empty() || known.size() == grey.size()) &&
-              (expected.parts.empty() || expected.parts.size() == grey.size()));
+              (expected.parts.empty() || expected.parts.size() == grey.size()) &&
+              (expected.dark.empty() || expected.dark.size() == grey.size()));
     std::vector<DamageRegion> out;
     const double tissueArea = cv::countNonZero(tissue);
     if (tissueArea <= 0 || brainWidthPx <= 0)
@@ -237,7 +254,7 @@ std::vector<DamageRegion> thinCracks(const cv::Mat& grey, const cv::Mat& tissue,
     if (work.area() < grey.size().area()) {
         const auto crop = [&](const cv::Mat& m) { return m.empty() ? m : m(work); };
         const AtlasExpectation inBox{crop(expected.tissue), crop(expected.brain),
-                                     crop(expected.parts)};
+                                     crop(expected.parts), crop(expected.dark)};
         const cv::Point2f shift(float(work.x), float(work.y));
         const Midline boxMidline{midline.a - shift, midline.b - shift};
         out = thinCracks(grey(work), tissue(work), inBox, ventricles(work), brainWidthPx, params,
@@ -263,18 +280,23 @@ std::vector<DamageRegion> thinCracks(const cv::Mat& grey, const cv::Mat& tissue,
     // A crack narrower than the optics' blur never reaches the glass level: its middle is a dark
     // valley (darkValleys), as deep as the glass share of the blurred line.
     cv::Mat crackPx = glassPx;
-    cv::Mat dimLabels, dimStats; // dark pixels that are not glass, 8-connected
+    GreyLevels levels{glass.level, glass.level};
     if (params.crackDarkness > 0) {
         DamageParams valley = params;
         valley.threadDarkness = params.crackDarkness;
-        const GreyLevels levels{glass.level, percentile(light, 0.5, tissue)};
-        crackPx = glassPx | (darkValleys(grey, levels, valley, 2 * half + 3) & tissue);
+        levels.tissue = percentile(light, 0.5, tissue);
+        crackPx = glassPx | (valleysOf(light, levels, valley, 2 * half + 3) & tissue);
+    }
+    // The dark pixels that are not glass, 8-connected: labelled only when a candidate reaches
+    // the test that needs them (most sections have none).
+    cv::Mat dimLabels, dimStats;
+    const auto labelDim = [&] {
         const cv::Mat dim = (light < levels.glass + static_cast<float>(params.crackDarkness) *
                                                         (levels.tissue - levels.glass)) &
                             ~glassPx;
         cv::Mat dimCentroids;
         cv::connectedComponentsWithStats(dim, dimLabels, dimStats, dimCentroids, 8, CV_32S);
-    }
+    };
     cv::Mat closed;
     cv::morphologyEx(
         ~crackPx, closed, cv::MORPH_CLOSE,
@@ -286,6 +308,12 @@ std::vector<DamageRegion> thinCracks(const cv::Mat& grey, const cv::Mat& tissue,
         ventricles, nearVentricle,
         cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * slack + 1, 2 * slack + 1)));
     cv::Mat thin = crackPx & closed & expected.brain & ~nearVentricle;
+    // The dark regions, grown by the registration slack as the ventricles are.
+    cv::Mat darkNear;
+    if (!expected.dark.empty())
+        cv::dilate(
+            expected.dark, darkNear,
+            cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * slack + 1, 2 * slack + 1)));
     const int ringPx =
         std::max(1, static_cast<int>(std::lround(params.fissureRingFrac * brainWidthPx)));
     // The midline's fissure (and the cleft between the bulbs) is no crack; a crack that starts
@@ -342,8 +370,15 @@ std::vector<DamageRegion> thinCracks(const cv::Mat& grey, const cv::Mat& tissue,
                                    std::max(1.0, double(cv::countNonZero(beside)));
         if (besideGlass > params.crackWallGlass)
             continue;
-        if (!dimLabels.empty() &&
-            dimBodyArea(region, dimLabels(roi), dimStats) > params.crackDimBody * area)
+        if (params.crackDarkness > 0) {
+            if (dimLabels.empty())
+                labelDim();
+            if (dimBodyArea(region, dimLabels(roi), dimStats) > params.crackDimBody * area)
+                continue;
+        }
+        // Inside a mapped region the section shows dark (an unstained tract), a dark line is
+        // that region's own narrow stretch.
+        if (!darkNear.empty() && cv::countNonZero(region & darkNear(roi)) > 0.5 * area)
             continue;
         if (alongMidline(region, roi.tl(), midline, ringPx))
             continue;
@@ -472,19 +507,35 @@ GreyLevels greyLevels(const cv::Mat& grey, const cv::Mat& tissueMask) {
 cv::Mat darkValleys(const cv::Mat& grey, GreyLevels levels, const DamageParams& params,
                     int discPx) {
     CV_Assert(grey.type() == CV_32F);
-    if (levels.tissue <= levels.glass)
-        return cv::Mat::zeros(grey.size(), CV_8U);
-    // A line under a pixel wide is only darker than the tissue beside it: dark against the
-    // tissue's level, and a valley, darker than the tissue on both sides (the black top-hat of a
-    // 5 px disc), which neither dim tissue nor its edge against bright tissue is.
-    cv::Mat sharp, closed;
+    cv::Mat sharp;
     cv::GaussianBlur(grey, sharp, cv::Size(), 0.7);
-    cv::morphologyEx(sharp, closed, cv::MORPH_CLOSE,
-                     cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(discPx, discPx)));
-    const float span = levels.tissue - levels.glass;
-    const float darkBelow = levels.glass + static_cast<float>(params.threadDarkness) * span;
-    const float deeperThan = static_cast<float>(params.threadDepth) * span;
-    return (sharp < darkBelow) & ((closed - sharp) > deeperThan);
+    return valleysOf(sharp, levels, params, discPx);
+}
+
+cv::Mat darkAtlasRegions(const cv::Mat& grey, const cv::Mat& labels, const cv::Mat& valid,
+                         GreyLevels levels, double darkness) {
+    CV_Assert(grey.type() == CV_32F && labels.type() == CV_32S && valid.type() == CV_8U &&
+              labels.size() == grey.size() && valid.size() == grey.size());
+    cv::Mat out = cv::Mat::zeros(labels.size(), CV_8U);
+    if (levels.tissue <= levels.glass)
+        return out;
+    std::unordered_map<std::int32_t, std::vector<float>> byLabel;
+    for (int y = 0; y < grey.rows; ++y) {
+        const float* g = grey.ptr<float>(y);
+        const std::int32_t* l = labels.ptr<std::int32_t>(y);
+        const std::uint8_t* v = valid.ptr<std::uint8_t>(y);
+        for (int x = 0; x < grey.cols; ++x)
+            if (l[x] != 0 && v[x])
+                byLabel[l[x]].push_back(g[x]);
+    }
+    const float below =
+        levels.glass + static_cast<float>(darkness) * (levels.tissue - levels.glass);
+    for (auto& [id, v] : byLabel) {
+        std::nth_element(v.begin(), v.begin() + std::ptrdiff_t(v.size() / 2), v.end());
+        if (v[v.size() / 2] < below)
+            out.setTo(255, labels == id);
+    }
+    return out;
 }
 
 GapThreads gapThreads(const cv::Mat& rawGaps, const cv::Mat& openedGaps) {

@@ -874,6 +874,12 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
             }
             if (!expected.parts.empty())
                 fullExpected.parts = up(expected.parts);
+            // The mapped regions the section shows dark (an unstained tract): a dark line in
+            // one is the region's own.
+            if (options.damage.crackDarkness > 0)
+                fullExpected.dark = up(darkAtlasRegions(reg.workingGrey, seen, expectedBrain,
+                                                        greyLevels(reg.workingGrey, sectionTissue),
+                                                        options.damage.crackDarkness));
             cv::Mat known = cv::Mat::zeros(section.size(), CV_8U);
             for (const DamageRegion& d : regions) {
                 std::vector<cv::Point> poly;

@@ -428,6 +428,48 @@ TEST(Damage, ThinCracksAreGlassLinesWithTissueBesideThemAwayFromTheMidline) {
     EXPECT_FALSE(thinCracks(grey, tissue, expected, none, 1000, anyWall, midline).empty());
 }
 
+TEST(Damage, ABlurredCrackIsFoundByDefaultButNotInsideADarkAtlasRegion) {
+    // A 4 px crack blurred by the optics (1.25 px): its middle keeps about a tenth of the
+    // tissue level, far above the glass noise, so only the dark-valley search finds it.
+    const cv::Mat brain = ellipseMask({1200, 800}, {600, 400}, {500, 320});
+    const cv::Mat none = cv::Mat::zeros(brain.size(), CV_8U);
+    const Midline midline{{600, 0}, {600, 800}};
+    cv::Mat sharp = cv::Mat::zeros(brain.size(), CV_32F);
+    sharp.setTo(0.55f, brain);
+    cv::line(sharp, {200, 300}, {420, 420}, cv::Scalar(0), 4);
+    cv::Mat grey;
+    cv::GaussianBlur(sharp, grey, cv::Size(), 1.25);
+    cv::Mat noise(brain.size(), CV_32F);
+    cv::RNG rng(21);
+    rng.fill(noise, cv::RNG::NORMAL, 0, 0.01);
+    grey += noise + cv::Scalar(0.05);
+    const cv::Mat tissue = brain.clone(); // the working-size mask does not open the crack
+    const AtlasExpectation expected{brain, brain, cv::Mat()};
+    const DamageParams p;
+    ASSERT_GT(p.crackDarkness, 0) << "the dark-valley search is on by default";
+    const auto cracks = thinCracks(grey, tissue, expected, none, 1000, p, midline);
+    ASSERT_EQ(cracks.size(), 1u);
+    EXPECT_NEAR(cracks[0].lengthPx, 250, 40);
+    std::vector<DamageRegion> flagged = cracks;
+    EXPECT_GE(damageScore(flagged, 1000, p), p.flagScore);
+    DamageParams glassOnly = p;
+    glassOnly.crackDarkness = 0;
+    EXPECT_TRUE(thinCracks(grey, tissue, expected, none, 1000, glassOnly, midline).empty());
+    // The same dark line inside a mapped region the section shows dark (an unstained tract,
+    // as in the built-in atlas's callosal band) is that region.
+    cv::Mat labels(brain.size(), CV_32S, cv::Scalar(0));
+    labels.setTo(1, brain);
+    cv::Mat tract = none.clone();
+    cv::line(tract, {200, 300}, {420, 420}, cv::Scalar(255), 4);
+    labels.setTo(2, tract);
+    const GreyLevels levels = greyLevels(grey, tissue & ~tract);
+    const cv::Mat dark = darkAtlasRegions(grey, labels, brain, levels, p.crackDarkness);
+    EXPECT_EQ(cv::countNonZero(dark & ~tract), 0) << "the bright region is not dark";
+    EXPECT_EQ(cv::countNonZero(dark), cv::countNonZero(tract));
+    const AtlasExpectation withTract{brain, brain, cv::Mat(), dark};
+    EXPECT_TRUE(thinCracks(grey, tissue, withTract, none, 1000, p, midline).empty());
+}
+
 TEST(Damage, AFoldIsADoubledBandBesideAGapAlongTheEdgeAndASliverIsNot) {
     // The atlas expects an ellipse; along its top the section's edge moved in by 12 px.
     const cv::Mat expected = ellipseMask({600, 400}, {300, 200}, {250, 160});

@@ -91,9 +91,9 @@ struct DamageParams {
     double crackMinFrac = 0.05;
     /// A crack narrower than the blur shows no glass: its pixels are also those of a dark
     /// valley (darkValleys with threadDepth) below this share of the way from the glass to the
-    /// median tissue. 0: glass only (the default for now: at 0.4, measured in docs/damage.md, the
-    /// daemon's simulated crash test saw 3 damaged alerts where it expects 1).
-    double crackDarkness = 0.0;
+    /// median tissue. 0: glass only. On since 2026-12-02 (docs/damage.md, "The crack valleys
+    /// on"): the daemon test's false cracks were a dark atlas tract, see AtlasExpectation::dark.
+    double crackDarkness = 0.4;
     /// The dark pixels (below crackDarkness) that are not glass and touch a crack are its
     /// blurred flanks: at most this many times its area. More is the narrow end of a dim
     /// structure (a dark fibre tract), not a crack.
@@ -158,6 +158,9 @@ struct AtlasExpectation {
     /// the brain stem), numbered 1.. (0 = none; see partMap), or empty. Sectioning often opens
     /// those fissures.
     cv::Mat parts;
+    /// The mapped atlas regions the section itself shows dark (darkAtlasRegions: a fibre tract
+    /// unstained at the glass level), or empty. A dark line inside one is that region, no crack.
+    cv::Mat dark = cv::Mat();
 };
 
 /// The brain's midline in a section's pixels, as two points on it (equal = unknown). The
@@ -191,7 +194,8 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const AtlasExp
 /// width; a ventricle's slit is glass too), not between two of `expected.parts` and not along
 /// the midline (within fissureRingFrac of it, 20 degrees; both are natural fissures), with
 /// tissue, not more glass, beside it (at most crackWallGlass of the pixels 2 to crackMaxWidthPx
-/// + 2 px away).
+/// + 2 px away), and not mostly (over half) inside `expected.dark` grown by the slack (a mapped
+/// region the section shows dark, darkAtlasRegions).
 /// `grey`: CV_32F, tissue bright, full resolution; `tissue`: the section's tissue mask at that
 /// size; `expected` and `ventricles` (CV_8U) the mapped atlas at that size. Returned regions are
 /// tears in those pixels, `share` of the tissue's area, skipping those overlapping `known`
@@ -230,6 +234,13 @@ GreyLevels greyLevels(const cv::Mat& grey, const cv::Mat& tissueMask);
 /// `discPx`: the closing disc of the top-hat (a valley narrower than it counts).
 cv::Mat darkValleys(const cv::Mat& grey, GreyLevels levels, const DamageParams& params,
                     int discPx = 5);
+
+/// The mapped atlas regions (`labels`, CV_32S, 0 = none) whose median level in `grey` (CV_32F,
+/// tissue bright) over the pixels of `valid` (CV_8U) lies below `darkness` of the way from
+/// `levels.glass` to `levels.tissue`: anatomy that is itself dark (an unstained tract), where a
+/// dark line is that region's own, not glass showing through. CV_8U of the labels' size.
+cv::Mat darkAtlasRegions(const cv::Mat& grey, const cv::Mat& labels, const cv::Mat& valid,
+                         GreyLevels levels, double darkness);
 
 /// The part of each pixel of `labels` (CV_32S atlas ids): 1 + the index of the group in `parts`
 /// holding its id, 0 for ids in none. CV_8U.
