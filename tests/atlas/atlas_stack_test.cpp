@@ -36,6 +36,17 @@ protected:
         fs::remove_all(dir_);
     }
     void TearDown() override { fs::remove_all(dir_); }
+    /// The real 100 um annotation sliced every 500 um from 300 um at 100 um per pixel into dir_.
+    AtlasSliceRequest realVolumeRequest() const {
+        AtlasSliceRequest rq;
+        rq.volume = kAtlasDir / "annotation_100.nrrd";
+        rq.ontology = kAtlasDir / "structure_tree_safe_2017.csv";
+        rq.intervalUm = 500;
+        rq.firstUm = 300;
+        rq.umPerPx = 100;
+        rq.output = dir_;
+        return rq;
+    }
     fs::path dir_;
 };
 
@@ -44,13 +55,7 @@ protected:
 TEST_F(AtlasStackTest, SlicesTheRealVolumeIntoAStackWithManifest) {
     if (!fs::exists(kAtlasDir / "annotation_100.nrrd"))
         GTEST_SKIP() << "no Allen annotation at " << kAtlasDir << " (SLST_SHARED_DIR)";
-    AtlasSliceRequest rq;
-    rq.volume = kAtlasDir / "annotation_100.nrrd";
-    rq.ontology = kAtlasDir / "structure_tree_safe_2017.csv";
-    rq.intervalUm = 500;
-    rq.firstUm = 300;
-    rq.umPerPx = 100;
-    rq.output = dir_;
+    AtlasSliceRequest rq = realVolumeRequest();
     auto r = runAtlasSlice(rq);
     ASSERT_TRUE(r.ok()) << r.error().message;
     auto stack = readStack(dir_);
@@ -249,14 +254,8 @@ TEST_F(AtlasStackTest, TheTemplatePlaneIsCutBesideEverySliceAndReadBack) {
     if (!fs::exists(kAtlasDir / "annotation_100.nrrd") ||
         !fs::exists(kAtlasDir / "average_template_100.nrrd"))
         GTEST_SKIP() << "no Allen annotation or template at " << kAtlasDir << " (SLST_SHARED_DIR)";
-    AtlasSliceRequest rq;
-    rq.volume = kAtlasDir / "annotation_100.nrrd";
-    rq.ontology = kAtlasDir / "structure_tree_safe_2017.csv";
+    AtlasSliceRequest rq = realVolumeRequest();
     rq.templateVolume = kAtlasDir / "average_template_100.nrrd";
-    rq.intervalUm = 500;
-    rq.firstUm = 300;
-    rq.umPerPx = 100;
-    rq.output = dir_;
     auto r = runAtlasSlice(rq);
     ASSERT_TRUE(r.ok()) << r.error().message;
     auto stack = readStack(dir_);

@@ -632,6 +632,29 @@ TEST(RegistrationAccuracy, ConfidenceIsLowWhereTheSectionDisagreesWithTheAtlas) 
     EXPECT_GT(elsewhere, 0.5);
 }
 
+namespace {
+
+/// The 100 um average-template plane nearest the 25 um plane `ap25`, normalised to [0, 1] and
+/// resampled onto the 25 um label grid of `size` (the centre of 100 um voxel i is 25 um pixel
+/// 4i + 1.5).
+cv::Mat templateOnLabelGrid(const core::Volume& templ, int ap25, cv::Size size) {
+    const int ap100 =
+        std::clamp(static_cast<int>(std::lround((ap25 + 0.5) / 4 - 0.5)), 0, templ.sizes[0] - 1);
+    cv::Mat t100(templ.sizes[1], templ.sizes[2], CV_32F);
+    for (int r = 0; r < t100.rows; ++r)
+        for (int c = 0; c < t100.cols; ++c)
+            t100.at<float>(r, c) = float(templ.at(ap100, r, c));
+    double mx = 0;
+    cv::minMaxLoc(t100, nullptr, &mx);
+    t100 /= mx;
+    cv::Mat t25;
+    cv::warpAffine(t100, t25, cv::Matx23d(0.25, 0, -1.5 / 4, 0, 0.25, -1.5 / 4), size,
+                   cv::INTER_LINEAR | cv::WARP_INVERSE_MAP, cv::BORDER_CONSTANT, 0);
+    return t25;
+}
+
+} // namespace
+
 TEST(RegistrationAccuracy, AnAtlasIntensityPlaneHelpsOnTemplateLikeSections) {
     // Sections that look like the Allen average template (the template plane seen through the
     // generator's known map, mild noise): with the template plane as the atlas intensity the
@@ -643,18 +666,7 @@ TEST(RegistrationAccuracy, AnAtlasIntensityPlaneHelpsOnTemplateLikeSections) {
     ASSERT_TRUE(templ.ok());
     for (int ap : {260, 300}) {
         const cv::Mat plane = realPlane(ap);
-        const int ap100 =
-            std::clamp(static_cast<int>(std::lround((ap + 0.5) / 4 - 0.5)), 0, templ->sizes[0] - 1);
-        cv::Mat t100(templ->sizes[1], templ->sizes[2], CV_32F);
-        for (int r = 0; r < t100.rows; ++r)
-            for (int c = 0; c < t100.cols; ++c)
-                t100.at<float>(r, c) = float(templ->at(ap100, r, c));
-        double mx = 0;
-        cv::minMaxLoc(t100, nullptr, &mx);
-        t100 /= mx;
-        cv::Mat t25;
-        cv::warpAffine(t100, t25, cv::Matx23d(0.25, 0, -1.5 / 4, 0, 0.25, -1.5 / 4), plane.size(),
-                       cv::INTER_LINEAR | cv::WARP_INVERSE_MAP, cv::BORDER_CONSTANT, 0);
+        const cv::Mat t25 = templateOnLabelGrid(*templ, ap, plane.size());
         sim::GeneratorOptions o;
         o.seed = 900 + std::uint64_t(ap);
         auto gen = sim::generateSection(plane, o);
@@ -686,29 +698,6 @@ TEST(RegistrationAccuracy, AnAtlasIntensityPlaneHelpsOnTemplateLikeSections) {
         EXPECT_GE(minJacobian[1], minJacobian[0] - 1e-3) << "AP " << ap;
     }
 }
-
-namespace {
-
-/// The 100 um average-template plane nearest the 25 um plane `ap25`, normalised to [0, 1] and
-/// resampled onto the 25 um label grid of `size` (the centre of 100 um voxel i is 25 um pixel
-/// 4i + 1.5).
-cv::Mat templateOnLabelGrid(const core::Volume& templ, int ap25, cv::Size size) {
-    const int ap100 =
-        std::clamp(static_cast<int>(std::lround((ap25 + 0.5) / 4 - 0.5)), 0, templ.sizes[0] - 1);
-    cv::Mat t100(templ.sizes[1], templ.sizes[2], CV_32F);
-    for (int r = 0; r < t100.rows; ++r)
-        for (int c = 0; c < t100.cols; ++c)
-            t100.at<float>(r, c) = float(templ.at(ap100, r, c));
-    double mx = 0;
-    cv::minMaxLoc(t100, nullptr, &mx);
-    t100 /= mx;
-    cv::Mat t25;
-    cv::warpAffine(t100, t25, cv::Matx23d(0.25, 0, -1.5 / 4, 0, 0.25, -1.5 / 4), size,
-                   cv::INTER_LINEAR | cv::WARP_INVERSE_MAP, cv::BORDER_CONSTANT, 0);
-    return t25;
-}
-
-} // namespace
 
 TEST(RegistrationAccuracy, TheIntensityAffineAlignsTemplateLikeSections) {
     // Sections stained like the Allen average template (the template plane seen through the
