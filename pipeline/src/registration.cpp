@@ -850,14 +850,29 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
             d.thicknessPx /= s;
         }
         timer.lap("damage");
-        // Thin cracks, at full resolution: glass lines narrower than the working image shows.
-        if (auto full = toGreyFloat(section); full) {
+        // Thin cracks, at full resolution (up to crackMaxSidePx): glass lines narrower than the
+        // working image shows.
+        const int longSide = std::max(section.cols, section.rows);
+        const double c = longSide > options.damage.crackMaxSidePx
+                             ? double(options.damage.crackMaxSidePx) / longSide
+                             : 1.0;
+        const cv::Size crackSize = c < 1 ? cv::Size(std::max(1, cvRound(section.cols * c)),
+                                                    std::max(1, cvRound(section.rows * c)))
+                                         : section.size();
+        const cv::Mat crackSection = [&] {
+            if (c >= 1)
+                return section;
+            cv::Mat o;
+            cv::resize(section, o, crackSize, 0, 0, cv::INTER_AREA);
+            return o;
+        }();
+        if (auto full = toGreyFloat(crackSection); full) {
             cv::Mat grey = *full;
             if (reg.contrast == Contrast::Brightfield)
                 grey = -grey;
             const auto up = [&](const cv::Mat& m) {
                 cv::Mat o;
-                cv::resize(m, o, section.size(), 0, 0, cv::INTER_NEAREST);
+                cv::resize(m, o, crackSize, 0, 0, cv::INTER_NEAREST);
                 return o;
             };
             AtlasExpectation fullExpected{cv::Mat(), up(expectedBrain), cv::Mat()};
@@ -869,8 +884,8 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
                 const cv::Matx23d imageFromAtlas = invert(reg.affineAtlasFromImage());
                 const cv::Point2d a = apply(imageFromAtlas, cv::Point2d(mx, 0));
                 const cv::Point2d b = apply(imageFromAtlas, cv::Point2d(mx, atlasLabels.rows));
-                midline = {cv::Point2f(float(a.x), float(a.y)),
-                           cv::Point2f(float(b.x), float(b.y))};
+                midline = {cv::Point2f(float(a.x * c), float(a.y * c)),
+                           cv::Point2f(float(b.x * c), float(b.y * c))};
             }
             if (!expected.parts.empty())
                 fullExpected.parts = up(expected.parts);
@@ -880,19 +895,26 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
                 fullExpected.dark = up(darkAtlasRegions(reg.workingGrey, seen, expectedBrain,
                                                         greyLevels(reg.workingGrey, sectionTissue),
                                                         options.damage.crackDarkness));
-            cv::Mat known = cv::Mat::zeros(section.size(), CV_8U);
+            cv::Mat known = cv::Mat::zeros(crackSize, CV_8U);
             for (const DamageRegion& d : regions) {
                 std::vector<cv::Point> poly;
                 for (const cv::Point2f& p : d.polygon)
-                    poly.emplace_back(cvRound(p.x), cvRound(p.y));
+                    poly.emplace_back(cvRound((p.x + 0.5) * c - 0.5),
+                                      cvRound((p.y + 0.5) * c - 0.5));
                 if (poly.size() >= 3)
                     cv::fillPoly(known, std::vector<std::vector<cv::Point>>{poly}, cv::Scalar(255));
             }
             std::vector<DamageRegion> cracks =
-                thinCracks(grey, up(sectionTissue), fullExpected, up(ventricles), brainWidth / s,
-                           options.damage, midline, known);
-            for (DamageRegion& d : cracks)
+                thinCracks(grey, up(sectionTissue), fullExpected, up(ventricles),
+                           brainWidth / s * c, options.damage, midline, known);
+            for (DamageRegion& d : cracks) {
+                for (cv::Point2f& p : d.polygon)
+                    p = cv::Point2f(float((p.x + 0.5) / c - 0.5), float((p.y + 0.5) / c - 0.5));
+                d.areaPx /= c * c;
+                d.lengthPx /= c;
+                d.thicknessPx /= c;
                 regions.push_back(std::move(d));
+            }
         }
         // Misfit is not damage: a gap with tissue beside it where the atlas expects none lies
         // where the atlas fit cannot be trusted (markMisfit, in working px).

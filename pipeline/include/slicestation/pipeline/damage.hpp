@@ -89,6 +89,11 @@ struct DamageParams {
     double crackMaxWidthPx = 7.0;
     /// and at least this share of the brain width long.
     double crackMinFrac = 0.05;
+    /// The crack pass works on the section reduced to at most this longer side (px). The crack
+    /// widths above are pixels of a section of about 1500 px; a larger image shows a crack wider
+    /// in pixels, and at 8000 px the full-resolution pass took 8 s of a 10 s registration.
+    /// 2048 leaves sections up to 2048 px (the benchmarks' 1500 x 1100) at full resolution.
+    int crackMaxSidePx = 2048;
     /// A crack narrower than the blur shows no glass: its pixels are also those of a dark
     /// valley (darkValleys with threadDepth) below this share of the way from the glass to the
     /// median tissue. 0: glass only. On since 2026-12-02 (docs/damage.md, "The crack valleys
