@@ -3,6 +3,7 @@
 #include "slicestation/pipeline/affine.hpp"
 #include "slicestation/pipeline/icp.hpp"
 #include "slicestation/pipeline/intensity_affine.hpp"
+#include "slicestation/pipeline/intensity_warp.hpp"
 #include "slicestation/pipeline/mask_ops.hpp"
 #include "slicestation/pipeline/obb.hpp"
 #include "slicestation/pipeline/point_grid.hpp"
@@ -446,6 +447,18 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
                          "intensity affine options: grid at least 32 px, at least one level, no "
                          "negative sigma, iterations, damping or block size, positive robustness "
                          "and step");
+    if (const IntensityWarpOptions& iw = options.intensityWarpOptions;
+        options.intensityWarp &&
+        (iw.gridMaxSide < 32 || iw.levels.empty() || !(iw.stiffness >= 0) || !(iw.damping >= 0) ||
+         !(iw.robustK > 0) || !(iw.maxStepGridPx > 0) || iw.holdOutBlockPx < 0 ||
+         !(iw.localSigmaGridPx >= 0) ||
+         std::any_of(iw.levels.begin(), iw.levels.end(), [](const IntensityWarpLevel& l) {
+             return !(l.spacingGridPx >= 4) || !(l.imageSigma >= 0) || l.iterations < 0;
+         })))
+        return makeError(ErrorCode::InvalidArgument,
+                         "intensity warp options: grid at least 32 px, at least one level, control "
+                         "spacing at least 4 px, no negative sigma, iterations, stiffness, damping "
+                         "or block size, positive robustness and step");
     const cv::Mat atlasMask = atlasLabels != 0;
     if (cv::countNonZero(atlasMask) < 16)
         return makeError(ErrorCode::InvalidArgument, "atlas slice has no labelled brain");
@@ -782,6 +795,26 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         }
     }
     timer.lap("warp");
+
+    // With an atlas intensity plane, a smooth field so that the section and the plane agree
+    // inside the tissue (intensity_warp.hpp): the non-affine part the intensity affine leaves.
+    if (options.intensityWarp && !options.atlasIntensity.empty()) {
+        const cv::Size ws = reg.workingGrey.size();
+        const cv::Size gs = gridSize(ws, options.intensityWarpOptions.gridMaxSide);
+        cv::Mat grey, mx, my;
+        cv::resize(reg.workingGrey, grey, gs, 0, 0, cv::INTER_AREA);
+        const cv::Mat weight =
+            measuredArea(gs, tissueFilled, options.excludeMask, fragments, damagedOutline);
+        reg.atlasMaps(gs, mx, my);
+        const IntensityWarp iw = refineWarpByIntensity(grey, weight, mx, my, options.atlasIntensity,
+                                                       options.intensityWarpOptions);
+        reg.quality.intensityWarpExplainedBefore = iw.explainedBefore;
+        reg.quality.intensityWarpExplainedAfter = iw.explainedAfter;
+        reg.quality.intensityWarpKept = iw.accepted;
+        if (iw.accepted)
+            reg.warp = addToWarp(reg.warp, ws, iw.ux, iw.uy);
+        timer.lap("iwarp");
+    }
 
     // Dense refinement (beyond the paper): the atlas regions are fitted to the section's own
     // contrast inside the tissue on a reduced grid; damaged and excluded parts stay out.

@@ -405,6 +405,46 @@ bool applyIntensitySettings(const std::vector<std::string>& settings,
     });
 }
 
+/// The intensity warp's options for choosing them (`--iwarp-opt`). `levels` = 1, 2 or 3 sets
+/// the levels from `coarsest` spacing (halving) with sigmas 4, 2, 1 (the finest 1).
+bool applyIntensityWarpSettings(const std::vector<std::string>& settings,
+                                pipeline::IntensityWarpOptions& o) {
+    int levels = int(o.levels.size());
+    double coarsest = o.levels.front().spacingGridPx;
+    int iterations = o.levels.front().iterations;
+    const bool ok = applySettings(settings, [&](const std::string& key, double v) {
+        if (key == "grid")
+            o.gridMaxSide = int(v);
+        else if (key == "levels")
+            levels = std::clamp(int(v), 1, 3);
+        else if (key == "coarsest")
+            coarsest = v;
+        else if (key == "iterations")
+            iterations = int(v);
+        else if (key == "stiffness")
+            o.stiffness = v;
+        else if (key == "damping")
+            o.damping = v;
+        else if (key == "robust-k")
+            o.robustK = v;
+        else if (key == "step")
+            o.maxStepGridPx = v;
+        else if (key == "local")
+            o.localSigmaGridPx = v;
+        else if (key == "min-gain")
+            o.minGain = v;
+        else if (key == "hold-out")
+            o.holdOutBlockPx = int(v);
+        else
+            return false;
+        return true;
+    });
+    o.levels.clear();
+    for (int l = 0; l < levels; ++l)
+        o.levels.push_back({double(1 << (levels - 1 - l)), coarsest / double(1 << l), iterations});
+    return ok;
+}
+
 } // namespace
 
 int main(int argc, char** argv) {
@@ -446,6 +486,15 @@ int main(int argc, char** argv) {
     app.add_option("--intensity-affine", intensityAffineMode,
                    "The intensity affine of ours (runs only with an atlas intensity plane, see "
                    "--template-intensity): on | off")
+        ->check(CLI::IsMember({"on", "off"}));
+    std::vector<std::string> iwarpSettings;
+    app.add_option("--iwarp-opt", iwarpSettings,
+                   "Intensity warp options as key=value (grid, levels, coarsest, iterations, "
+                   "stiffness, damping, robust-k, step, local, min-gain, hold-out), for choosing "
+                   "them");
+    std::string intensityWarpMode = "on";
+    app.add_option("--intensity-warp", intensityWarpMode,
+                   "The intensity warp of ours (runs only with an atlas intensity plane): on | off")
         ->check(CLI::IsMember({"on", "off"}));
     std::vector<std::string> denseSettings;
     app.add_option("--dense", denseSettings,
@@ -530,6 +579,12 @@ int main(int argc, char** argv) {
     }
     if (!applySmoothSettings(smoothSettings, regOptions.smooth)) {
         std::cerr << "bad --smooth-opt setting\n";
+        return 2;
+    }
+    regOptions.intensityWarp = intensityWarpMode == "on";
+    if (!iwarpSettings.empty() &&
+        !applyIntensityWarpSettings(iwarpSettings, regOptions.intensityWarpOptions)) {
+        std::cerr << "bad --iwarp-opt setting\n";
         return 2;
     }
     if (!applyIntensitySettings(intensitySettings, regOptions)) {
@@ -706,6 +761,14 @@ int main(int argc, char** argv) {
                               reg->quality.intensityExplainedBefore,
                               reg->quality.intensityExplainedAfter,
                               reg->quality.intensityAffineKept ? " kept" : "");
+                steps += refined;
+            }
+            if (ro.intensityWarp && !ro.atlasIntensity.empty()) {
+                std::snprintf(refined, sizeof refined, " | iwarp %.3f -> %.3f%s J %.2f",
+                              reg->quality.intensityWarpExplainedBefore,
+                              reg->quality.intensityWarpExplainedAfter,
+                              reg->quality.intensityWarpKept ? " kept" : "",
+                              reg->quality.minJacobian);
                 steps += refined;
             }
             steps += " | damage " +

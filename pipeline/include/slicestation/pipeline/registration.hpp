@@ -8,6 +8,7 @@
 #include "slicestation/pipeline/edge_points.hpp"
 #include "slicestation/pipeline/edges.hpp"
 #include "slicestation/pipeline/intensity_affine.hpp"
+#include "slicestation/pipeline/intensity_warp.hpp"
 #include "slicestation/pipeline/laplace_warp.hpp"
 #include "slicestation/pipeline/preprocess.hpp"
 #include "slicestation/pipeline/smooth_warp.hpp"
@@ -81,6 +82,11 @@ struct RegistrationOptions {
     /// `dense`): the plane is strong evidence, so more and longer steps (24 of at most 0.5 grid
     /// px; chosen on the template family's cases 0-23, docs/registration.md).
     DenseRefineOptions denseWithIntensity = denseOptionsWithIntensity();
+    /// With an atlas intensity plane: a smooth B-spline field fitted so that the section and the
+    /// plane agree inside the tissue (intensity_warp.hpp), after the geometric stages and before
+    /// the dense refinement; kept only when it explains more of the section on held-out blocks.
+    bool intensityWarp = true;
+    IntensityWarpOptions intensityWarpOptions;
     bool detectDamage = true; ///< find damage and keep its edges out of the matching
     DamageParams damage;
     /// Atlas ids that are ventricles (empty like glass in a section): the major-region id 73.
@@ -124,6 +130,9 @@ struct RegistrationQuality {
     /// the refined one was kept (0, 0, false when it did not run).
     double intensityExplainedBefore = 0, intensityExplainedAfter = 0;
     bool intensityAffineKept = false;
+    /// The intensity warp: held-out explained share before and after, whether it was kept.
+    double intensityWarpExplainedBefore = 0, intensityWarpExplainedAfter = 0;
+    bool intensityWarpKept = false;
     /// The smooth stage: RMS point-to-line distance (atlas px) of its first matches before and
     /// after the fitted field, and how many matches its last iteration had (0 = not run).
     double smoothBefore = 0, smoothAfter = 0;

@@ -1,0 +1,72 @@
+#pragma once
+/// Intensity-driven non-rigid refinement of a section-to-atlas map against an atlas intensity
+/// plane (beyond the paper; issue 17). Where the section looks like the atlas's intensity image
+/// (e.g. a plane of the Allen average template), a smooth displacement is added to the map so
+/// that the section's grey image and the plane agree inside the tissue, as the intensity affine
+/// does for the affine part (intensity_affine.hpp).
+///
+/// Field: cubic B-splines on control grids, coarse to fine (each level adds a B-spline field of
+/// its own spacing to what the coarser levels found). Model: the section at grid pixel p is
+/// gain(p) x T(map(p) + u(p)) + bias(p), with T the plane; gain and bias are either global
+/// polynomials (gain quadratic, bias linear, as in the intensity affine) or local (a Gaussian
+/// window's weighted linear regression, i.e. local normalised cross-correlation), refitted at
+/// every step. Steps: damped Gauss-Newton on the control displacements with Cauchy weights and a
+/// membrane term on the control points, each step at most maxStepGridPx, halved until the
+/// penalised robust energy drops and the map's local area ratio stays above minJacobian. The
+/// field is fitted on a checkerboard of blocks and kept only if the share of the section's
+/// variance the model explains on the other blocks rises by minGain.
+///
+/// Pure computation; no I/O, no threads, no logging.
+
+#include <opencv2/core.hpp>
+
+#include <vector>
+
+namespace slicestation::pipeline {
+
+/// One coarse-to-fine level; lengths in grid pixels.
+struct IntensityWarpLevel {
+    double imageSigma;    ///< Gaussian smoothing of the section (and, in atlas px, the plane)
+    double spacingGridPx; ///< control point spacing of this level's B-spline
+    int iterations;       ///< Gauss-Newton steps (at most)
+};
+
+struct IntensityWarpOptions {
+    int gridMaxSide = 256; ///< the section is reduced to this longer side for the fit
+    std::vector<IntensityWarpLevel> levels{{2.0, 48, 8}, {1.0, 24, 8}};
+    /// Membrane weight on neighbouring control displacements, relative to the mean diagonal of
+    /// the data term's normal equations over the control points that see data.
+    double stiffness = 0.3;
+    /// Levenberg damping relative to the same mean diagonal.
+    double damping = 1e-3;
+    double robustK = 3.0;       ///< Cauchy weights: beyond this many robust sigmas weigh < 1/2
+    double maxStepGridPx = 1.0; ///< longest control displacement change per step, grid px
+    /// A step that would bring the map's local area ratio (Jacobian determinant relative to its
+    /// median over the measured area) below this is halved.
+    double minJacobian = 0.3;
+    /// Local gain and bias: Gaussian window (grid px) of the local regression; 0 = global
+    /// polynomials.
+    double localSigmaGridPx = 16;
+    double minGain = 0.002; ///< held-out explained share must rise by at least this (absolute)
+    int holdOutBlockPx = 8; ///< checkerboard block size (grid px); 0 = fit and judge on all
+};
+
+struct IntensityWarp {
+    cv::Mat ux, uy; ///< CV_32F, grid size: atlas px to add to the map; zero if not kept
+    double explainedBefore = 0, explainedAfter = 0; ///< held-out explained share, finest level
+    /// Smallest Jacobian determinant of the map (with the field when kept) relative to its
+    /// median over the measured area, over the whole grid (<= 0 would be a fold).
+    double minJacobian = 1;
+    bool accepted = false;
+    int steps = 0; ///< Gauss-Newton steps taken
+};
+
+/// Refines the map `mapX`, `mapY` (CV_32F, grid size: the atlas position of every grid pixel)
+/// of `grey` (CV_32F, tissue bright) so that it agrees with `atlasIntensity` (CV_32F, atlas px)
+/// where `weight` (CV_8U, grey's size) is set (tissue and a glass band, damage left out).
+/// Preconditions (asserted): types and sizes as stated, every level's spacing >= 4 and sigma >= 0.
+IntensityWarp refineWarpByIntensity(const cv::Mat& grey, const cv::Mat& weight, const cv::Mat& mapX,
+                                    const cv::Mat& mapY, const cv::Mat& atlasIntensity,
+                                    const IntensityWarpOptions& options = {});
+
+} // namespace slicestation::pipeline

@@ -1,0 +1,482 @@
+#include "slicestation/pipeline/intensity_warp.hpp"
+
+#include "slicestation/pipeline/mask_ops.hpp"
+
+#include <opencv2/imgproc.hpp>
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+
+namespace slicestation::pipeline {
+namespace {
+
+constexpr int kGainTerms = 6; // 1, x, y, x^2, xy, y^2
+constexpr int kBiasTerms = 3; // 1, x, y
+constexpr int kTerms = kGainTerms + kBiasTerms;
+
+double weightedMean(const cv::Mat& v, const cv::Mat& w) {
+    const double sw = cv::sum(w)[0];
+    return sw > 0 ? v.dot(w) / sw : 0.0;
+}
+
+cv::Mat jacobianDet(const cv::Mat& ax, const cv::Mat& ay) {
+    cv::Mat xx, xy, yx, yy;
+    cv::Sobel(ax, xx, CV_32F, 1, 0, 1, 0.5, 0, cv::BORDER_REPLICATE);
+    cv::Sobel(ax, xy, CV_32F, 0, 1, 1, 0.5, 0, cv::BORDER_REPLICATE);
+    cv::Sobel(ay, yx, CV_32F, 1, 0, 1, 0.5, 0, cv::BORDER_REPLICATE);
+    cv::Sobel(ay, yy, CV_32F, 0, 1, 1, 0.5, 0, cv::BORDER_REPLICATE);
+    return xx.mul(yy) - xy.mul(yx);
+}
+
+/// Smallest `det` / `ref` inside the grid (the outermost pixels' one-sided differences are
+/// halved by the replicated border and are left out).
+double minRelative(const cv::Mat& det, double ref) {
+    double lo = 0, hi = 0;
+    const cv::Mat inner =
+        det.rows > 2 && det.cols > 2 ? det(cv::Rect(1, 1, det.cols - 2, det.rows - 2)) : det;
+    cv::minMaxLoc(inner, &lo, &hi);
+    return ref > 0 ? lo / ref : hi / ref;
+}
+
+/// The intensity model gain x T + bias, fitted by weighted least squares: global polynomials
+/// (the intensity affine's model) or a local linear regression in a Gaussian window.
+class Model {
+public:
+    Model(cv::Size size, double localSigma) : size_(size), localSigma_(localSigma) {
+        const double cx = 0.5 * (size.width - 1), cy = 0.5 * (size.height - 1);
+        const double r = 0.5 * std::max(size.width, size.height);
+        for (int k = 0; k < kTerms; ++k)
+            basis_[size_t(k)].create(size, CV_32F);
+        for (int y = 0; y < size.height; ++y)
+            for (int x = 0; x < size.width; ++x) {
+                const float u = float((x - cx) / r), v = float((y - cy) / r);
+                const float b[kTerms] = {1, u, v, u * u, u * v, v * v, 1, u, v};
+                for (int k = 0; k < kTerms; ++k)
+                    basis_[size_t(k)].at<float>(y, x) = b[k];
+            }
+    }
+
+    /// Fits the model to `g` ~ model(`t`) under weights `w`; writes the residual (everywhere)
+    /// and the gain.
+    void fit(const cv::Mat& g, const cv::Mat& t, const cv::Mat& w, cv::Mat& r, cv::Mat& gain) {
+        if (localSigma_ > 0)
+            fitLocal(g, t, w, r, gain);
+        else
+            fitGlobal(g, t, w, r, gain);
+    }
+
+private:
+    void fitGlobal(const cv::Mat& g, const cv::Mat& t, const cv::Mat& w, cv::Mat& r,
+                   cv::Mat& gain) {
+        cv::Matx<double, kTerms, kTerms> n = cv::Matx<double, kTerms, kTerms>::zeros();
+        cv::Matx<double, kTerms, 1> b = cv::Matx<double, kTerms, 1>::zeros();
+        for (int y = 0; y < size_.height; ++y) {
+            const float* gg = g.ptr<float>(y);
+            const float* ww = w.ptr<float>(y);
+            const float* tt = t.ptr<float>(y);
+            for (int x = 0; x < size_.width; ++x) {
+                if (ww[x] <= 0)
+                    continue;
+                double a[kTerms];
+                for (int k = 0; k < kTerms; ++k)
+                    a[k] = basis_[size_t(k)].ptr<float>(y)[x] * (k < kGainTerms ? tt[x] : 1.0f);
+                for (int i = 0; i < kTerms; ++i) {
+                    b(i) += ww[x] * gg[x] * a[i];
+                    for (int j = i; j < kTerms; ++j)
+                        n(i, j) += ww[x] * a[i] * a[j];
+                }
+            }
+        }
+        double trace = 0;
+        for (int i = 0; i < kTerms; ++i) {
+            for (int j = 0; j < i; ++j)
+                n(i, j) = n(j, i);
+            trace += n(i, i);
+        }
+        for (int i = 0; i < kTerms; ++i)
+            n(i, i) += 1e-6 * trace / kTerms + 1e-12;
+        cv::Matx<double, kTerms, 1> c = cv::Matx<double, kTerms, 1>::zeros();
+        if (!cv::solve(n, b, c, cv::DECOMP_CHOLESKY))
+            c = cv::Matx<double, kTerms, 1>::zeros();
+        gain = cv::Mat::zeros(size_, CV_32F);
+        cv::Mat bias = cv::Mat::zeros(size_, CV_32F);
+        for (int k = 0; k < kGainTerms; ++k)
+            cv::scaleAdd(basis_[size_t(k)], c(k), gain, gain);
+        for (int k = kGainTerms; k < kTerms; ++k)
+            cv::scaleAdd(basis_[size_t(k)], c(k), bias, bias);
+        r = g - gain.mul(t) - bias;
+    }
+
+    void fitLocal(const cv::Mat& g, const cv::Mat& t, const cv::Mat& w, cv::Mat& r, cv::Mat& gain) {
+        const double s = localSigma_;
+        // A wide window's moments are smooth: blurred on a copy reduced 4 times (when the
+        // window is at least 8 px) and brought back bilinearly, a tenth of the full blur's cost.
+        const int f = s >= 8 ? 4 : 1;
+        const cv::Size small((size_.width + f - 1) / f, (size_.height + f - 1) / f);
+        auto blur = [s, f, small, this](const cv::Mat& in) {
+            cv::Mat out;
+            if (f == 1) {
+                cv::GaussianBlur(in, out, cv::Size(), s, s, cv::BORDER_REPLICATE);
+                return out;
+            }
+            cv::resize(in, out, small, 0, 0, cv::INTER_AREA);
+            cv::GaussianBlur(out, out, cv::Size(), s / f, s / f, cv::BORDER_REPLICATE);
+            cv::resize(out, out, size_, 0, 0, cv::INTER_LINEAR);
+            return out;
+        };
+        const cv::Mat wt = w.mul(t), wg = w.mul(g);
+        cv::Mat sw = blur(w), st = blur(wt), sg = blur(wg), stt = blur(wt.mul(t)),
+                stg = blur(wt.mul(g));
+        sw = cv::max(sw, 1e-6);
+        const cv::Mat mt = st / sw, mg = sg / sw;
+        cv::Mat vt = stt / sw - mt.mul(mt), cov = stg / sw - mt.mul(mg);
+        // A floor on the plane's local variance: where the plane is flat the model falls back
+        // to the local mean instead of an unbounded gain.
+        cv::Mat tc = t - weightedMean(t, w);
+        const double floor = 0.01 * weightedMean(tc.mul(tc), w) + 1e-12;
+        vt = cv::max(vt, 0) + floor;
+        gain = cov / vt;
+        const cv::Mat bias = mg - gain.mul(mt);
+        r = g - gain.mul(t) - bias;
+    }
+
+    cv::Size size_;
+    double localSigma_;
+    std::array<cv::Mat, kTerms> basis_;
+};
+
+/// Cubic B-spline basis on a control grid of spacing h: control i sits at (i - 1) h.
+struct Axis {
+    std::vector<int> first;                  ///< first active control per pixel
+    std::vector<std::array<float, 4>> basis; ///< its four weights
+    int controls = 0;
+};
+
+Axis makeAxis(int pixels, double h) {
+    Axis a;
+    a.first.resize(size_t(pixels));
+    a.basis.resize(size_t(pixels));
+    for (int x = 0; x < pixels; ++x) {
+        const double t = x / h;
+        const int i = static_cast<int>(std::floor(t));
+        const double f = t - i, g = 1 - f;
+        a.first[size_t(x)] = i;
+        a.basis[size_t(x)] = {float(g * g * g / 6), float((3 * f * f * f - 6 * f * f + 4) / 6),
+                              float((-3 * f * f * f + 3 * f * f + 3 * f + 1) / 6),
+                              float(f * f * f / 6)};
+    }
+    a.controls = static_cast<int>(std::floor((pixels - 1) / h)) + 4;
+    return a;
+}
+
+/// The dense field of control displacements `c` (ny x nx, CV_64F).
+cv::Mat evaluate(const Axis& ax, const Axis& ay, const cv::Mat& c) {
+    // Separable: first along x for every control row, then along y.
+    cv::Mat rows(c.rows, int(ax.first.size()), CV_32F);
+    for (int j = 0; j < c.rows; ++j) {
+        const double* cr = c.ptr<double>(j);
+        float* out = rows.ptr<float>(j);
+        for (size_t x = 0; x < ax.first.size(); ++x) {
+            const int i = ax.first[x];
+            const auto& b = ax.basis[x];
+            out[x] = float(b[0] * cr[i] + b[1] * cr[i + 1] + b[2] * cr[i + 2] + b[3] * cr[i + 3]);
+        }
+    }
+    cv::Mat u(int(ay.first.size()), rows.cols, CV_32F);
+    for (size_t y = 0; y < ay.first.size(); ++y) {
+        const int j = ay.first[y];
+        const auto& b = ay.basis[y];
+        float* out = u.ptr<float>(int(y));
+        const float* r0 = rows.ptr<float>(j);
+        const float* r1 = rows.ptr<float>(j + 1);
+        const float* r2 = rows.ptr<float>(j + 2);
+        const float* r3 = rows.ptr<float>(j + 3);
+        for (int x = 0; x < u.cols; ++x)
+            out[x] = b[0] * r0[x] + b[1] * r1[x] + b[2] * r2[x] + b[3] * r3[x];
+    }
+    return u;
+}
+
+/// Gauss-Newton normal equations of the control displacements (x block then y block, control k
+/// = j nx + i): H = sum w J^T J, e = sum w r J with J = gain (Tx, Ty) B_k. Accumulated
+/// separably: per image row, products of the x basis, then spread over the rows' y basis.
+void normalEquations(const Axis& ax, const Axis& ay, const cv::Mat& wr, const cv::Mat& r,
+                     const cv::Mat& jx, const cv::Mat& jy, cv::Mat& h, cv::Mat& e) {
+    const int nx = ax.controls, ny = ay.controls, k = nx * ny;
+    h = cv::Mat::zeros(2 * k, 2 * k, CV_64F);
+    e = cv::Mat::zeros(2 * k, 1, CV_64F);
+    // Row sums, per control column i and offset d (0..3): xx, xy, yy products; and e parts.
+    std::vector<double> rxx(size_t(nx) * 4, 0.0), rxy(size_t(nx) * 4, 0.0),
+        ryy(size_t(nx) * 4, 0.0), ex(size_t(nx), 0.0), ey(size_t(nx), 0.0);
+    for (size_t y = 0; y < ay.first.size(); ++y) {
+        std::fill(rxx.begin(), rxx.end(), 0.0);
+        std::fill(rxy.begin(), rxy.end(), 0.0);
+        std::fill(ryy.begin(), ryy.end(), 0.0);
+        std::fill(ex.begin(), ex.end(), 0.0);
+        std::fill(ey.begin(), ey.end(), 0.0);
+        const float* ww = wr.ptr<float>(int(y));
+        const float* rr = r.ptr<float>(int(y));
+        const float* gx = jx.ptr<float>(int(y));
+        const float* gy = jy.ptr<float>(int(y));
+        bool any = false;
+        for (size_t x = 0; x < ax.first.size(); ++x) {
+            if (ww[x] <= 0)
+                continue;
+            any = true;
+            const double a = ww[x] * gx[x] * gx[x], b = ww[x] * gx[x] * gy[x],
+                         c = ww[x] * gy[x] * gy[x], px = ww[x] * rr[x] * gx[x],
+                         py = ww[x] * rr[x] * gy[x];
+            const int i = ax.first[x];
+            const auto& bs = ax.basis[x];
+            for (int p = 0; p < 4; ++p) {
+                ex[size_t(i + p)] += px * bs[size_t(p)];
+                ey[size_t(i + p)] += py * bs[size_t(p)];
+                for (int q = p; q < 4; ++q) {
+                    const double v = double(bs[size_t(p)]) * bs[size_t(q)];
+                    const size_t at = size_t(i + p) * 4 + size_t(q - p);
+                    rxx[at] += a * v;
+                    rxy[at] += b * v;
+                    ryy[at] += c * v;
+                }
+            }
+        }
+        if (!any)
+            continue;
+        const int j0 = ay.first[y];
+        const auto& by = ay.basis[y];
+        for (int p = 0; p < 4; ++p) {
+            for (int i = 0; i < nx; ++i) {
+                const int kk = (j0 + p) * nx + i;
+                e.at<double>(kk) += by[size_t(p)] * ex[size_t(i)];
+                e.at<double>(k + kk) += by[size_t(p)] * ey[size_t(i)];
+            }
+            for (int q = 0; q < 4; ++q) {
+                const double v = double(by[size_t(p)]) * by[size_t(q)];
+                for (int i = 0; i < nx; ++i)
+                    for (int d = 0; d < 4 && i + d < nx; ++d) {
+                        const size_t at = size_t(i) * 4 + size_t(d);
+                        if (rxx[at] == 0 && rxy[at] == 0 && ryy[at] == 0)
+                            continue;
+                        const int kk = (j0 + p) * nx + i, ll = (j0 + q) * nx + i + d;
+                        const double vxx = v * rxx[at], vxy = v * rxy[at], vyy = v * ryy[at];
+                        h.at<double>(kk, ll) += vxx;
+                        h.at<double>(k + kk, k + ll) += vyy;
+                        h.at<double>(kk, k + ll) += vxy;
+                        h.at<double>(k + kk, ll) += vxy;
+                        if (d > 0) {
+                            h.at<double>(ll, kk) += vxx;
+                            h.at<double>(k + ll, k + kk) += vyy;
+                            h.at<double>(ll, k + kk) += vxy;
+                            h.at<double>(k + ll, kk) += vxy;
+                        }
+                    }
+            }
+        }
+    }
+}
+
+/// Graph Laplacian of the control grid (4-neighbours), both components: sum over neighbour
+/// pairs of |c_k - c_l|^2 = c^T L c.
+cv::Mat membrane(int nx, int ny) {
+    const int k = nx * ny;
+    cv::Mat l = cv::Mat::zeros(2 * k, 2 * k, CV_64F);
+    auto link = [&](int a, int b) {
+        for (int o : {0, k}) {
+            l.at<double>(o + a, o + a) += 1;
+            l.at<double>(o + b, o + b) += 1;
+            l.at<double>(o + a, o + b) -= 1;
+            l.at<double>(o + b, o + a) -= 1;
+        }
+    };
+    for (int j = 0; j < ny; ++j)
+        for (int i = 0; i < nx; ++i) {
+            if (i + 1 < nx)
+                link(j * nx + i, j * nx + i + 1);
+            if (j + 1 < ny)
+                link(j * nx + i, (j + 1) * nx + i);
+        }
+    return l;
+}
+
+/// Mean Cauchy energy of residuals `r` at scale `c` under weights `w`, times c^2 / 2 (so that
+/// its Gauss-Newton model has the IRLS weights 1 / (1 + (r/c)^2)); summed, not averaged.
+double cauchySum(const cv::Mat& r, double c, const cv::Mat& w) {
+    cv::Mat e = r * (1.0 / c);
+    e = e.mul(e) + 1;
+    cv::log(e, e);
+    return 0.5 * c * c * e.dot(w);
+}
+
+} // namespace
+
+IntensityWarp refineWarpByIntensity(const cv::Mat& grey, const cv::Mat& weight, const cv::Mat& mapX,
+                                    const cv::Mat& mapY, const cv::Mat& atlasIntensity,
+                                    const IntensityWarpOptions& o) {
+    CV_Assert(grey.type() == CV_32F && weight.type() == CV_8U && weight.size() == grey.size());
+    CV_Assert(mapX.type() == CV_32F && mapY.type() == CV_32F && mapX.size() == grey.size() &&
+              mapY.size() == grey.size());
+    CV_Assert(atlasIntensity.type() == CV_32F && !atlasIntensity.empty());
+    for (const IntensityWarpLevel& l : o.levels)
+        CV_Assert(l.spacingGridPx >= 4 && l.imageSigma >= 0);
+    const cv::Size gs = grey.size();
+    IntensityWarp out;
+    out.ux = cv::Mat::zeros(gs, CV_32F);
+    out.uy = cv::Mat::zeros(gs, CV_32F);
+    const cv::Mat det0 = jacobianDet(mapX, mapY);
+    const double refDet = percentile(det0, 0.5, weight);
+    out.minJacobian = std::abs(refDet) > 1e-9 ? minRelative(det0, refDet) : 1;
+    if (cv::countNonZero(weight) < 64 || o.levels.empty() || !(std::abs(refDet) > 1e-9))
+        return out;
+    const double s = std::sqrt(std::abs(refDet)); // atlas px per grid px
+
+    cv::Mat w;
+    weight.convertTo(w, CV_32F, 1.0 / 255);
+    cv::threshold(w, w, 0, 1, cv::THRESH_BINARY);
+    cv::Mat wTrain = w.clone(), wTest = w.clone();
+    if (o.holdOutBlockPx > 0)
+        for (int y = 0; y < gs.height; ++y) {
+            float* a = wTrain.ptr<float>(y);
+            float* b = wTest.ptr<float>(y);
+            for (int x = 0; x < gs.width; ++x)
+                ((x / o.holdOutBlockPx + y / o.holdOutBlockPx) % 2 ? a : b)[x] = 0;
+        }
+    Model model(gs, o.localSigmaGridPx);
+
+    auto smoothed = [](const cv::Mat& m, double sigma) {
+        cv::Mat blurred;
+        if (sigma > 0.3)
+            cv::GaussianBlur(m, blurred, cv::Size(), sigma, sigma, cv::BORDER_REPLICATE);
+        else
+            blurred = m;
+        return blurred;
+    };
+    cv::Mat ax, ay, tv, r, gain;
+    auto sample = [&](const cv::Mat& plane, const cv::Mat& ux, const cv::Mat& uy, cv::Mat& dst) {
+        ax = mapX + ux;
+        ay = mapY + uy;
+        // Outside the plane the template is the glass (0).
+        cv::remap(plane, dst, ax, ay, cv::INTER_LINEAR, cv::BORDER_CONSTANT, cv::Scalar(0));
+    };
+
+    // Held-out explained share at the finest level.
+    const double finest = o.levels.back().imageSigma;
+    const cv::Mat finestGrey = smoothed(grey, finest);
+    const cv::Mat finestPlane = smoothed(atlasIntensity, finest * s);
+    const double testMean = weightedMean(finestGrey, wTest);
+    cv::Mat centred = finestGrey - testMean;
+    const double testVar = std::max(1e-12, weightedMean(centred.mul(centred), wTest));
+    auto explained = [&](const cv::Mat& ux, const cv::Mat& uy) {
+        sample(finestPlane, ux, uy, tv);
+        model.fit(finestGrey, tv, wTrain, r, gain);
+        return 1 - weightedMean(r.mul(r), wTest) / testVar;
+    };
+    out.explainedBefore = explained(out.ux, out.uy);
+
+    cv::Mat baseX = out.ux.clone(), baseY = out.uy.clone(); // the coarser levels' field
+    double minRel = out.minJacobian;
+    cv::Mat wr, tx, ty, jx, jy, h, e;
+    for (const IntensityWarpLevel& level : o.levels) {
+        const cv::Mat g = smoothed(grey, level.imageSigma);
+        const cv::Mat plane = smoothed(atlasIntensity, level.imageSigma * s);
+        cv::Mat px, py;
+        cv::Sobel(plane, px, CV_32F, 1, 0, 1, 0.5, 0, cv::BORDER_REPLICATE);
+        cv::Sobel(plane, py, CV_32F, 0, 1, 1, 0.5, 0, cv::BORDER_REPLICATE);
+        const Axis axX = makeAxis(gs.width, level.spacingGridPx);
+        const Axis axY = makeAxis(gs.height, level.spacingGridPx);
+        const int nx = axX.controls, ny = axY.controls, k = nx * ny;
+        const cv::Mat lap = membrane(nx, ny);
+        cv::Mat c = cv::Mat::zeros(2 * k, 1, CV_64F);
+        cv::Mat ux = baseX.clone(), uy = baseY.clone();
+        double robustSigma = 0;
+        wr = wTrain.clone();
+        for (int it = 0; it < level.iterations; ++it) {
+            sample(plane, ux, uy, tv);
+            model.fit(g, tv, wr, r, gain);
+            if (it == 0) {
+                cv::Mat absR = cv::abs(r);
+                robustSigma = std::max(1e-5, 1.4826 * double(percentile(absR, 0.5, wTrain > 0)));
+            }
+            const double cs = o.robustK * robustSigma;
+            cv::Mat q = r * (1.0 / cs);
+            q = q.mul(q) + 1;
+            cv::divide(wTrain, q, wr);
+            cv::remap(px, tx, ax, ay, cv::INTER_LINEAR, cv::BORDER_CONSTANT, cv::Scalar(0));
+            cv::remap(py, ty, ax, ay, cv::INTER_LINEAR, cv::BORDER_CONSTANT, cv::Scalar(0));
+            jx = gain.mul(tx);
+            jy = gain.mul(ty);
+            normalEquations(axX, axY, wr, r, jx, jy, h, e);
+            double diag = 0;
+            int seen = 0;
+            for (int i = 0; i < 2 * k; ++i)
+                if (h.at<double>(i, i) > 0) {
+                    diag += h.at<double>(i, i);
+                    ++seen;
+                }
+            if (seen == 0)
+                break;
+            diag /= seen;
+            const double lambda = o.stiffness * diag;
+            cv::Mat a = h + lambda * lap;
+            a.diag() += o.damping * diag + 1e-12;
+            const cv::Mat rhs = e - lambda * (lap * c);
+            cv::Mat d;
+            if (!cv::solve(a, rhs, d, cv::DECOMP_CHOLESKY))
+                break;
+            double longest = 0;
+            for (int i = 0; i < k; ++i)
+                longest = std::max(longest, std::hypot(d.at<double>(i), d.at<double>(k + i)));
+            const double maxMove = o.maxStepGridPx * s;
+            if (longest > maxMove) {
+                d *= maxMove / longest;
+                longest = maxMove;
+            }
+            // Penalised robust energy, with the model's fit held (as in the step's linearisation).
+            const cv::Mat fittedGain = gain.clone(), fittedBias = g - r - gain.mul(tv);
+            auto energy = [&](const cv::Mat& cc, const cv::Mat& res) {
+                return cauchySum(res, cs, wTrain) + 0.5 * lambda * cc.dot(lap * cc);
+            };
+            const double energyNow = energy(c, r);
+            bool taken = false;
+            for (int half = 0; half < 4 && !taken; ++half) {
+                const cv::Mat cand = c + d;
+                const cv::Mat fx = baseX + evaluate(axX, axY, cand.rowRange(0, k).reshape(1, ny));
+                const cv::Mat fy =
+                    baseY + evaluate(axX, axY, cand.rowRange(k, 2 * k).reshape(1, ny));
+                const double m = minRelative(jacobianDet(mapX + fx, mapY + fy), refDet);
+                bool ok = m >= std::min(o.minJacobian, minRel) - 1e-4;
+                if (ok) {
+                    cv::Mat tc;
+                    sample(plane, fx, fy, tc);
+                    const cv::Mat rc = g - fittedGain.mul(tc) - fittedBias;
+                    ok = energy(cand, rc) < energyNow;
+                }
+                if (ok) {
+                    c = cand;
+                    ux = fx;
+                    uy = fy;
+                    minRel = m;
+                    taken = true;
+                    ++out.steps;
+                } else {
+                    d *= 0.5;
+                    longest *= 0.5;
+                }
+            }
+            if (!taken || longest < 0.01 * s)
+                break;
+        }
+        baseX = ux;
+        baseY = uy;
+    }
+    out.explainedAfter = explained(baseX, baseY);
+    out.accepted = out.explainedAfter >= out.explainedBefore + o.minGain;
+    if (out.accepted) {
+        out.ux = baseX;
+        out.uy = baseY;
+        out.minJacobian = minRel;
+    }
+    return out;
+}
+
+} // namespace slicestation::pipeline

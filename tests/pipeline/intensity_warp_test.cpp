@@ -1,0 +1,149 @@
+// The intensity warp on a template-like toy with a known smooth deformation.
+#include "slicestation/pipeline/intensity_warp.hpp"
+#include "slicestation/pipeline/registration.hpp"
+
+#include <gtest/gtest.h>
+#include <opencv2/imgproc.hpp>
+
+#include <cmath>
+
+using namespace slicestation::pipeline;
+
+namespace {
+
+constexpr double kPi = 3.14159265358979323846;
+
+/// A template-like plane: graded texture at two scales inside an elliptic brain, glass (0)
+/// outside, a dark "ventricle".
+cv::Mat templatePlane(cv::Size size) {
+    cv::Mat fine(size, CV_32F), coarse(size, CV_32F);
+    cv::RNG rng(11);
+    rng.fill(fine, cv::RNG::UNIFORM, 0, 1);
+    rng.fill(coarse, cv::RNG::UNIFORM, 0, 1);
+    cv::GaussianBlur(fine, fine, cv::Size(), 4, 4);
+    cv::GaussianBlur(coarse, coarse, cv::Size(), 12, 12);
+    cv::normalize(fine, fine, 0, 1, cv::NORM_MINMAX);
+    cv::normalize(coarse, coarse, 0, 1, cv::NORM_MINMAX);
+    cv::Mat plane = 0.2 + 0.4 * fine + 0.4 * coarse;
+    cv::Mat brain = cv::Mat::zeros(size, CV_8U);
+    const cv::Point c(size.width / 2, size.height / 2);
+    cv::ellipse(brain, c, cv::Size(size.width * 2 / 5, size.height * 2 / 5), 0, 0, 360, 255, -1);
+    plane.setTo(0, brain == 0);
+    cv::ellipse(plane, c + cv::Point(20, -10), cv::Size(14, 6), 30, 0, 360, cv::Scalar(0.05), -1);
+    cv::GaussianBlur(plane, plane, cv::Size(), 1.0, 1.0);
+    return plane;
+}
+
+/// The known smooth deformation (atlas px): atlas = p + d(p).
+cv::Point2d deformation(double x, double y, cv::Size size, double amplitude) {
+    const double u = x / size.width, v = y / size.height;
+    return {amplitude * std::sin(2 * kPi * v) * std::cos(kPi * u),
+            amplitude * std::sin(2 * kPi * u + 0.5) * std::cos(kPi * v)};
+}
+
+struct Toy {
+    cv::Mat grey, weight, mapX, mapY, plane;
+    cv::Mat truthX, truthY; ///< the field the stage should find
+};
+
+Toy makeToy(double amplitude) {
+    const cv::Size size(256, 200);
+    Toy t;
+    t.plane = templatePlane(size);
+    t.mapX.create(size, CV_32F);
+    t.mapY.create(size, CV_32F);
+    t.truthX.create(size, CV_32F);
+    t.truthY.create(size, CV_32F);
+    cv::Mat sx(size, CV_32F), sy(size, CV_32F);
+    for (int y = 0; y < size.height; ++y)
+        for (int x = 0; x < size.width; ++x) {
+            const cv::Point2d d = deformation(x, y, size, amplitude);
+            t.mapX.at<float>(y, x) = float(x);
+            t.mapY.at<float>(y, x) = float(y);
+            t.truthX.at<float>(y, x) = float(d.x);
+            t.truthY.at<float>(y, x) = float(d.y);
+            sx.at<float>(y, x) = float(x + d.x);
+            sy.at<float>(y, x) = float(y + d.y);
+        }
+    // The section: the plane seen through the deformation, with a gain gradient, a glass
+    // level, noise, and a foreign blot (damage) that the weight leaves out.
+    cv::remap(t.plane, t.grey, sx, sy, cv::INTER_LINEAR, cv::BORDER_CONSTANT, cv::Scalar(0));
+    for (int y = 0; y < size.height; ++y)
+        for (int x = 0; x < size.width; ++x)
+            t.grey.at<float>(y, x) = float(t.grey.at<float>(y, x) * (0.8 + 0.4 * x / size.width));
+    t.grey += 0.05;
+    cv::Mat noise(size, CV_32F);
+    cv::RNG(5).fill(noise, cv::RNG::NORMAL, 0, 0.03);
+    t.grey += noise;
+    t.weight = cv::Mat::zeros(size, CV_8U);
+    cv::ellipse(t.weight, cv::Point(size.width / 2, size.height / 2),
+                cv::Size(size.width * 2 / 5 + 4, size.height * 2 / 5 + 4), 0, 0, 360, 255, -1);
+    const cv::Rect blot(60, 60, 24, 18);
+    t.grey(blot).setTo(1.0);
+    t.weight(blot).setTo(0);
+    return t;
+}
+
+/// RMS distance between the found field and the truth over the interior (weight set, 20 px in).
+double rmsError(const Toy& t, const cv::Mat& ux, const cv::Mat& uy) {
+    cv::Mat inner;
+    cv::erode(t.weight, inner, cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(41, 41)));
+    cv::Mat dx = ux - t.truthX, dy = uy - t.truthY;
+    cv::Mat d2 = dx.mul(dx) + dy.mul(dy);
+    return std::sqrt(cv::mean(d2, inner)[0]);
+}
+
+} // namespace
+
+TEST(IntensityWarp, RecoversAKnownSmoothDeformationOfATemplateLikePlane) {
+    const Toy t = makeToy(5.5);
+    const cv::Mat zero = cv::Mat::zeros(t.grey.size(), CV_32F);
+    const double before = rmsError(t, zero, zero);
+    ASSERT_GT(before, 2.0); // the affine (here: the identity) alone leaves this much
+    const IntensityWarp w = refineWarpByIntensity(t.grey, t.weight, t.mapX, t.mapY, t.plane);
+    ASSERT_TRUE(w.accepted);
+    EXPECT_GT(w.explainedAfter, w.explainedBefore + 0.02);
+    EXPECT_GT(w.minJacobian, 0.0);
+    const double after = rmsError(t, w.ux, w.uy);
+    EXPECT_LT(after, 0.6) << "before " << before;
+    EXPECT_LT(after, 0.25 * before);
+
+    // Without steps nothing is kept: the accuracy above is the stage's.
+    IntensityWarpOptions none;
+    for (auto& l : none.levels)
+        l.iterations = 0;
+    const IntensityWarp idle =
+        refineWarpByIntensity(t.grey, t.weight, t.mapX, t.mapY, t.plane, none);
+    EXPECT_FALSE(idle.accepted);
+    EXPECT_EQ(cv::countNonZero(idle.ux), 0);
+}
+
+TEST(IntensityWarp, AnUndeformedSectionIsLeftAlone) {
+    const Toy t = makeToy(0.0);
+    const IntensityWarp w = refineWarpByIntensity(t.grey, t.weight, t.mapX, t.mapY, t.plane);
+    // Either not kept, or kept with a field that stays small.
+    const double moved = rmsError(t, w.ux, w.uy);
+    EXPECT_LT(moved, 0.5);
+}
+
+TEST(IntensityWarp, BadIntensityWarpOptionsAreRefusedByRegisterSection) {
+    cv::Mat labels = cv::Mat::zeros(96, 96, CV_32S);
+    labels(cv::Rect(8, 8, 80, 80)).setTo(1);
+    cv::Mat section(200, 200, CV_8U, cv::Scalar(10));
+    cv::rectangle(section, cv::Rect(40, 40, 120, 120), cv::Scalar(200), cv::FILLED);
+    for (int k = 0; k < 4; ++k) {
+        RegistrationOptions o;
+        if (k == 0)
+            o.intensityWarpOptions.levels.clear();
+        else if (k == 1)
+            o.intensityWarpOptions.levels.front().spacingGridPx = 2;
+        else if (k == 2)
+            o.intensityWarpOptions.stiffness = -1;
+        else
+            o.intensityWarpOptions.maxStepGridPx = 0;
+        const auto r = registerSection(section, labels, o);
+        ASSERT_FALSE(r.ok()) << k;
+        EXPECT_EQ(r.error().code, slicestation::core::ErrorCode::InvalidArgument) << k;
+        EXPECT_NE(r.error().message.find("intensity warp options"), std::string::npos) << k;
+    }
+}
