@@ -334,10 +334,11 @@ cv::Mat concavityExclusion(const std::vector<Concavity>& concavities, cv::Size s
             poly.emplace_back(cvRound(p.x), cvRound(p.y));
         cv::fillConvexPoly(mask, poly, cv::Scalar(255));
     }
+    if (cv::countNonZero(mask) == 0)
+        return mask; // nothing to grow (most sections)
     const int m = std::max(1, static_cast<int>(std::lround(marginPx)));
-    cv::dilate(mask, mask,
-               cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * m + 1, 2 * m + 1)));
-    return mask;
+    return dilateEllipse(
+        mask, cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * m + 1, 2 * m + 1)));
 }
 
 namespace {
