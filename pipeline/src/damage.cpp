@@ -41,6 +41,126 @@ cv::Rect grown(const cv::Rect& box, int margin, cv::Size size) {
            cv::Rect(0, 0, size.width, size.height);
 }
 
+/// cv::dilate of a 0/255 mask (CV_8U, not a view into a larger image: nothing beyond its edge
+/// counts) by an elliptic structuring element `kernel` (getStructuringElement, odd size, centre
+/// anchor), the same pixels set; 255 where set. Each of the ellipse's rows is a run centred on
+/// the anchor, so a pixel is set when, for some row dy of the kernel, the nearest set pixel on
+/// image row y + dy lies within that run's half width: one distance per pixel along the rows,
+/// then one comparison per kernel row, instead of one maximum per kernel pixel (a 71 px disc
+/// has 4000).
+cv::Mat dilateEllipse(const cv::Mat& mask, const cv::Mat& kernel) {
+    CV_Assert(mask.type() == CV_8U && kernel.type() == CV_8U && kernel.rows % 2 == 1 &&
+              kernel.cols % 2 == 1);
+    const int ay = kernel.rows / 2, ax = kernel.cols / 2;
+    std::vector<int> halfWidth(static_cast<size_t>(kernel.rows), -1);
+    for (int ky = 0; ky < kernel.rows; ++ky) {
+        const std::uint8_t* k = kernel.ptr<std::uint8_t>(ky);
+        int first = -1, last = -1;
+        for (int kx = 0; kx < kernel.cols; ++kx)
+            if (k[kx]) {
+                if (first < 0)
+                    first = kx;
+                last = kx;
+            }
+        if (first < 0)
+            continue;
+        // Not a centred run: not an ellipse; OpenCV's own dilation then.
+        if (ax - first != last - ax || cv::countNonZero(kernel.row(ky)) != last - first + 1) {
+            cv::Mat out;
+            cv::dilate(mask, out, kernel);
+            return out > 0;
+        }
+        halfWidth[static_cast<size_t>(ky)] = ax - first;
+    }
+    // Distance along the row to the nearest set pixel, capped.
+    const int cap = std::min(32000, kernel.cols + 1);
+    cv::Mat along(mask.size(), CV_16S);
+    for (int y = 0; y < mask.rows; ++y) {
+        const std::uint8_t* m = mask.ptr<std::uint8_t>(y);
+        std::int16_t* d = along.ptr<std::int16_t>(y);
+        int run = cap;
+        for (int x = 0; x < mask.cols; ++x) {
+            run = m[x] ? 0 : std::min(cap, run + 1);
+            d[x] = static_cast<std::int16_t>(run);
+        }
+        run = cap;
+        for (int x = mask.cols - 1; x >= 0; --x) {
+            run = m[x] ? 0 : std::min(cap, run + 1);
+            d[x] = static_cast<std::int16_t>(std::min<int>(d[x], run));
+        }
+    }
+    // Output row y takes image row y + ky - ay through kernel row ky: whole shifted bands at
+    // once.
+    cv::Mat out = cv::Mat::zeros(mask.size(), CV_8U), within;
+    for (int ky = 0; ky < kernel.rows; ++ky) {
+        const int a = halfWidth[static_cast<size_t>(ky)];
+        const int shift = ky - ay;
+        const int y0 = std::max(0, -shift), y1 = std::min(mask.rows, mask.rows - shift);
+        if (a < 0 || y1 <= y0)
+            continue;
+        cv::compare(along.rowRange(y0 + shift, y1 + shift), cv::Scalar(a), within, cv::CMP_LE);
+        cv::Mat band = out.rowRange(y0, y1);
+        band |= within;
+    }
+    return out;
+}
+
+/// cv::morphologyEx(src, MORPH_CLOSE, kernel) of a CV_32F image by an elliptic `kernel` (odd
+/// size, centre anchor), the same values: the maximum (minimum) over the ellipse is the maximum
+/// over its rows of the maximum along each row's centred run, so the runs are taken by OpenCV's
+/// separable row filters (one per distinct run width) and the rows combined in shifted bands.
+/// Pixels beyond the image's edge count for nothing, as in OpenCV's default border; `src` may
+/// be a view, but a pixel whose ellipse reaches past the view's edge may then differ.
+cv::Mat closeEllipse(const cv::Mat& src, const cv::Mat& kernel) {
+    CV_Assert(src.type() == CV_32F && kernel.type() == CV_8U && kernel.rows % 2 == 1 &&
+              kernel.cols % 2 == 1);
+    const int ay = kernel.rows / 2, ax = kernel.cols / 2;
+    std::vector<int> halfWidth(static_cast<size_t>(kernel.rows), -1);
+    for (int ky = 0; ky < kernel.rows; ++ky) {
+        int first = -1, last = -1;
+        for (int kx = 0; kx < kernel.cols; ++kx)
+            if (kernel.at<std::uint8_t>(ky, kx)) {
+                if (first < 0)
+                    first = kx;
+                last = kx;
+            }
+        if (first >= 0 &&
+            (ax - first != last - ax || cv::countNonZero(kernel.row(ky)) != last - first + 1)) {
+            cv::Mat out;
+            cv::morphologyEx(src, out, cv::MORPH_CLOSE, kernel);
+            return out;
+        }
+        halfWidth[static_cast<size_t>(ky)] = first < 0 ? -1 : ax - first;
+    }
+    const auto byRows = [&](const cv::Mat& in, int op) {
+        std::map<int, cv::Mat> runs;
+        for (const int a : halfWidth)
+            if (a >= 0 && !runs.count(a)) {
+                if (a == 0)
+                    runs[a] = in;
+                else
+                    cv::morphologyEx(in, runs[a], op,
+                                     cv::getStructuringElement(cv::MORPH_RECT, {2 * a + 1, 1}));
+            }
+        cv::Mat out = runs.at(halfWidth[static_cast<size_t>(ay)]).clone();
+        for (int ky = 0; ky < kernel.rows; ++ky) {
+            const int a = halfWidth[static_cast<size_t>(ky)];
+            const int shift = ky - ay;
+            const int y0 = std::max(0, -shift), y1 = std::min(in.rows, in.rows - shift);
+            if (a < 0 || shift == 0 || y1 <= y0)
+                continue;
+            cv::Mat band = out.rowRange(y0, y1);
+            const cv::Mat from = runs.at(a).rowRange(y0 + shift, y1 + shift);
+            if (op == cv::MORPH_DILATE)
+                cv::max(band, from, band);
+            else
+                cv::min(band, from, band);
+        }
+        return out;
+    };
+    return byRows(byRows(src, cv::MORPH_DILATE), cv::MORPH_ERODE);
+}
+
 /// The glass of `grey` over `where`: its median level and noise (1.4826 x the median absolute
 /// deviation from that level, at least 1e-6).
 struct GlassStats {
@@ -48,12 +168,60 @@ struct GlassStats {
     float noise = 0;
 };
 GlassStats glassStats(const cv::Mat& grey, const cv::Mat& where) {
+    // As percentile(grey, 0.5, where) and then percentile(|grey - level|, 0.5, where), on the
+    // same strided sample, without the deviation image: the sampled pixels' deviations are all
+    // the second percentile reads.
+    const int step = std::max(1, static_cast<int>(std::sqrt(grey.total() / 250000.0)));
+    std::vector<float> v;
+    for (int y = 0; y < grey.rows; y += step) {
+        const float* row = grey.ptr<float>(y);
+        const std::uint8_t* ok = where.ptr<std::uint8_t>(y);
+        for (int x = 0; x < grey.cols; x += step)
+            if (ok[x])
+                v.push_back(row[x]);
+    }
     GlassStats g;
-    g.level = percentile(grey, 0.5, where);
-    cv::Mat dev;
-    cv::absdiff(grey, cv::Scalar(g.level), dev);
-    g.noise = std::max(1e-6f, 1.4826f * percentile(dev, 0.5, where));
+    if (v.empty()) {
+        g.noise = 1e-6f;
+        return g;
+    }
+    const auto k = static_cast<size_t>(0.5 * static_cast<double>(v.size() - 1));
+    g.level = kthSmallest(v, k);
+    for (float& x : v)
+        x = std::abs(x - g.level);
+    g.noise = std::max(1e-6f, 1.4826f * kthSmallest(v, k));
     return g;
+}
+
+/// `op` (a neighbourhood operation reaching at most `reachPx` from each pixel, giving a CV_8U
+/// mask) evaluated only on the 64 px tiles of an image of `size` that hold a pixel of `need`
+/// (CV_8U), each run of such tiles along a row grown by `reachPx`, so that on those tiles the
+/// result is the whole image's; 0 elsewhere. For the closings and dilations that only matter
+/// at the few candidate pixels of a crack.
+template <class Op> cv::Mat onNeededTiles(const cv::Mat& need, int reachPx, const Op& op) {
+    constexpr int kTile = 64;
+    cv::Mat out = cv::Mat::zeros(need.size(), CV_8U);
+    const cv::Rect image(0, 0, need.cols, need.rows);
+    for (int y = 0; y < need.rows; y += kTile) {
+        const int h = std::min(kTile, need.rows - y);
+        int runStart = -1;
+        // One step past the last tile, to end a run there.
+        for (int x = 0; x < need.cols + kTile; x += kTile) {
+            const bool needed =
+                x < need.cols &&
+                cv::countNonZero(need(cv::Rect(x, y, std::min(kTile, need.cols - x), h))) > 0;
+            if (needed && runStart < 0)
+                runStart = x;
+            if (!needed && runStart >= 0) {
+                const cv::Rect run(runStart, y, std::min(x, need.cols) - runStart, h);
+                const cv::Rect reach = grown(run, reachPx, need.size()) & image;
+                const cv::Mat r = op(reach);
+                r(run - reach.tl()).copyTo(out(run));
+                runStart = -1;
+            }
+        }
+    }
+    return out;
 }
 
 } // namespace
@@ -166,10 +334,11 @@ cv::Mat concavityExclusion(const std::vector<Concavity>& concavities, cv::Size s
             poly.emplace_back(cvRound(p.x), cvRound(p.y));
         cv::fillConvexPoly(mask, poly, cv::Scalar(255));
     }
+    if (cv::countNonZero(mask) == 0)
+        return mask; // nothing to grow (most sections)
     const int m = std::max(1, static_cast<int>(std::lround(marginPx)));
-    cv::dilate(mask, mask,
-               cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * m + 1, 2 * m + 1)));
-    return mask;
+    return dilateEllipse(
+        mask, cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * m + 1, 2 * m + 1)));
 }
 
 namespace {
@@ -225,9 +394,8 @@ cv::Mat valleysOf(const cv::Mat& sharp, GreyLevels levels, const DamageParams& p
     // A line under a pixel wide is only darker than the tissue beside it: dark against the
     // tissue's level, and a valley, darker than the tissue on both sides (the black top-hat of a
     // 5 px disc), which neither dim tissue nor its edge against bright tissue is.
-    cv::Mat closed;
-    cv::morphologyEx(sharp, closed, cv::MORPH_CLOSE,
-                     cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(discPx, discPx)));
+    const cv::Mat closed =
+        closeEllipse(sharp, cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(discPx, discPx)));
     const float span = levels.tissue - levels.glass;
     const float darkBelow = levels.glass + static_cast<float>(params.threadDarkness) * span;
     const float deeperThan = static_cast<float>(params.threadDepth) * span;
@@ -285,7 +453,17 @@ std::vector<DamageRegion> thinCracks(const cv::Mat& grey, const cv::Mat& tissue,
         DamageParams valley = params;
         valley.threadDarkness = params.crackDarkness;
         levels.tissue = percentile(light, 0.5, tissue);
-        crackPx = glassPx | (valleysOf(light, levels, valley, 2 * half + 3) & tissue);
+        // A valley needs a dark pixel: only the dark tissue that is not glass already needs the
+        // closing (within its reach, twice the disc's radius).
+        const int disc = 2 * half + 3;
+        const float darkBelow = levels.glass + static_cast<float>(valley.threadDarkness) *
+                                                   (levels.tissue - levels.glass);
+        const cv::Mat need = (light < darkBelow) & tissue & ~glassPx;
+        crackPx = glassPx | (onNeededTiles(need, 2 * (disc / 2),
+                                           [&](const cv::Rect& r) {
+                                               return valleysOf(light(r), levels, valley, disc);
+                                           }) &
+                             tissue);
     }
     // The dark pixels that are not glass, 8-connected: labelled only when a candidate reaches
     // the test that needs them (most sections have none).
@@ -297,23 +475,32 @@ std::vector<DamageRegion> thinCracks(const cv::Mat& grey, const cv::Mat& tissue,
         cv::Mat dimCentroids;
         cv::connectedComponentsWithStats(dim, dimLabels, dimStats, dimCentroids, 8, CV_32S);
     };
-    cv::Mat closed;
-    cv::morphologyEx(
-        ~crackPx, closed, cv::MORPH_CLOSE,
-        cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * half + 1, 2 * half + 1)));
-    // Where a crack may be: inside the mapped brain, away from the mapped ventricles.
+    // Where a crack may be: inside the mapped brain, away from the mapped ventricles. The
+    // dilations and the closing below matter only at such pixels, so they are evaluated on the
+    // tiles that hold one.
     const int slack = std::max(1, static_cast<int>(std::lround(params.slackFrac * brainWidthPx)));
-    cv::Mat nearVentricle;
-    cv::dilate(
-        ventricles, nearVentricle,
-        cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * slack + 1, 2 * slack + 1)));
-    cv::Mat thin = crackPx & closed & expected.brain & ~nearVentricle;
+    const cv::Mat slackDisc =
+        cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * slack + 1, 2 * slack + 1));
+    const auto dilatedOn = [&](const cv::Mat& mask, const cv::Mat& need) {
+        return onNeededTiles(need, slack, [&](const cv::Rect& r) {
+            cv::Mat o;
+            cv::dilate(mask(r), o, slackDisc);
+            return o;
+        });
+    };
+    cv::Mat thin = crackPx & expected.brain;
+    thin &= ~dilatedOn(ventricles, thin);
+    const cv::Mat crackDisc =
+        cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * half + 1, 2 * half + 1));
+    thin &= onNeededTiles(thin, 2 * half, [&](const cv::Rect& r) {
+        cv::Mat o;
+        cv::morphologyEx(~crackPx(r), o, cv::MORPH_CLOSE, crackDisc);
+        return o;
+    });
     // The dark regions, grown by the registration slack as the ventricles are.
     cv::Mat darkNear;
     if (!expected.dark.empty())
-        cv::dilate(
-            expected.dark, darkNear,
-            cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * slack + 1, 2 * slack + 1)));
+        darkNear = dilatedOn(expected.dark, thin);
     const int ringPx =
         std::max(1, static_cast<int>(std::lround(params.fissureRingFrac * brainWidthPx)));
     // The midline's fissure (and the cleft between the bulbs) is no crack; a crack that starts
@@ -362,9 +549,9 @@ std::vector<DamageRegion> thinCracks(const cv::Mat& grey, const cv::Mat& tissue,
         // glass-level speckle, as between the grains of dim textured tissue.
         cv::Mat nearBand, farBand;
         cv::dilate(region, nearBand, cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(5, 5)));
-        cv::dilate(
-            region, farBand,
-            cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(4 * half + 5, 4 * half + 5)));
+        farBand =
+            dilateEllipse(region, cv::getStructuringElement(cv::MORPH_ELLIPSE,
+                                                            cv::Size(4 * half + 5, 4 * half + 5)));
         const cv::Mat beside = farBand & ~nearBand & tissue(roi);
         const double besideGlass = cv::countNonZero(beside & glassPx(roi)) /
                                    std::max(1.0, double(cv::countNonZero(beside)));
@@ -519,21 +706,40 @@ cv::Mat darkAtlasRegions(const cv::Mat& grey, const cv::Mat& labels, const cv::M
     cv::Mat out = cv::Mat::zeros(labels.size(), CV_8U);
     if (levels.tissue <= levels.glass)
         return out;
+    // Neighbouring pixels mostly share a label: the last one's list is kept at hand (the map's
+    // elements stay where they are when it grows).
     std::unordered_map<std::int32_t, std::vector<float>> byLabel;
+    std::int32_t lastId = 0;
+    std::vector<float>* last = nullptr;
     for (int y = 0; y < grey.rows; ++y) {
         const float* g = grey.ptr<float>(y);
         const std::int32_t* l = labels.ptr<std::int32_t>(y);
         const std::uint8_t* v = valid.ptr<std::uint8_t>(y);
-        for (int x = 0; x < grey.cols; ++x)
-            if (l[x] != 0 && v[x])
-                byLabel[l[x]].push_back(g[x]);
+        for (int x = 0; x < grey.cols; ++x) {
+            if (l[x] == 0 || !v[x])
+                continue;
+            if (!last || l[x] != lastId) {
+                lastId = l[x];
+                last = &byLabel[lastId];
+            }
+            last->push_back(g[x]);
+        }
     }
     const float below =
         levels.glass + static_cast<float>(darkness) * (levels.tissue - levels.glass);
+    std::unordered_map<std::int32_t, bool> dark;
     for (auto& [id, v] : byLabel) {
-        std::nth_element(v.begin(), v.begin() + std::ptrdiff_t(v.size() / 2), v.end());
-        if (v[v.size() / 2] < below)
-            out.setTo(255, labels == id);
+        if (kthSmallest(v, v.size() / 2) < below)
+            dark[id] = true;
+    }
+    if (dark.empty())
+        return out;
+    for (int y = 0; y < labels.rows; ++y) {
+        const std::int32_t* l = labels.ptr<std::int32_t>(y);
+        std::uint8_t* o = out.ptr<std::uint8_t>(y);
+        for (int x = 0; x < labels.cols; ++x)
+            if (l[x] != 0 && dark.count(l[x]))
+                o[x] = 255;
     }
     return out;
 }
@@ -664,10 +870,9 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const AtlasExp
         // A gap lying along the outline (much of its rim on the glass outside) and shallow is
         // registration slack where the boundary is faint, not lost tissue; a bite out of the
         // edge is deep, and a crack opens to the outside only at its mouth.
-        cv::Mat rim;
         // The rim reaches across the slack band the erosion left between gap and outline.
-        cv::dilate(region, rim,
-                   cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * r + 5, 2 * r + 5)));
+        cv::Mat rim = dilateEllipse(
+            region, cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * r + 5, 2 * r + 5)));
         rim &= ~region;
         const double openShare =
             cv::countNonZero(rim & outside(roi)) / std::max(1.0, double(cv::countNonZero(rim)));
@@ -771,13 +976,22 @@ cv::Mat partMap(const cv::Mat& labels, const std::vector<std::vector<std::int32_
         for (const std::int32_t id : parts[i])
             partOf[id] = static_cast<std::uint8_t>(i + 1);
     cv::Mat out = cv::Mat::zeros(labels.size(), CV_8U);
+    // Neighbouring pixels mostly share a label: the last one's part is kept at hand.
+    std::int32_t lastId = 0;
+    std::uint8_t lastPart = 0;
     for (int y = 0; y < labels.rows; ++y) {
         const std::int32_t* in = labels.ptr<std::int32_t>(y);
         std::uint8_t* o = out.ptr<std::uint8_t>(y);
-        for (int x = 0; x < labels.cols; ++x)
-            if (in[x] != 0)
-                if (const auto it = partOf.find(in[x]); it != partOf.end())
-                    o[x] = it->second;
+        for (int x = 0; x < labels.cols; ++x) {
+            if (in[x] == 0)
+                continue;
+            if (in[x] != lastId) {
+                lastId = in[x];
+                const auto it = partOf.find(lastId);
+                lastPart = it == partOf.end() ? 0 : it->second;
+            }
+            o[x] = lastPart;
+        }
     }
     return out;
 }
@@ -792,9 +1006,9 @@ bool betweenParts(const cv::Mat& region, const cv::Mat& parts, int ringPx, doubl
     const double angle = 0.5 * std::atan2(2 * m.mu11, m.mu20 - m.mu02);
     const double nx = -std::sin(angle), ny = std::cos(angle);
     const cv::Rect roi = grown(cv::boundingRect(region), ringPx, region.size());
-    cv::Mat ring;
-    cv::dilate(
-        region(roi), ring,
+    // The region lies inside roi, so nothing beyond it is set.
+    cv::Mat ring = dilateEllipse(
+        region(roi).clone(),
         cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * ringPx + 1, 2 * ringPx + 1)));
     ring &= ~region(roi);
     std::array<std::array<int, 256>, 2> count{};

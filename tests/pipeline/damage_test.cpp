@@ -1,4 +1,5 @@
 #include "slicestation/pipeline/damage.hpp"
+#include "slicestation/pipeline/mask_ops.hpp"
 #include "slicestation/pipeline/medial_axis.hpp"
 
 #include <gtest/gtest.h>
@@ -468,6 +469,48 @@ TEST(Damage, ABlurredCrackIsFoundByDefaultButNotInsideADarkAtlasRegion) {
     EXPECT_EQ(cv::countNonZero(dark), cv::countNonZero(tract));
     const AtlasExpectation withTract{brain, brain, cv::Mat(), dark};
     EXPECT_TRUE(thinCracks(grey, tissue, withTract, none, 1000, p, midline).empty());
+}
+
+TEST(Damage, ABlurredCrackInTheLastPartialTileOfTheBoxIsFound) {
+    // The valley closing and the dilations run only on the 64 px tiles that hold a candidate
+    // pixel; a crack in the section box's last, partial tile column must be searched too. The
+    // brain (1030 px wide) gives a box 1078 px wide (24 px of glass each side): its last tile
+    // column starts at image x 1100.
+    cv::Mat brain = cv::Mat::zeros({1200, 800}, CV_8U);
+    cv::rectangle(brain, cv::Rect(100, 100, 1030, 600), cv::Scalar(255), cv::FILLED);
+    const cv::Mat none = cv::Mat::zeros(brain.size(), CV_8U);
+    const Midline midline{{615, 0}, {615, 800}};
+    cv::Mat sharp = cv::Mat::zeros(brain.size(), CV_32F);
+    sharp.setTo(0.55f, brain);
+    cv::line(sharp, {1106, 250}, {1106, 500}, cv::Scalar(0), 4);
+    cv::Mat grey;
+    cv::GaussianBlur(sharp, grey, cv::Size(), 1.25);
+    cv::Mat noise(brain.size(), CV_32F);
+    cv::RNG rng(23);
+    rng.fill(noise, cv::RNG::NORMAL, 0, 0.01);
+    grey += noise + cv::Scalar(0.05);
+    const AtlasExpectation expected{brain, brain, cv::Mat()};
+    const auto cracks = thinCracks(grey, brain, expected, none, 1000, DamageParams{}, midline);
+    ASSERT_EQ(cracks.size(), 1u);
+    EXPECT_NEAR(cracks[0].lengthPx, 250, 30);
+    for (const cv::Point2f& q : cracks[0].polygon)
+        EXPECT_NEAR(q.x, 1106, 6);
+}
+
+TEST(MaskOps, KthSmallestIsTheValueNthElementGives) {
+    cv::RNG rng(31);
+    for (const size_t n : {size_t(1), size_t(100), size_t(9000), size_t(300000)}) {
+        std::vector<float> v(n);
+        for (float& x : v) // negatives, repeats and a wide range of exponents
+            x = rng.uniform(0, 4) == 0
+                    ? float(rng.uniform(-3, 3))
+                    : float(rng.gaussian(1.0) * std::exp(rng.uniform(-8.0, 8.0)));
+        for (const size_t k : {size_t(0), n / 2, n - 1}) {
+            std::vector<float> a = v, b = v;
+            std::nth_element(b.begin(), b.begin() + std::ptrdiff_t(k), b.end());
+            EXPECT_EQ(kthSmallest(a, k), b[k]) << n << " values, k " << k;
+        }
+    }
 }
 
 TEST(Damage, AFoldIsADoubledBandBesideAGapAlongTheEdgeAndASliverIsNot) {

@@ -13,6 +13,11 @@ cv::Mat fillHoles(const cv::Mat& mask);
 /// Every pixel of every outer contour, as points.
 std::vector<cv::Point2f> outerContourPoints(const cv::Mat& mask);
 
+/// The k-th smallest of `values` (k < size), the value std::nth_element puts at k (the order of
+/// `values` changes); a histogram of the values' top bits first, so large sets cost two passes.
+/// A -0 and a +0 compare equal and either may be returned.
+float kthSmallest(std::vector<float>& values, size_t k);
+
 /// The q-quantile (0..1) of the values of `f32` (CV_32F) where `valid` (CV_8U, same size) is
 /// set, on a strided sample of about 250,000 pixels; 0 when none is set.
 float percentile(const cv::Mat& f32, double q, const cv::Mat& valid);
