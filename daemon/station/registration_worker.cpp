@@ -4,6 +4,7 @@
 #include "slicestation/core/image_file.hpp"
 #include "slicestation/daemon/config/daemon_settings.hpp"
 #include "slicestation/daemon/station/cell_counts.hpp"
+#include "slicestation/daemon/station/damage_context.hpp"
 #include "slicestation/daemon/station/registration_service.hpp"
 
 #include <algorithm>
@@ -336,6 +337,8 @@ void RegistrationWorker::process(std::int64_t captureId) {
     auto result = registerSectionFiles(rq);
     if (!result)
         return fail("registration failed: " + result.error().message);
+    // Issue 18, item 5: the run's earlier sections are the damage decision's context.
+    judgeWithSeriesContext(*result, earlierDamageOutlines(journal_, run->id, section->id));
 
     const auto rel = [&](const std::filesystem::path& p) {
         return std::filesystem::relative(p, stateDir_).string();

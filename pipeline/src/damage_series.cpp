@@ -48,8 +48,11 @@ double persistenceAmong(const std::vector<cv::Point2f>& region,
             cv::dilate(theirs, theirs, grow);
         if (cv::countNonZero(theirs & mine) >= params.samePlaceShare * area)
             ++same;
+        else if (params.contiguous)
+            break;
     }
-    return double(same) / double(neighbours.size());
+    return double(same) / double(std::max<std::size_t>(neighbours.size(),
+                                                       std::size_t(std::max(1, params.window))));
 }
 
 double applySeriesContext(std::vector<DamageRegion>& regions,
@@ -60,6 +63,36 @@ double applySeriesContext(std::vector<DamageRegion>& regions,
         regions[i].persistence =
             i < regionsAtlas.size() ? persistenceAmong(regionsAtlas[i], neighbours, params) : 0.0;
     return damageScore(regions, brainWidthPx, damageParams);
+}
+
+AtlasDamageOutlines atlasDamageOutlines(const Registration& reg, double maxSegmentPx) {
+    AtlasDamageOutlines out(reg.damage.size());
+    for (std::size_t i = 0; i < reg.damage.size(); ++i) {
+        const DamageRegion& d = reg.damage[i];
+        if ((d.kind != DamageKind::Tear && d.kind != DamageKind::Missing) || d.polygon.size() < 3)
+            continue;
+        for (const cv::Point2f& p : subdivide(d.polygon, maxSegmentPx)) {
+            const cv::Point2d a = reg.atlasFromImage(cv::Point2d(p.x, p.y));
+            out[i].emplace_back(float(a.x), float(a.y));
+        }
+    }
+    return out;
+}
+
+DamageDecision judgeInSeries(Registration& reg, const std::vector<AtlasDamageOutlines>& earlier,
+                             const DamageParams& damageParams, const SeriesContextParams& params) {
+    const std::size_t n = std::min(earlier.size(), std::size_t(std::max(0, params.window)));
+    const std::vector<AtlasDamageOutlines> used(earlier.begin(),
+                                                earlier.begin() + std::ptrdiff_t(n));
+    const AtlasDamageOutlines mine = atlasDamageOutlines(reg);
+    for (std::size_t i = 0; i < reg.damage.size(); ++i)
+        reg.damage[i].persistence = persistenceAmong(mine[i], used, params);
+    const double brainWidthPx = reg.brainWidthPx;
+    const DamageDecision decision = decideDamage(reg.damage, brainWidthPx, damageParams);
+    reg.damageScore = decision.score;
+    reg.damageVerdict = decision.verdict;
+    reg.damaged = decision.verdict == DamageVerdict::Damaged;
+    return decision;
 }
 
 } // namespace slicestation::pipeline

@@ -15,6 +15,7 @@
 #include "slicestation/pipeline/atlas.hpp"
 #include "slicestation/pipeline/atlas_matching.hpp"
 #include "slicestation/pipeline/atlas_slicing.hpp"
+#include "slicestation/pipeline/damage_series.hpp"
 #include "slicestation/pipeline/overlay.hpp"
 #include "slicestation/pipeline/registration.hpp"
 
@@ -248,6 +249,97 @@ core::Result<std::vector<RealSection>> gerbiSeries(const fs::path& shared) {
 
 } // namespace
 
+static const char* verdictText(pipeline::DamageVerdict v) {
+    return v == pipeline::DamageVerdict::Damaged             ? "DAMAGED"
+           : v == pipeline::DamageVerdict::CheckRegistration ? "CHECK_REG"
+                                                             : "clean";
+}
+
+/// The sections' damage judged by eye (the series' README files): torn, unclear, else clean.
+static char truthOf(const std::string& series, int number) {
+    const std::vector<int> torn =
+        series == "mouse" ? std::vector<int>{9, 11, 14, 15} : std::vector<int>{2, 14};
+    const std::vector<int> unclear =
+        series == "mouse" ? std::vector<int>{10, 13} : std::vector<int>{1, 3, 11, 12, 13, 17, 18};
+    if (std::find(torn.begin(), torn.end(), number) != torn.end())
+        return 'T';
+    if (std::find(unclear.begin(), unclear.end(), number) != unclear.end())
+        return '?';
+    return 'c';
+}
+
+/// Series context (issue 18, item 5): each section judged again with the damage outlines (gaps,
+/// atlas px) of the sections registered before it in this run, as the station does live (the
+/// `window` nearest earlier ones), and, for comparison only, with one section on either side
+/// (what waiting for the next section would give). The slices of one series share the atlas
+/// pixel grid (checked: every section's atlas has the same size), so atlas px compare places.
+struct JudgedSection {
+    std::string name;
+    int number = 0;
+    pipeline::Registration reg;
+    cv::Size atlasSize;
+};
+
+static void printSeriesContext(const std::string& series, const std::vector<JudgedSection>& run,
+                               const pipeline::SeriesContextParams& params) {
+    std::vector<pipeline::AtlasDamageOutlines> outlines;
+    for (const JudgedSection& s : run) {
+        outlines.push_back(pipeline::atlasDamageOutlines(s.reg));
+        if (s.atlasSize != run.front().atlasSize)
+            std::printf("series %s: %s's atlas is %dx%d, not %dx%d: atlas px do not compare\n",
+                        series.c_str(), s.name.c_str(), s.atlasSize.width, s.atlasSize.height,
+                        run.front().atlasSize.width, run.front().atlasSize.height);
+    }
+    const pipeline::DamageParams dp;
+    int counts[3][3] = {}; // [alone, live, both sides][torn caught, clean flagged, unclear flagged]
+    int torn = 0, clean = 0, unclear = 0;
+    std::printf("series context %s (window %d earlier, slack %.1f atlas px, same place %.2f):\n",
+                series.c_str(), params.window, params.slackAtlasPx, params.samePlaceShare);
+    for (std::size_t i = 0; i < run.size(); ++i) {
+        std::vector<pipeline::AtlasDamageOutlines> earlier, around;
+        for (std::size_t k = 1; k <= std::size_t(params.window) && k <= i; ++k)
+            earlier.push_back(outlines[i - k]);
+        if (i > 0)
+            around.push_back(outlines[i - 1]);
+        if (i + 1 < run.size())
+            around.push_back(outlines[i + 1]);
+        pipeline::Registration live = run[i].reg, both = run[i].reg;
+        pipeline::judgeInSeries(live, earlier, dp, params);
+        pipeline::SeriesContextParams bothParams = params;
+        bothParams.contiguous = false; // each side's neighbour is the nearest of its side
+        pipeline::judgeInSeries(both, around, dp, bothParams);
+        const char truth = truthOf(series, run[i].number);
+        torn += truth == 'T';
+        clean += truth == 'c';
+        unclear += truth == '?';
+        const pipeline::Registration* judged[3] = {&run[i].reg, &live, &both};
+        for (int j = 0; j < 3; ++j)
+            if (judged[j]->damageVerdict == pipeline::DamageVerdict::Damaged)
+                ++counts[j][truth == 'T' ? 0 : truth == 'c' ? 1 : 2];
+        std::printf("context %-6s %-16s %s alone %-9s %.3f | live %-9s %.3f | both sides %-9s "
+                    "%.3f |",
+                    series.c_str(), run[i].name.c_str(),
+                    truth == 'T'   ? "torn   "
+                    : truth == '?' ? "unclear"
+                                   : "clean  ",
+                    verdictText(run[i].reg.damageVerdict), run[i].reg.damageScore,
+                    verdictText(live.damageVerdict), live.damageScore,
+                    verdictText(both.damageVerdict), both.damageScore);
+        for (std::size_t r = 0; r < live.damage.size(); ++r)
+            std::printf(" %s %.2f%% p%.1f/%.1f", std::string(toString(live.damage[r].kind)).c_str(),
+                        100 * live.damage[r].share, live.damage[r].persistence,
+                        both.damage[r].persistence);
+        std::printf("\n");
+    }
+    const char* names[3] = {"alone", "live (earlier)", "both sides"};
+    for (int j = 0; j < 3; ++j)
+        std::printf("context %-6s %-15s torn caught %d of %d, clean flagged %d of %d, unclear "
+                    "flagged %d of %d\n",
+                    series.c_str(), names[j], counts[j][0], torn, counts[j][1], clean, counts[j][2],
+                    unclear);
+    std::fflush(stdout);
+}
+
 /// One line per section: verdict, score and every region (kind, share, length and thickness as
 /// shares of the brain width, score).
 static void printDamage(const std::string& series, const std::string& name,
@@ -292,6 +384,16 @@ int main(int argc, char** argv) {
                    "DamageParams::crackDarkness (0: cracks must show glass, as before 2026-12-02)")
         ->check(CLI::Range(0.0, 1.0));
     bool damageOnly = false;
+    pipeline::SeriesContextParams contextParams;
+    app.add_option("--context-window", contextParams.window,
+                   "Series context: earlier sections looked at (SeriesContextParams::window)")
+        ->check(CLI::Range(1, 10));
+    app.add_option("--context-slack", contextParams.slackAtlasPx,
+                   "Series context: the registration slack in atlas px")
+        ->check(CLI::Range(0.0, 50.0));
+    app.add_option("--context-share", contextParams.samePlaceShare,
+                   "Series context: share of a gap a neighbour must cover to be the same place")
+        ->check(CLI::Range(0.0, 1.0));
     app.add_flag("--damage", damageOnly,
                  "Register each original only and print its damage verdict, score and regions "
                  "(no warps)");
@@ -342,6 +444,7 @@ int main(int argc, char** argv) {
         }
         SeriesResult res;
         res.name = series;
+        std::vector<JudgedSection> judged; // --damage: the sections registered, in series order
         std::mt19937_64 rng(seed);
         for (size_t si = 0; si < secs->size() && int(si) < sectionsPerSeries; ++si) {
             if (!only.empty() && std::find(only.begin(), only.end(), int(si) + 1) == only.end())
@@ -375,6 +478,7 @@ int main(int argc, char** argv) {
             writeOverlay(*reg0, "original");
             if (damageOnly) {
                 printDamage(series, s.name, *reg0);
+                judged.push_back({s.name, int(si) + 1, *reg0, s.atlas.size()});
                 continue;
             }
             if (!overlayDir.empty()) {
@@ -449,6 +553,8 @@ int main(int argc, char** argv) {
                         warps, rms, worstWarp, worstPoint, reg0->quality.tissueOverlap);
             std::fflush(stdout);
         }
+        if (damageOnly && !judged.empty())
+            printSeriesContext(series, judged, contextParams);
         results.push_back(res);
     }
     std::printf("\n%-6s %8s %8s %8s %8s %-22s %7s %12s %14s\n", "series", "sections", "median",

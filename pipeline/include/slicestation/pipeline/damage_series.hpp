@@ -5,9 +5,15 @@
 /// place in the already registered neighbours of the same run is less likely damage.
 ///
 /// Units: polygons in atlas pixels of one atlas (the sections' registrations map into the same
-/// atlas grid). Threading: pure functions, re-entrant.
+/// atlas grid: the slices of one stack share one pixel grid, so an atlas pixel means the same
+/// left-right and dorso-ventral place in every slice). Threading: pure functions, re-entrant.
+///
+/// Only gaps (Tear, Missing) take part: anatomy that looks like damage is glass where the atlas
+/// expects tissue (a ventricle wider than the atlas's, a fissure opened); a detached fragment or
+/// a fold is no anatomy.
 
 #include "slicestation/pipeline/damage.hpp"
+#include "slicestation/pipeline/registration.hpp"
 
 #include <opencv2/core.hpp>
 
@@ -23,12 +29,26 @@ struct SeriesContextParams {
     /// slack, cover at least this share of the region's atlas area.
     double samePlaceShare = 0.3;
     /// The registration slack in atlas pixels: how far the same anatomy may land apart in two
-    /// registered neighbours (and how far it moves between two sections).
+    /// registered neighbours. 6 px of 25 um: the real series' measured disagreement of two
+    /// registrations of one section (slst_bench_consistency, median (section, warp) RMS without
+    /// gross failures 5.4-7.2 atlas px; docs/registration.md).
     double slackAtlasPx = 6.0;
+    /// How many earlier sections are looked at (live, the station has only those). Persistence
+    /// is the share of this many, so a section with fewer earlier ones gets less context: the
+    /// first section of a run none, the second at most half.
+    int window = 2;
+    /// Anatomy is continuous along the cutting axis: a place counts as persistent over the
+    /// earlier sections only as far as they show it without a break from the nearest one on (a
+    /// gap in the section two back but not in the one just before is no anatomy carried
+    /// through). Off: any of the neighbours counts (for neighbours on both sides, each the
+    /// nearest of its side).
+    bool contiguous = true;
 };
 
-/// The share of `neighbours` (each one section's regions in atlas px) with damage at the same
-/// place as `region` (atlas px): 0 when there are none or the region is empty.
+/// The share of `neighbours` (each one section's regions in atlas px, nearest first) with damage
+/// at the same place as `region` (atlas px), out of max(neighbours, params.window); with
+/// params.contiguous only those from the nearest on up to the first that does not: 0 when there
+/// are none or the region is empty.
 double persistenceAmong(const std::vector<cv::Point2f>& region,
                         const std::vector<AtlasDamageOutlines>& neighbours,
                         const SeriesContextParams& params);
@@ -40,5 +60,18 @@ double applySeriesContext(std::vector<DamageRegion>& regions,
                           const AtlasDamageOutlines& regionsAtlas,
                           const std::vector<AtlasDamageOutlines>& neighbours, double brainWidthPx,
                           const DamageParams& damageParams, const SeriesContextParams& params);
+
+/// The section's gaps (Tear, Missing) as outlines in atlas pixels, parallel to `reg.damage`
+/// (other kinds, and regions of fewer than 3 points, give an empty outline). Each outline is
+/// subdivided to `maxSegmentPx` (full-resolution px) before it is mapped through the
+/// registration (affine and warp), so a curved mapping bends it.
+AtlasDamageOutlines atlasDamageOutlines(const Registration& reg, double maxSegmentPx = 4.0);
+
+/// The damage decision of a registered section again, with its series context: sets each gap's
+/// persistence among `earlier` (the outlines of the run's already registered sections, nearest
+/// first; at most params.window are used), then decideDamage, and updates reg.damageScore,
+/// damageVerdict and damaged. \return the decision.
+DamageDecision judgeInSeries(Registration& reg, const std::vector<AtlasDamageOutlines>& earlier,
+                             const DamageParams& damageParams, const SeriesContextParams& params);
 
 } // namespace slicestation::pipeline

@@ -1,0 +1,120 @@
+// Issue 18, item 5: the damage decision's series context, read back from the journal. Every
+// result document keeps its gaps in atlas px; a section's context is the latest registrations
+// of the sections before it in the plan's order, nearest first, unregistered ones passed over.
+#include "slicestation/daemon/station/damage_context.hpp"
+
+#include <gtest/gtest.h>
+
+#include <filesystem>
+
+using namespace slicestation;
+using namespace slicestation::daemon;
+
+namespace {
+
+std::vector<cv::Point2f> square(float x, float y, float side) {
+    return {{x, y}, {x + side, y}, {x + side, y + side}, {x, y + side}};
+}
+
+class DamageContextTest : public ::testing::Test {
+protected:
+    void SetUp() override {
+        dir_ = std::filesystem::temp_directory_path() /
+               ("slst-damage-context-" + std::to_string(::getpid()) + "-" +
+                ::testing::UnitTest::GetInstance()->current_test_info()->name());
+        std::filesystem::remove_all(dir_);
+        std::filesystem::create_directories(dir_);
+        auto j = Journal::open(dir_ / "journal.sqlite");
+        ASSERT_TRUE(j) << j.error().message;
+        journal_ = std::move(*j);
+    }
+    void TearDown() override {
+        journal_.reset();
+        std::filesystem::remove_all(dir_);
+    }
+    /// A run of `n` sections, each captured once; \return the run id and the section ids.
+    std::pair<std::int64_t, std::vector<std::int64_t>> run(int n) {
+        std::vector<PlannedSection> planned;
+        for (int i = 0; i < n; ++i) {
+            PlannedSection p;
+            p.slideName = "slide-1";
+            p.index = i;
+            p.name = "s" + std::to_string(i + 1);
+            planned.push_back(p);
+        }
+        auto id = journal_->createRun("r", {}, {}, planned);
+        EXPECT_TRUE(id);
+        std::vector<std::int64_t> ids;
+        auto sections = journal_->sections(*id);
+        EXPECT_TRUE(sections);
+        for (const auto& s : *sections) {
+            CaptureRecord c;
+            c.sectionId = s.id;
+            c.imagePath = "x.tif";
+            c.umPerPx = 8;
+            EXPECT_TRUE(journal_->recordCapture(c));
+            ids.push_back(s.id);
+        }
+        return {*id, ids};
+    }
+    /// Journals a registration of `sectionId` whose result keeps `outlines`.
+    void registered(std::int64_t sectionId, const pipeline::AtlasDamageOutlines& outlines) {
+        RegistrationRecord r;
+        r.captureId = journal_->captures(sectionId)->back().id;
+        r.damageScore = 0;
+        r.flagScore = 0.5;
+        r.damageVerdict = "clean";
+        r.result = {{"damage_atlas", atlasOutlinesJson(outlines)}};
+        ASSERT_TRUE(journal_->recordRegistration(r));
+    }
+    std::filesystem::path dir_;
+    std::unique_ptr<Journal> journal_;
+};
+
+} // namespace
+
+TEST_F(DamageContextTest, OutlinesSurviveTheResultDocument) {
+    const pipeline::AtlasDamageOutlines outlines{square(10, 20, 5), {}, square(1.5f, 2.5f, 3)};
+    const nlohmann::json doc = {{"damage_atlas", atlasOutlinesJson(outlines)}};
+    EXPECT_EQ(atlasOutlinesFromResult(nlohmann::json::parse(doc.dump())), outlines);
+    // Registrations journalled before the series context have none; malformed points are
+    // dropped, not fatal.
+    EXPECT_TRUE(atlasOutlinesFromResult(nlohmann::json::object()).empty());
+    const auto odd = atlasOutlinesFromResult({{"damage_atlas", {{{1, 2}, "x", {3}}, 7}}});
+    ASSERT_EQ(odd.size(), 2u);
+    EXPECT_EQ(odd[0], (std::vector<cv::Point2f>{{1, 2}}));
+    EXPECT_TRUE(odd[1].empty());
+}
+
+TEST_F(DamageContextTest, TheEarlierSectionsAreReadBackNearestFirstSkippingUnregisteredOnes) {
+    const auto [runId, ids] = run(5);
+    registered(ids[0], {square(0, 0, 4)});
+    registered(ids[1], {square(10, 0, 4)});
+    // ids[2] is not registered (pending, failed); ids[1] is rescanned and registered again:
+    // the latest registration counts.
+    ASSERT_TRUE(journal_->requestRescan(ids[1]));
+    CaptureRecord again;
+    again.sectionId = ids[1];
+    again.imagePath = "y.tif";
+    again.umPerPx = 8;
+    ASSERT_TRUE(journal_->recordCapture(again));
+    registered(ids[1], {square(20, 0, 4)});
+    const auto forFourth = earlierDamageOutlines(*journal_, runId, ids[3], 2);
+    ASSERT_EQ(forFourth.size(), 2u);
+    EXPECT_EQ(forFourth[0], (pipeline::AtlasDamageOutlines{square(20, 0, 4)}));
+    EXPECT_EQ(forFourth[1], (pipeline::AtlasDamageOutlines{square(0, 0, 4)}));
+    // At most the window; nothing before the first section; a section after the ones asked
+    // about plays no part.
+    registered(ids[4], {square(30, 0, 4)});
+    EXPECT_EQ(earlierDamageOutlines(*journal_, runId, ids[3], 1).size(), 1u);
+    EXPECT_TRUE(earlierDamageOutlines(*journal_, runId, ids[0], 2).empty());
+    const auto forSecond = earlierDamageOutlines(*journal_, runId, ids[1], 2);
+    ASSERT_EQ(forSecond.size(), 1u);
+    EXPECT_EQ(forSecond[0], (pipeline::AtlasDamageOutlines{square(0, 0, 4)}));
+    // A journal opened again (a restart) gives the same context.
+    journal_.reset();
+    auto reopened = Journal::open(dir_ / "journal.sqlite");
+    ASSERT_TRUE(reopened);
+    journal_ = std::move(*reopened);
+    EXPECT_EQ(earlierDamageOutlines(*journal_, runId, ids[3], 2), forFourth);
+}
