@@ -221,22 +221,30 @@ std::vector<SeriesTracker::Settled> SeriesTracker::settle(std::int64_t runId, bo
     std::vector<Settled> out;
     if (runId != runId_ || !matcher_)
         return out;
-    if (runComplete)
+    const auto settleUpTo = [&](std::size_t end) {
+        for (std::size_t k = 0; k < end; ++k) {
+            Entry& e = entries_[k];
+            if (e.settled)
+                continue;
+            e.settled = true;
+            Settled s;
+            s.sectionId = e.sectionId;
+            s.registrationId = e.registrationId;
+            s.series = wordOn(k);
+            s.slice = nearestSlice(stack_, s.series.positionUm);
+            s.registeredSlice = e.registeredSlice;
+            s.matchedSlice = e.matchedSlice;
+            s.expectedSlice = expectedSlice(k);
+            out.push_back(s);
+        }
+    };
+    // The sections the newest confirms keep the live word they were registered with; finish()
+    // gives the final word to the run's last section, which nothing after it confirms (finish
+    // may move earlier ones too, but they were registered and alerted on their live word).
+    settleUpTo(entries_.empty() ? 0 : entries_.size() - 1);
+    if (runComplete) {
         finishRun();
-    for (std::size_t k = 0; k < entries_.size(); ++k) {
-        Entry& e = entries_[k];
-        if (e.settled || (k + 1 == entries_.size() && !runComplete))
-            continue;
-        e.settled = true;
-        Settled s;
-        s.sectionId = e.sectionId;
-        s.registrationId = e.registrationId;
-        s.series = wordOn(k);
-        s.slice = nearestSlice(stack_, s.series.positionUm);
-        s.registeredSlice = e.registeredSlice;
-        s.matchedSlice = e.matchedSlice;
-        s.expectedSlice = expectedSlice(k);
-        out.push_back(s);
+        settleUpTo(entries_.size());
     }
     return out;
 }

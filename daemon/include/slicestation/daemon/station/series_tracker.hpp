@@ -18,9 +18,10 @@
 ///
 /// The model's word on a section changes as later sections arrive (a swap first looks like a
 /// skip), so settle() hands out each section's word once it is confirmed: when the next section
-/// has been added, or at once for the run's last section: then the model's finish() runs first
+/// has been added, or at once for the run's last section: the sections before it are settled
+/// with their live word (the one they were registered with), then the model's finish() runs
 /// (each flagged section matched again at the place that would make the run regular), so the
-/// last sections' words are its final ones.
+/// last section's word is the model's final one.
 ///
 /// Threading: the registration worker's thread only. Blocking: image reads and matching (about
 /// 0.5 s per section; a rebuild costs that per journalled section).
