@@ -81,6 +81,8 @@ void RegistrationWorker::loop() {
             if (auto c = journal_.capture(id)) {
                 (void)journal_.failSection(c->sectionId,
                                            std::string("registration crashed: ") + e.what());
+                if (auto sec = journal_.section(c->sectionId))
+                    series_.failed(sec->runId, c->sectionId);
                 (void)notifier_.raise(AlertKind::RegistrationFailed, AlertSeverity::Warning,
                                       std::string("registration crashed: ") + e.what(),
                                       std::nullopt, c->sectionId);
@@ -201,10 +203,17 @@ RegistrationWorker::chooseSlice(const RunRecord& run, const SectionRecord& secti
     }
     char at[96];
     std::snprintf(at, sizeof at, " (%.0f um)", p->positionUm);
+    // Off the plan by as much as the sections the model found skipped before it: the cutting
+    // sequence ran ahead of the plan, not a mounting mistake of this section.
+    const bool skipsExplain =
+        p->expectedSlice && *p->expectedSlice != *section.expectedSlice &&
+        std::abs(p->slice - *p->expectedSlice) <= settings.mismatchToleranceSlices;
     choice.warning = "the series places the section at atlas slice " + std::to_string(p->slice) +
                      at + ", not the planned " + std::to_string(*section.expectedSlice) +
-                     " (mounted out of order?); own match " + std::to_string(p->matchedSlice) +
-                     ", registered to slice " + std::to_string(p->slice);
+                     (skipsExplain ? " (sections were skipped before it in the cutting order)"
+                                   : " (mounted out of order?)") +
+                     "; own match " + std::to_string(p->matchedSlice) + ", registered to slice " +
+                     std::to_string(p->slice);
     return choice;
 }
 
@@ -224,7 +233,11 @@ std::string RegistrationWorker::seriesAlertText(const std::string& label,
         finding = "it is mounted out of the cutting order";
     else if (w.anomaly == "duplicate")
         finding = "it lies where another section of the run lies";
-    const bool offPlan = plannedSlice && std::abs(settled.slice - *plannedSlice) > toleranceSlices;
+    // Off the plan once the model's skips are counted (expectedSlice): a lost section is one
+    // alert, on the section after it, not one on every section that follows.
+    const std::optional<int> expected =
+        settled.expectedSlice ? settled.expectedSlice : plannedSlice;
+    const bool offPlan = expected && std::abs(settled.slice - *expected) > toleranceSlices;
     if (finding.empty() && !offPlan)
         return "";
     char at[64];
@@ -302,6 +315,7 @@ void RegistrationWorker::process(std::int64_t captureId) {
     const bool last = planned && !planned->empty() && planned->back().id == section->id;
     auto fail = [&](const std::string& why) {
         (void)journal_.failSection(section->id, why);
+        series_.failed(run->id, section->id); // its slot was planned, not skipped
         (void)notifier_.raise(AlertKind::RegistrationFailed, AlertSeverity::Warning,
                               label + ": " + why, run->id, section->id);
         notifier_.publish({"section_failed", {{"section_id", section->id}, {"reason", why}}});

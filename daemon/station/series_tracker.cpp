@@ -68,19 +68,51 @@ SeriesPlacement SeriesTracker::wordOn(std::size_t entry) const {
     p.missingBefore = s.missingBefore;
     p.tiltLrDeg = fit.tiltColumnsDeg;
     p.tiltDvDeg = fit.tiltRowsDeg;
+    if (s.anomaly == pipeline::SeriesAnomaly::Skipped) {
+        // Planned sections that failed between the one before and this one held those slots:
+        // they were mounted and planned, just not matched, so their gap is not a skip.
+        const std::size_t from = entry > 0 ? entries_[entry - 1].planIndex + 1 : 0;
+        int failed = 0;
+        for (std::size_t k = from; k < entries_[entry].planIndex; ++k)
+            failed += planFailed_[k] ? 1 : 0;
+        p.missingBefore = std::max(0, s.missingBefore - failed);
+        if (p.missingBefore == 0)
+            p.anomaly = std::string(pipeline::toString(pipeline::SeriesAnomaly::None));
+    }
     return p;
+}
+
+std::optional<int> SeriesTracker::expectedSlice(std::size_t entry) const {
+    const Entry& e = entries_[entry];
+    const std::optional<int>& planned = planSlices_[e.planIndex];
+    if (!planned || *planned < 0 || *planned >= static_cast<int>(stack_.slices.size()))
+        return std::nullopt;
+    // The model numbers slots from the first section's (canonically its index), the plan by its
+    // entries (failed ones included): the difference is how many slots the cutting sequence has
+    // gained on the plan by now, i.e. the skips (a swap's two partners move one each way).
+    const pipeline::SeriesFit& fit = matcher_->fit();
+    const auto planSteps = static_cast<int>(e.planIndex - entries_.front().planIndex);
+    const int shift = fit.sections[entry].slot - planSteps;
+    return nearestSlice(stack_, stack_.slices[static_cast<std::size_t>(*planned)].positionUm +
+                                    shift * fit.spacingUm);
 }
 
 core::Result<void> SeriesTracker::reset(const RunRecord& run) {
     runId_ = 0;
     entries_.clear();
     planOrder_.clear();
+    planSlices_.clear();
+    planFailed_.clear();
+    finished_ = false;
     matcher_.reset();
     auto sections = journal_.sections(run.id);
     if (!sections)
         return sections.error();
-    for (const SectionRecord& s : *sections)
+    for (const SectionRecord& s : *sections) {
         planOrder_.push_back(s.id);
+        planSlices_.push_back(s.expectedSlice);
+        planFailed_.push_back(s.state == SectionState::Failed);
+    }
     pipeline::SeriesMatchOptions options;
     options.model.intervalUm = planIntervalUm(*sections, stack_);
     matcher_ = std::make_unique<pipeline::SeriesMatcher>(slices_, options);
@@ -115,7 +147,7 @@ core::Result<SeriesTracker::Placement> SeriesTracker::place(const RunRecord& run
             if (!f || !matcher_->add(*f))
                 continue; // a section that cannot be matched again is left out, as it was then
             entries_.push_back({planOrder_[k], k, regs->front().id, regs->front().atlasSlice,
-                                regs->front().matchedSlice.value_or(0), true});
+                                regs->front().matchedSlice.value_or(0), true, std::move(*f)});
         }
     }
     auto features = featuresOf(capture);
@@ -144,10 +176,12 @@ core::Result<SeriesTracker::Placement> SeriesTracker::place(const RunRecord& run
         return m.error();
     out.matchedSlice = m->index;
     out.matchedPositionUm = m->positionUm;
-    out.series = wordOn(matcher_->matches().size() - 1);
+    entries_.push_back({section.id, planIndex, 0, 0, m->index, false, std::move(*features)});
+    out.series = wordOn(entries_.size() - 1);
     out.positionUm = out.series->positionUm;
     out.slice = nearestSlice(stack_, out.positionUm);
-    entries_.push_back({section.id, planIndex, 0, out.slice, m->index, false});
+    entries_.back().registeredSlice = out.slice;
+    out.expectedSlice = expectedSlice(entries_.size() - 1);
     return out;
 }
 
@@ -160,23 +194,57 @@ void SeriesTracker::recorded(std::int64_t sectionId, std::int64_t registrationId
         }
 }
 
+void SeriesTracker::failed(std::int64_t runId, std::int64_t sectionId) {
+    // Another run's (or before this run's first section reached the model): reset() reads the
+    // failed state from the journal.
+    if (runId != runId_)
+        return;
+    const auto at = std::find(planOrder_.begin(), planOrder_.end(), sectionId);
+    const bool inModel = std::any_of(entries_.begin(), entries_.end(),
+                                     [&](const Entry& e) { return e.sectionId == sectionId; });
+    if (at != planOrder_.end() && !inModel)
+        planFailed_[static_cast<std::size_t>(at - planOrder_.begin())] = true;
+}
+
+void SeriesTracker::finishRun() {
+    if (finished_ || entries_.empty())
+        return;
+    finished_ = true;
+    std::vector<pipeline::SectionFeatures> features;
+    for (const Entry& e : entries_)
+        features.push_back(e.features);
+    // On failure the live fit stands (finish refits only after its own matches succeed).
+    (void)matcher_->finish(features);
+}
+
 std::vector<SeriesTracker::Settled> SeriesTracker::settle(std::int64_t runId, bool runComplete) {
     std::vector<Settled> out;
     if (runId != runId_ || !matcher_)
         return out;
-    for (std::size_t k = 0; k < entries_.size(); ++k) {
-        Entry& e = entries_[k];
-        if (e.settled || (k + 1 == entries_.size() && !runComplete))
-            continue;
-        e.settled = true;
-        Settled s;
-        s.sectionId = e.sectionId;
-        s.registrationId = e.registrationId;
-        s.series = wordOn(k);
-        s.slice = nearestSlice(stack_, s.series.positionUm);
-        s.registeredSlice = e.registeredSlice;
-        s.matchedSlice = e.matchedSlice;
-        out.push_back(s);
+    const auto settleUpTo = [&](std::size_t end) {
+        for (std::size_t k = 0; k < end; ++k) {
+            Entry& e = entries_[k];
+            if (e.settled)
+                continue;
+            e.settled = true;
+            Settled s;
+            s.sectionId = e.sectionId;
+            s.registrationId = e.registrationId;
+            s.series = wordOn(k);
+            s.slice = nearestSlice(stack_, s.series.positionUm);
+            s.registeredSlice = e.registeredSlice;
+            s.matchedSlice = e.matchedSlice;
+            s.expectedSlice = expectedSlice(k);
+            out.push_back(s);
+        }
+    };
+    // The sections the newest confirms keep the live word they were registered with; finish()
+    // gives the final word to the run's last section, which nothing after it confirms (finish
+    // may move earlier ones too, but they were registered and alerted on their live word).
+    settleUpTo(entries_.empty() ? 0 : entries_.size() - 1);
+    if (runComplete) {
+        finishRun();
+        settleUpTo(entries_.size());
     }
     return out;
 }

@@ -64,7 +64,8 @@ public:
     static std::string damageAlertText(const RegistrationRecord& rec, const std::string& label);
     /// The atlas_mismatch alert on a section whose series word is settled: when the series flags
     /// it (skipped-before, swapped, out-of-order, duplicate) or places it beyond
-    /// `toleranceSlices` from `plannedSlice`; "" when neither.
+    /// `toleranceSlices` from `settled.expectedSlice` (the planned slice moved by the skips the
+    /// model found so far; `plannedSlice` when unset); "" when neither.
     static std::string seriesAlertText(const std::string& label,
                                        const SeriesTracker::Settled& settled,
                                        std::optional<int> plannedSlice, int toleranceSlices);

@@ -13,10 +13,15 @@
 ///   is the found plane, and it has no series word.
 /// - After a restart (or when another run's section arrives) the model is rebuilt from the run's
 ///   journalled sections before this one, matching their first registered images again.
+/// - A planned section that failed (capture or registration) before it reached the model holds
+///   its slot: the gap it leaves is not a skip (failed()).
 ///
 /// The model's word on a section changes as later sections arrive (a swap first looks like a
 /// skip), so settle() hands out each section's word once it is confirmed: when the next section
-/// has been added, or at once for the run's last section.
+/// has been added, or at once for the run's last section: the sections before it are settled
+/// with their live word (the one they were registered with), then the model's finish() runs
+/// (each flagged section matched again at the place that would make the run regular), so the
+/// last section's word is the model's final one.
 ///
 /// Threading: the registration worker's thread only. Blocking: image reads and matching (about
 /// 0.5 s per section; a rebuild costs that per journalled section).
@@ -48,6 +53,7 @@ public:
         int matchedSlice = 0;  ///< the section's own match
         double matchedPositionUm = 0;
         std::optional<SeriesPlacement> series; ///< the model's word now; none when not in it
+        std::optional<int> expectedSlice;      ///< as Settled::expectedSlice, the model's view now
     };
     /// Matches the capture of `section` (of `run`) with the run's series model.
     /// \return the errors of reading the image (NotFound, IoError), of matching (NoTissue,
@@ -59,6 +65,10 @@ public:
     /// `registeredSlice`: settle() will update it.
     void recorded(std::int64_t sectionId, std::int64_t registrationId, int registeredSlice);
 
+    /// The section (of `runId`) failed: unless it is already in the model, its planned slot was
+    /// not matched, and the gap it leaves before the next section is not a skip.
+    void failed(std::int64_t runId, std::int64_t sectionId);
+
     /// A section whose word the model has confirmed.
     struct Settled {
         std::int64_t sectionId = 0;
@@ -67,6 +77,11 @@ public:
         int slice = 0;           ///< the stack slice nearest to series.positionUm
         int registeredSlice = 0; ///< the slice it was registered to (the word then)
         int matchedSlice = 0;
+        /// The planned slice moved by the slots the model found skipped up to this section
+        /// (signed spacing per slot), nearest stack slice: where the plan puts the section once
+        /// the skips already reported are counted, so one skip is not an alert on every later
+        /// section. Empty without a planned slice.
+        std::optional<int> expectedSlice;
     };
     /// The sections of `runId` confirmed since the last call, each once: all but the newest, and
     /// the newest too when `runComplete` (it is the last of the plan). Empty for another run.
@@ -87,18 +102,24 @@ private:
         int registeredSlice = 0;
         int matchedSlice = 0;
         bool settled = false;
+        pipeline::SectionFeatures features; ///< kept for finish() at the run's end
     };
     core::Result<void> reset(const RunRecord& run);
     core::Result<pipeline::SectionFeatures> featuresOf(const CaptureRecord& capture) const;
     core::Result<pipeline::SectionMatch> matchWhole(const pipeline::SectionFeatures& f) const;
     SeriesPlacement wordOn(std::size_t entry) const;
+    std::optional<int> expectedSlice(std::size_t entry) const;
+    void finishRun();
 
     Journal& journal_;
     const AtlasStack& stack_;
     const std::vector<pipeline::SliceFeatures>& slices_;
     std::filesystem::path stateDir_;
     std::int64_t runId_ = 0;
-    std::vector<std::int64_t> planOrder_; ///< the run's section ids in plan order
+    std::vector<std::int64_t> planOrder_;        ///< the run's section ids in plan order
+    std::vector<std::optional<int>> planSlices_; ///< their planned slices
+    std::vector<bool> planFailed_; ///< failed before reaching the model (by plan index)
+    bool finished_ = false;        ///< finish() has run for this run
     std::unique_ptr<pipeline::SeriesMatcher> matcher_;
     std::vector<Entry> entries_; ///< in the order added to the matcher
 };
