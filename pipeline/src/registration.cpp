@@ -325,6 +325,18 @@ cv::Mat measuredArea(cv::Size gs, const cv::Mat& tissueFilled, const cv::Mat& ex
     return weight;
 }
 
+/// Damage regions found on an image resized by `scale` from the section, in the full
+/// section's pixels: polygon, area, length and thickness.
+void toFullPixels(std::vector<DamageRegion>& regions, double scale) {
+    for (DamageRegion& d : regions) {
+        for (cv::Point2f& p : d.polygon)
+            p = cv::Point2f(float((p.x + 0.5) / scale - 0.5), float((p.y + 0.5) / scale - 0.5));
+        d.areaPx /= scale * scale;
+        d.lengthPx /= scale;
+        d.thicknessPx /= scale;
+    }
+}
+
 } // namespace
 
 cv::Point2d Registration::workingFromImage(cv::Point2d p) const {
@@ -875,13 +887,7 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
             regions.push_back(std::move(d));
         // Report in full-resolution pixels.
         const double s = reg.workingScale;
-        for (DamageRegion& d : regions) {
-            for (cv::Point2f& p : d.polygon)
-                p = cv::Point2f(float((p.x + 0.5) / s - 0.5), float((p.y + 0.5) / s - 0.5));
-            d.areaPx /= s * s;
-            d.lengthPx /= s;
-            d.thicknessPx /= s;
-        }
+        toFullPixels(regions, s);
         timer.lap("damage");
         // Thin cracks, at full resolution (up to crackMaxSidePx): glass lines narrower than the
         // working image shows.
@@ -940,14 +946,9 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
             std::vector<DamageRegion> cracks =
                 thinCracks(grey, up(sectionTissue), fullExpected, up(ventricles),
                            brainWidth / s * c, options.damage, midline, known);
-            for (DamageRegion& d : cracks) {
-                for (cv::Point2f& p : d.polygon)
-                    p = cv::Point2f(float((p.x + 0.5) / c - 0.5), float((p.y + 0.5) / c - 0.5));
-                d.areaPx /= c * c;
-                d.lengthPx /= c;
-                d.thicknessPx /= c;
+            toFullPixels(cracks, c);
+            for (DamageRegion& d : cracks)
                 regions.push_back(std::move(d));
-            }
         }
         // Misfit is not damage: a gap with tissue beside it where the atlas expects none lies
         // where the atlas fit cannot be trusted (markMisfit, in working px).
