@@ -41,17 +41,11 @@ cv::Rect grown(const cv::Rect& box, int margin, cv::Size size) {
            cv::Rect(0, 0, size.width, size.height);
 }
 
-/// cv::dilate of a 0/255 mask (CV_8U, not a view into a larger image: nothing beyond its edge
-/// counts) by an elliptic structuring element `kernel` (getStructuringElement, odd size, centre
-/// anchor), the same pixels set; 255 where set. Each of the ellipse's rows is a run centred on
-/// the anchor, so a pixel is set when, for some row dy of the kernel, the nearest set pixel on
-/// image row y + dy lies within that run's half width: one distance per pixel along the rows,
-/// then one comparison per kernel row, instead of one maximum per kernel pixel (a 71 px disc
-/// has 4000).
-cv::Mat dilateEllipse(const cv::Mat& mask, const cv::Mat& kernel) {
-    CV_Assert(mask.type() == CV_8U && kernel.type() == CV_8U && kernel.rows % 2 == 1 &&
-              kernel.cols % 2 == 1);
-    const int ay = kernel.rows / 2, ax = kernel.cols / 2;
+/// Each row of a structuring element (odd size, centre anchor) as a run centred on the anchor:
+/// its half width, -1 for an empty row; nullopt when some row is not one centred run (the
+/// kernel is not an ellipse).
+std::optional<std::vector<int>> centredRunHalfWidths(const cv::Mat& kernel) {
+    const int ax = kernel.cols / 2;
     std::vector<int> halfWidth(static_cast<size_t>(kernel.rows), -1);
     for (int ky = 0; ky < kernel.rows; ++ky) {
         const std::uint8_t* k = kernel.ptr<std::uint8_t>(ky);
@@ -64,14 +58,31 @@ cv::Mat dilateEllipse(const cv::Mat& mask, const cv::Mat& kernel) {
             }
         if (first < 0)
             continue;
-        // Not a centred run: not an ellipse; OpenCV's own dilation then.
-        if (ax - first != last - ax || cv::countNonZero(kernel.row(ky)) != last - first + 1) {
-            cv::Mat out;
-            cv::dilate(mask, out, kernel);
-            return out > 0;
-        }
+        if (ax - first != last - ax || cv::countNonZero(kernel.row(ky)) != last - first + 1)
+            return std::nullopt;
         halfWidth[static_cast<size_t>(ky)] = ax - first;
     }
+    return halfWidth;
+}
+
+/// cv::dilate of a 0/255 mask (CV_8U, not a view into a larger image: nothing beyond its edge
+/// counts) by an elliptic structuring element `kernel` (getStructuringElement, odd size, centre
+/// anchor), the same pixels set; 255 where set. Each of the ellipse's rows is a run centred on
+/// the anchor, so a pixel is set when, for some row dy of the kernel, the nearest set pixel on
+/// image row y + dy lies within that run's half width: one distance per pixel along the rows,
+/// then one comparison per kernel row, instead of one maximum per kernel pixel (a 71 px disc
+/// has 4000).
+cv::Mat dilateEllipse(const cv::Mat& mask, const cv::Mat& kernel) {
+    CV_Assert(mask.type() == CV_8U && kernel.type() == CV_8U && kernel.rows % 2 == 1 &&
+              kernel.cols % 2 == 1);
+    const int ay = kernel.rows / 2;
+    const std::optional<std::vector<int>> rowRuns = centredRunHalfWidths(kernel);
+    if (!rowRuns) { // Not an ellipse: OpenCV's own dilation then.
+        cv::Mat out;
+        cv::dilate(mask, out, kernel);
+        return out > 0;
+    }
+    const std::vector<int>& halfWidth = *rowRuns;
     // Distance along the row to the nearest set pixel, capped.
     const int cap = std::min(32000, kernel.cols + 1);
     cv::Mat along(mask.size(), CV_16S);
@@ -114,24 +125,14 @@ cv::Mat dilateEllipse(const cv::Mat& mask, const cv::Mat& kernel) {
 cv::Mat closeEllipse(const cv::Mat& src, const cv::Mat& kernel) {
     CV_Assert(src.type() == CV_32F && kernel.type() == CV_8U && kernel.rows % 2 == 1 &&
               kernel.cols % 2 == 1);
-    const int ay = kernel.rows / 2, ax = kernel.cols / 2;
-    std::vector<int> halfWidth(static_cast<size_t>(kernel.rows), -1);
-    for (int ky = 0; ky < kernel.rows; ++ky) {
-        int first = -1, last = -1;
-        for (int kx = 0; kx < kernel.cols; ++kx)
-            if (kernel.at<std::uint8_t>(ky, kx)) {
-                if (first < 0)
-                    first = kx;
-                last = kx;
-            }
-        if (first >= 0 &&
-            (ax - first != last - ax || cv::countNonZero(kernel.row(ky)) != last - first + 1)) {
-            cv::Mat out;
-            cv::morphologyEx(src, out, cv::MORPH_CLOSE, kernel);
-            return out;
-        }
-        halfWidth[static_cast<size_t>(ky)] = first < 0 ? -1 : ax - first;
+    const int ay = kernel.rows / 2;
+    const std::optional<std::vector<int>> rowRuns = centredRunHalfWidths(kernel);
+    if (!rowRuns) {
+        cv::Mat out;
+        cv::morphologyEx(src, out, cv::MORPH_CLOSE, kernel);
+        return out;
     }
+    const std::vector<int>& halfWidth = *rowRuns;
     const auto byRows = [&](const cv::Mat& in, int op) {
         std::map<int, cv::Mat> runs;
         for (const int a : halfWidth)
