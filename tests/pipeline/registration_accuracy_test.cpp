@@ -910,8 +910,9 @@ TEST(RegistrationAccuracy, TheMountingRuleDecidesWhichWayUpASectionIs) {
 TEST(DamageGroundTruth, ACrackOnALargeImageIsFoundAtTheCrackScale) {
     // A second-family crack (the benchmark's plane 20 of 48, seed 84) drawn on a 4000 px image:
     // 2.7 times as wide in pixels as on the 1500 px sections the crack rules (7 px at most) were
-    // set for. At full resolution the crack pass found nothing (section clean, score 0); on the
-    // section reduced to at most DamageParams::crackMaxSidePx it is a tear. (An 8000 x 5000
+    // set for. On the section reduced to at most DamageParams::crackMaxSidePx it is a tear. At
+    // full resolution it is borderline and compiler-dependent (the gcc build found nothing, the
+    // clang sanitizer build a 382 px tear), so that is not asserted here. (An 8000 x 5000
     // section's crack pass also went from 8 s to 0.65 s.)
     if (!fs::exists(kAtlasDir / "annotation_25_quicknii.nrrd"))
         GTEST_SKIP() << "../shared/atlas is absent: real-atlas damage not tested";
@@ -936,11 +937,6 @@ TEST(DamageGroundTruth, ACrackOnALargeImageIsFoundAtTheCrackScale) {
                 out.push_back(d);
         return out;
     };
-    pipeline::RegistrationOptions fullResolution;
-    fullResolution.damage.crackMaxSidePx = 1 << 20;
-    auto atFull = pipeline::registerSection(gen->image, plane, fullResolution);
-    ASSERT_TRUE(atFull.ok()) << atFull.error().message;
-    EXPECT_FALSE(atFull->damaged) << atFull->damageSummary;
     auto reg = pipeline::registerSection(gen->image, plane);
     ASSERT_TRUE(reg.ok()) << reg.error().message;
     EXPECT_TRUE(reg->damaged) << reg->damageSummary;
