@@ -27,7 +27,9 @@ using Clock = std::chrono::steady_clock;
 double processCpuMs() {
     rusage u{};
     getrusage(RUSAGE_SELF, &u);
-    const auto ms = [](const timeval& t) { return double(t.tv_sec) * 1e3 + double(t.tv_usec) * 1e-3; };
+    const auto ms = [](const timeval& t) {
+        return double(t.tv_sec) * 1e3 + double(t.tv_usec) * 1e-3;
+    };
     return ms(u.ru_utime) + ms(u.ru_stime);
 }
 
