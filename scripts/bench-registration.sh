@@ -33,6 +33,7 @@ for ((i = 0; i < sections; i++)); do
             --points "$d/points.csv" --output "$d/out.json" >/dev/null
         t1=$(now)
         ours+=("$(echo "$t1 - $t0" | bc -l)")
+        cp "$d/out.json" "$work/cpu-$i-$rep.json"
         e="$d/elastix"
         t0=$(now)
         taskset -c 0 elastix -f "$e/fixed.mha" -m "$e/moving.mha" -p "$e/affine.txt" \
@@ -53,6 +54,16 @@ printf '%-28s %10.3f %10.3f %10.3f\n' "slicectl register" "$mo" \
 printf '%-28s %10.3f %10.3f %10.3f\n' "elastix + transformix" "$me" \
     "$(printf '%s\n' "${theirs[@]}" | sort -g | head -1)" "$(printf '%s\n' "${theirs[@]}" | sort -g | tail -1)"
 printf 'elastix / slicectl: %.1fx\n' "$(echo "$me / $mo" | bc -l)"
+# Process CPU time per step (result.json's cpu_timings_ms; "process" includes the process's
+# start): what a step costs even when other work shares the machine.
+printf '\nslicectl register, process CPU ms per step (median over the runs above; load %s)\n' \
+    "$(cut -d' ' -f1-3 /proc/loadavg)"
+python3 - "$work"/cpu-*.json <<'PY'
+import json, statistics, sys
+runs = [json.load(open(f))["cpu_timings_ms"] for f in sys.argv[1:]]
+for step in runs[0]:
+    print(f"{step:<16} {statistics.median(r[step] for r in runs):8.1f}")
+PY
 
 d="$work/big"
 "$make" --family 1 --seed 77 --plane 20 --size 8000x5000 --output-dir "$d" >/dev/null

@@ -6,8 +6,128 @@
 
 #include <algorithm>
 #include <cmath>
+#include <utility>
 
 namespace slicestation::pipeline {
+
+namespace {
+
+/// Counts over ranks 0..n-1 with prefix sums and the k-th smallest present rank (a Fenwick
+/// tree): an order statistic of a set that changes a little at a time.
+class RankCounts {
+public:
+    explicit RankCounts(size_t n) : tree_(n + 1, 0) {
+        while (top_ * 2 <= n)
+            top_ *= 2;
+    }
+    void add(int rank, int delta) {
+        for (size_t i = size_t(rank) + 1; i < tree_.size(); i += i & (~i + 1))
+            tree_[i] += delta;
+    }
+    /// The rank at 0-based position `k` in the sorted present ranks (k below the count).
+    int kth(int k) const {
+        size_t pos = 0;
+        int left = k + 1;
+        for (size_t step = top_; step > 0; step /= 2) {
+            if (pos + step < tree_.size() && tree_[pos + step] < left) {
+                pos += step;
+                left -= tree_[pos];
+            }
+        }
+        return int(pos); // 0-based rank = (1-based pos + 1) - 1
+    }
+
+private:
+    std::vector<int> tree_;
+    size_t top_ = 1;
+};
+
+/// Ranks of `v` (ties in any order) and the values in rank order.
+void rankValues(const std::vector<double>& v, std::vector<int>& rank, std::vector<double>& sorted) {
+    std::vector<int> order(v.size());
+    for (size_t i = 0; i < v.size(); ++i)
+        order[i] = int(i);
+    std::sort(order.begin(), order.end(),
+              [&](int a, int b) { return v[size_t(a)] < v[size_t(b)]; });
+    rank.resize(v.size());
+    sorted.resize(v.size());
+    for (size_t r = 0; r < order.size(); ++r) {
+        rank[size_t(order[r])] = int(r);
+        sorted[r] = v[size_t(order[r])];
+    }
+}
+
+/// For each match k: do the median x and y displacements of the matches within 2 `distance`
+/// of it (itself included, at least 3) lie within distance / 2 of its own? The medians are the
+/// exact order statistics of each neighbourhood; the neighbourhoods are visited in grid order
+/// and kept as rank counts that change only by the points entering and leaving, so each median
+/// costs a few tree steps instead of a selection over the whole neighbourhood.
+std::vector<char> consistentWithNeighbours(const std::vector<cv::Point2f>& at,
+                                           const std::vector<cv::Point2d>& disp,
+                                           const PointGrid& grid, double distance) {
+    const size_t n = at.size();
+    std::vector<double> xs(n), ys(n), sortedX, sortedY;
+    for (size_t k = 0; k < n; ++k) {
+        xs[k] = disp[k].x;
+        ys[k] = disp[k].y;
+    }
+    std::vector<int> rankX, rankY;
+    rankValues(xs, rankX, sortedX);
+    rankValues(ys, rankY, sortedY);
+    // Visit in cell order, rows alternating direction, so that consecutive neighbourhoods
+    // overlap.
+    float x0 = at[0].x, y0 = at[0].y;
+    for (const cv::Point2f& p : at) {
+        x0 = std::min(x0, p.x);
+        y0 = std::min(y0, p.y);
+    }
+    const double cell = std::max(distance / 4, 1e-3);
+    std::vector<std::pair<std::pair<long, long>, int>> visit(n);
+    for (size_t k = 0; k < n; ++k) {
+        const long cy = long(std::floor((at[k].y - y0) / cell));
+        const long cx = long(std::floor((at[k].x - x0) / cell));
+        visit[k] = {{cy, cy % 2 ? -cx : cx}, int(k)};
+    }
+    std::sort(visit.begin(), visit.end());
+    RankCounts countX(n), countY(n);
+    std::vector<int> stamp(n, -1), members;
+    std::vector<char> in(n, 0), keep(n, 0);
+    members.reserve(n);
+    for (size_t v = 0; v < n; ++v) {
+        const int k = visit[v].second;
+        int count = 0;
+        grid.forEachWithin(at[size_t(k)], float(2 * distance), [&](int j, float) {
+            stamp[size_t(j)] = int(v);
+            ++count;
+            if (!in[size_t(j)]) {
+                in[size_t(j)] = 1;
+                countX.add(rankX[size_t(j)], 1);
+                countY.add(rankY[size_t(j)], 1);
+                members.push_back(j);
+            }
+        });
+        size_t w = 0;
+        for (const int j : members) {
+            if (stamp[size_t(j)] == int(v)) {
+                members[w++] = j;
+            } else {
+                in[size_t(j)] = 0;
+                countX.add(rankX[size_t(j)], -1);
+                countY.add(rankY[size_t(j)], -1);
+            }
+        }
+        members.resize(w);
+        if (count < 3)
+            continue; // an isolated match has nothing to agree with
+        const int mid = count / 2;
+        const double dx = disp[size_t(k)].x - sortedX[size_t(countX.kth(mid))];
+        const double dy = disp[size_t(k)].y - sortedY[size_t(countY.kth(mid))];
+        keep[size_t(k)] = std::hypot(dx, dy) <= 0.5 * distance;
+    }
+    return keep;
+}
+
+} // namespace
 
 std::vector<Match> findMatches(const std::vector<cv::Point2f>& mappedPoints,
                                const std::vector<cv::Point2f>& mappedNormals,
@@ -60,25 +180,12 @@ std::vector<Match> findMatches(const std::vector<cv::Point2f>& mappedPoints,
         disp[k] = matches[k].target - cv::Point2d(at[k]);
     }
     const PointGrid grid(at, float(distance));
+    const std::vector<char> keep = consistentWithNeighbours(at, disp, grid, distance);
     std::vector<Match> kept;
     kept.reserve(matches.size());
-    std::vector<double> xs, ys;
-    for (size_t k = 0; k < matches.size(); ++k) {
-        xs.clear();
-        ys.clear();
-        grid.forEachWithin(at[k], float(2 * distance), [&](int j, float) {
-            xs.push_back(disp[j].x);
-            ys.push_back(disp[j].y);
-        });
-        if (xs.size() < 3)
-            continue; // an isolated match has nothing to agree with
-        auto mid = xs.size() / 2;
-        std::nth_element(xs.begin(), xs.begin() + static_cast<std::ptrdiff_t>(mid), xs.end());
-        std::nth_element(ys.begin(), ys.begin() + static_cast<std::ptrdiff_t>(mid), ys.end());
-        const double dx = disp[k].x - xs[mid], dy = disp[k].y - ys[mid];
-        if (std::hypot(dx, dy) <= 0.5 * distance)
+    for (size_t k = 0; k < matches.size(); ++k)
+        if (keep[k])
             kept.push_back(matches[k]);
-    }
     return kept;
 }
 

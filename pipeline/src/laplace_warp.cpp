@@ -61,27 +61,45 @@ Level makeLevel(cv::Size domain, double cell, const std::vector<cv::Point2d>& pt
 }
 
 /// SOR sweeps of the five-point Laplacian (Eq. 5 of the paper) with Dirichlet nodes held and
-/// mirror (Neumann) borders.
-void relax(cv::Mat& u, const cv::Mat& fixedVals, const cv::Mat& isFixed, int sweeps, double w) {
-    const int rows = u.rows, cols = u.cols;
-    for (int s = 0; s < sweeps; ++s) {
-        for (int i = 0; i < rows; ++i) {
-            float* r = u.ptr<float>(i);
-            const float* up = u.ptr<float>(i > 0 ? i - 1 : std::min(1, rows - 1));
-            const float* dn = u.ptr<float>(i + 1 < rows ? i + 1 : std::max(rows - 2, 0));
-            const uchar* f = isFixed.ptr<uchar>(i);
-            const float* fv = fixedVals.ptr<float>(i);
-            for (int j = 0; j < cols; ++j) {
-                if (f[j]) {
-                    r[j] = fv[j];
-                    continue;
-                }
-                const float lf = r[j > 0 ? j - 1 : std::min(1, cols - 1)];
-                const float rt = r[j + 1 < cols ? j + 1 : std::max(cols - 2, 0)];
-                const float avg = 0.25f * (lf + rt + up[j] + dn[j]);
-                r[j] += float(w) * (avg - r[j]);
-            }
+/// mirror (Neumann) borders, in the usual row-by-row order. Each row is a chain of dependent
+/// updates; to keep the processor busy, both components are updated side by side and two rows
+/// at a time, the lower one a node behind (a wavefront): every node still reads exactly the
+/// values it reads in plain row order (its left and upper neighbours updated, its right and
+/// lower ones not yet), so the result is the same to the bit.
+void relax(cv::Mat& ux, const cv::Mat& fixedX, cv::Mat& uy, const cv::Mat& fixedY,
+           const cv::Mat& isFixed, int sweeps, double w) {
+    const int rows = ux.rows, cols = ux.cols;
+    const float wf = float(w);
+    const auto update = [&](int i, int j) {
+        if (isFixed.ptr<uchar>(i)[j]) {
+            ux.ptr<float>(i)[j] = fixedX.ptr<float>(i)[j];
+            uy.ptr<float>(i)[j] = fixedY.ptr<float>(i)[j];
+            return;
         }
+        const int iu = i > 0 ? i - 1 : std::min(1, rows - 1);
+        const int id = i + 1 < rows ? i + 1 : std::max(rows - 2, 0);
+        const int jl = j > 0 ? j - 1 : std::min(1, cols - 1);
+        const int jr = j + 1 < cols ? j + 1 : std::max(cols - 2, 0);
+        float* rx = ux.ptr<float>(i);
+        float* ry = uy.ptr<float>(i);
+        const float avgX = 0.25f * (rx[jl] + rx[jr] + ux.ptr<float>(iu)[j] + ux.ptr<float>(id)[j]);
+        const float avgY = 0.25f * (ry[jl] + ry[jr] + uy.ptr<float>(iu)[j] + uy.ptr<float>(id)[j]);
+        rx[j] += wf * (avgX - rx[j]);
+        ry[j] += wf * (avgY - ry[j]);
+    };
+    for (int s = 0; s < sweeps; ++s) {
+        int i = 0;
+        for (; i + 1 < rows; i += 2) {
+            update(i, 0);
+            for (int j = 1; j < cols; ++j) {
+                update(i, j);
+                update(i + 1, j - 1);
+            }
+            update(i + 1, cols - 1);
+        }
+        for (; i < rows; ++i)
+            for (int j = 0; j < cols; ++j)
+                update(i, j);
     }
 }
 
@@ -124,8 +142,7 @@ DisplacementField solveLaplaceWarp(cv::Size domain, const std::vector<cv::Point2
             ux = nx;
             uy = ny;
         }
-        relax(ux, l.fixedX, l.isFixed, sweeps, options.relaxation);
-        relax(uy, l.fixedY, l.isFixed, sweeps, options.relaxation);
+        relax(ux, l.fixedX, uy, l.fixedY, l.isFixed, sweeps, options.relaxation);
     }
     return {ux, uy, options.cellPx};
 }

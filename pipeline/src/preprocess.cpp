@@ -259,10 +259,18 @@ core::Result<PreparedSection> prepareSection(const cv::Mat& image, int workingMa
     int largest = 0;
     for (int i = 1; i < n; ++i)
         largest = std::max(largest, stats.at<int>(i, cv::CC_STAT_AREA));
-    cv::Mat keep = cv::Mat::zeros(mask.size(), CV_8U);
-    for (int i = 1; i < n; ++i) {
-        if (stats.at<int>(i, cv::CC_STAT_AREA) >= std::max(16, largest / 50))
-            keep |= (labels == i);
+    // One pass through a per-label table (a comparison of the whole image per component costs
+    // as many passes as there are specks of debris).
+    std::vector<uchar> kept(size_t(std::max(n, 1)), 0);
+    for (int i = 1; i < n; ++i)
+        kept[size_t(i)] =
+            stats.at<int>(i, cv::CC_STAT_AREA) >= std::max(16, largest / 50) ? 255 : 0;
+    cv::Mat keep(mask.size(), CV_8U);
+    for (int y = 0; y < keep.rows; ++y) {
+        const int* l = labels.ptr<int>(y);
+        uchar* k = keep.ptr<uchar>(y);
+        for (int x = 0; x < keep.cols; ++x)
+            k[x] = kept[size_t(l[x])];
     }
     const double share = cv::countNonZero(keep) / double(keep.total());
     if (share < 0.01)

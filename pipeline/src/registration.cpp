@@ -14,6 +14,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <ctime>
 #include <functional>
 #include <limits>
 
@@ -24,31 +25,46 @@ using core::ErrorCode;
 using core::makeError;
 using Clock = std::chrono::steady_clock;
 
-/// Times each step and reports it done to the options' progress callback.
+/// CPU time of the whole process (all threads) in milliseconds.
+double processCpuMs() {
+    timespec ts{};
+    clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &ts);
+    return double(ts.tv_sec) * 1e3 + double(ts.tv_nsec) * 1e-6;
+}
+
+/// Times each step (wall and process CPU) and reports it done to the options' progress
+/// callback.
 class StepTimer {
 public:
     StepTimer(std::vector<std::pair<std::string, double>>& out,
+              std::vector<std::pair<std::string, double>>& cpu,
               const std::function<void(int, int)>& progress)
-        : out_(out), progress_(progress) {}
+        : out_(out), cpu_(cpu), progress_(progress) {}
     void lap(const char* name) {
         const auto now = Clock::now();
+        const double cpuNow = processCpuMs();
         out_.emplace_back(name, std::chrono::duration<double, std::milli>(now - last_).count());
+        cpu_.emplace_back(name, cpuNow - cpuLast_);
         last_ = now;
+        cpuLast_ = cpuNow;
         if (progress_)
             progress_(std::min(++done_, kRegistrationSteps), kRegistrationSteps);
     }
     void total() {
         out_.emplace_back("total",
                           std::chrono::duration<double, std::milli>(Clock::now() - start_).count());
+        cpu_.emplace_back("total", processCpuMs() - cpuStart_);
         if (progress_)
             progress_(kRegistrationSteps, kRegistrationSteps);
     }
 
 private:
     std::vector<std::pair<std::string, double>>& out_;
+    std::vector<std::pair<std::string, double>>& cpu_;
     const std::function<void(int, int)>& progress_;
     int done_ = 0;
     Clock::time_point start_ = Clock::now(), last_ = start_;
+    double cpuStart_ = processCpuMs(), cpuLast_ = cpuStart_;
 };
 
 /// IoU of the section's (filled) tissue and the atlas brain mapped into the working frame.
@@ -476,7 +492,7 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         return makeError(ErrorCode::InvalidArgument, "atlas slice has no labelled brain");
 
     Registration reg;
-    StepTimer timer(reg.timingsMs, options.progress);
+    StepTimer timer(reg.timingsMs, reg.cpuMs, options.progress);
     auto prepared = prepareSection(section, options.workingMaxSide);
     if (!prepared)
         return prepared.error();

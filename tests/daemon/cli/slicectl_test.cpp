@@ -71,6 +71,11 @@ TEST_F(SlicectlRegister, WritesTheResultContractAndMapsEveryPoint) {
     EXPECT_EQ(j.at("affine_atlas_from_image")[0].size(), 3u);
     EXPECT_TRUE(j.at("quality").contains("correspondences"));
     EXPECT_GT(j.at("timings_ms").at("total").get<double>(), 0.0);
+    // Process CPU time: the whole process includes the call, the call its steps.
+    const auto& cpu = j.at("cpu_timings_ms");
+    EXPECT_GE(cpu.at("process").get<double>(), cpu.at("total").get<double>());
+    EXPECT_GE(cpu.at("total").get<double>(), cpu.at("register").get<double>());
+    EXPECT_GT(cpu.at("register").get<double>(), 0.0);
     const auto& pts = j.at("points");
     ASSERT_EQ(pts.size(), truth_.size());
     double ss = 0;

@@ -149,6 +149,9 @@ struct Registration {
     Contrast contrast = Contrast::Fluorescence;
     RegistrationQuality quality;
     std::vector<std::pair<std::string, double>> timingsMs; ///< step name -> milliseconds
+    /// Step name -> process CPU milliseconds (all threads), the same steps as timingsMs: what
+    /// a step costs on a loaded machine, where wall time also counts waiting.
+    std::vector<std::pair<std::string, double>> cpuMs;
     cv::Mat workingGrey;       ///< CV_32F [0,1] tissue bright, working resolution
     cv::Mat workingTissueMask; ///< CV_8U, working resolution
     EdgePoints sectionEdges;   ///< working px, after exclusions
