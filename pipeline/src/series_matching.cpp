@@ -171,7 +171,103 @@ core::Result<void> SeriesMatcher::finish(const std::vector<SectionFeatures>& sec
         if (!changed)
             break;
     }
+    if (reassign())
+        return refit();
     return {};
+}
+
+std::vector<size_t> chooseAlongSeries(const std::vector<std::vector<SeriesOption>>& options,
+                                      double spacingUm, double weight, double cap) {
+    const size_t n = options.size();
+    if (n == 0 || spacingUm == 0 || !std::isfinite(spacingUm))
+        return {};
+    for (const auto& o : options)
+        if (o.empty())
+            return {};
+    auto cost = [&](double a, double b) {
+        const double d = (b - a) / spacingUm - 1;
+        return weight * std::min(d * d, cap);
+    };
+    std::vector<std::vector<double>> best(n);
+    std::vector<std::vector<size_t>> from(n);
+    for (const SeriesOption& o : options[0])
+        best[0].push_back(o.value);
+    from[0].assign(options[0].size(), 0);
+    for (size_t k = 1; k < n; ++k) {
+        best[k].assign(options[k].size(), -1e300);
+        from[k].assign(options[k].size(), 0);
+        for (size_t j = 0; j < options[k].size(); ++j)
+            for (size_t i = 0; i < options[k - 1].size(); ++i) {
+                const double v = best[k - 1][i] + options[k][j].value -
+                                 cost(options[k - 1][i].positionUm, options[k][j].positionUm);
+                if (v > best[k][j]) {
+                    best[k][j] = v;
+                    from[k][j] = i;
+                }
+            }
+    }
+    std::vector<size_t> pick(n);
+    pick[n - 1] =
+        size_t(std::max_element(best[n - 1].begin(), best[n - 1].end()) - best[n - 1].begin());
+    for (size_t k = n - 1; k > 0; --k)
+        pick[k - 1] = from[k][pick[k]];
+    return pick;
+}
+
+bool SeriesMatcher::reassign() {
+    const size_t n = matches_.size();
+    if (options_.orderWeight <= 0 || fit_.spacingUm == 0 || fit_.inliers < 3 || n < 3)
+        return false;
+    const auto& sl = *slices_;
+    // Options per section: its own match (value 1, first) and, for a section the model flags
+    // other than as half of a swap, every other slice it was scored against (its score over the
+    // own match's). Regular sections and swapped pairs keep their own match: the score is flat
+    // over neighbouring slices, so a spacing penalty on them would smooth a real swap away.
+    std::vector<std::vector<SeriesOption>> opts(n);
+    std::vector<std::vector<int>> indexOf(n);
+    for (size_t k = 0; k < n; ++k) {
+        const SectionMatch& m = matches_[k];
+        const double top = std::max(m.score, 1e-12);
+        opts[k].push_back({m.positionUm, 1.0});
+        indexOf[k].push_back(-1);
+        const SeriesAnomaly a = fit_.sections[k].anomaly;
+        if (a == SeriesAnomaly::None || a == SeriesAnomaly::Swapped)
+            continue;
+        for (const MatchCandidate& c : m.candidates)
+            if (c.index != m.index && c.index >= 0 && c.index < int(sl.size())) {
+                opts[k].push_back({sl[size_t(c.index)].positionUm, std::max(0.0, c.score) / top});
+                indexOf[k].push_back(c.index);
+            }
+    }
+    const std::vector<size_t> pick =
+        chooseAlongSeries(opts, fit_.spacingUm, options_.orderWeight, options_.orderCap);
+    bool changed = false;
+    for (size_t k = 0; k < pick.size(); ++k) {
+        const int index = indexOf[k][pick[k]];
+        if (index < 0)
+            continue;
+        SectionMatch& m = matches_[k];
+        auto scoreOf = [&](int i) -> double {
+            for (const MatchCandidate& c : m.candidates)
+                if (c.index == i)
+                    return c.score;
+            return -1;
+        };
+        const double s = scoreOf(index);
+        m.index = index;
+        m.score = s;
+        m.positionUm = sl[size_t(index)].positionUm;
+        // Refined between the neighbouring slices as matchSection does (parabola vertex).
+        const double below = scoreOf(index - 1), above = scoreOf(index + 1);
+        const double den = below - 2 * s + above;
+        if (below >= 0 && above >= 0 && den < 0)
+            m.positionUm += std::clamp(0.5 * (below - above) / den, -0.5, 0.5) * 0.5 *
+                            (sl[size_t(index + 1)].positionUm - sl[size_t(index - 1)].positionUm);
+        m.tiltColumnsDeg = m.tiltRowsDeg = 0;
+        m.tiltEstimated = false;
+        changed = true;
+    }
+    return changed;
 }
 
 core::Result<TiltEstimate> searchSeriesTilt(const std::vector<SectionFeatures>& sections,

@@ -1,5 +1,6 @@
 // The series model on synthetic positions with known spacing, noise, skips, swaps and wrong
 // matches (pure arithmetic: milliseconds).
+#include "slicestation/pipeline/series_matching.hpp"
 #include "slicestation/pipeline/series_model.hpp"
 
 #include <gtest/gtest.h>
@@ -231,4 +232,54 @@ TEST(SeriesModel, AWrongMatchOnTheLostSlotDoesNotHideTheSkip) {
     EXPECT_EQ(f->sections[5].anomaly, SeriesAnomaly::OutOfOrder);
     EXPECT_EQ(f->sections[8].anomaly, SeriesAnomaly::Skipped);
     EXPECT_EQ(f->sections[8].missingBefore, 1);
+}
+
+// The series' Viterbi pass (SeriesMatcher::finish, last step): each section's options are its own
+// match (value 1) and other slices it scored, relative to it; a step's cost is 0.1 x the squared
+// deviation from the spacing, in spacings, capped at 4.
+namespace {
+std::vector<std::vector<SeriesOption>> ownOnly(const std::vector<double>& positions) {
+    std::vector<std::vector<SeriesOption>> o;
+    for (double p : positions)
+        o.push_back({{p, 1.0}});
+    return o;
+}
+} // namespace
+
+TEST(SeriesChoice, AConfidentWrongMatchTakesTheSlotItsNeighboursLeave) {
+    // Section 2's own match lies four slots on (as gerbi 21 lay two slots back); at its regular
+    // place it scores 70% of that. Its two steps cost 0.4 each, more than the 0.3 it loses.
+    auto o = ownOnly({0, 300, 1500, 900, 1200});
+    o[2].push_back({600, 0.7});
+    o[2].push_back({1800, 0.9});
+    const auto pick = chooseAlongSeries(o, 300, 0.1, 4);
+    ASSERT_EQ(pick.size(), 5u);
+    EXPECT_EQ(pick[2], 1u);
+    for (size_t k : {0u, 1u, 3u, 4u})
+        EXPECT_EQ(pick[k], 0u) << k;
+    // Weaker at the regular place than the steps cost: it stays where it matched.
+    o[2][1].value = 0.15;
+    EXPECT_EQ(chooseAlongSeries(o, 300, 0.1, 4)[2], 0u);
+}
+
+TEST(SeriesChoice, ARealSwapAndARealSkipStay) {
+    // Swapped pair (sections 2 and 3): 1 + 4 + 1 tenths; each scores half at the regular place.
+    auto swap = ownOnly({0, 300, 900, 600, 1200});
+    swap[2].push_back({600, 0.5});
+    swap[3].push_back({900, 0.5});
+    EXPECT_EQ(chooseAlongSeries(swap, 300, 0.1, 4), (std::vector<size_t>{0, 0, 0, 0, 0}));
+    // One lost section before section 3: one tenth, against 40% of the score.
+    auto skip = ownOnly({0, 300, 600, 1200, 1500});
+    skip[3].push_back({900, 0.6});
+    EXPECT_EQ(chooseAlongSeries(skip, 300, 0.1, 4), (std::vector<size_t>{0, 0, 0, 0, 0}));
+    // Cut back to front: a negative spacing is the same regular step.
+    auto back = ownOnly({1200, 900, 0, 300, 0});
+    back[2].push_back({600, 0.7});
+    EXPECT_EQ(chooseAlongSeries(back, -300, 0.1, 4)[2], 1u);
+}
+
+TEST(SeriesChoice, NothingToChooseFrom) {
+    EXPECT_TRUE(chooseAlongSeries({}, 300, 0.1, 4).empty());
+    EXPECT_TRUE(chooseAlongSeries(ownOnly({0, 300}), 0, 0.1, 4).empty());
+    EXPECT_TRUE(chooseAlongSeries({{{0, 1}}, {}}, 300, 0.1, 4).empty());
 }

@@ -139,7 +139,7 @@ core::Result<RunResult> runSeries(const std::vector<cv::Mat>& images,
     return out;
 }
 
-void printTable(const RunResult& r, const std::vector<double>& truthUm) {
+void printTable(const RunResult& r, const std::vector<double>& truthUm, bool candidates) {
     std::printf("%4s %9s %9s %9s %9s %7s %6s %6s %6s %6s %11s %7s %8s  %s\n", "sec", "truth_um",
                 "match_um", "series_um", "line_um", "err_um", "slot", "score", "tiltC", "tiltR",
                 "window", "prep", "ms", "anomaly");
@@ -160,6 +160,14 @@ void printTable(const RunResult& r, const std::vector<double>& truthUm) {
         if (s.missingBefore > 0)
             std::printf(" (%d)", s.missingBefore);
         std::printf("\n");
+        if (candidates) {
+            std::printf("      candidates:");
+            for (size_t k = 0; k < m.candidates.size() && k < 8; ++k)
+                std::printf(" %d:%.3f(o%.2f e%.2f r%.3f)", m.candidates[k].index,
+                            m.candidates[k].score, m.candidates[k].overlap,
+                            m.candidates[k].edgeAgreement, m.candidates[k].regionAgreement);
+            std::printf("\n");
+        }
     }
     std::printf("series fit: spacing %.1f um, origin %.0f um, inliers %d of %zu, sigma %.0f um, "
                 "tilt columns(LR) %.2f rows(DV) %.2f deg from %d sections\n",
@@ -196,6 +204,12 @@ int main(int argc, char** argv) {
                    "Series model: place weak order-breaking matches on the line below this "
                    "fraction of the median score (0 = never)");
     app.add_flag("--finish,!--no-finish", finish, "Re-match off-line sections at the end");
+    bool showCandidates = false;
+    app.add_flag("--candidates", showCandidates,
+                 "Print each section's eight best scored slices (index:score, agreements)");
+    double orderWeight = pipeline::SeriesMatchOptions{}.orderWeight;
+    app.add_option("--order-weight", orderWeight,
+                   "finish(): weight of the spacing penalty in the series' Viterbi pass (0 = off)");
     app.add_flag("--prior,!--no-prior", usePrior,
                  "Give the model the series' spacing as the plan's interval");
     app.add_flag("--tilt-search,!--no-tilt-search", tiltSearch,
@@ -293,6 +307,7 @@ int main(int argc, char** argv) {
         }
         pipeline::SeriesMatchOptions o;
         o.model.placeScoreRatio = placeRatio;
+        o.orderWeight = orderWeight;
         o.model.intervalUm = usePrior ? spacing : 0;
         std::printf("\n== generated series: %zu sections, spacing %.0f um, tilt LR %.1f DV %.1f "
                     "deg, slot 8 skipped, slots 14/15 swapped\n",
@@ -302,7 +317,7 @@ int main(int argc, char** argv) {
             std::fprintf(stderr, "%s\n", r.error().message.c_str());
             return 1;
         }
-        printTable(*r, truth);
+        printTable(*r, truth, showCandidates);
         std::vector<double> err;
         for (size_t i = 0; i < truth.size(); ++i)
             err.push_back(std::abs(r->matches[i].positionUm - truth[i]));
@@ -383,6 +398,7 @@ int main(int argc, char** argv) {
         }
         pipeline::SeriesMatchOptions o;
         o.model.placeScoreRatio = placeRatio;
+        o.orderWeight = orderWeight;
         o.model.intervalUm = usePrior ? spacing : 0;
         std::printf("\n== template series: %zu sections of the average template, spacing %.0f "
                     "um, tilt LR %.1f DV %.1f deg, slot 8 skipped, slots 14/15 swapped\n",
@@ -392,7 +408,7 @@ int main(int argc, char** argv) {
             std::fprintf(stderr, "%s\n", r.error().message.c_str());
             return 1;
         }
-        printTable(*r, truth);
+        printTable(*r, truth, showCandidates);
         std::vector<double> own, series, signedOwn;
         for (size_t i = 0; i < truth.size(); ++i) {
             own.push_back(std::abs(r->matches[i].positionUm - truth[i]));
@@ -441,6 +457,7 @@ int main(int argc, char** argv) {
         const double abbaSpacing = 335.8;
         pipeline::SeriesMatchOptions o;
         o.model.placeScoreRatio = placeRatio;
+        o.orderWeight = orderWeight;
         o.model.intervalUm = usePrior ? 300 : 0; // a nominal plan, not ABBA's spacing
         std::printf("\n== gerbi series: %zu sections (prior interval %.0f um)\n", images.size(),
                     o.model.intervalUm);
@@ -449,7 +466,7 @@ int main(int argc, char** argv) {
             std::fprintf(stderr, "%s\n", r.error().message.c_str());
             return 1;
         }
-        printTable(*r, truth);
+        printTable(*r, truth, showCandidates);
         // ABBA: rotationX 0.042 rad about the left-right axis (the normal leans dorso-ventrally),
         // rotationY 0.0015 rad about the dorso-ventral axis (leans left-right). Signs of ABBA's
         // frame against ours are not established: compared by magnitude.
@@ -509,6 +526,7 @@ int main(int argc, char** argv) {
         }
         pipeline::SeriesMatchOptions o;
         o.model.placeScoreRatio = placeRatio;
+        o.orderWeight = orderWeight;
         o.model.intervalUm = 0; // no plan known for this series
         std::printf("\n== mouse series: 20 sections (no interval given)\n");
         auto r = runSeries(images, umPerPx, stack, o, finish);
@@ -516,7 +534,7 @@ int main(int argc, char** argv) {
             std::fprintf(stderr, "%s\n", r.error().message.c_str());
             return 1;
         }
-        printTable(*r, {});
+        printTable(*r, {}, showCandidates);
         std::vector<double> pos, steps, ownPos;
         int placed = 0, flagged = 0;
         for (size_t i = 0; i < r->matches.size(); ++i) {

@@ -34,6 +34,13 @@ struct SeriesMatchOptions {
     /// there at least this fraction of its own best (off-line sections move to any match on the
     /// line).
     double regularScoreRatio = 0.6;
+    /// finish(), last: one candidate slice per section chosen for the whole series at once
+    /// (a Viterbi pass over the sections' scored candidates): each section's relative score
+    /// (candidate score / its best) less `orderWeight` x the squared deviation of each step
+    /// from the fitted spacing, in spacings, capped at `orderCap` (a real skip costs one
+    /// orderWeight, a swapped pair 6). 0 = not done.
+    double orderWeight = 0.1;
+    double orderCap = 4;
 };
 
 /// How one section was searched.
@@ -76,6 +83,23 @@ searchSeriesTilt(const std::vector<SectionFeatures>& sections,
                  const std::vector<SectionMatch>& matches, const SeriesFit& fit,
                  const PlaneFeatures& planes, const TiltSearchOptions& options = {});
 
+/// One place a section could take in the series: a position and how well the section matches
+/// there relative to its own best (0..1).
+struct SeriesOption {
+    double positionUm = 0;
+    double value = 0;
+};
+
+/// One option per section for the whole series at once (Viterbi): the largest sum of the chosen
+/// options' values less `weight` x min(d^2, cap) per consecutive pair, d the pair's step in
+/// units of `spacingUm` less one (a regular step costs 0, a skipped slot one weight, a swapped
+/// pair 1 + 4 + 1 weights, anything further at most `cap` weights a step). Sections with no
+/// option are not allowed (each needs at least its own match).
+/// \return the chosen option's index per section; empty when `options` is, or a section has
+///         none, or spacingUm is 0.
+std::vector<size_t> chooseAlongSeries(const std::vector<std::vector<SeriesOption>>& options,
+                                      double spacingUm, double weight, double cap);
+
 class SeriesMatcher {
 public:
     /// `slices` must outlive the matcher.
@@ -101,6 +125,7 @@ public:
 
 private:
     core::Result<void> refit();
+    bool reassign();
     int indexAt(double positionUm) const;
 
     const std::vector<SliceFeatures>* slices_;
