@@ -402,6 +402,91 @@ cv::Mat Registration::warpedLabels(const cv::Mat& atlasLabels, cv::Size size) co
     return cv::Mat(out.size(), CV_32S, out.data, out.step).clone();
 }
 
+namespace {
+/// Whether a region (CV_8U, mapped into atlas px by `ax`, `ay`) lies along the atlas midline
+/// column: at least 70% of it within `ringPx` atlas px of it, and at least 3 times longer along
+/// it than across (thinCracks' midline rule, in atlas px, where the midline is a column).
+bool alongAtlasMidline(const cv::Mat& region, const cv::Mat& ax, const cv::Mat& ay, double midlineX,
+                       double ringPx) {
+    std::vector<cv::Point> pts;
+    cv::findNonZero(region, pts);
+    if (pts.empty())
+        return false;
+    int near = 0;
+    float x0 = 1e9f, x1 = -1e9f, y0 = 1e9f, y1 = -1e9f;
+    for (const cv::Point& p : pts) {
+        const float x = ax.at<float>(p), y = ay.at<float>(p);
+        near += std::abs(x - midlineX) <= ringPx;
+        x0 = std::min(x0, x);
+        x1 = std::max(x1, x);
+        y0 = std::min(y0, y);
+        y1 = std::max(y1, y);
+    }
+    return near >= 0.7 * double(pts.size()) && (y1 - y0) >= 3 * std::max(1.0f, x1 - x0);
+}
+
+/// Measures every gap's (Tear, Missing; polygons in full-resolution px) mirroredShare of the
+/// section's glass, and with DamageParams::leaveOutMirroredGaps removes those reaching
+/// DamageParams::mirroredGap (anatomy on both sides, not damage) and the tears along the midline
+/// (its own clefts). The section's tissue and glass are
+/// carried into atlas px by the registration's map of the working pixels (an atlas px is glass when
+/// most working pixels landing on it are), the glass grown by the registration slack.
+void dropMirroredGaps(std::vector<DamageRegion>& regions, const Registration& reg,
+                      const cv::Mat& tissue, const cv::Mat& atlasMask, double brainWidth,
+                      const DamageParams& params) {
+    const cv::Moments am = cv::moments(atlasMask, true);
+    if (am.m00 <= 0)
+        return;
+    const double midlineX = am.m10 / am.m00;
+    cv::Mat ax, ay;
+    reg.atlasMaps(tissue.size(), ax, ay);
+    cv::Mat seen = cv::Mat::zeros(atlasMask.size(), CV_32S), glassCount = seen.clone();
+    const cv::Rect inAtlas(0, 0, atlasMask.cols, atlasMask.rows);
+    for (int y = 0; y < tissue.rows; ++y)
+        for (int x = 0; x < tissue.cols; ++x) {
+            const cv::Point a(cvRound(ax.at<float>(y, x)), cvRound(ay.at<float>(y, x)));
+            if (!inAtlas.contains(a))
+                continue;
+            ++seen.at<std::int32_t>(a);
+            glassCount.at<std::int32_t>(a) += tissue.at<std::uint8_t>(y, x) == 0;
+        }
+    const cv::Mat known = seen > 0;
+    cv::Mat glass = (2 * glassCount > seen) & known;
+    const cv::Matx22d l(reg.atlasFromWorking(0, 0), reg.atlasFromWorking(0, 1),
+                        reg.atlasFromWorking(1, 0), reg.atlasFromWorking(1, 1));
+    const double atlasPerWorking = std::sqrt(std::abs(cv::determinant(l)));
+    const int slack =
+        std::max(1, static_cast<int>(std::lround(params.slackFrac * brainWidth * atlasPerWorking)));
+    cv::dilate(
+        glass, glass,
+        cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * slack + 1, 2 * slack + 1)));
+    const double s = reg.workingScale;
+    std::vector<DamageRegion> kept;
+    for (DamageRegion& d : regions) {
+        if (d.kind == DamageKind::Tear || d.kind == DamageKind::Missing) {
+            std::vector<cv::Point> poly;
+            for (const cv::Point2f& p : d.polygon)
+                poly.emplace_back(cvRound((p.x + 0.5) * s - 0.5), cvRound((p.y + 0.5) * s - 0.5));
+            cv::Mat mask = cv::Mat::zeros(tissue.size(), CV_8U);
+            if (poly.size() >= 3)
+                cv::fillPoly(mask, std::vector<std::vector<cv::Point>>{poly}, cv::Scalar(255));
+            d.mirrorShare = mirroredShare(mask, ax, ay, midlineX, glass, known, slack);
+            if (params.leaveOutMirroredGaps && d.mirrorShare >= params.mirroredGap)
+                continue;
+            // A slit that is its own mirror image, along the midline, is the midline's cleft
+            // (the longitudinal fissure, the split between the septal halves, the third
+            // ventricle), as thinCracks already holds for thin cracks.
+            if (params.leaveOutMirroredGaps && d.kind == DamageKind::Tear &&
+                alongAtlasMidline(mask, ax, ay, midlineX,
+                                  params.fissureRingFrac * brainWidth * atlasPerWorking))
+                continue;
+        }
+        kept.push_back(std::move(d));
+    }
+    regions = std::move(kept);
+}
+} // namespace
+
 core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat& atlasLabels,
                                            const RegistrationOptions& options) {
     if (atlasLabels.empty() || atlasLabels.type() != CV_32S)
@@ -949,6 +1034,9 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
                 regions.push_back(std::move(d));
             }
         }
+        // Bilateral anatomy is not damage: a gap whose mirror image across the brain's midline
+        // (through the registration, in atlas px) shows glass in the section too has a twin.
+        dropMirroredGaps(regions, reg, sectionTissue, atlasMask, brainWidth, options.damage);
         // Misfit is not damage: a gap with tissue beside it where the atlas expects none lies
         // where the atlas fit cannot be trusted (markMisfit, in working px).
         markMisfit(regions, sectionTissue, expected, brainWidth, options.damage, fragments, s);
