@@ -403,53 +403,37 @@ cv::Mat Registration::warpedLabels(const cv::Mat& atlasLabels, cv::Size size) co
 }
 
 namespace {
-/// Whether a region (CV_8U, mapped into atlas px by `ax`, `ay`) lies along the atlas midline
-/// column: at least 70% of it within `ringPx` atlas px of it, and at least 3 times longer along
-/// it than across (thinCracks' midline rule, in atlas px, where the midline is a column).
-bool alongAtlasMidline(const cv::Mat& region, const cv::Mat& ax, const cv::Mat& ay, double midlineX,
-                       double ringPx) {
-    std::vector<cv::Point> pts;
-    cv::findNonZero(region, pts);
-    if (pts.empty())
-        return false;
-    int near = 0;
-    float x0 = 1e9f, x1 = -1e9f, y0 = 1e9f, y1 = -1e9f;
-    for (const cv::Point& p : pts) {
-        const float x = ax.at<float>(p), y = ay.at<float>(p);
-        near += std::abs(x - midlineX) <= ringPx;
-        x0 = std::min(x0, x);
-        x1 = std::max(x1, x);
-        y0 = std::min(y0, y);
-        y1 = std::max(y1, y);
-    }
-    return near >= 0.7 * double(pts.size()) && (y1 - y0) >= 3 * std::max(1.0f, x1 - x0);
-}
-
 /// Measures every gap's (Tear, Missing; polygons in full-resolution px) mirroredShare of the
 /// section's glass, and with DamageParams::leaveOutMirroredGaps removes those reaching
-/// DamageParams::mirroredGap (anatomy on both sides, not damage) and the tears along the midline
-/// (its own clefts). The section's tissue and glass are
+/// DamageParams::mirroredGap: anatomy on both sides, not damage. The section's tissue and glass are
 /// carried into atlas px by the registration's map of the working pixels (an atlas px is glass when
 /// most working pixels landing on it are), the glass grown by the registration slack.
 void dropMirroredGaps(std::vector<DamageRegion>& regions, const Registration& reg,
                       const cv::Mat& tissue, const cv::Mat& atlasMask, double brainWidth,
                       const DamageParams& params) {
     const cv::Moments am = cv::moments(atlasMask, true);
-    if (am.m00 <= 0)
+    const bool anyGap = std::any_of(regions.begin(), regions.end(), [](const DamageRegion& d) {
+        return d.kind == DamageKind::Tear || d.kind == DamageKind::Missing;
+    });
+    if (am.m00 <= 0 || !anyGap)
         return;
     const double midlineX = am.m10 / am.m00;
     cv::Mat ax, ay;
     reg.atlasMaps(tissue.size(), ax, ay);
     cv::Mat seen = cv::Mat::zeros(atlasMask.size(), CV_32S), glassCount = seen.clone();
     const cv::Rect inAtlas(0, 0, atlasMask.cols, atlasMask.rows);
-    for (int y = 0; y < tissue.rows; ++y)
+    for (int y = 0; y < tissue.rows; ++y) {
+        const float* px = ax.ptr<float>(y);
+        const float* py = ay.ptr<float>(y);
+        const std::uint8_t* t = tissue.ptr<std::uint8_t>(y);
         for (int x = 0; x < tissue.cols; ++x) {
-            const cv::Point a(cvRound(ax.at<float>(y, x)), cvRound(ay.at<float>(y, x)));
+            const cv::Point a(cvRound(px[x]), cvRound(py[x]));
             if (!inAtlas.contains(a))
                 continue;
             ++seen.at<std::int32_t>(a);
-            glassCount.at<std::int32_t>(a) += tissue.at<std::uint8_t>(y, x) == 0;
+            glassCount.at<std::int32_t>(a) += t[x] == 0;
         }
+    }
     const cv::Mat known = seen > 0;
     cv::Mat glass = (2 * glassCount > seen) & known;
     const cv::Matx22d l(reg.atlasFromWorking(0, 0), reg.atlasFromWorking(0, 1),
@@ -467,19 +451,19 @@ void dropMirroredGaps(std::vector<DamageRegion>& regions, const Registration& re
             std::vector<cv::Point> poly;
             for (const cv::Point2f& p : d.polygon)
                 poly.emplace_back(cvRound((p.x + 0.5) * s - 0.5), cvRound((p.y + 0.5) * s - 0.5));
-            cv::Mat mask = cv::Mat::zeros(tissue.size(), CV_8U);
-            if (poly.size() >= 3)
-                cv::fillPoly(mask, std::vector<std::vector<cv::Point>>{poly}, cv::Scalar(255));
-            d.mirrorShare = mirroredShare(mask, ax, ay, midlineX, glass, known, slack);
-            if (params.leaveOutMirroredGaps && d.mirrorShare >= params.mirroredGap)
-                continue;
-            // A slit that is its own mirror image, along the midline, is the midline's cleft
-            // (the longitudinal fissure, the split between the septal halves, the third
-            // ventricle), as thinCracks already holds for thin cracks.
-            if (params.leaveOutMirroredGaps && d.kind == DamageKind::Tear &&
-                alongAtlasMidline(mask, ax, ay, midlineX,
-                                  params.fissureRingFrac * brainWidth * atlasPerWorking))
-                continue;
+            // The gap in its box (the maps cut alike), not on the whole image.
+            const cv::Rect box = poly.empty() ? cv::Rect()
+                                              : (cv::boundingRect(poly) + cv::Size(1, 1)) &
+                                                    cv::Rect(0, 0, tissue.cols, tissue.rows);
+            if (poly.size() >= 3 && box.area() > 0) {
+                cv::Mat mask = cv::Mat::zeros(box.size(), CV_8U);
+                cv::fillPoly(mask, std::vector<std::vector<cv::Point>>{poly}, cv::Scalar(255),
+                             cv::LINE_8, 0, -box.tl());
+                const cv::Mat bx = ax(box), by = ay(box);
+                d.mirrorShare = mirroredShare(mask, bx, by, midlineX, glass, known, slack);
+                if (params.leaveOutMirroredGaps && d.mirrorShare >= params.mirroredGap)
+                    continue;
+            }
         }
         kept.push_back(std::move(d));
     }
