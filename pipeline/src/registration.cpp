@@ -404,8 +404,9 @@ cv::Mat Registration::warpedLabels(const cv::Mat& atlasLabels, cv::Size size) co
 
 namespace {
 /// Measures every gap's (Tear, Missing; polygons in full-resolution px) mirroredShare of the
-/// section's glass, and with DamageParams::leaveOutMirroredGaps removes those reaching
-/// DamageParams::mirroredGap: anatomy on both sides, not damage. The section's tissue and glass are
+/// section's glass and every fragment's of its tissue, and with
+/// DamageParams::leaveOutMirroredGaps removes those reaching DamageParams::mirroredGap: anatomy
+/// on both sides, not damage. The section's tissue and glass are
 /// carried into atlas px by the registration's map of the working pixels (an atlas px is glass when
 /// most working pixels landing on it are), the glass grown by the registration slack.
 void dropMirroredGaps(std::vector<DamageRegion>& regions, const Registration& reg,
@@ -413,7 +414,7 @@ void dropMirroredGaps(std::vector<DamageRegion>& regions, const Registration& re
                       const DamageParams& params) {
     const cv::Moments am = cv::moments(atlasMask, true);
     const bool anyGap = std::any_of(regions.begin(), regions.end(), [](const DamageRegion& d) {
-        return d.kind == DamageKind::Tear || d.kind == DamageKind::Missing;
+        return d.kind != DamageKind::Fold;
     });
     if (am.m00 <= 0 || !anyGap)
         return;
@@ -436,6 +437,7 @@ void dropMirroredGaps(std::vector<DamageRegion>& regions, const Registration& re
     }
     const cv::Mat known = seen > 0;
     cv::Mat glass = (2 * glassCount > seen) & known;
+    const cv::Mat tissueSeen = known & ~glass;
     const cv::Matx22d l(reg.atlasFromWorking(0, 0), reg.atlasFromWorking(0, 1),
                         reg.atlasFromWorking(1, 0), reg.atlasFromWorking(1, 1));
     const double atlasPerWorking = std::sqrt(std::abs(cv::determinant(l)));
@@ -447,7 +449,7 @@ void dropMirroredGaps(std::vector<DamageRegion>& regions, const Registration& re
     const double s = reg.workingScale;
     std::vector<DamageRegion> kept;
     for (DamageRegion& d : regions) {
-        if (d.kind == DamageKind::Tear || d.kind == DamageKind::Missing) {
+        if (d.kind != DamageKind::Fold) {
             std::vector<cv::Point> poly;
             for (const cv::Point2f& p : d.polygon)
                 poly.emplace_back(cvRound((p.x + 0.5) * s - 0.5), cvRound((p.y + 0.5) * s - 0.5));
@@ -460,7 +462,11 @@ void dropMirroredGaps(std::vector<DamageRegion>& regions, const Registration& re
                 cv::fillPoly(mask, std::vector<std::vector<cv::Point>>{poly}, cv::Scalar(255),
                              cv::LINE_8, 0, -box.tl());
                 const cv::Mat bx = ax(box), by = ay(box);
-                d.mirrorShare = mirroredShare(mask, bx, by, midlineX, glass, known, slack);
+                // A gap's twin shows glass; a piece lying apart has a twin of tissue (the
+                // other side's cortex apart from the brain stem, caudally).
+                const bool piece = d.kind == DamageKind::Fragment;
+                d.mirrorShare =
+                    mirroredShare(mask, bx, by, midlineX, piece ? tissueSeen : glass, known, slack);
                 if (params.leaveOutMirroredGaps && d.mirrorShare >= params.mirroredGap)
                     continue;
             }

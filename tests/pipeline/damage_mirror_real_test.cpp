@@ -1,7 +1,8 @@
 // Bilateral anatomy on real sections (issue 18; docs/damage.md, "Bilateral anatomy"): gaps of
 // abba-gerbi-series whose mirror image across the brain's midline shows glass too are anatomy
 // (both lateral ventricles wider than the atlas's; tissue the atlas plane has and the section
-// lacks on both sides), and a one-sided tear keeps its flag.
+// lacks on both sides), so are pieces lying apart whose mirror image is tissue, and a one-sided
+// tear keeps its flag.
 #include "../common/abba_frame.hpp"
 #include "slicestation/core/image_file.hpp"
 #include "slicestation/core/nrrd.hpp"
@@ -100,8 +101,9 @@ TEST(DamageRealSeries, GapsWithAMirroredTwinAreAnatomyAndAOneSidedTearIsNot) {
     if (!haveGerbi())
         GTEST_SKIP() << "../shared is absent: real sections not tested";
     // 15: both lateral ventricles wider than the atlas's; 22: ventral tissue the plane has and
-    // the section lacks on both sides. Clean by eye, flagged by their gaps without the rule.
-    for (int n : {15, 22}) {
+    // the section lacks on both sides; 25: the cortex apart from the brain stem on both sides,
+    // the left piece taken for a fragment. Clean by eye, flagged without the rule.
+    for (int n : {15, 22, 25}) {
         const GerbiSection s = gerbiSection(n);
         ASSERT_FALSE(s.image.empty());
         const pipeline::Registration without = registerGerbi(s, false);
@@ -109,7 +111,7 @@ TEST(DamageRealSeries, GapsWithAMirroredTwinAreAnatomyAndAOneSidedTearIsNot) {
         bool twin = false;
         for (const pipeline::DamageRegion& d : without.damage)
             twin |= d.mirrorShare >= pipeline::DamageParams{}.mirroredGap;
-        EXPECT_TRUE(twin) << n << ": no gap with a mirrored twin";
+        EXPECT_TRUE(twin) << n << ": no region with a mirrored twin";
         const pipeline::Registration with = registerGerbi(s, true);
         EXPECT_FALSE(with.damaged) << n << ": " << with.damageSummary;
     }

@@ -53,9 +53,9 @@ struct DamageRegion {
     /// The atlas cannot be trusted around this gap (excessShare >= DamageParams::misfitExcess):
     /// the gap may be the registration's misfit, not lost tissue (decideDamage).
     bool misfit = false;
-    /// Gaps: mirroredShare of the section's glass (-1 undecided, 0 not measured). At least
-    /// DamageParams::mirroredGap: a twin on the other side, anatomy (left out of the regions when
-    /// DamageParams::leaveOutMirroredGaps).
+    /// Gaps: mirroredShare of the section's glass; fragments: of the section's tissue (-1
+    /// undecided, 0 not measured). At least DamageParams::mirroredGap: a twin on the other side,
+    /// anatomy (left out of the regions when DamageParams::leaveOutMirroredGaps).
     double mirrorShare = 0;
 };
 
@@ -121,7 +121,9 @@ struct DamageParams {
     /// shows glass in the section over at least this share of it has a mirrored twin: an
     /// enlarged ventricle (both sides), a cleft anatomy has on both sides, or tissue the atlas
     /// plane has and the section lacks on both sides (the plane or the fit, not a tear). Damage
-    /// is one-sided. 0.5: half way between no twin (0) and a full twin (1), not tuned.
+    /// is one-sided. The same for a piece lying apart whose mirror image is tissue (the cortex
+    /// apart from the brain stem on both sides, caudally); a piece broken off has no twin.
+    /// 0.5: half way between no twin (0) and a full twin (1), not tuned.
     double mirroredGap = 0.5;
     /// Leave such gaps out (off by default: on the real gerbi series it also takes the torn 14's
     /// flag, which rested on its bilateral ventricles; docs/damage.md, "Bilateral anatomy").
