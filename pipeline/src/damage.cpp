@@ -827,6 +827,7 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const AtlasExp
                 levels = greyLevels(grey, tissueMask);
             thin |= darkValleys(grey(roi), *levels, params) & inner(roi);
         }
+
         return crackLength(labels(roi) == id, gapThreads(thin, deficit(roi)));
     };
     const cv::Mat outside = ~fillHoles(tissueMask);
@@ -1185,6 +1186,45 @@ void markMisfit(std::vector<DamageRegion>& regions, const cv::Mat& tissueMask,
         d.excessVentricleShare = cv::countNonZero(near & inVentricle(roi)) / gapArea;
         d.misfit = d.excessShare >= params.misfitExcess;
     }
+}
+
+double mirroredShare(const cv::Mat& region, const cv::Mat& atlasX, const cv::Mat& atlasY,
+                     double midlineX, const cv::Mat& partner, const cv::Mat& known, int selfPx) {
+    CV_Assert(region.type() == CV_8U && atlasX.type() == CV_32F && atlasY.type() == CV_32F &&
+              atlasX.size() == region.size() && atlasY.size() == region.size() &&
+              partner.type() == CV_8U && known.type() == CV_8U && partner.size() == known.size());
+    std::vector<cv::Point> pts;
+    cv::findNonZero(region, pts);
+    if (pts.empty())
+        return -1;
+    // The region itself in atlas px, grown by the slack: a mirror image landing there is the
+    // region's own (a gap across the midline).
+    const cv::Size atlasSize = partner.size();
+    const cv::Rect inAtlas(0, 0, atlasSize.width, atlasSize.height);
+    std::vector<cv::Point> atlasPts;
+    atlasPts.reserve(pts.size());
+    cv::Mat self = cv::Mat::zeros(atlasSize, CV_8U);
+    for (const cv::Point& p : pts) {
+        const cv::Point a(cvRound(atlasX.at<float>(p)), cvRound(atlasY.at<float>(p)));
+        atlasPts.push_back(a);
+        if (inAtlas.contains(a))
+            self.at<std::uint8_t>(a) = 255;
+    }
+    if (selfPx > 0)
+        cv::dilate(
+            self, self,
+            cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * selfPx + 1, 2 * selfPx + 1)));
+    int counted = 0, hit = 0;
+    for (const cv::Point& a : atlasPts) {
+        const cv::Point m(cvRound(2 * midlineX - a.x), a.y);
+        if (!inAtlas.contains(m) || !known.at<std::uint8_t>(m) || self.at<std::uint8_t>(m))
+            continue;
+        ++counted;
+        hit += partner.at<std::uint8_t>(m) != 0;
+    }
+    if (counted < 0.5 * double(pts.size()))
+        return -1;
+    return double(hit) / double(counted);
 }
 
 DamageDecision decideDamage(std::vector<DamageRegion>& regions, double brainWidthPx,

@@ -430,6 +430,81 @@ cv::Mat Registration::warpedLabels(const cv::Mat& atlasLabels, cv::Size size) co
     return cv::Mat(out.size(), CV_32S, out.data, out.step).clone();
 }
 
+namespace {
+/// Measures every gap's (Tear, Missing; polygons in full-resolution px) mirroredShare of the
+/// section's glass and every fragment's of its tissue, and with
+/// DamageParams::leaveOutMirroredGaps removes those reaching DamageParams::mirroredGap: anatomy
+/// on both sides, not damage. The section's tissue and glass are
+/// carried into atlas px by the registration's map of the working pixels (an atlas px is glass when
+/// most working pixels landing on it are), the glass grown by the registration slack.
+void dropMirroredGaps(std::vector<DamageRegion>& regions, const Registration& reg,
+                      const cv::Mat& tissue, const cv::Mat& atlasMask, double brainWidth,
+                      const DamageParams& params) {
+    const cv::Moments am = cv::moments(atlasMask, true);
+    const bool anyGap = std::any_of(regions.begin(), regions.end(), [](const DamageRegion& d) {
+        return d.kind != DamageKind::Fold;
+    });
+    if (am.m00 <= 0 || !anyGap)
+        return;
+    const double midlineX = am.m10 / am.m00;
+    cv::Mat ax, ay;
+    reg.atlasMaps(tissue.size(), ax, ay);
+    cv::Mat seen = cv::Mat::zeros(atlasMask.size(), CV_32S), glassCount = seen.clone();
+    const cv::Rect inAtlas(0, 0, atlasMask.cols, atlasMask.rows);
+    for (int y = 0; y < tissue.rows; ++y) {
+        const float* px = ax.ptr<float>(y);
+        const float* py = ay.ptr<float>(y);
+        const std::uint8_t* t = tissue.ptr<std::uint8_t>(y);
+        for (int x = 0; x < tissue.cols; ++x) {
+            const cv::Point a(cvRound(px[x]), cvRound(py[x]));
+            if (!inAtlas.contains(a))
+                continue;
+            ++seen.at<std::int32_t>(a);
+            glassCount.at<std::int32_t>(a) += t[x] == 0;
+        }
+    }
+    const cv::Mat known = seen > 0;
+    cv::Mat glass = (2 * glassCount > seen) & known;
+    const cv::Mat tissueSeen = known & ~glass;
+    const cv::Matx22d l(reg.atlasFromWorking(0, 0), reg.atlasFromWorking(0, 1),
+                        reg.atlasFromWorking(1, 0), reg.atlasFromWorking(1, 1));
+    const double atlasPerWorking = std::sqrt(std::abs(cv::determinant(l)));
+    const int slack =
+        std::max(1, static_cast<int>(std::lround(params.slackFrac * brainWidth * atlasPerWorking)));
+    cv::dilate(
+        glass, glass,
+        cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * slack + 1, 2 * slack + 1)));
+    const double s = reg.workingScale;
+    std::vector<DamageRegion> kept;
+    for (DamageRegion& d : regions) {
+        if (d.kind != DamageKind::Fold) {
+            std::vector<cv::Point> poly;
+            for (const cv::Point2f& p : d.polygon)
+                poly.emplace_back(cvRound((p.x + 0.5) * s - 0.5), cvRound((p.y + 0.5) * s - 0.5));
+            // The gap in its box (the maps cut alike), not on the whole image.
+            const cv::Rect box = poly.empty() ? cv::Rect()
+                                              : (cv::boundingRect(poly) + cv::Size(1, 1)) &
+                                                    cv::Rect(0, 0, tissue.cols, tissue.rows);
+            if (poly.size() >= 3 && box.area() > 0) {
+                cv::Mat mask = cv::Mat::zeros(box.size(), CV_8U);
+                cv::fillPoly(mask, std::vector<std::vector<cv::Point>>{poly}, cv::Scalar(255),
+                             cv::LINE_8, 0, -box.tl());
+                const cv::Mat bx = ax(box), by = ay(box);
+                // A gap's twin shows glass; a piece lying apart has a twin of tissue (the
+                // other side's cortex apart from the brain stem, caudally).
+                const bool piece = d.kind == DamageKind::Fragment;
+                d.mirrorShare =
+                    mirroredShare(mask, bx, by, midlineX, piece ? tissueSeen : glass, known, slack);
+                if (params.leaveOutMirroredGaps && d.mirrorShare >= params.mirroredGap)
+                    continue;
+            }
+        }
+        kept.push_back(std::move(d));
+    }
+    regions = std::move(kept);
+}
+} // namespace
+
 core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat& atlasLabels,
                                            const RegistrationOptions& options) {
     if (atlasLabels.empty() || atlasLabels.type() != CV_32S)
@@ -966,6 +1041,9 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
             for (DamageRegion& d : cracks)
                 regions.push_back(std::move(d));
         }
+        // Bilateral anatomy is not damage: a gap whose mirror image across the brain's midline
+        // (through the registration, in atlas px) shows glass in the section too has a twin.
+        dropMirroredGaps(regions, reg, sectionTissue, atlasMask, brainWidth, options.damage);
         // Misfit is not damage: a gap with tissue beside it where the atlas expects none lies
         // where the atlas fit cannot be trusted (markMisfit, in working px).
         markMisfit(regions, sectionTissue, expected, brainWidth, options.damage, fragments, s);

@@ -351,11 +351,21 @@ static void printDamage(const std::string& series, const std::string& name,
     std::printf("damage %-6s %-16s %-9s score %.3f", series.c_str(), name.c_str(), verdict,
                 reg.damageScore);
     const double bw = std::max(1.0, reg.brainWidthPx);
-    for (const pipeline::DamageRegion& d : reg.damage)
-        std::printf(" [%s %.2f%% len %.3f thick %.3f score %.2f excess %.2f (vent %.2f)%s]",
+    for (const pipeline::DamageRegion& d : reg.damage) {
+        // Where it lies: its box in working px (as the overlay shows it).
+        cv::Rect2f box;
+        if (!d.polygon.empty()) {
+            std::vector<cv::Point2f> w;
+            for (const cv::Point2f& p : d.polygon)
+                w.emplace_back(reg.workingFromImage(p));
+            box = cv::boundingRect(w);
+        }
+        std::printf(" [%s %.2f%% len %.3f thick %.3f score %.2f excess %.2f (vent %.2f)%s at "
+                    "%.0f,%.0f %.0fx%.0f mirror %.2f]",
                     std::string(pipeline::toString(d.kind)).c_str(), 100 * d.share, d.lengthPx / bw,
                     d.thicknessPx / bw, d.score, d.excessShare, d.excessVentricleShare,
-                    d.misfit ? " MISFIT" : "");
+                    d.misfit ? " MISFIT" : "", box.x, box.y, box.width, box.height, d.mirrorShare);
+    }
     std::printf("\n");
 }
 
@@ -383,6 +393,10 @@ int main(int argc, char** argv) {
     app.add_option("--crack-darkness", crackDarkness,
                    "DamageParams::crackDarkness (0: cracks must show glass, as before 2026-12-02)")
         ->check(CLI::Range(0.0, 1.0));
+    std::string mirroredGaps = "off";
+    app.add_option("--mirrored-gaps", mirroredGaps,
+                   "DamageParams::leaveOutMirroredGaps: gaps with a mirrored twin left out")
+        ->check(CLI::IsMember({"on", "off"}));
     bool damageOnly = false;
     pipeline::SeriesContextParams contextParams;
     app.add_option("--context-window", contextParams.window,
@@ -456,6 +470,7 @@ int main(int argc, char** argv) {
             ro.maxTurnDeg = maxTurnDeg;
             ro.smoothWarp = smoothMode == "on";
             ro.damage.crackDarkness = crackDarkness;
+            ro.damage.leaveOutMirroredGaps = mirroredGaps == "on";
             const auto t0 = std::chrono::steady_clock::now();
             auto reg0 = pipeline::registerSection(s.image, s.atlas, ro);
             const double sec0 =

@@ -465,6 +465,10 @@ int main(int argc, char** argv) {
                    "Run only these case indices of the --cases set (to look into them)");
     std::string overlayDir, refineMode = "on", nonLinearMode = "on", smoothMode = "off";
     std::string damageLogPath;
+    std::string mirroredGaps = "off";
+    app.add_option("--mirrored-gaps", mirroredGaps,
+                   "DamageParams::leaveOutMirroredGaps: gaps with a mirrored twin left out")
+        ->check(CLI::IsMember({"on", "off"}));
     bool diagnoseErrors = false;
     std::vector<std::string> smoothSettings;
     app.add_option("--smooth-opt", smoothSettings,
@@ -562,6 +566,7 @@ int main(int argc, char** argv) {
     // the separate parts, as the major-region defaults do for the collapsed ids: atlas
     // knowledge, nothing the generators know.
     pipeline::RegistrationOptions regOptions;
+    regOptions.damage.leaveOutMirroredGaps = mirroredGaps == "on";
     if (allLabels) {
         const pipeline::RegistrationOptions defaults;
         regOptions.ventricleIds.clear();

@@ -618,3 +618,33 @@ TEST(Damage, TrustedDamageDecidesWhateverMisfitLiesBesideIt) {
     EXPECT_EQ(decideDamage(none, 500, p).verdict, DamageVerdict::Clean);
     EXPECT_EQ(decideDamage(none, 500, p).score, 0.0);
 }
+
+TEST(Damage, AGapWithAMirroredTwinIsAnatomyAndALoneOneIsNot) {
+    // The atlas frame equals the section's (identity map), the midline at column 100.
+    const cv::Size size(200, 120);
+    cv::Mat ax(size, CV_32F), ay(size, CV_32F);
+    for (int y = 0; y < size.height; ++y)
+        for (int x = 0; x < size.width; ++x) {
+            ax.at<float>(y, x) = float(x);
+            ay.at<float>(y, x) = float(y);
+        }
+    const cv::Mat known(size, CV_8U, cv::Scalar(255));
+    cv::Mat glass = cv::Mat::zeros(size, CV_8U);
+    cv::rectangle(glass, cv::Rect(50, 40, 12, 30), cv::Scalar(255), cv::FILLED);  // left
+    cv::rectangle(glass, cv::Rect(138, 42, 12, 30), cv::Scalar(255), cv::FILLED); // its twin
+    cv::Mat left = cv::Mat::zeros(size, CV_8U);
+    cv::rectangle(left, cv::Rect(50, 40, 12, 30), cv::Scalar(255), cv::FILLED);
+    // Both ventricles: the twin covers the mirror image (columns 139-150) but for one column
+    // and 2 rows.
+    EXPECT_NEAR(mirroredShare(left, ax, ay, 100, glass, known, 1), 11.0 / 12 * 28.0 / 30, 1e-9);
+    // One-sided: the other side is tissue.
+    cv::Mat lone = cv::Mat::zeros(size, CV_8U);
+    cv::rectangle(lone, cv::Rect(60, 90, 20, 8), cv::Scalar(255), cv::FILLED);
+    EXPECT_EQ(mirroredShare(lone, ax, ay, 100, glass | lone, known, 1), 0.0);
+    // Across the midline a gap is its own mirror image: undecided.
+    cv::Mat across = cv::Mat::zeros(size, CV_8U);
+    cv::rectangle(across, cv::Rect(90, 10, 21, 6), cv::Scalar(255), cv::FILLED);
+    EXPECT_EQ(mirroredShare(across, ax, ay, 100, glass | across, known, 1), -1.0);
+    // Where the section was not seen, nothing is counted.
+    EXPECT_EQ(mirroredShare(left, ax, ay, 100, glass, cv::Mat::zeros(size, CV_8U), 1), -1.0);
+}

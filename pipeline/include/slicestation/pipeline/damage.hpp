@@ -53,6 +53,10 @@ struct DamageRegion {
     /// The atlas cannot be trusted around this gap (excessShare >= DamageParams::misfitExcess):
     /// the gap may be the registration's misfit, not lost tissue (decideDamage).
     bool misfit = false;
+    /// Gaps: mirroredShare of the section's glass; fragments: of the section's tissue (-1
+    /// undecided, 0 not measured). At least DamageParams::mirroredGap: a twin on the other side,
+    /// anatomy (left out of the regions when DamageParams::leaveOutMirroredGaps).
+    double mirrorShare = 0;
 };
 
 /// Lengths are fractions of the brain width (the OBB's major extent of the section), so the rule
@@ -113,6 +117,17 @@ struct DamageParams {
     /// a misfit: a boundary shifted leaves as much tissue where the atlas expects glass as glass
     /// where it expects tissue (share 1); lost tissue leaves none (0). 0.5: half way, not tuned.
     double misfitExcess = 0.5;
+    /// Bilateral anatomy (mirroredShare): a gap whose mirror image across the brain's midline
+    /// shows glass in the section over at least this share of it has a mirrored twin: an
+    /// enlarged ventricle (both sides), a cleft anatomy has on both sides, or tissue the atlas
+    /// plane has and the section lacks on both sides (the plane or the fit, not a tear). Damage
+    /// is one-sided. The same for a piece lying apart whose mirror image is tissue (the cortex
+    /// apart from the brain stem on both sides, caudally); a piece broken off has no twin.
+    /// 0.5: half way between no twin (0) and a full twin (1), not tuned.
+    double mirroredGap = 0.5;
+    /// Leave such gaps out (off by default: on the real gerbi series it also takes the torn 14's
+    /// flag, which rested on its bilateral ventricles; docs/damage.md, "Bilateral anatomy").
+    bool leaveOutMirroredGaps = false;
     /// The section is flagged when its damage score reaches this (a station setting; 0.5 is the
     /// documented decision line of damagedShare and deepTearFrac).
     double flagScore = 0.5;
@@ -313,6 +328,18 @@ bool isDamaged(const std::vector<DamageRegion>& regions, double brainWidthPx,
 void markMisfit(std::vector<DamageRegion>& regions, const cv::Mat& tissueMask,
                 const AtlasExpectation& expected, double brainWidthPx, const DamageParams& params,
                 const cv::Mat& fragments = cv::Mat(), double polygonScale = 1.0);
+
+/// Bilateral anatomy (issue 18): the brain is mirror-symmetric across its midline, and so are its
+/// ventricles, its clefts and what a plane cut off both sides; damage is not. Of the pixels of
+/// `region` (CV_8U), each mapped into atlas px by `atlasX`, `atlasY` (CV_32F, the registration's
+/// map, the region's size) and mirrored across the atlas column `midlineX`, the share landing on
+/// `partner` (CV_8U, atlas frame: what a twin would show there, such as the section's glass
+/// grown by the slack), counting only those landing where the section was seen (`known`, CV_8U,
+/// atlas frame) and not on the region itself grown by `selfPx` atlas px (a gap across the
+/// midline is its own mirror image and proves nothing). -1 when fewer than half the region's
+/// pixels have such a mirror image (undecided).
+double mirroredShare(const cv::Mat& region, const cv::Mat& atlasX, const cv::Mat& atlasY,
+                     double midlineX, const cv::Mat& partner, const cv::Mat& known, int selfPx);
 
 /// The section's verdict and score.
 struct DamageDecision {
