@@ -198,6 +198,9 @@ json resultDocument(const RegisterRequest& rq, const cv::Mat& section, const cv:
                       {"section_edges_matched", q.sectionEdgesMatched},
                       {"tissue_overlap", q.tissueOverlap},
                       {"intensity_affine_kept", q.intensityAffineKept},
+                      {"intensity_warp_kept", q.intensityWarpKept},
+                      {"region_warp_kept", q.regionWarpKept},
+                      {"min_jacobian", q.minJacobian},
                       {"scale_atlas_px_per_image_px", q.scaleAtlasPxPerImagePx}};
     return out;
 }

@@ -7,6 +7,7 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <unordered_map>
 
 namespace slicestation::pipeline {
 namespace {
@@ -37,6 +38,24 @@ double minRelative(const cv::Mat& det, double ref) {
         det.rows > 2 && det.cols > 2 ? det(cv::Rect(1, 1, det.cols - 2, det.rows - 2)) : det;
     cv::minMaxLoc(inner, &lo, &hi);
     return ref > 0 ? lo / ref : hi / ref;
+}
+
+/// Whether the map's Jacobian determinant `det` stays regular against the start's `det0` (both
+/// relative to `ref`), inside the grid: at least `floor` where the start was, and where the
+/// start was already below it (a fold the earlier stages left) no more than `slack` below the
+/// start, so that a fold elsewhere neither blocks every step nor may deepen freely.
+bool regular(const cv::Mat& det, const cv::Mat& det0, double ref, double floor, double slack) {
+    for (int y = 1; y + 1 < det.rows; ++y) {
+        const float* d = det.ptr<float>(y);
+        const float* d0 = det0.ptr<float>(y);
+        for (int x = 1; x + 1 < det.cols; ++x) {
+            const double a = d[x] / ref, a0 = d0[x] / ref;
+            const double bound = a0 >= floor ? floor : a0 - slack;
+            if (a < bound - 1e-4)
+                return false;
+        }
+    }
+    return true;
 }
 
 /// The intensity model gain x T + bias, fitted by weighted least squares: global polynomials
@@ -443,8 +462,9 @@ IntensityWarp refineWarpByIntensity(const cv::Mat& grey, const cv::Mat& weight, 
                 const cv::Mat fx = baseX + evaluate(axX, axY, cand.rowRange(0, k).reshape(1, ny));
                 const cv::Mat fy =
                     baseY + evaluate(axX, axY, cand.rowRange(k, 2 * k).reshape(1, ny));
-                const double m = minRelative(jacobianDet(mapX + fx, mapY + fy), refDet);
-                bool ok = m >= std::min(o.minJacobian, minRel) - 1e-4;
+                const cv::Mat det = jacobianDet(mapX + fx, mapY + fy);
+                const double m = minRelative(det, refDet);
+                bool ok = regular(det, det0, refDet, o.minJacobian, o.foldSlack);
                 if (ok) {
                     cv::Mat tc;
                     sample(plane, fx, fy, tc);
@@ -475,6 +495,139 @@ IntensityWarp refineWarpByIntensity(const cv::Mat& grey, const cv::Mat& weight, 
         out.ux = baseX;
         out.uy = baseY;
         out.minJacobian = minRel;
+    }
+    return out;
+}
+
+cv::Mat paintRegions(const cv::Mat& grey, const cv::Mat& weight, const cv::Mat& mapX,
+                     const cv::Mat& mapY, const cv::Mat& atlasLabels,
+                     const std::vector<std::int32_t>& glassIds, const RegionWarpOptions& o) {
+    CV_Assert(grey.type() == CV_32F && atlasLabels.type() == CV_32S && !atlasLabels.empty());
+    CV_Assert(weight.size() == grey.size() && mapX.size() == grey.size() &&
+              mapY.size() == grey.size() && mapX.type() == CV_32F && mapY.type() == CV_32F);
+    // remap has no 32S support; labels go through as float bit patterns untouched by NEAREST.
+    const cv::Mat asFloat(atlasLabels.size(), CV_32F, atlasLabels.data, atlasLabels.step);
+    cv::Mat seenF;
+    cv::remap(asFloat, seenF, mapX, mapY, cv::INTER_NEAREST, cv::BORDER_CONSTANT, cv::Scalar(0));
+    const cv::Mat seen(seenF.size(), CV_32S, seenF.data, seenF.step);
+    cv::Mat counts;
+    weight.convertTo(counts, CV_32F);
+    std::unordered_map<std::int32_t, std::vector<float>> values;
+    std::vector<float> tissue;
+    for (int y = 0; y < grey.rows; ++y) {
+        const float* g = grey.ptr<float>(y);
+        const float* w = counts.ptr<float>(y);
+        const std::int32_t* l = seen.ptr<std::int32_t>(y);
+        for (int x = 0; x < grey.cols; ++x) {
+            if (w[x] <= 0)
+                continue;
+            values[l[x]].push_back(g[x]);
+            if (l[x] != 0)
+                tissue.push_back(g[x]);
+        }
+    }
+    auto median = [](std::vector<float>& v) {
+        std::nth_element(v.begin(), v.begin() + std::ptrdiff_t(v.size() / 2), v.end());
+        return v[v.size() / 2];
+    };
+    const float tissueLevel = tissue.empty() ? 1.0f : median(tissue);
+    const size_t minPx = size_t(std::max(1, o.minRegionPx));
+    auto glassIt = values.find(0);
+    // Without a glass band the glass is taken as the darkest tenth of what is measured.
+    float glassLevel = 0;
+    if (glassIt != values.end() && glassIt->second.size() >= minPx) {
+        glassLevel = median(glassIt->second);
+    } else if (!tissue.empty()) {
+        std::nth_element(tissue.begin(), tissue.begin() + std::ptrdiff_t(tissue.size() / 10),
+                         tissue.end());
+        glassLevel = tissue[tissue.size() / 10];
+    }
+    std::unordered_map<std::int32_t, float> level;
+    for (auto& [label, v] : values)
+        level[label] = v.size() >= minPx ? median(v) : tissueLevel;
+    level[0] = glassLevel;
+    if (o.glassLike)
+        for (std::int32_t id : glassIds)
+            level[id] = glassLevel;
+    cv::Mat plane(atlasLabels.size(), CV_32F);
+    std::int32_t lastLabel = 0;
+    float lastLevel = glassLevel;
+    for (int y = 0; y < atlasLabels.rows; ++y) {
+        const std::int32_t* l = atlasLabels.ptr<std::int32_t>(y);
+        float* out = plane.ptr<float>(y);
+        for (int x = 0; x < atlasLabels.cols; ++x) {
+            if (l[x] != lastLabel) {
+                lastLabel = l[x];
+                const auto it = level.find(lastLabel);
+                lastLevel = it != level.end() ? it->second : tissueLevel;
+            }
+            out[x] = lastLevel;
+        }
+    }
+    return plane;
+}
+
+IntensityWarp refineWarpByRegions(const cv::Mat& grey, const cv::Mat& weight, const cv::Mat& mapX,
+                                  const cv::Mat& mapY, const cv::Mat& atlasLabels,
+                                  const std::vector<std::int32_t>& glassIds,
+                                  const RegionWarpOptions& o) {
+    CV_Assert(atlasLabels.type() == CV_32S && !atlasLabels.empty());
+    CV_Assert(!o.warp.levels.empty());
+    const cv::Size gs = grey.size();
+    // The regions' levels come from the fitting blocks only, so that the held-out check below
+    // judges each map on pixels its painting did not see.
+    cv::Mat paintWeight = weight.clone();
+    if (o.warp.holdOutBlockPx > 0)
+        for (int y = 0; y < gs.height; ++y) {
+            std::uint8_t* p = paintWeight.ptr<std::uint8_t>(y);
+            for (int x = 0; x < gs.width; ++x)
+                if ((x / o.warp.holdOutBlockPx + y / o.warp.holdOutBlockPx) % 2)
+                    p[x] = 0;
+        }
+    // The held-out explained share of a map against its own painting, at the finest level.
+    IntensityWarpOptions judge = o.warp;
+    judge.levels = {{o.warp.levels.back().imageSigma, o.warp.levels.back().spacingGridPx, 0}};
+    auto heldOut = [&](const cv::Mat& mx, const cv::Mat& my) {
+        const cv::Mat plane = paintRegions(grey, paintWeight, mx, my, atlasLabels, glassIds, o);
+        return refineWarpByIntensity(grey, weight, mx, my, plane, judge);
+    };
+    const IntensityWarp start = heldOut(mapX, mapY);
+    IntensityWarp out;
+    out.ux = cv::Mat::zeros(gs, CV_32F);
+    out.uy = cv::Mat::zeros(gs, CV_32F);
+    out.explainedBefore = out.explainedAfter = start.explainedBefore;
+    out.minJacobian = start.minJacobian;
+    if (cv::countNonZero(weight) < 64)
+        return out;
+    cv::Mat ux = out.ux.clone(), uy = out.uy.clone();
+    double minJacobian = start.minJacobian;
+    int steps = 0;
+    for (const IntensityWarpLevel& level : o.warp.levels) {
+        const cv::Mat mx = mapX + ux, my = mapY + uy;
+        const cv::Mat plane = paintRegions(grey, paintWeight, mx, my, atlasLabels, glassIds, o);
+        IntensityWarpOptions one = o.warp;
+        one.levels = {level};
+        one.holdOutBlockPx = o.warp.holdOutBlockPx;
+        const IntensityWarp step = refineWarpByIntensity(grey, weight, mx, my, plane, one);
+        // Within a level the painting is fixed: a level that explains less of its own painting
+        // on the held-out blocks adds nothing.
+        if (!step.accepted)
+            continue;
+        ux += step.ux;
+        uy += step.uy;
+        minJacobian = step.minJacobian;
+        steps += step.steps;
+    }
+    out.steps = steps;
+    if (steps == 0)
+        return out;
+    const IntensityWarp end = heldOut(mapX + ux, mapY + uy);
+    out.explainedAfter = end.explainedBefore;
+    out.accepted = out.explainedAfter >= out.explainedBefore + o.warp.minGain;
+    if (out.accepted) {
+        out.ux = ux;
+        out.uy = uy;
+        out.minJacobian = minJacobian;
     }
     return out;
 }

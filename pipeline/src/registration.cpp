@@ -562,6 +562,22 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
                          "intensity warp options: grid at least 32 px, at least one level, control "
                          "spacing at least 4 px, no negative sigma, iterations, stiffness, damping "
                          "or block size, positive robustness and step");
+    if (const IntensityWarpOptions& rw = options.regionWarpOptions.warp;
+        options.regionWarp &&
+        (rw.gridMaxSide < 32 || rw.levels.empty() || !(rw.stiffness >= 0) || !(rw.damping >= 0) ||
+         !(rw.robustK > 0) || !(rw.maxStepGridPx > 0) || rw.holdOutBlockPx < 0 ||
+         !(rw.localSigmaGridPx >= 0) ||
+         std::any_of(rw.levels.begin(), rw.levels.end(), [](const IntensityWarpLevel& l) {
+             return !(l.spacingGridPx >= 4) || !(l.imageSigma >= 0) || l.iterations < 0;
+         })))
+        return makeError(ErrorCode::InvalidArgument,
+                         "region warp options: grid at least 32 px, at least one level, control "
+                         "spacing at least 4 px, no negative sigma, iterations, stiffness, damping "
+                         "or block size, positive robustness and step");
+    if (!options.regionLabels.empty() && (options.regionLabels.type() != CV_32S ||
+                                          options.regionLabels.size() != atlasLabels.size()))
+        return makeError(ErrorCode::InvalidArgument,
+                         "region labels must be 32-bit integer labels of the atlas slice's size");
     const cv::Mat atlasMask = atlasLabels != 0;
     if (cv::countNonZero(atlasMask) < 16)
         return makeError(ErrorCode::InvalidArgument, "atlas slice has no labelled brain");
@@ -917,6 +933,26 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         if (iw.accepted)
             reg.warp = addToWarp(reg.warp, ws, iw.ux, iw.uy);
         timer.lap("iwarp");
+    }
+    // Without a plane, the same field against the fine atlas regions painted with the section's
+    // own levels (any stain: each region is roughly homogeneous).
+    if (options.regionWarp && options.atlasIntensity.empty() && !options.regionLabels.empty()) {
+        const cv::Size ws = reg.workingGrey.size();
+        const cv::Size gs = gridSize(ws, options.regionWarpOptions.warp.gridMaxSide);
+        cv::Mat grey, mx, my;
+        cv::resize(reg.workingGrey, grey, gs, 0, 0, cv::INTER_AREA);
+        const cv::Mat weight =
+            measuredArea(gs, tissueFilled, options.excludeMask, fragments, damagedOutline);
+        reg.atlasMaps(gs, mx, my);
+        const IntensityWarp rw =
+            refineWarpByRegions(grey, weight, mx, my, options.regionLabels,
+                                options.regionWarpOptions.glassIds, options.regionWarpOptions);
+        reg.quality.regionWarpExplainedBefore = rw.explainedBefore;
+        reg.quality.regionWarpExplainedAfter = rw.explainedAfter;
+        reg.quality.regionWarpKept = rw.accepted;
+        if (rw.accepted)
+            reg.warp = addToWarp(reg.warp, ws, rw.ux, rw.uy);
+        timer.lap("rwarp");
     }
 
     // Dense refinement (beyond the paper): the atlas regions are fitted to the section's own

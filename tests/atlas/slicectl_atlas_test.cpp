@@ -237,6 +237,12 @@ TEST_F(SlicectlAtlas, RegisterUsesTheStacksTemplatePlane) {
     EXPECT_EQ(withJson.at("atlas").at("template"), "template-014.tif");
     EXPECT_FALSE(withoutJson.at("atlas").contains("template"));
     EXPECT_TRUE(withJson.at("quality").at("intensity_affine_kept").get<bool>());
+    // The intensity warp's verdict and the map's regularity are reported too; the region warp
+    // does not run without fine region labels (slicectl does not give them).
+    EXPECT_TRUE(withJson.at("quality").at("intensity_warp_kept").is_boolean());
+    EXPECT_FALSE(withoutJson.at("quality").at("intensity_warp_kept").get<bool>());
+    EXPECT_FALSE(withJson.at("quality").at("region_warp_kept").get<bool>());
+    EXPECT_TRUE(withJson.at("quality").at("min_jacobian").is_number());
     EXPECT_LT(with, 0.8 * without) << "landmark RMSE " << without << " -> " << with;
 
     // A plain label image with its plane given by --atlas-template registers as the stack does;

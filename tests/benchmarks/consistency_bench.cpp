@@ -43,8 +43,18 @@ struct RealSection {
     std::string series, name;
     cv::Mat image;
     cv::Mat atlas; ///< collapsed labels, 25 um/px
+    cv::Mat fine;  ///< every Allen id, same grid (the region warp's labels with --region-warp on)
+    std::vector<std::int32_t> ventricles; ///< the Allen ids under 73 (ventricular systems)
     double umPerPx = 0;
 };
+
+std::vector<std::int32_t> ventricleIds(const core::Ontology& onto) {
+    std::vector<std::int32_t> ids;
+    for (const auto& st : onto.structures())
+        if (onto.isDescendantOf(st.id, 73))
+            ids.push_back(static_cast<std::int32_t>(st.id));
+    return ids;
+}
 
 /// A known warp: new px q -> original px p = A q + s(q), s smooth (coarse grid, bilinear).
 struct Warp {
@@ -187,13 +197,15 @@ core::Result<std::vector<RealSection>> mouseSeries(const fs::path& shared) {
         if (!f)
             return f.error();
         sections.push_back(std::move(*f));
-        out.push_back({"mouse", name, *image, {}, sectionUm});
+        out.push_back({"mouse", name, *image, {}, {}, ventricleIds(*onto), sectionUm});
     }
     auto match = pipeline::matchSeries(sections, features);
     if (!match)
         return match.error();
-    for (size_t i = 0; i < out.size(); ++i)
+    for (size_t i = 0; i < out.size(); ++i) {
         out[i].atlas = labels[size_t((*match)[i].index)];
+        out[i].fine = (*stack)[size_t((*match)[i].index)].labels;
+    }
     return out;
 }
 
@@ -242,7 +254,7 @@ core::Result<std::vector<RealSection>> gerbiSeries(const fs::path& shared) {
             return labels.error();
         out.push_back({"gerbi", f[1], *image,
                        pipeline::collapseLabels(*labels, *onto, pipeline::majorRegionIds(), 8),
-                       std::stod(f[4])});
+                       *labels, ventricleIds(*onto), std::stod(f[4])});
     }
     return out;
 }
@@ -389,6 +401,10 @@ int main(int argc, char** argv) {
         ->check(CLI::Range(0.0, 180.0));
     app.add_option("--smooth", smoothMode, "The registration's smooth (B-spline) warp: on | off")
         ->check(CLI::IsMember({"on", "off"}));
+    std::string regionWarpMode = "off";
+    app.add_option("--region-warp", regionWarpMode,
+                   "The region warp, painting every Allen id of the section's plane: on | off")
+        ->check(CLI::IsMember({"on", "off"}));
     double crackDarkness = pipeline::DamageParams{}.crackDarkness;
     app.add_option("--crack-darkness", crackDarkness,
                    "DamageParams::crackDarkness (0: cracks must show glass, as before 2026-12-02)")
@@ -469,6 +485,11 @@ int main(int argc, char** argv) {
             ro.atlasUmPerPx = 25;
             ro.maxTurnDeg = maxTurnDeg;
             ro.smoothWarp = smoothMode == "on";
+            if (regionWarpMode == "on" && s.fine.type() == CV_32S &&
+                s.fine.size() == s.atlas.size()) {
+                ro.regionLabels = s.fine;
+                ro.regionWarpOptions.glassIds = s.ventricles;
+            }
             ro.damage.crackDarkness = crackDarkness;
             ro.damage.leaveOutMirroredGaps = mirroredGaps == "on";
             const auto t0 = std::chrono::steady_clock::now();

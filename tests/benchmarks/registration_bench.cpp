@@ -500,6 +500,22 @@ int main(int argc, char** argv) {
     app.add_option("--intensity-warp", intensityWarpMode,
                    "The intensity warp of ours (runs only with an atlas intensity plane): on | off")
         ->check(CLI::IsMember({"on", "off"}));
+    std::vector<std::string> rwarpSettings;
+    app.add_option("--rwarp-opt", rwarpSettings,
+                   "Region warp options as key=value (those of --iwarp-opt, and glass=0|1, "
+                   "min-region), for choosing them");
+    std::string regionLabelsText = "all";
+    app.add_option("--region-labels", regionLabelsText,
+                   "Labels the region warp paints: all (every Allen id, when the atlas has them) "
+                   "or given (the labels the registration gets)")
+        ->check(CLI::IsMember({"all", "given"}));
+    // Off by default: slicectl and the daemon do not run it yet (their stacks hold collapsed
+    // labels), and the benchmark's default figures are the product's.
+    std::string regionWarpMode = "off";
+    app.add_option("--region-warp", regionWarpMode,
+                   "The region warp of ours (runs only without an atlas intensity plane; not in "
+                   "slicectl or the daemon yet): on | off")
+        ->check(CLI::IsMember({"on", "off"}));
     std::vector<std::string> denseSettings;
     app.add_option("--dense", denseSettings,
                    "Dense refinement options as key=value (grid, sigma, window, iterations, "
@@ -582,6 +598,15 @@ int main(int argc, char** argv) {
                         regOptions.separateParts[p].push_back(id);
         }
     }
+    const bool fineRegionLabels =
+        regionLabelsText == "all" && !allLabels && atlas->fullPlanes.size() == atlas->planes.size();
+    if (fineRegionLabels) {
+        for (const auto& st : atlas->ontology.structures())
+            if (atlas->ontology.isDescendantOf(st.id, 73))
+                regOptions.regionWarpOptions.glassIds.push_back(static_cast<std::int32_t>(st.id));
+    } else {
+        regOptions.regionWarpOptions.glassIds = regOptions.ventricleIds;
+    }
     if (!applySmoothSettings(smoothSettings, regOptions.smooth)) {
         std::cerr << "bad --smooth-opt setting\n";
         return 2;
@@ -591,6 +616,26 @@ int main(int argc, char** argv) {
         !applyIntensityWarpSettings(iwarpSettings, regOptions.intensityWarpOptions)) {
         std::cerr << "bad --iwarp-opt setting\n";
         return 2;
+    }
+    regOptions.regionWarp = regionWarpMode == "on";
+    {
+        // glass= and min-region= are the region warp's own; the rest are the field's.
+        std::vector<std::string> fieldSettings;
+        bool ok = true;
+        for (const std::string& kv : rwarpSettings) {
+            if (kv.rfind("glass=", 0) == 0)
+                regOptions.regionWarpOptions.glassLike = std::stoi(kv.substr(6)) != 0;
+            else if (kv.rfind("min-region=", 0) == 0)
+                regOptions.regionWarpOptions.minRegionPx = std::stoi(kv.substr(11));
+            else
+                fieldSettings.push_back(kv);
+        }
+        if (!fieldSettings.empty())
+            ok = applyIntensityWarpSettings(fieldSettings, regOptions.regionWarpOptions.warp);
+        if (!ok) {
+            std::cerr << "bad --rwarp-opt setting\n";
+            return 2;
+        }
     }
     if (!applyIntensitySettings(intensitySettings, regOptions)) {
         std::cerr << "bad --intensity-opt setting\n";
@@ -664,6 +709,7 @@ int main(int argc, char** argv) {
         if (templateIntensity == "all" ||
             (templateIntensity == "template" && c.family == bench::Family::Template))
             ro.atlasIntensity = bench::templateOnLabelGrid(*atlas, c.plane, plane.size());
+        ro.regionLabels = fineRegionLabels ? atlas->fullPlanes[size_t(c.plane)] : plane;
         auto reg = pipeline::registerSection(gen->image, plane, ro);
         ours.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
         if (reg) {
@@ -774,6 +820,13 @@ int main(int argc, char** argv) {
                               reg->quality.intensityWarpExplainedAfter,
                               reg->quality.intensityWarpKept ? " kept" : "",
                               reg->quality.minJacobian);
+                steps += refined;
+            }
+            if (ro.regionWarp && ro.atlasIntensity.empty() && !ro.regionLabels.empty()) {
+                std::snprintf(refined, sizeof refined, " | rwarp %.3f -> %.3f%s J %.2f",
+                              reg->quality.regionWarpExplainedBefore,
+                              reg->quality.regionWarpExplainedAfter,
+                              reg->quality.regionWarpKept ? " kept" : "", reg->quality.minJacobian);
                 steps += refined;
             }
             steps += " | damage " +

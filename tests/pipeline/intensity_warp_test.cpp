@@ -6,6 +6,7 @@
 #include <opencv2/imgproc.hpp>
 
 #include <cmath>
+#include <vector>
 
 using namespace slicestation::pipeline;
 
@@ -93,7 +94,114 @@ double rmsError(const Toy& t, const cv::Mat& ux, const cv::Mat& uy) {
     return std::sqrt(cv::mean(d2, inner)[0]);
 }
 
+/// A stain-like toy for the region warp: the brain ellipse cut into 40 regions (nearest of 40
+/// random seeds), each region one random level, a ventricle (id 73) as glass; the section is
+/// the labels seen through the known deformation, with a gain gradient, noise and a blot.
+struct RegionToy {
+    Toy base; ///< grey, weight, identity map and the true field
+    cv::Mat labels;
+    std::vector<float> levels; ///< per region id (index = id), the stain level
+};
+
+RegionToy makeRegionToy(double amplitude) {
+    const cv::Size size(256, 200);
+    RegionToy r;
+    Toy& t = r.base;
+    t = makeToy(amplitude); // the map, the true field, the weight and the blot
+    cv::RNG rng(23);
+    std::vector<cv::Point2f> seeds;
+    for (int k = 0; k < 40; ++k)
+        seeds.emplace_back(rng.uniform(20.f, 236.f), rng.uniform(20.f, 180.f));
+    r.levels.assign(74, 0.f);
+    for (int k = 1; k <= 40; ++k)
+        r.levels[size_t(k)] = rng.uniform(0.2f, 1.0f);
+    r.labels = cv::Mat::zeros(size, CV_32S);
+    cv::Mat brain = cv::Mat::zeros(size, CV_8U);
+    const cv::Point c(size.width / 2, size.height / 2);
+    cv::ellipse(brain, c, cv::Size(size.width * 2 / 5, size.height * 2 / 5), 0, 0, 360, 255, -1);
+    for (int y = 0; y < size.height; ++y)
+        for (int x = 0; x < size.width; ++x) {
+            if (!brain.at<std::uint8_t>(y, x))
+                continue;
+            int best = 0;
+            for (int k = 1; k < 40; ++k)
+                if (cv::norm(seeds[size_t(k)] - cv::Point2f(float(x), float(y))) <
+                    cv::norm(seeds[size_t(best)] - cv::Point2f(float(x), float(y))))
+                    best = k;
+            r.labels.at<std::int32_t>(y, x) = best + 1;
+        }
+    cv::ellipse(r.labels, c + cv::Point(20, -10), cv::Size(14, 6), 30, 0, 360, cv::Scalar(73), -1);
+    cv::Mat painted(size, CV_32F);
+    for (int y = 0; y < size.height; ++y)
+        for (int x = 0; x < size.width; ++x)
+            painted.at<float>(y, x) = r.levels[size_t(r.labels.at<std::int32_t>(y, x))];
+    cv::Mat sx(size, CV_32F), sy(size, CV_32F);
+    for (int y = 0; y < size.height; ++y)
+        for (int x = 0; x < size.width; ++x) {
+            sx.at<float>(y, x) = float(x + t.truthX.at<float>(y, x));
+            sy.at<float>(y, x) = float(y + t.truthY.at<float>(y, x));
+        }
+    cv::remap(painted, t.grey, sx, sy, cv::INTER_LINEAR, cv::BORDER_CONSTANT, cv::Scalar(0));
+    for (int y = 0; y < size.height; ++y)
+        for (int x = 0; x < size.width; ++x)
+            t.grey.at<float>(y, x) = float(t.grey.at<float>(y, x) * (0.8 + 0.4 * x / size.width));
+    t.grey += 0.05;
+    cv::Mat noise(size, CV_32F);
+    cv::RNG(7).fill(noise, cv::RNG::NORMAL, 0, 0.05);
+    t.grey += noise;
+    t.grey(cv::Rect(60, 60, 24, 18)).setTo(1.0); // the blot, out of the weight (makeToy)
+    return r;
+}
+
 } // namespace
+
+TEST(RegionWarp, PaintsEachRegionWithTheSectionsMedianLevel) {
+    const RegionToy r = makeRegionToy(0.0);
+    const Toy& t = r.base;
+    const cv::Mat plane =
+        paintRegions(t.grey, t.weight, t.mapX, t.mapY, r.labels, {73}, RegionWarpOptions{});
+    ASSERT_EQ(plane.size(), r.labels.size());
+    // Every region's painted level is its true level under the gain gradient (0.8-1.2) plus
+    // the glass offset: between 0.8 and 1.2 times the level, plus 0.05, within the noise.
+    int checked = 0;
+    for (int y = 0; y < plane.rows; y += 7)
+        for (int x = 0; x < plane.cols; x += 7) {
+            const std::int32_t id = r.labels.at<std::int32_t>(y, x);
+            if (id == 0 || id == 73)
+                continue;
+            const float level = r.levels[size_t(id)], painted = plane.at<float>(y, x);
+            EXPECT_GT(painted, 0.8f * level + 0.05f - 0.03f) << id;
+            EXPECT_LT(painted, 1.2f * level + 0.05f + 0.03f) << id;
+            ++checked;
+        }
+    EXPECT_GT(checked, 200);
+    // The ventricle and the outside are painted at the glass band's level (0.05, noise 0.05).
+    EXPECT_NEAR(plane.at<float>(0, 0), 0.05f, 0.03f);
+    EXPECT_NEAR(plane.at<float>(90, 148), 0.05f, 0.03f); // the ventricle's centre
+}
+
+TEST(RegionWarp, RecoversAKnownSmoothDeformationOfAnyStain) {
+    const RegionToy r = makeRegionToy(5.5);
+    const Toy& t = r.base;
+    const cv::Mat zero = cv::Mat::zeros(t.grey.size(), CV_32F);
+    const double before = rmsError(t, zero, zero);
+    ASSERT_GT(before, 2.0);
+    const IntensityWarp w = refineWarpByRegions(t.grey, t.weight, t.mapX, t.mapY, r.labels, {73});
+    ASSERT_TRUE(w.accepted);
+    EXPECT_GT(w.explainedAfter, w.explainedBefore + 0.02);
+    EXPECT_GT(w.minJacobian, 0.0);
+    const double after = rmsError(t, w.ux, w.uy);
+    EXPECT_LT(after, 0.35 * before) << "before " << before << ", after " << after;
+
+    // Without steps nothing is kept: the accuracy above is the stage's.
+    RegionWarpOptions none;
+    for (auto& l : none.warp.levels)
+        l.iterations = 0;
+    const IntensityWarp idle =
+        refineWarpByRegions(t.grey, t.weight, t.mapX, t.mapY, r.labels, {73}, none);
+    EXPECT_FALSE(idle.accepted);
+    EXPECT_EQ(cv::countNonZero(idle.ux), 0);
+}
 
 TEST(IntensityWarp, RecoversAKnownSmoothDeformationOfATemplateLikePlane) {
     const Toy t = makeToy(5.5);

@@ -12,7 +12,8 @@
 /// window's weighted linear regression, i.e. local normalised cross-correlation), refitted at
 /// every step. Steps: damped Gauss-Newton on the control displacements with Cauchy weights and a
 /// membrane term on the control points, each step at most maxStepGridPx, halved until the
-/// penalised robust energy drops and the map's local area ratio stays above minJacobian. The
+/// penalised robust energy drops and the map's local area ratio stays above minJacobian (where
+/// the start map is below it already, within foldSlack of the start's). The
 /// field is fitted on a checkerboard of blocks and kept only if the share of the section's
 /// variance the model explains on the other blocks rises by minGain.
 ///
@@ -20,6 +21,7 @@
 
 #include <opencv2/core.hpp>
 
+#include <cstdint>
 #include <vector>
 
 namespace slicestation::pipeline {
@@ -44,6 +46,9 @@ struct IntensityWarpOptions {
     /// A step that would bring the map's local area ratio (Jacobian determinant relative to its
     /// median over the measured area) below this is halved.
     double minJacobian = 0.3;
+    /// Where the start map is already below minJacobian (a fold or squeeze the earlier stages
+    /// left), a step may lower the ratio by at most this below the start's.
+    double foldSlack = 0.1;
     /// Local gain and bias: Gaussian window (grid px) of the local regression; 0 = global
     /// polynomials.
     double localSigmaGridPx = 16;
@@ -68,5 +73,44 @@ struct IntensityWarp {
 IntensityWarp refineWarpByIntensity(const cv::Mat& grey, const cv::Mat& weight, const cv::Mat& mapX,
                                     const cv::Mat& mapY, const cv::Mat& atlasIntensity,
                                     const IntensityWarpOptions& options = {});
+
+/// The region warp: the same field fitted against a plane painted from the section itself, for
+/// any stain (each atlas region is roughly homogeneous in any stain). Before each level, every
+/// atlas region is painted with the median of the section's grey over the fitting blocks of the
+/// measured area that the current map sends into it (regions seen on fewer than
+/// `minRegionPx` grid px take the tissue's median; `glassIds`, e.g. ventricles, and the outside
+/// take the glass band's median when `glassIds` are painted as glass); the level's field is then
+/// fitted as by refineWarpByIntensity. It is kept only if the held-out explained share, each map
+/// judged against its own painting, rises by `minGain`. Minimising the local model's residual
+/// against such a painting is the within-region variance criterion with a local gain and bias.
+struct RegionWarpOptions {
+    /// The field's levels, model and regularisation: the intensity warp's, with three levels
+    /// (control points 64, 32, 16 grid px apart at sigmas 4, 2, 1; chosen on the second
+    /// family's cases 0-23, docs/registration.md).
+    IntensityWarpOptions warp = [] {
+        IntensityWarpOptions o;
+        o.levels = {{4.0, 64, 8}, {2.0, 32, 8}, {1.0, 16, 8}};
+        return o;
+    }();
+    int minRegionPx = 8;   ///< grid px a region needs to get its own level
+    bool glassLike = true; ///< paint `glassIds` at the glass band's level
+    /// The ventricles' ids in RegistrationOptions::regionLabels.
+    std::vector<std::int32_t> glassIds;
+};
+
+/// Refines the map as refineWarpByIntensity does, against planes painted from `grey` over
+/// `atlasLabels` (CV_32S, atlas px) under the current map.
+/// Preconditions (asserted): as refineWarpByIntensity; `atlasLabels` CV_32S and not empty.
+IntensityWarp refineWarpByRegions(const cv::Mat& grey, const cv::Mat& weight, const cv::Mat& mapX,
+                                  const cv::Mat& mapY, const cv::Mat& atlasLabels,
+                                  const std::vector<std::int32_t>& glassIds,
+                                  const RegionWarpOptions& options = {});
+
+/// The plane refineWarpByRegions fits against (CV_32F, atlas size): `atlasLabels` painted with
+/// the median of `grey` where `weight` (CV_32F or CV_8U, non-zero = counts) is set and the map
+/// sends a grid pixel into the region. Exposed for tests.
+cv::Mat paintRegions(const cv::Mat& grey, const cv::Mat& weight, const cv::Mat& mapX,
+                     const cv::Mat& mapY, const cv::Mat& atlasLabels,
+                     const std::vector<std::int32_t>& glassIds, const RegionWarpOptions& options);
 
 } // namespace slicestation::pipeline

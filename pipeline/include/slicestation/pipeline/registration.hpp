@@ -87,6 +87,18 @@ struct RegistrationOptions {
     /// the dense refinement; kept only when it explains more of the section on held-out blocks.
     bool intensityWarp = true;
     IntensityWarpOptions intensityWarpOptions;
+    /// Without an atlas intensity plane and with regionLabels (any stain): the same field fitted
+    /// against the regions painted with the section's own median levels, re-painted before each
+    /// level (refineWarpByRegions), after the geometric stages and before the dense refinement;
+    /// kept only when it explains more of the section on held-out blocks.
+    bool regionWarp = true;
+    RegionWarpOptions regionWarpOptions;
+    /// The labels the region warp paints (CV_32S, the atlas labels' size), e.g. every Allen id
+    /// where the atlas labels are the collapsed major regions: a stain differs between fine
+    /// regions, and a major region painted at one level is a poor model of the section (it made
+    /// the second family worse, docs/registration.md). Empty: the region warp does not run.
+    /// Their ventricles are regionWarpOptions.glassIds.
+    cv::Mat regionLabels;
     bool detectDamage = true; ///< find damage and keep its edges out of the matching
     DamageParams damage;
     /// Atlas ids that are ventricles (empty like glass in a section): the major-region id 73.
@@ -133,6 +145,10 @@ struct RegistrationQuality {
     /// The intensity warp: held-out explained share before and after, whether it was kept.
     double intensityWarpExplainedBefore = 0, intensityWarpExplainedAfter = 0;
     bool intensityWarpKept = false;
+    /// The region warp: held-out explained share (each map against its own painting) before and
+    /// after, whether it was kept.
+    double regionWarpExplainedBefore = 0, regionWarpExplainedAfter = 0;
+    bool regionWarpKept = false;
     /// The smooth stage: RMS point-to-line distance (atlas px) of its first matches before and
     /// after the fitted field, and how many matches its last iteration had (0 = not run).
     double smoothBefore = 0, smoothAfter = 0;
