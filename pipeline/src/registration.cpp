@@ -431,6 +431,16 @@ cv::Mat Registration::warpedLabels(const cv::Mat& atlasLabels, cv::Size size) co
 }
 
 namespace {
+/// The field options of the intensity and the region warp are usable (the rule the error names).
+bool warpOptionsValid(const IntensityWarpOptions& w) {
+    return w.gridMaxSide >= 32 && !w.levels.empty() && w.stiffness >= 0 && w.damping >= 0 &&
+           w.robustK > 0 && w.maxStepGridPx > 0 && w.holdOutBlockPx >= 0 &&
+           w.localSigmaGridPx >= 0 &&
+           std::all_of(w.levels.begin(), w.levels.end(), [](const IntensityWarpLevel& l) {
+               return l.spacingGridPx >= 4 && l.imageSigma >= 0 && l.iterations >= 0;
+           });
+}
+
 /// Measures every gap's (Tear, Missing; polygons in full-resolution px) mirroredShare of the
 /// section's glass and every fragment's of its tissue, and with
 /// DamageParams::leaveOutMirroredGaps removes those reaching DamageParams::mirroredGap: anatomy
@@ -550,30 +560,15 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
                          "intensity affine options: grid at least 32 px, at least one level, no "
                          "negative sigma, iterations, damping or block size, positive robustness "
                          "and step");
-    if (const IntensityWarpOptions& iw = options.intensityWarpOptions;
-        options.intensityWarp &&
-        (iw.gridMaxSide < 32 || iw.levels.empty() || !(iw.stiffness >= 0) || !(iw.damping >= 0) ||
-         !(iw.robustK > 0) || !(iw.maxStepGridPx > 0) || iw.holdOutBlockPx < 0 ||
-         !(iw.localSigmaGridPx >= 0) ||
-         std::any_of(iw.levels.begin(), iw.levels.end(), [](const IntensityWarpLevel& l) {
-             return !(l.spacingGridPx >= 4) || !(l.imageSigma >= 0) || l.iterations < 0;
-         })))
-        return makeError(ErrorCode::InvalidArgument,
-                         "intensity warp options: grid at least 32 px, at least one level, control "
-                         "spacing at least 4 px, no negative sigma, iterations, stiffness, damping "
-                         "or block size, positive robustness and step");
-    if (const IntensityWarpOptions& rw = options.regionWarpOptions.warp;
-        options.regionWarp &&
-        (rw.gridMaxSide < 32 || rw.levels.empty() || !(rw.stiffness >= 0) || !(rw.damping >= 0) ||
-         !(rw.robustK > 0) || !(rw.maxStepGridPx > 0) || rw.holdOutBlockPx < 0 ||
-         !(rw.localSigmaGridPx >= 0) ||
-         std::any_of(rw.levels.begin(), rw.levels.end(), [](const IntensityWarpLevel& l) {
-             return !(l.spacingGridPx >= 4) || !(l.imageSigma >= 0) || l.iterations < 0;
-         })))
-        return makeError(ErrorCode::InvalidArgument,
-                         "region warp options: grid at least 32 px, at least one level, control "
-                         "spacing at least 4 px, no negative sigma, iterations, stiffness, damping "
-                         "or block size, positive robustness and step");
+    // The intensity and the region warp fit the same field: one check, named for each.
+    constexpr const char* kWarpRule =
+        " options: grid at least 32 px, at least one level, control spacing at least 4 px, no "
+        "negative sigma, iterations, stiffness, damping or block size, positive robustness and "
+        "step";
+    if (options.intensityWarp && !warpOptionsValid(options.intensityWarpOptions))
+        return makeError(ErrorCode::InvalidArgument, std::string("intensity warp") + kWarpRule);
+    if (options.regionWarp && !warpOptionsValid(options.regionWarpOptions.warp))
+        return makeError(ErrorCode::InvalidArgument, std::string("region warp") + kWarpRule);
     if (!options.regionLabels.empty() && (options.regionLabels.type() != CV_32S ||
                                           options.regionLabels.size() != atlasLabels.size()))
         return makeError(ErrorCode::InvalidArgument,

@@ -17,6 +17,8 @@
 #include <filesystem>
 #include <fstream>
 #include <sstream>
+#include <string>
+#include <vector>
 
 using namespace slicestation;
 using namespace slicestation::pipeline;
@@ -34,6 +36,33 @@ std::vector<SliceFeatures> builtinStack(double& workUm) {
     for (size_t i = 0; i < labels.size(); ++i)
         f.push_back(sliceFeatures(labels[i], kUmPerPx, double(i) * kIntervalUm, workUm));
     return f;
+}
+
+/// The stack the real gerbi tests match against: the 50 um Allen annotation cut coronally every
+/// 100 um, collapsed to the major regions; `workUm` gets its working pixel size. Empty, with the
+/// reason in `error`, when the atlas cannot be read or sliced.
+std::vector<SliceFeatures> allenStack100um(const std::filesystem::path& atlas, double& workUm,
+                                           std::string& error) {
+    auto volume = core::readNrrd(atlas / "annotation_50.nrrd");
+    auto onto = core::readOntologyCsv(atlas / "structure_tree_safe_2017.csv");
+    if (!volume || !onto) {
+        error = !volume ? volume.error().message : onto.error().message;
+        return {};
+    }
+    auto slices =
+        sliceVolume(*volume, VolumeAxes::Allen, {PlaneOrientation::Coronal, 0, 100, 0, 0, 25});
+    if (!slices) {
+        error = slices.error().message;
+        return {};
+    }
+    std::vector<cv::Mat> labels;
+    for (auto& sl : *slices)
+        labels.push_back(collapseLabels(sl.labels, *onto, majorRegionIds(), 8));
+    workUm = matchWorkUmPerPx(labels, 25);
+    std::vector<SliceFeatures> stack;
+    for (size_t i = 0; i < labels.size(); ++i)
+        stack.push_back(sliceFeatures(labels[i], 25, (*slices)[i].geometry.positionUm, workUm));
+    return stack;
 }
 
 } // namespace
@@ -188,19 +217,10 @@ TEST(SeriesMatching, RealGerbiSectionsFollowTheSeriesLine) {
     const fs::path gerbi = fs::path(SLST_SHARED_DIR) / "sections" / "abba-gerbi-series";
     if (!fs::exists(atlas / "annotation_50.nrrd") || !fs::exists(gerbi / "Section-15.jpg"))
         GTEST_SKIP() << "no Allen annotation or gerbi series under " << SLST_SHARED_DIR;
-    auto volume = core::readNrrd(atlas / "annotation_50.nrrd");
-    auto onto = core::readOntologyCsv(atlas / "structure_tree_safe_2017.csv");
-    ASSERT_TRUE(volume.ok() && onto.ok());
-    auto slices =
-        sliceVolume(*volume, VolumeAxes::Allen, {PlaneOrientation::Coronal, 0, 100, 0, 0, 25});
-    ASSERT_TRUE(slices.ok()) << slices.error().message;
-    std::vector<cv::Mat> labels;
-    for (auto& sl : *slices)
-        labels.push_back(collapseLabels(sl.labels, *onto, majorRegionIds(), 8));
-    const double workUm = matchWorkUmPerPx(labels, 25);
-    std::vector<SliceFeatures> stack;
-    for (size_t i = 0; i < labels.size(); ++i)
-        stack.push_back(sliceFeatures(labels[i], 25, (*slices)[i].geometry.positionUm, workUm));
+    double workUm = 0;
+    std::string error;
+    const std::vector<SliceFeatures> stack = allenStack100um(atlas, workUm, error);
+    ASSERT_FALSE(stack.empty()) << error;
     // Thumbnail pixel sizes from sections.csv.
     const std::vector<double> umPerPx{10.401, 10.521, 10.838, 10.838, 10.534, 10.531};
     SeriesMatchOptions o;
@@ -241,19 +261,10 @@ TEST(SeriesMatching, TheSeriesPassPutsTheGerbiSeriesInOrder) {
     const fs::path gerbi = fs::path(SLST_SHARED_DIR) / "sections" / "abba-gerbi-series";
     if (!fs::exists(atlas / "annotation_50.nrrd") || !fs::exists(gerbi / "sections.csv"))
         GTEST_SKIP() << "no Allen annotation or gerbi series under " << SLST_SHARED_DIR;
-    auto volume = core::readNrrd(atlas / "annotation_50.nrrd");
-    auto onto = core::readOntologyCsv(atlas / "structure_tree_safe_2017.csv");
-    ASSERT_TRUE(volume.ok() && onto.ok());
-    auto slices =
-        sliceVolume(*volume, VolumeAxes::Allen, {PlaneOrientation::Coronal, 0, 100, 0, 0, 25});
-    ASSERT_TRUE(slices.ok()) << slices.error().message;
-    std::vector<cv::Mat> labels;
-    for (auto& sl : *slices)
-        labels.push_back(collapseLabels(sl.labels, *onto, majorRegionIds(), 8));
-    const double workUm = matchWorkUmPerPx(labels, 25);
-    std::vector<SliceFeatures> stack;
-    for (size_t i = 0; i < labels.size(); ++i)
-        stack.push_back(sliceFeatures(labels[i], 25, (*slices)[i].geometry.positionUm, workUm));
+    double workUm = 0;
+    std::string error;
+    const std::vector<SliceFeatures> stack = allenStack100um(atlas, workUm, error);
+    ASSERT_FALSE(stack.empty()) << error;
     // sections.csv: section,file,width_px,height_px,um_per_px,...
     std::ifstream csv(gerbi / "sections.csv");
     std::string line;

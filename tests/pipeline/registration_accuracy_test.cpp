@@ -19,6 +19,7 @@
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
+#include <functional>
 #include <tuple>
 
 using namespace slicestation;
@@ -32,6 +33,23 @@ struct Score {
     double rmse = 0, max = 0;
 };
 
+/// RMS and largest distance (atlas px) between where the registration sends each landmark's
+/// image point, moved by `where` into the image it was given (e.g. turned), and its true atlas
+/// point.
+template <class Where = std::identity>
+Score landmarkScore(const pipeline::Registration& reg, const std::vector<sim::Landmark>& landmarks,
+                    Where where = {}) {
+    Score s;
+    double ss = 0;
+    for (const auto& l : landmarks) {
+        const double e = cv::norm(reg.atlasFromImage(where(l.image)) - l.atlas);
+        ss += e * e;
+        s.max = std::max(s.max, e);
+    }
+    s.rmse = std::sqrt(ss / double(landmarks.size()));
+    return s;
+}
+
 Score registerAndScore(const cv::Mat& atlas, const sim::GeneratorOptions& o,
                        const pipeline::RegistrationOptions& ro = {}) {
     auto gen = sim::generateSection(atlas, o);
@@ -42,15 +60,7 @@ Score registerAndScore(const cv::Mat& atlas, const sim::GeneratorOptions& o,
     EXPECT_TRUE(reg.ok()) << reg.error().message;
     if (!reg)
         return {1e9, 1e9};
-    Score s;
-    double ss = 0;
-    for (const auto& l : gen->truth.landmarks) {
-        const double e = cv::norm(reg->atlasFromImage(l.image) - l.atlas);
-        ss += e * e;
-        s.max = std::max(s.max, e);
-    }
-    s.rmse = std::sqrt(ss / double(gen->truth.landmarks.size()));
-    return s;
+    return landmarkScore(*reg, gen->truth.landmarks);
 }
 
 /// The Allen ontology and the 50 um annotation, each read once for the whole test program.
@@ -186,10 +196,7 @@ TEST(DamageGroundTruth, EachKindIsFlaggedLocatedAndKeptOutOfTheFit) {
             EXPECT_GE(cv::countNonZero(truth & reported), 0.1 * cv::countNonZero(truth)) << c.name;
         }
         // Damage must not pull the registration of the intact tissue.
-        double ss = 0;
-        for (const auto& l : gen->truth.landmarks)
-            ss += std::pow(cv::norm(reg->atlasFromImage(l.image) - l.atlas), 2);
-        EXPECT_LT(std::sqrt(ss / double(gen->truth.landmarks.size())), 2.0) << c.name;
+        EXPECT_LT(landmarkScore(*reg, gen->truth.landmarks).rmse, 2.0) << c.name;
     }
 }
 
@@ -355,14 +362,12 @@ TEST(RegistrationAccuracy, RoundSectionsTurnedAnyWayRegister) {
         cv::warpAffine(gen->image, image, turn, big, cv::INTER_LINEAR, cv::BORDER_REPLICATE);
         auto reg = pipeline::registerSection(image, plane);
         ASSERT_TRUE(reg.ok()) << reg.error().message;
-        double ss = 0;
-        for (const auto& l : gen->truth.landmarks) {
-            const cv::Matx23d t(turn);
-            const cv::Point2d p(t(0, 0) * l.image.x + t(0, 1) * l.image.y + t(0, 2),
-                                t(1, 0) * l.image.x + t(1, 1) * l.image.y + t(1, 2));
-            ss += std::pow(cv::norm(reg->atlasFromImage(p) - l.atlas), 2);
-        }
-        EXPECT_LT(std::sqrt(ss / double(gen->truth.landmarks.size())), 2.5) << deg << " degrees";
+        const cv::Matx23d t(turn);
+        const auto turned = [&t](cv::Point2d q) {
+            return cv::Point2d(t(0, 0) * q.x + t(0, 1) * q.y + t(0, 2),
+                               t(1, 0) * q.x + t(1, 1) * q.y + t(1, 2));
+        };
+        EXPECT_LT(landmarkScore(*reg, gen->truth.landmarks, turned).rmse, 2.5) << deg << " degrees";
     }
 }
 
@@ -536,10 +541,7 @@ TEST(RegistrationAccuracy, TheSmoothWarpFollowsADeformationBeyondTheAffine) {
             ro.smoothWarp = v == 1;
             auto reg = pipeline::registerSection(gen->image, major, ro);
             ASSERT_TRUE(reg.ok()) << reg.error().message;
-            double ss = 0;
-            for (const auto& l : gen->truth.landmarks)
-                ss += std::pow(cv::norm(reg->atlasFromImage(l.image) - l.atlas), 2);
-            const double rmse = std::sqrt(ss / double(gen->truth.landmarks.size()));
+            const double rmse = landmarkScore(*reg, gen->truth.landmarks).rmse;
             sum[v] += rmse;
             std::printf("AP %d, smooth warp %s: landmark RMSE %.2f atlas px\n", ap,
                         v ? "on" : "off", rmse);
@@ -581,10 +583,7 @@ TEST(RegistrationAccuracy, TheRegionWarpFollowsAnyStainBeyondTheGeometricStages)
             ro.regionWarpOptions.glassIds = ventricles;
             auto reg = pipeline::registerSection(gen->image, major, ro);
             ASSERT_TRUE(reg.ok()) << reg.error().message;
-            double ss = 0;
-            for (const auto& l : gen->truth.landmarks)
-                ss += std::pow(cv::norm(reg->atlasFromImage(l.image) - l.atlas), 2);
-            const double rmse = std::sqrt(ss / double(gen->truth.landmarks.size()));
+            const double rmse = landmarkScore(*reg, gen->truth.landmarks).rmse;
             sum[v] += rmse;
             minJacobian[v] = reg->quality.minJacobian;
             kept += v == 1 && reg->quality.regionWarpKept;
@@ -736,10 +735,7 @@ TEST(RegistrationAccuracy, AnAtlasIntensityPlaneHelpsOnTemplateLikeSections) {
         for (int v = 0; v < 2; ++v) {
             auto reg = pipeline::registerSection(img16, plane, v == 0 ? geometric : withTemplate);
             ASSERT_TRUE(reg.ok()) << reg.error().message;
-            double ss = 0;
-            for (const auto& l : gen->truth.landmarks)
-                ss += std::pow(cv::norm(reg->atlasFromImage(l.image) - l.atlas), 2);
-            rmse[v] = std::sqrt(ss / double(gen->truth.landmarks.size()));
+            rmse[v] = landmarkScore(*reg, gen->truth.landmarks).rmse;
             minJacobian[v] = reg->quality.minJacobian;
         }
         EXPECT_LT(rmse[1], 0.75 * rmse[0]) << "AP " << ap << ": " << rmse[0] << " -> " << rmse[1];
@@ -796,10 +792,7 @@ TEST(RegistrationAccuracy, TheIntensityAffineAlignsTemplateLikeSections) {
                 ro.denseRefine = whole == 1;
                 auto reg = pipeline::registerSection(img16, plane, ro);
                 ASSERT_TRUE(reg.ok()) << reg.error().message;
-                double ss = 0;
-                for (const auto& l : gen->truth.landmarks)
-                    ss += std::pow(cv::norm(reg->atlasFromImage(l.image) - l.atlas), 2);
-                const double rmse = std::sqrt(ss / double(gen->truth.landmarks.size()));
+                const double rmse = landmarkScore(*reg, gen->truth.landmarks).rmse;
                 sum[whole][v] += rmse;
                 kept += whole == 0 && v == 1 && reg->quality.intensityAffineKept;
                 std::printf("AP %d%s %s, %s the intensity affine: RMSE %.2f%s\n", ap,
@@ -851,10 +844,7 @@ TEST(RegistrationAccuracy, TheIntensityWarpFollowsTemplateLikeSectionsBeyondTheA
             ro.intensityWarp = v == 1;
             auto reg = pipeline::registerSection(img16, plane, ro);
             ASSERT_TRUE(reg.ok()) << reg.error().message;
-            double ss = 0;
-            for (const auto& l : gen->truth.landmarks)
-                ss += std::pow(cv::norm(reg->atlasFromImage(l.image) - l.atlas), 2);
-            const double rmse = std::sqrt(ss / double(gen->truth.landmarks.size()));
+            const double rmse = landmarkScore(*reg, gen->truth.landmarks).rmse;
             sum[v] += rmse;
             if (v == 1) {
                 kept += reg->quality.intensityWarpKept;
@@ -932,12 +922,10 @@ TEST(RegistrationAccuracy, TheMountingRuleDecidesWhichWayUpASectionIs) {
     cv::Mat image;
     cv::rotate(gen->image, image, cv::ROTATE_180);
     auto rmse = [&](const pipeline::Registration& reg) {
-        double ss = 0;
-        for (const auto& l : gen->truth.landmarks) {
-            const cv::Point2d p(image.cols - 1 - l.image.x, image.rows - 1 - l.image.y);
-            ss += std::pow(cv::norm(reg.atlasFromImage(p) - l.atlas), 2);
-        }
-        return std::sqrt(ss / double(gen->truth.landmarks.size()));
+        const auto turned = [&image](cv::Point2d q) {
+            return cv::Point2d(image.cols - 1 - q.x, image.rows - 1 - q.y);
+        };
+        return landmarkScore(reg, gen->truth.landmarks, turned).rmse;
     };
     pipeline::RegistrationOptions ro;
     auto any = pipeline::registerSection(image, atlas, ro);
