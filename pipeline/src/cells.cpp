@@ -214,50 +214,87 @@ std::vector<DetectedCell> splitTouching(std::vector<DetectedCell> cells, const c
     return out;
 }
 
-/// Detections for clipped blobs of a cell's size that no detection holds yet. A pixel at the
-/// sensor's ceiling says only "at least this bright": a labelled cell clipped on a bright,
-/// textured background answers the LoG with the clipped height alone, which the texture can
-/// match, so its signal-to-noise ratio falls under the threshold; but texture and noise clip in
-/// specks, not in discs of a cell's area. Each clipped connected piece of at least
-/// kClippedCellShare of a cell's disc (pi d^2 / 4) that holds no detection and has none within
-/// the separation of its centroid becomes one cell there. Run after the area split: a clipped
-/// piece is one cell (touching clipped cells the LoG did not find stay one).
-std::vector<DetectedCell> addClippedCells(std::vector<DetectedCell> cells, const cv::Mat& clipped,
-                                          const cv::Mat& mask, const CellDetectorOptions& o,
-                                          double response) {
-    // Half a cell's disc: a cell's clipped core; set from the cell's size, not tuned (the
-    // first generator family, where parameters are chosen, never clips a cell).
-    constexpr double kClippedCellShare = 0.5;
-    if (clipped.empty())
+/// The pixels at an integer format's ceiling, and what judging them needs.
+struct Clipping {
+    cv::Mat mask;       ///< CV_8U, non-zero = clipped; empty for float images (no known ceiling)
+    cv::Mat plane;      ///< the detector's plane (inverted for dark cells), CV_32F
+    double ceiling = 0; ///< the plane's value at a clipped pixel
+};
+
+/// Detections for clipped cell cores that no detection holds yet. A pixel at the sensor's
+/// ceiling says only "at least this bright": a labelled cell clipped on a bright, textured
+/// background (a Nissl stain: every cell body stained, dense, touching) answers the LoG with the
+/// clipped height alone, which the texture matches, so its signal-to-noise ratio falls under the
+/// threshold. What tells a clipped cell from clipped stain is the cell body's own profile, a
+/// Gaussian of FWHM d (s = d / 2.3548):
+/// - its core: a cell clips over a disc, so its clipped piece holds pixels at least d/3 from any
+///   unclipped pixel (every pixel within d/3 of them is clipped); stain grains and noise clip
+///   in specks and threads. Each connected set of such core pixels is one cell (touching
+///   clipped cells keep one core each where their neck is thinner than 2 d/3);
+/// - its shoulder: clipped out to d/3, the cell is at least (ceiling - background) / g(d/3)
+///   tall, g(r) = exp(-r^2 / 2 s^2), g(d/3) = 0.735; so at its half-maximum radius d/2 it
+///   still stands 0.5 / 0.735 = 0.68 of the headroom above the local background (the top-hat's
+///   opening). The median of 16 samples on that circle must reach it: a clump of stain grains
+///   falls off sooner. Where the background itself is at the ceiling, clipping tells nothing.
+/// A core that holds no detection and has none within the separation of its centre becomes a
+/// cell there. Run after the area split.
+std::vector<DetectedCell> addClippedCells(std::vector<DetectedCell> cells, const Clipping& clip,
+                                          const cv::Mat& top, const cv::Mat& mask,
+                                          const CellDetectorOptions& o, double response) {
+    // The core radius, x diameter: where a Gaussian cell body is at 0.735 of its peak. Of 1/3,
+    // 0.37 and 0.42 (the discrete distances of a 6 px cell: 2, 2.24, 2.5 px) 1/3 was best on
+    // the Nissl sections of generated family 2's cases 0-23 (docs/cells.md).
+    constexpr double kCoreRadius = 1.0 / 3;
+    if (clip.mask.empty())
         return cells;
-    cv::Mat pieces = clipped.clone();
+    const double s = 1.0 / 2.3548; // the profile's sigma, x diameter
+    const double shoulder = 0.5 / std::exp(-kCoreRadius * kCoreRadius / (2 * s * s));
+    cv::Mat pieces = clip.mask.clone();
     if (!mask.empty())
         pieces &= mask != 0;
+    cv::Mat distance;
+    cv::distanceTransform(pieces, distance, cv::DIST_L2, cv::DIST_MASK_PRECISE);
+    const cv::Mat cores = distance >= kCoreRadius * o.diameterPx;
     cv::Mat labels, stats, centroids;
-    const int n = cv::connectedComponentsWithStats(pieces, labels, stats, centroids, 8, CV_32S);
-    const double minArea = kClippedCellShare * CV_PI * o.diameterPx * o.diameterPx / 4;
+    const int n = cv::connectedComponentsWithStats(cores, labels, stats, centroids, 8, CV_32S);
     std::vector<char> held(static_cast<size_t>(n), 0);
-    const double sep = o.minSeparation * o.diameterPx;
     for (const DetectedCell& c : cells) {
         const int x = int(std::lround(c.imagePx.x)), y = int(std::lround(c.imagePx.y));
         if (x >= 0 && y >= 0 && x < labels.cols && y < labels.rows)
             held[size_t(labels.at<int>(y, x))] = 1;
     }
+    const double sep = o.minSeparation * o.diameterPx;
     const size_t found = cells.size();
     for (int l = 1; l < n; ++l) {
-        if (held[size_t(l)] || stats.at<int>(l, cv::CC_STAT_AREA) < minArea)
+        if (held[size_t(l)])
             continue;
         const cv::Point2d centre(centroids.at<double>(l, 0), centroids.at<double>(l, 1));
         bool near = false;
         for (size_t i = 0; i < found && !near; ++i)
             near = cv::norm(cells[i].imagePx - centre) < sep;
-        if (!near)
+        if (near)
+            continue;
+        const cv::Point c(int(std::lround(centre.x)), int(std::lround(centre.y)));
+        const double background = clip.plane.at<float>(c) - top.at<float>(c);
+        const double headroom = clip.ceiling - background;
+        if (!(headroom > 0))
+            continue;
+        std::vector<float> ring;
+        for (int a = 0; a < 16; ++a) {
+            const double t = a * CV_PI / 8;
+            const cv::Point2f q(float(centre.x + 0.5 * o.diameterPx * std::cos(t)),
+                                float(centre.y + 0.5 * o.diameterPx * std::sin(t)));
+            cv::Mat px;
+            cv::getRectSubPix(clip.plane, {1, 1}, q, px);
+            ring.push_back(px.at<float>(0, 0));
+        }
+        if ((median(ring) - background) / headroom >= shoulder)
             cells.push_back({centre, response, 1});
     }
     return cells;
 }
 
-std::vector<DetectedCell> detectLoG(const cv::Mat& top, const cv::Mat& mask, const cv::Mat& clipped,
+std::vector<DetectedCell> detectLoG(const cv::Mat& top, const cv::Mat& mask, const Clipping& clip,
                                     const CellDetectorOptions& o) {
     // A disc of radius r answers most strongly at sigma = r / sqrt(2) (Lindeberg's scale
     // selection); the response is scale-normalised (sigma^2).
@@ -371,7 +408,7 @@ std::vector<DetectedCell> detectLoG(const cv::Mat& top, const cv::Mat& mask, con
         kept.push_back(c);
     }
     kept = splitTouching(std::move(kept), top, mask, o);
-    kept = addClippedCells(std::move(kept), clipped, mask, o, threshold);
+    kept = addClippedCells(std::move(kept), clip, top, mask, o, threshold);
     std::sort(kept.begin(), kept.end(), [](const DetectedCell& a, const DetectedCell& b) {
         return a.imagePx.y != b.imagePx.y ? a.imagePx.y < b.imagePx.y : a.imagePx.x < b.imagePx.x;
     });
@@ -464,16 +501,19 @@ core::Result<std::vector<DetectedCell>> detectCells(const cv::Mat& image,
                           (o.polarity == CellPolarity::Auto && cellsDark(f, o.mask));
         // Pixels at the integer format's ceiling (bright cells) or floor (dark cells that let
         // no light through) are clipped: their true value lies beyond the bound.
-        cv::Mat clipped;
+        Clipping clip;
+        clip.ceiling = image.depth() == CV_8U ? 255 : 65535;
         if (image.depth() != CV_32F)
-            clipped = dark ? f <= 0 : f >= (image.depth() == CV_8U ? 255 : 65535);
+            clip.mask = dark ? f <= 0 : f >= clip.ceiling;
         if (dark) {
             double hi = 0;
             cv::minMaxLoc(f, nullptr, &hi);
             f = hi - f;
+            clip.ceiling = hi; // a pixel at 0 (no light through) is at hi once inverted
         }
+        clip.plane = f;
         const cv::Mat top = backgroundSubtracted(f, o.diameterPx);
-        return o.method == CellMethod::LoG ? detectLoG(top, o.mask, clipped, o)
+        return o.method == CellMethod::LoG ? detectLoG(top, o.mask, clip, o)
                                            : detectThreshold(top, o.mask, o);
     } catch (const cv::Exception& e) {
         return makeError(ErrorCode::Internal, std::string("cell detection: OpenCV: ") + e.what());

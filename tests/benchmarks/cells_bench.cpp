@@ -87,6 +87,7 @@ struct RegionError {
     std::string family, method;
     int caseIndex = 0;
     bool damaged = false, brightfield = false;
+    bool nissl = false; ///< family 2's Nissl stain (every cell body stained, dense, touching)
     std::uint32_t id = 0;
     std::int64_t truth = 0, measured = 0, viaTrueMap = 0;
 };
@@ -142,12 +143,16 @@ double percentile(std::vector<double> v, double q) {
 int main(int argc, char** argv) {
     CLI::App app{"Cells per region benchmark (issue 22)"};
     std::string family = "all", size = "1500x1100", shared = SLST_SHARED_DIR, methods = "both";
-    int cases = 8, minCells = 100;
+    int cases = 8, firstCase = 0, minCells = 100;
     double diameter = 6, density = 1500, contrast = 2.0, minSnr = 4, minSep = 0.6, splitAt = 1.5;
     bool verbose = false;
     std::string dump;
     app.add_option("--family", family, "1, 2 or all")->check(CLI::IsMember({"1", "2", "all"}));
     app.add_option("--cases", cases, "Sections per family")->check(CLI::Range(1, 200));
+    app.add_option(
+           "--first-case", firstCase,
+           "Skip the cases before this one (e.g. a held-out half: --first-case 24 --cases 48)")
+        ->check(CLI::Range(0, 199));
     app.add_option("--size", size, "Section image size WxH");
     app.add_option("--shared", shared, "Shared data directory");
     app.add_option("--diameter", diameter, "Cell diameter, px (generator and detector)");
@@ -176,10 +181,12 @@ int main(int argc, char** argv) {
     std::vector<bench::BenchCase> all;
     if (family != "2")
         for (auto& c : bench::makeCases(cases, int(atlas->planes.size()), {w, h}))
-            all.push_back(c);
+            if (c.index >= firstCase)
+                all.push_back(c);
     if (family != "1")
         for (auto& c : bench::makeCasesB(cases, int(atlas->planes.size()), {w, h}))
-            all.push_back(c);
+            if (c.index >= firstCase)
+                all.push_back(c);
     std::vector<pipeline::CellMethod> ms;
     if (methods != "threshold")
         ms.push_back(pipeline::CellMethod::LoG);
@@ -294,17 +301,21 @@ int main(int argc, char** argv) {
             }
             const auto viaTrue = trueMapCounts(*found, truth, atlas->ontology);
             const Match match = matchCells(*found, trueCells, 0.6 * diameter);
-            Match& tot = totals[fam + " " + method];
-            tot.truePositives += match.truePositives;
-            tot.detected += match.detected;
-            tot.truth += match.truth;
+            const bool nissl = !first && c.optionsB.stain == sim::StainB::Nissl;
+            for (const std::string& key :
+                 {fam + " " + method, fam + " " + method + (nissl ? " nissl" : " other")}) {
+                Match& tot = totals[key];
+                tot.truePositives += match.truePositives;
+                tot.detected += match.detected;
+                tot.truth += match.truth;
+            }
             std::vector<double> rel;
             for (const auto& r : table->regions) {
                 auto t = truthTable.find(r.id);
                 if (t == truthTable.end() || t->second < minCells)
                     continue;
-                RegionError e{fam,       method,  c.index, c.damaged(), c.brightfield(), r.id,
-                              t->second, r.cells, 0};
+                RegionError e{fam,   method, c.index,   c.damaged(), c.brightfield(),
+                              nissl, r.id,   t->second, r.cells,     0};
                 auto v = viaTrue.find(r.id);
                 e.viaTrueMap = v == viaTrue.end() ? 0 : v->second;
                 rel.push_back(100.0 * std::abs(double(e.measured - e.truth)) / double(e.truth));
@@ -338,13 +349,17 @@ int main(int argc, char** argv) {
     for (const std::string fam : {"1", "2"})
         for (const auto m : ms) {
             const std::string method(pipeline::toString(m));
-            for (const std::string subset : {"all", "clean", "damaged"}) {
+            for (const std::string subset : {"all", "clean", "damaged", "nissl", "other"}) {
+                // Family 2 only: its Nissl sections and the sections of its other stains.
+                if (fam == "1" && (subset == "nissl" || subset == "other"))
+                    continue;
                 std::vector<double> rel, relTrue;
                 int within = 0, sections = 0;
                 for (const auto& e : errors) {
                     if (e.family != fam || e.method != method)
                         continue;
-                    if ((subset == "clean" && e.damaged) || (subset == "damaged" && !e.damaged))
+                    if ((subset == "clean" && e.damaged) || (subset == "damaged" && !e.damaged) ||
+                        (subset == "nissl" && !e.nissl) || (subset == "other" && e.nissl))
                         continue;
                     const double r =
                         100.0 * std::abs(double(e.measured - e.truth)) / double(e.truth);
@@ -357,7 +372,11 @@ int main(int argc, char** argv) {
                     sections += (c.family == bench::Family::First) == (fam == "1");
                 if (rel.empty())
                     continue;
-                const Match& t = totals[fam + " " + method];
+                // Precision and recall: of the subset's sections for the stain subsets, of all
+                // the family's sections otherwise.
+                const Match& t =
+                    totals[fam + " " + method +
+                           (subset == "nissl" || subset == "other" ? " " + subset : "")];
                 std::printf("%-6s %-9s %-8s %8zu %8.1f %8.1f %8.1f %8.0f%% %7.1f%% %8.3f %8.3f "
                             "%9.0f\n",
                             fam.c_str(), method.c_str(), subset.c_str(), rel.size(),

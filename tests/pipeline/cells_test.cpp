@@ -1,12 +1,14 @@
 // Cells per region (pipeline/cells.hpp): the detector on synthetic blobs, clusters, channels,
 // polarity; the count through a known registration with damage; the ontology roll-up.
 #include "slicestation/pipeline/cells.hpp"
+#include "slicestation/sim/section_generator_b.hpp"
 
 #include <gtest/gtest.h>
 
 #include <iostream>
 #include <opencv2/imgproc.hpp>
 
+#include <algorithm>
 #include <cmath>
 #include <map>
 #include <random>
@@ -227,6 +229,80 @@ TEST(CellDetector, CellsClippedOnABrightTexturedStainAreFound) {
     EXPECT_GE(found, int(0.9 * double(clippedKnown->size())))
         << "texture clipped in specks counted";
     EXPECT_LT(foundByLoG, found) << "the case needs the clipped pieces";
+}
+
+namespace {
+
+/// A plane of atlas labels: an elliptic brain of eight regions (four sectors in two rings), ids
+/// 101-108 in a 456 x 320 plane (the size of a 25 um coronal CCF plane).
+cv::Mat eightRegionPlane() {
+    cv::Mat labels(320, 456, CV_32S, cv::Scalar(0));
+    const cv::Point2d c(228, 160);
+    for (int y = 0; y < labels.rows; ++y)
+        for (int x = 0; x < labels.cols; ++x) {
+            const double u = (x - c.x) / 200, v = (y - c.y) / 140, r = std::hypot(u, v);
+            if (r > 1)
+                continue;
+            const int sector = int(std::floor((std::atan2(v, u) + CV_PI) / (CV_PI / 2))) % 4;
+            labels.at<std::int32_t>(y, x) = 101 + sector + (r > 0.6 ? 4 : 0);
+        }
+    return labels;
+}
+
+} // namespace
+
+// Ground truth on generated Nissl sections (the second generator family's Nissl stain: every
+// cell body stained, dense and touching, its level following each region's cell density; the
+// labelled cells painted over it in the same channel, clipped at the 16-bit ceiling), counted
+// through the true labels, so the error is the detector's alone. The clipped cores with the
+// cell's shoulder (addClippedCells) bring the under-count down; issue 22's 5% is not reached
+// here: measured, the median per-region error of these four sections (20 regions of >= 100
+// true cells) went from 18.3% to 11.8%, regions within 5% from 3 to 4, all still under-counted
+// (touching clipped cells with one core, docs/cells.md).
+TEST(CellGroundTruth, AGeneratedNisslSectionIsCountedPerRegionWithSmallerError) {
+    const cv::Mat labels = eightRegionPlane();
+    std::vector<double> errors;
+    for (const std::uint64_t seed : {2, 11, 18, 21}) {
+        sim::GeneratorOptionsB g;
+        g.seed = seed;
+        g.stain = sim::StainB::Nissl;
+        g.cells.enabled = true;
+        g.fiberTractIds = {};
+        g.ventricleIds = {};
+        auto gen = sim::generateSectionB(labels, core::Ontology{}, g);
+        ASSERT_TRUE(gen.ok()) << gen.error().message;
+        CellDetectorOptions o;
+        o.diameterPx = g.cells.diameterPx;
+        o.mask = gen->truth.tissueMask.clone();
+        auto found = detectCells(gen->image, o);
+        ASSERT_TRUE(found.ok()) << found.error().message;
+        std::map<std::int32_t, int> truth, measured;
+        for (const auto& c : gen->cells)
+            if (c.counted && c.atlasId > 0)
+                ++truth[c.atlasId];
+        for (const auto& c : *found) {
+            const cv::Point p(int(std::lround(c.imagePx.x)), int(std::lround(c.imagePx.y)));
+            const std::int32_t id = gen->truth.labelsInImage.at<std::int32_t>(p);
+            if (id > 0)
+                ++measured[id];
+        }
+        for (const auto& [id, n] : truth) {
+            if (n < 100)
+                continue;
+            const double err = 100.0 * (measured[id] - n) / n;
+            errors.push_back(std::abs(err));
+            std::cout << "[ nissl    ] seed " << seed << " region " << id << ": " << n << " true, "
+                      << measured[id] << " counted (" << err << "%)\n";
+        }
+    }
+    ASSERT_GE(errors.size(), 12u);
+    std::sort(errors.begin(), errors.end());
+    const double med = errors[errors.size() / 2];
+    const auto within =
+        std::count_if(errors.begin(), errors.end(), [](double e) { return e <= 5; });
+    std::cout << "[ nissl    ] median per-region error " << med << "%, " << within << " of "
+              << errors.size() << " regions within 5%\n";
+    EXPECT_LE(med, 13.0) << "before the clipped cores: 18.3%";
 }
 
 TEST(CellDetector, BadInputIsAnError) {

@@ -31,7 +31,9 @@ enum class CellMethod {
     /// the cell's own disc) above a multiple of the response's local robust noise, answering
     /// 1.7 times more at the cell's scale than at half of it (smaller texture is not a cell).
     /// Touching cells closer than about 1.1 diameters give one maximum: blobs larger than one
-    /// cell are split by area (CellDetectorOptions::splitAt).
+    /// cell are split by area (CellDetectorOptions::splitAt). In 8- and 16-bit images, cells
+    /// clipped at the format's ceiling are found by their clipped core and shoulder (a disc of
+    /// d/3 at the ceiling, 0.68 of the headroom at d/2; docs/cells.md "Nissl sections").
     LoG,
     /// The paper's rule: threshold the background-subtracted plane, drop clusters under
     /// minClusterPx, count each cluster as round(area / median cluster area) cells at its
