@@ -15,36 +15,13 @@ using namespace slicestation::testing_station;
 
 namespace {
 
-constexpr double kPitchUm = 14'000;
-
 /// Built-in sections cut at `truthUm` (um from the front of the 8000 um brain), in grid cells
 /// of `columns` in slide order.
 sim::VirtualSlide seriesSlide(const std::vector<double>& truthUm, int columns, std::uint64_t seed) {
-    sim::VirtualSlideSpec spec;
-    spec.columns = columns;
-    spec.umPerPx = kUmPerPx;
-    spec.sectionWidthUm = 13'000; // the atlas's physical size, as the fixture's slide
-    spec.sectionPitchUm = kPitchUm;
+    std::vector<sim::SlideSectionSpec> sections;
     for (std::size_t i = 0; i < truthUm.size(); ++i)
-        spec.sections.push_back({truthUm[i] / kBuiltinLengthUm, "", seed + i});
-    auto r = sim::makeVirtualSlide(spec);
-    if (!r)
-        throw std::runtime_error(r.error().message);
-    return *r;
-}
-
-struct PlanEntry {
-    std::string name;
-    double xUm = 0, yUm = 0;
-    int slice = 0;
-};
-
-nlohmann::json planOf(const std::vector<PlanEntry>& planned) {
-    nlohmann::json secs = nlohmann::json::array();
-    for (const PlanEntry& p : planned)
-        secs.push_back(
-            {{"name", p.name}, {"x_um", p.xUm}, {"y_um", p.yUm}, {"atlas_slice", p.slice}});
-    return {{"name", "series"}, {"slides", {{{"name", "slide-01"}, {"sections", secs}}}}};
+        sections.push_back({truthUm[i] / kBuiltinLengthUm, "", seed + i});
+    return builtinSlide(std::move(sections), columns);
 }
 
 } // namespace
@@ -112,12 +89,11 @@ TEST_F(SeriesGapsTest, ASkippedSectionIsRecordedAndAlertedOnceAndTheOthersStayOn
     std::vector<PlanEntry> planned;
     std::map<std::string, double> truthOf;
     for (std::size_t i = 0; i < truth.size(); ++i) {
-        const std::string name = "s" + std::to_string(i + 1);
-        planned.push_back({name, slide.sections[i].centre.xUm, slide.sections[i].centre.yUm,
-                           16 + 8 * static_cast<int>(i)});
-        truthOf[name] = truth[i];
+        const int slot = static_cast<int>(i);
+        planned.push_back(entryOf(slide, slot, 16 + 8 * slot));
+        truthOf[planned.back().name] = truth[i];
     }
-    auto id = rig_.station->submitPlan(planOf(planned), "plan");
+    auto id = rig_.station->submitPlan(planOf(planned, "series"), "plan");
     ASSERT_TRUE(id) << id.error().message;
     rig_.station->start();
     const RunRecord run = waitRun(*id, RunState::Finished);
@@ -179,7 +155,7 @@ TEST_F(SeriesGapsTest, AFailedSectionHoldsItsSlotAndIsNoSkip) {
         {"s5", c[3].centre.xUm, c[3].centre.yUm, 48}, {"s6", c[4].centre.xUm, c[4].centre.yUm, 56}};
     const std::map<std::string, double> truthOf = {
         {"s1", 1600}, {"s2", 2400}, {"s3", 3200}, {"s5", 4800}, {"s6", 5600}};
-    auto id = rig_.station->submitPlan(planOf(planned), "plan");
+    auto id = rig_.station->submitPlan(planOf(planned, "series"), "plan");
     ASSERT_TRUE(id) << id.error().message;
     rig_.station->start();
     waitRun(*id, RunState::Finished);
