@@ -195,6 +195,17 @@ protected:
         }
     }
 
+    /// Submits `plan`, starts the station and waits (bounded, waitRun) until the run is
+    /// finished. \return the run; a refused plan is a test failure and gives id 0.
+    RunRecord runToTheEnd(const nlohmann::json& plan) {
+        auto id = rig_.station->submitPlan(plan, "plan");
+        EXPECT_TRUE(id) << id.error().message;
+        if (!id)
+            return {};
+        rig_.station->start();
+        return waitRun(*id, RunState::Finished);
+    }
+
     std::vector<AlertRecord> alertsOf(const std::string& kind) {
         std::vector<AlertRecord> out;
         auto all = rig_.station->journal().alerts(false);

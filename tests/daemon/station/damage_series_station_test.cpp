@@ -48,12 +48,9 @@ TEST_F(StationTest, AGapPersistingOverNeighboursIsNotFlaggedWhileAOneOffTearIs) 
     for (int i = 0; i < kSections; ++i)
         planned.push_back(
             entryOf(persistingSlide(), i, static_cast<int>((kFirstUm + kSpacingUm * i) / 100)));
-    auto id = rig_.station->submitPlan(planOf(planned, "persisting"), "plan");
-    ASSERT_TRUE(id) << id.error().message;
-    rig_.station->start();
-    const RunRecord run = waitRun(*id, RunState::Finished);
+    const RunRecord run = runToTheEnd(planOf(planned, "persisting"));
     EXPECT_EQ(run.doneCount, kSections);
-    auto sections = rig_.station->journal().sections(*id);
+    auto sections = rig_.station->journal().sections(run.id);
     ASSERT_TRUE(sections);
     ASSERT_EQ(sections->size(), std::size_t(kSections));
     std::vector<nlohmann::json> docs;

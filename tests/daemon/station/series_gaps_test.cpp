@@ -93,13 +93,10 @@ TEST_F(SeriesGapsTest, ASkippedSectionIsRecordedAndAlertedOnceAndTheOthersStayOn
         planned.push_back(entryOf(slide, slot, 16 + 8 * slot));
         truthOf[planned.back().name] = truth[i];
     }
-    auto id = rig_.station->submitPlan(planOf(planned, "series"), "plan");
-    ASSERT_TRUE(id) << id.error().message;
-    rig_.station->start();
-    const RunRecord run = waitRun(*id, RunState::Finished);
+    const RunRecord run = runToTheEnd(planOf(planned, "series"));
     EXPECT_EQ(run.doneCount, static_cast<int>(truth.size()));
 
-    const auto regs = registrationsOf(*id, truthOf);
+    const auto regs = registrationsOf(run.id, truthOf);
     ASSERT_EQ(regs.size(), truth.size());
     for (const auto& [name, r] : regs) {
         SCOPED_TRACE(name);
@@ -155,13 +152,10 @@ TEST_F(SeriesGapsTest, AFailedSectionHoldsItsSlotAndIsNoSkip) {
         {"s5", c[3].centre.xUm, c[3].centre.yUm, 48}, {"s6", c[4].centre.xUm, c[4].centre.yUm, 56}};
     const std::map<std::string, double> truthOf = {
         {"s1", 1600}, {"s2", 2400}, {"s3", 3200}, {"s5", 4800}, {"s6", 5600}};
-    auto id = rig_.station->submitPlan(planOf(planned, "series"), "plan");
-    ASSERT_TRUE(id) << id.error().message;
-    rig_.station->start();
-    waitRun(*id, RunState::Finished);
+    const RunRecord run = runToTheEnd(planOf(planned, "series"));
 
-    const auto regs = registrationsOf(*id, truthOf);
-    auto sections = rig_.station->journal().sections(*id);
+    const auto regs = registrationsOf(run.id, truthOf);
+    auto sections = rig_.station->journal().sections(run.id);
     ASSERT_TRUE(sections);
     for (const SectionRecord& s : *sections)
         EXPECT_EQ(s.state == SectionState::Failed, s.name == "s4") << s.name;

@@ -42,13 +42,10 @@ TEST_F(StationTest, TheSeriesModelPlacesEachSectionAndASwapIsRecordedAndAlertedO
     std::vector<PlanEntry> planned;
     for (int i = 0; i < kSections; ++i)
         planned.push_back(entryOf(swappedSlide(), i, 16 + 8 * i));
-    auto id = rig_.station->submitPlan(planOf(planned, "series"), "plan");
-    ASSERT_TRUE(id) << id.error().message;
-    rig_.station->start();
-    const RunRecord run = waitRun(*id, RunState::Finished);
+    const RunRecord run = runToTheEnd(planOf(planned, "series"));
     EXPECT_EQ(run.doneCount, kSections);
 
-    auto sections = rig_.station->journal().sections(*id);
+    auto sections = rig_.station->journal().sections(run.id);
     ASSERT_TRUE(sections);
     ASSERT_EQ(sections->size(), std::size_t(kSections));
     std::map<std::int64_t, std::string> names;
