@@ -48,6 +48,10 @@ inline sim::VirtualSlide builtinSlide(std::vector<sim::SlideSectionSpec> section
     return *r;
 }
 
+/// Stage travel over a builtinSlide of one row of up to seven cells (the series tests' slides).
+inline const hw::StageLimits kOneRowOfSevenLimits{
+    {0, 110'000}, {0, 25'000}, hw::AxisRange{0, 5'000}};
+
 /// Four sections in a row, the third torn; generated once for all tests.
 inline const sim::VirtualSlide& slide() {
     static const sim::VirtualSlide s = [] {

@@ -42,7 +42,7 @@ nlohmann::json contextOf(const nlohmann::json& doc) {
 
 TEST_F(StationTest, AGapPersistingOverNeighboursIsNotFlaggedWhileAOneOffTearIs) {
     slide_ = &persistingSlide();
-    stageLimits_ = hw::StageLimits{{0, 110'000}, {0, 25'000}, hw::AxisRange{0, 5'000}};
+    stageLimits_ = kOneRowOfSevenLimits;
     build();
     std::vector<PlanEntry> planned;
     for (int i = 0; i < kSections; ++i)

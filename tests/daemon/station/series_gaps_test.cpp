@@ -84,7 +84,7 @@ TEST_F(SeriesGapsTest, ASkippedSectionIsRecordedAndAlertedOnceAndTheOthersStayOn
     // atlas, before any series logic (docs/atlas.md, "Skips and failures, end to end").
     static const sim::VirtualSlide slide = seriesSlide(truth, 7, 300);
     slide_ = &slide;
-    stageLimits_ = hw::StageLimits{{0, 110'000}, {0, 25'000}, hw::AxisRange{0, 5'000}};
+    stageLimits_ = kOneRowOfSevenLimits;
     build();
     std::vector<PlanEntry> planned;
     std::map<std::string, double> truthOf;

@@ -36,7 +36,7 @@ const sim::VirtualSlide& swappedSlide() {
 
 TEST_F(StationTest, TheSeriesModelPlacesEachSectionAndASwapIsRecordedAndAlertedOnce) {
     slide_ = &swappedSlide();
-    stageLimits_ = hw::StageLimits{{0, 110'000}, {0, 25'000}, hw::AxisRange{0, 5'000}};
+    stageLimits_ = kOneRowOfSevenLimits;
     build();
     // The plan: the sections in cutting order, one slot (800 um = 8 built-in slices) apart.
     std::vector<PlanEntry> planned;
