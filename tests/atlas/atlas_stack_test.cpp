@@ -8,6 +8,8 @@
 #include "slicestation/sim/builtin_atlas.hpp"
 #include "slicestation/sim/section_generator.hpp"
 
+#include "../common/test_dir.hpp"
+
 #include <gtest/gtest.h>
 
 #include <nlohmann/json.hpp>
@@ -17,7 +19,6 @@
 #include <filesystem>
 #include <fstream>
 #include <set>
-#include <unistd.h>
 
 using namespace slicestation;
 using namespace slicestation::daemon;
@@ -30,9 +31,7 @@ const fs::path kAtlasDir = fs::path(SLST_SHARED_DIR) / "atlas" / "allen-ccf-2017
 class AtlasStackTest : public ::testing::Test {
 protected:
     void SetUp() override {
-        dir_ = fs::temp_directory_path() /
-               ("slst_stack_" + std::to_string(::getpid()) + "_" +
-                ::testing::UnitTest::GetInstance()->current_test_info()->name());
+        dir_ = testing_dir::perTestPath("stack"); // runAtlasSlice makes it
         fs::remove_all(dir_);
     }
     void TearDown() override { fs::remove_all(dir_); }

@@ -2,6 +2,7 @@
 // each section matched against a 100 um stack of the 50 um annotation without hints, the
 // positions printed and checked for order, each section registered to its matched slice, and
 // each overlay and a contact sheet of them written (to --output, the build directory by default).
+#include "../common/major_region_stack.hpp"
 #include "slicestation/core/image_file.hpp"
 #include "slicestation/core/nrrd.hpp"
 #include "slicestation/core/ontology.hpp"
@@ -44,21 +45,14 @@ int main(int argc, char** argv) {
         std::fprintf(stderr, "cannot read the Allen files\n");
         return 1;
     }
-    auto stack = pipeline::sliceVolume(
-        *volume, pipeline::VolumeAxes::Allen,
-        {pipeline::PlaneOrientation::Coronal, 0, intervalUm, 0, 0, stackUmPerPx});
+    auto stack = testing_atlas::majorRegionStack(*volume, *onto, intervalUm, stackUmPerPx);
     if (!stack) {
         std::fprintf(stderr, "%s\n", stack.error().message.c_str());
         return 1;
     }
-    std::vector<cv::Mat> labels;
-    for (auto& s : *stack)
-        labels.push_back(pipeline::collapseLabels(s.labels, *onto, pipeline::majorRegionIds(), 8));
-    const double workUm = pipeline::matchWorkUmPerPx(labels, stackUmPerPx);
-    std::vector<pipeline::SliceFeatures> features;
-    for (size_t i = 0; i < labels.size(); ++i)
-        features.push_back(pipeline::sliceFeatures(labels[i], stackUmPerPx,
-                                                   (*stack)[i].geometry.positionUm, workUm));
+    const std::vector<cv::Mat>& labels = stack->labels;
+    const double workUm = stack->workUm;
+    const std::vector<pipeline::SliceFeatures>& features = stack->features;
 
     fs::create_directories(output);
     std::vector<cv::Mat> tiles;

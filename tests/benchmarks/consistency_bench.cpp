@@ -8,7 +8,8 @@
 // (100 um stack of the 50 um annotation, collapsed to the major regions, 25 um/px);
 // abba-gerbi-series from its curated position and tilt (sections.csv, README), sliced from the
 // 25 um annotation and collapsed the same way.
-#include "../common/abba_frame.hpp"
+#include "../common/gerbi_series.hpp"
+#include "../common/major_region_stack.hpp"
 #include "slicestation/core/image_file.hpp"
 #include "slicestation/core/nrrd.hpp"
 #include "slicestation/core/ontology.hpp"
@@ -30,7 +31,6 @@
 #include <filesystem>
 #include <fstream>
 #include <random>
-#include <sstream>
 
 using namespace slicestation;
 namespace fs = std::filesystem;
@@ -172,19 +172,11 @@ core::Result<std::vector<RealSection>> mouseSeries(const fs::path& shared) {
     if (!onto)
         return onto.error();
     const double stackUm = 25, sectionUm = 20;
-    auto stack =
-        pipeline::sliceVolume(*volume, pipeline::VolumeAxes::Allen,
-                              {pipeline::PlaneOrientation::Coronal, 0, 100, 0, 0, stackUm});
+    auto stack = testing_atlas::majorRegionStack(*volume, *onto, 100, stackUm);
     if (!stack)
         return stack.error();
-    std::vector<cv::Mat> labels;
-    for (auto& s : *stack)
-        labels.push_back(pipeline::collapseLabels(s.labels, *onto, pipeline::majorRegionIds(), 8));
-    const double workUm = pipeline::matchWorkUmPerPx(labels, stackUm);
-    std::vector<pipeline::SliceFeatures> features;
-    for (size_t i = 0; i < labels.size(); ++i)
-        features.push_back(
-            pipeline::sliceFeatures(labels[i], stackUm, (*stack)[i].geometry.positionUm, workUm));
+    const std::vector<cv::Mat>& labels = stack->labels;
+    const double workUm = stack->workUm;
     std::vector<RealSection> out;
     std::vector<pipeline::SectionFeatures> sections;
     for (int n = 1; n <= 20; ++n) {
@@ -199,12 +191,12 @@ core::Result<std::vector<RealSection>> mouseSeries(const fs::path& shared) {
         sections.push_back(std::move(*f));
         out.push_back({"mouse", name, *image, {}, {}, ventricleIds(*onto), sectionUm});
     }
-    auto match = pipeline::matchSeries(sections, features);
+    auto match = pipeline::matchSeries(sections, stack->features);
     if (!match)
         return match.error();
     for (size_t i = 0; i < out.size(); ++i) {
         out[i].atlas = labels[size_t((*match)[i].index)];
-        out[i].fine = (*stack)[size_t((*match)[i].index)].labels;
+        out[i].fine = stack->slices[size_t((*match)[i].index)].labels;
     }
     return out;
 }
@@ -218,43 +210,20 @@ core::Result<std::vector<RealSection>> gerbiSeries(const fs::path& shared) {
     auto onto = core::readOntologyCsv(atlasDir / "structure_tree_safe_2017.csv");
     if (!onto)
         return onto.error();
-    std::ifstream csv(dir / "sections.csv");
-    if (!csv)
-        return core::makeError(core::ErrorCode::NotFound, (dir / "sections.csv").string());
-    std::string line;
-    std::getline(csv, line); // header
+    auto rows = testing_abba::readGerbiRows(dir);
+    if (!rows)
+        return rows.error();
     std::vector<RealSection> out;
-    while (std::getline(csv, line)) {
-        std::vector<std::string> f;
-        std::stringstream ss(line);
-        std::string cell;
-        while (std::getline(ss, cell, ','))
-            f.push_back(cell);
-        if (f.size() < 6)
-            continue;
-        auto image = core::readImage(dir / f[1]);
+    for (const testing_abba::GerbiRow& row : *rows) {
+        auto image = core::readImage(dir / row.file);
         if (!image)
             return image.error();
-        // ABBA's position is along AP from the front of the 10 um volume (voxel centres at
-        // 5 + 10 i um from the front face); the atlas frame here starts at the 25 um volume's
-        // first voxel centre, 12.5 um from the front face. ABBA's slicing angles (README):
-        // rotationX 0.042 rad about the left-right axis leans the normal toward dorso-ventral
-        // (rows), rotationY 0.0015 rad toward left-right (columns).
-        pipeline::CuttingPlane plane;
-        plane.orientation = pipeline::PlaneOrientation::Coronal;
-        plane.positionUm = testing_abba::ccfUmFromAbbaMm(std::stod(f[5])) - 7.5;
-        plane.tiltRowsDeg = 0.042 * 180 / kPi;
-        plane.tiltColumnsDeg = 0.0015 * 180 / kPi;
-        plane.umPerPx = 25;
-        auto geo = pipeline::planeGeometry(*volume, pipeline::VolumeAxes::QuickNii, plane);
-        if (!geo)
-            return geo.error();
-        auto labels = pipeline::sampleLabels(*volume, pipeline::VolumeAxes::QuickNii, *geo);
+        auto labels = testing_abba::gerbiPlaneLabels(*volume, row.abbaMm);
         if (!labels)
             return labels.error();
-        out.push_back({"gerbi", f[1], *image,
+        out.push_back({"gerbi", row.file, *image,
                        pipeline::collapseLabels(*labels, *onto, pipeline::majorRegionIds(), 8),
-                       *labels, ventricleIds(*onto), std::stod(f[4])});
+                       *labels, ventricleIds(*onto), row.umPerPx});
     }
     return out;
 }

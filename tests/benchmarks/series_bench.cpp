@@ -6,7 +6,8 @@
 //    the curated ABBA positions of sections.csv and ABBA's tilt;
 //  - mouse: ../shared/sections/abba-mouse-series (20 sections), order and evenness only.
 // Prints a table per section and the summary lines the targets are read from.
-#include "../common/abba_frame.hpp"
+#include "../common/gerbi_series.hpp"
+#include "../common/major_region_stack.hpp"
 #include "slicestation/core/image_file.hpp"
 #include "slicestation/core/nrrd.hpp"
 #include "slicestation/core/ontology.hpp"
@@ -24,9 +25,7 @@
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
-#include <fstream>
 #include <random>
-#include <sstream>
 
 using namespace slicestation;
 namespace fs = std::filesystem;
@@ -231,21 +230,14 @@ int main(int argc, char** argv) {
         return pipeline::collapseLabels(l, *onto, pipeline::majorRegionIds(), 8);
     };
     const auto t0 = Clock::now();
-    auto slices = pipeline::sliceVolume(
-        *volume, pipeline::VolumeAxes::Allen,
-        {pipeline::PlaneOrientation::Coronal, 0, intervalUm, 0, 0, stackUmPerPx});
-    if (!slices) {
-        std::fprintf(stderr, "%s\n", slices.error().message.c_str());
+    auto cut = testing_atlas::majorRegionStack(*volume, *onto, intervalUm, stackUmPerPx);
+    if (!cut) {
+        std::fprintf(stderr, "%s\n", cut.error().message.c_str());
         return 1;
     }
-    std::vector<cv::Mat> labels;
-    for (auto& s : *slices)
-        labels.push_back(collapse(s.labels));
     Stack stack;
-    stack.workUm = pipeline::matchWorkUmPerPx(labels, stackUmPerPx);
-    for (size_t i = 0; i < labels.size(); ++i)
-        stack.features.push_back(pipeline::sliceFeatures(
-            labels[i], stackUmPerPx, (*slices)[i].geometry.positionUm, stack.workUm));
+    stack.workUm = cut->workUm;
+    stack.features = std::move(cut->features);
     const pipeline::PlaneFeatures planes = [&](double pos, double tc,
                                                double tr) -> core::Result<pipeline::SliceFeatures> {
         auto g = pipeline::planeGeometry(
@@ -427,32 +419,28 @@ int main(int argc, char** argv) {
 
     if (data == "gerbi" || data == "all") {
         const fs::path dir = fs::path(shared) / "sections" / "abba-gerbi-series";
-        std::ifstream csv(dir / "sections.csv");
-        std::string line;
-        std::getline(csv, line);
+        const auto rows = testing_abba::readGerbiRows(dir);
+        if (!rows) {
+            std::fprintf(stderr, "%s\n", rows.error().message.c_str());
+            return 1;
+        }
         std::vector<cv::Mat> images;
         std::vector<double> umPerPx, truth, abbaMm;
-        while (std::getline(csv, line)) {
-            std::stringstream ss(line);
-            std::vector<std::string> f;
-            for (std::string c; std::getline(ss, c, ',');)
-                f.push_back(c);
-            if (f.size() < 6)
-                continue;
-            auto img = core::readImage(dir / f[1]);
+        for (const testing_abba::GerbiRow& row : *rows) {
+            auto img = core::readImage(dir / row.file);
             if (!img) {
-                std::fprintf(stderr, "%s: %s\n", f[1].c_str(), img.error().message.c_str());
+                std::fprintf(stderr, "%s: %s\n", row.file.c_str(), img.error().message.c_str());
                 return 1;
             }
             images.push_back(*img);
-            umPerPx.push_back(std::stod(f[4]));
+            umPerPx.push_back(row.umPerPx);
             // ABBA's slicing-axis position, mm. ABBA (ReslicedAtlas.computeReslicedSources)
             // extends the atlas' extent along the slicing axis by 15% of its half-length on each
             // side and counts positions from the extended front: 0.15 x 13.2 mm / 2 = 0.99 mm
             // before the CCFv3 volume's front (docs/atlas.md). The stack counts from the first
             // voxel's centre (CCF coordinates: the NRRD's space origin is 0).
-            abbaMm.push_back(std::stod(f[5]));
-            truth.push_back(testing_abba::ccfUmFromAbbaMm(std::stod(f[5])));
+            abbaMm.push_back(row.abbaMm);
+            truth.push_back(testing_abba::ccfUmFromAbbaMm(row.abbaMm));
         }
         const double abbaSpacing = 335.8;
         pipeline::SeriesMatchOptions o;

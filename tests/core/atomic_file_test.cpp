@@ -2,6 +2,8 @@
 // no-replace mode, errors, and the temporary names the crash clean-up recognises.
 #include "slicestation/core/atomic_file.hpp"
 
+#include "../common/test_dir.hpp"
+
 #include <gtest/gtest.h>
 
 #include <unistd.h>
@@ -19,16 +21,9 @@ namespace {
 namespace fs = std::filesystem;
 using core::ErrorCode;
 
-class AtomicFile : public ::testing::Test {
+class AtomicFile : public testing_dir::TempDirTest {
 protected:
-    void SetUp() override {
-        dir_ = fs::temp_directory_path() /
-               ("slst-atomic-" + std::to_string(::getpid()) + "-" +
-                ::testing::UnitTest::GetInstance()->current_test_info()->name());
-        fs::remove_all(dir_);
-        fs::create_directories(dir_);
-    }
-    void TearDown() override { fs::remove_all(dir_); }
+    AtomicFile() : TempDirTest("atomic") {}
     std::vector<std::string> names() const {
         std::vector<std::string> out;
         for (const auto& e : fs::directory_iterator(dir_))
@@ -41,7 +36,6 @@ protected:
         s << in.rdbuf();
         return s.str();
     }
-    fs::path dir_;
 };
 
 TEST_F(AtomicFile, WritesAndReplacesLeavingNoTemporaryFile) {

@@ -1,11 +1,11 @@
 #include "slicestation/core/image_file.hpp"
 
+#include "../common/test_dir.hpp"
+
 #include <gtest/gtest.h>
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
 #include <zlib.h>
-
-#include <unistd.h>
 
 #include <algorithm>
 #include <cmath>
@@ -23,18 +23,9 @@ namespace {
 namespace fs = std::filesystem;
 
 /// A fresh directory under the system temp directory, removed afterwards.
-class ImageFileTest : public ::testing::Test {
+class ImageFileTest : public testing_dir::TempDirTest {
 protected:
-    void SetUp() override {
-        std::random_device random;
-        dir_ = fs::temp_directory_path() / ("slst_image_file_test_" + std::to_string(::getpid()) +
-                                            "_" + std::to_string(random()));
-        fs::create_directories(dir_);
-    }
-    void TearDown() override {
-        std::error_code ignored;
-        fs::remove_all(dir_, ignored);
-    }
+    ImageFileTest() : TempDirTest("image-file") {}
 
     fs::path file(const std::string& name) const { return dir_ / name; }
 
@@ -58,8 +49,6 @@ protected:
         std::sort(names.begin(), names.end());
         return names;
     }
-
-    fs::path dir_;
 };
 
 /// Deterministic test pattern covering the whole value range of the depth.

@@ -1,14 +1,13 @@
 #include "slicestation/core/nrrd.hpp"
 
+#include "../common/test_dir.hpp"
+
 #include <gtest/gtest.h>
 #include <zlib.h>
-
-#include <unistd.h>
 
 #include <cstdint>
 #include <filesystem>
 #include <fstream>
-#include <random>
 #include <string>
 #include <vector>
 
@@ -54,18 +53,9 @@ std::vector<std::uint8_t> encode(const std::vector<std::uint32_t>& values, int b
     return out;
 }
 
-class NrrdTest : public ::testing::Test {
+class NrrdTest : public testing_dir::TempDirTest {
 protected:
-    void SetUp() override {
-        std::random_device random;
-        dir_ = fs::temp_directory_path() /
-               ("slst_nrrd_test_" + std::to_string(::getpid()) + "_" + std::to_string(random()));
-        fs::create_directories(dir_);
-    }
-    void TearDown() override {
-        std::error_code ignored;
-        fs::remove_all(dir_, ignored);
-    }
+    NrrdTest() : TempDirTest("nrrd") {}
 
     fs::path write(const std::string& name, const std::string& header,
                    const std::vector<std::uint8_t>& data = {}) const {
@@ -96,8 +86,6 @@ protected:
         EXPECT_NE(volume.error().message.find(path.filename().string()), std::string::npos)
             << volume.error().message;
     }
-
-    fs::path dir_;
 };
 
 TEST_F(NrrdTest, ReadsRawLittleEndianUint16WithSpacing) {

@@ -1,13 +1,12 @@
 #include "slicestation/core/ontology.hpp"
 
-#include <gtest/gtest.h>
+#include "../common/test_dir.hpp"
 
-#include <unistd.h>
+#include <gtest/gtest.h>
 
 #include <algorithm>
 #include <filesystem>
 #include <fstream>
-#include <random>
 #include <string>
 
 namespace slicestation::core {
@@ -18,18 +17,9 @@ namespace fs = std::filesystem;
 const std::string kHeader =
     "id,atlas_id,name,acronym,parent_structure_id,structure_id_path,color_hex_triplet\n";
 
-class OntologyTest : public ::testing::Test {
+class OntologyTest : public testing_dir::TempDirTest {
 protected:
-    void SetUp() override {
-        std::random_device random;
-        dir_ = fs::temp_directory_path() / ("slst_ontology_test_" + std::to_string(::getpid()) +
-                                            "_" + std::to_string(random()));
-        fs::create_directories(dir_);
-    }
-    void TearDown() override {
-        std::error_code ignored;
-        fs::remove_all(dir_, ignored);
-    }
+    OntologyTest() : TempDirTest("ontology") {}
 
     fs::path write(const std::string& name, const std::string& text) const {
         const fs::path path = dir_ / name;
@@ -50,8 +40,6 @@ protected:
                 << "'" << ontology.error().message << "' should mention '" << mention << "'";
         }
     }
-
-    fs::path dir_;
 };
 
 TEST_F(OntologyTest, ParsesQuotingAndBuildsTheTree) {

@@ -1,10 +1,10 @@
 #pragma once
 // Test support: what systemd does for Type=notify services, a unix datagram socket whose path
 // goes into NOTIFY_SOCKET. Used by the notifier unit tests and the daemon process tests.
+#include "../common/test_dir.hpp"
 #include "slicestation/core/unique_fd.hpp"
 
 #include <poll.h>
-#include <stdlib.h>
 #include <sys/socket.h>
 #include <sys/un.h>
 #include <unistd.h>
@@ -24,20 +24,14 @@ inline constexpr std::chrono::seconds kEventDeadline{
 class FakeNotifySocket {
 public:
     FakeNotifySocket() {
-        std::string tmpl = (std::filesystem::temp_directory_path() / "slst-notify-XXXXXX").string();
-        dir_ = ::mkdtemp(tmpl.data());
-        path_ = dir_ / "notify";
+        path_ = dir_.path() / "notify";
         fd_.reset(::socket(AF_UNIX, SOCK_DGRAM | SOCK_CLOEXEC, 0));
         sockaddr_un addr{};
         addr.sun_family = AF_UNIX;
         std::strncpy(addr.sun_path, path_.c_str(), sizeof(addr.sun_path) - 1);
         bound_ = ::bind(fd_.get(), reinterpret_cast<sockaddr*>(&addr), sizeof(addr)) == 0;
     }
-    ~FakeNotifySocket() {
-        fd_.reset();
-        std::error_code ec;
-        std::filesystem::remove_all(dir_, ec);
-    }
+    ~FakeNotifySocket() { fd_.reset(); } // before dir_ goes with the socket file
     bool bound() const { return bound_; }
     const std::filesystem::path& path() const { return path_; }
 
@@ -56,7 +50,7 @@ public:
     std::optional<std::string> pending() { return receive(std::chrono::milliseconds(0)); }
 
 private:
-    std::filesystem::path dir_;
+    testing_dir::ScratchDir dir_{"notify"};
     std::filesystem::path path_;
     core::UniqueFd fd_;
     bool bound_ = false;

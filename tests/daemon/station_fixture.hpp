@@ -11,9 +11,9 @@
 #include "slicestation/sim/sim_stage.hpp"
 #include "slicestation/sim/virtual_slide.hpp"
 
-#include <gtest/gtest.h>
+#include "../common/test_dir.hpp"
 
-#include <unistd.h>
+#include <gtest/gtest.h>
 
 #include <atomic>
 #include <chrono>
@@ -31,39 +31,70 @@ using namespace std::chrono_literals;
 inline constexpr double kUmPerPx = 10.0;
 inline constexpr const char* kToken = "test-token-0123456789";
 
+/// A slide of built-in sections at the atlas's physical size (the generator fills ~75% of the
+/// patch; the built-in brain is ~9.7 mm wide, so 13 mm patches 14 mm apart), at kUmPerPx:
+/// `sections` in grid cells of `columns`, in slide order. Throws when the generator refuses
+/// the spec (a test's slide is fixed, so that is a mistake in the test).
+inline sim::VirtualSlide builtinSlide(std::vector<sim::SlideSectionSpec> sections, int columns) {
+    sim::VirtualSlideSpec spec;
+    spec.columns = columns;
+    spec.umPerPx = kUmPerPx;
+    spec.sectionWidthUm = 13'000;
+    spec.sectionPitchUm = 14'000;
+    spec.sections = std::move(sections);
+    auto r = sim::makeVirtualSlide(spec);
+    if (!r)
+        throw std::runtime_error(r.error().message);
+    return *r;
+}
+
+/// Stage travel over a builtinSlide of one row of up to seven cells (the series tests' slides).
+inline const hw::StageLimits kOneRowOfSevenLimits{
+    {0, 110'000}, {0, 25'000}, hw::AxisRange{0, 5'000}};
+
 /// Four sections in a row, the third torn; generated once for all tests.
 inline const sim::VirtualSlide& slide() {
     static const sim::VirtualSlide s = [] {
-        sim::VirtualSlideSpec spec;
-        spec.columns = 4;
-        spec.umPerPx = kUmPerPx;
-        // Tissue at the atlas's physical size (the generator fills ~75% of the patch; the
-        // built-in brain is ~9.7 mm wide), so the known pixel size means what it says.
-        spec.sectionWidthUm = 13'000;
-        spec.sectionPitchUm = 14'000;
         const double ap[] = {0.35, 0.45, 0.55, 0.65};
+        std::vector<sim::SlideSectionSpec> sections;
         for (int i = 0; i < 4; ++i)
-            spec.sections.push_back(
-                {ap[i], i == 2 ? "tear" : "", static_cast<std::uint64_t>(100 + i)});
-        auto r = sim::makeVirtualSlide(spec);
-        if (!r)
-            throw std::runtime_error(r.error().message);
-        return *r;
+            sections.push_back({ap[i], i == 2 ? "tear" : "", static_cast<std::uint64_t>(100 + i)});
+        return builtinSlide(std::move(sections), 4);
     }();
     return s;
 }
 
+/// One section of a plan: where the stage goes and the atlas slice the plan expects there.
+struct PlanEntry {
+    std::string name;
+    double xUm = 0, yUm = 0;
+    int slice = 0;
+};
+
+/// Section `i` of `onSlide` as the plans of the tests list it: "s<i+1>" at its centre.
+inline PlanEntry entryOf(const sim::VirtualSlide& onSlide, int i, int slice) {
+    const auto& s = onSlide.sections[static_cast<std::size_t>(i)];
+    return {"s" + std::to_string(i + 1), s.centre.xUm, s.centre.yUm, slice};
+}
+
+/// A plan `name` of one slide, "slide-01", listing `planned` in order.
+inline nlohmann::json planOf(const std::vector<PlanEntry>& planned,
+                             const std::string& name = "test-run") {
+    nlohmann::json secs = nlohmann::json::array();
+    for (const PlanEntry& p : planned)
+        secs.push_back(
+            {{"name", p.name}, {"x_um", p.xUm}, {"y_um", p.yUm}, {"atlas_slice", p.slice}});
+    return {{"name", name}, {"slides", {{{"name", "slide-01"}, {"sections", secs}}}}};
+}
+
 /// The plan for the slide: slice index = apFraction * 8000 um / 100 um.
 inline nlohmann::json planFor(const std::vector<int>& which, const std::string& name = "test-run") {
-    nlohmann::json secs = nlohmann::json::array();
+    std::vector<PlanEntry> planned;
     for (int i : which) {
-        const auto& s = slide().sections[static_cast<std::size_t>(i)];
-        secs.push_back({{"name", "s" + std::to_string(i + 1)},
-                        {"x_um", s.centre.xUm},
-                        {"y_um", s.centre.yUm},
-                        {"atlas_slice", static_cast<int>(std::lround(s.apFraction * 80))}});
+        const double ap = slide().sections[static_cast<std::size_t>(i)].apFraction;
+        planned.push_back(entryOf(slide(), i, static_cast<int>(std::lround(ap * 80))));
     }
-    return {{"name", name}, {"slides", {{{"name", "slide-01"}, {"sections", secs}}}}};
+    return planOf(planned, name);
 }
 
 struct Rig {
@@ -82,9 +113,7 @@ struct Rig {
 class StationTest : public ::testing::Test {
 protected:
     void SetUp() override {
-        rig_.dir = std::filesystem::temp_directory_path() /
-                   ("slst-station-" + std::to_string(::getpid()) + "-" +
-                    ::testing::UnitTest::GetInstance()->current_test_info()->name());
+        rig_.dir = testing_dir::perTestPath("station"); // the station makes it
         std::filesystem::remove_all(rig_.dir);
     }
     void TearDown() override {
@@ -168,6 +197,17 @@ protected:
             }
             std::this_thread::sleep_for(50ms); // polling the journal, not waiting for time to pass
         }
+    }
+
+    /// Submits `plan`, starts the station and waits (bounded, waitRun) until the run is
+    /// finished. \return the run; a refused plan is a test failure and gives id 0.
+    RunRecord runToTheEnd(const nlohmann::json& plan) {
+        auto id = rig_.station->submitPlan(plan, "plan");
+        EXPECT_TRUE(id) << id.error().message;
+        if (!id)
+            return {};
+        rig_.station->start();
+        return waitRun(*id, RunState::Finished);
     }
 
     std::vector<AlertRecord> alertsOf(const std::string& kind) {

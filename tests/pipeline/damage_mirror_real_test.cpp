@@ -3,7 +3,7 @@
 // (both lateral ventricles wider than the atlas's; tissue the atlas plane has and the section
 // lacks on both sides), so are pieces lying apart whose mirror image is tissue, and a one-sided
 // tear keeps its flag.
-#include "../common/abba_frame.hpp"
+#include "../common/gerbi_series.hpp"
 #include "slicestation/core/image_file.hpp"
 #include "slicestation/core/nrrd.hpp"
 #include "slicestation/core/ontology.hpp"
@@ -16,9 +16,7 @@
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
-#include <fstream>
 #include <map>
-#include <sstream>
 
 using namespace slicestation;
 namespace fs = std::filesystem;
@@ -45,36 +43,19 @@ GerbiSection gerbiSection(int number) {
     EXPECT_TRUE(volume.ok() && onto.ok());
     if (!volume || !onto)
         return {};
-    std::ifstream csv(kGerbi / "sections.csv");
-    std::string line;
-    std::getline(csv, line);
-    while (std::getline(csv, line)) {
-        std::vector<std::string> f;
-        std::stringstream ss(line);
-        std::string cell;
-        while (std::getline(ss, cell, ','))
-            f.push_back(cell);
-        if (f.size() < 6 || std::stoi(f[0]) != number)
+    const auto rows = testing_abba::readGerbiRows(kGerbi);
+    EXPECT_TRUE(rows.ok()) << rows.error().message;
+    for (const testing_abba::GerbiRow& row : rows ? *rows : std::vector<testing_abba::GerbiRow>{}) {
+        if (row.number != number)
             continue;
         GerbiSection out;
-        auto image = core::readImage(kGerbi / f[1]);
+        auto image = core::readImage(kGerbi / row.file);
         EXPECT_TRUE(image.ok());
         if (!image)
             return {};
         out.image = *image;
-        out.umPerPx = std::stod(f[4]);
-        constexpr double kPi = 3.14159265358979323846;
-        pipeline::CuttingPlane plane;
-        plane.orientation = pipeline::PlaneOrientation::Coronal;
-        plane.positionUm = testing_abba::ccfUmFromAbbaMm(std::stod(f[5])) - 7.5;
-        plane.tiltRowsDeg = 0.042 * 180 / kPi;
-        plane.tiltColumnsDeg = 0.0015 * 180 / kPi;
-        plane.umPerPx = 25;
-        auto geo = pipeline::planeGeometry(*volume, pipeline::VolumeAxes::QuickNii, plane);
-        EXPECT_TRUE(geo.ok());
-        if (!geo)
-            return {};
-        auto labels = pipeline::sampleLabels(*volume, pipeline::VolumeAxes::QuickNii, *geo);
+        out.umPerPx = row.umPerPx;
+        auto labels = testing_abba::gerbiPlaneLabels(*volume, row.abbaMm);
         EXPECT_TRUE(labels.ok());
         if (!labels)
             return {};

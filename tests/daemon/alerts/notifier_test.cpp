@@ -1,5 +1,6 @@
 // The alert centre alone (Notifier over a journal on a temporary directory): every alert is
 // stored first, then handed to every channel and listener; a full disk holds it, not loses it.
+#include "../../common/test_dir.hpp"
 #include "full_disk_vfs.hpp"
 #include "slicestation/daemon/alerts/notifier.hpp"
 
@@ -18,11 +19,7 @@ class NotifierTest : public ::testing::Test {
 protected:
     void SetUp() override {
         testing_vfs::FullDiskVfs::install(); // before the journal opens: it opens through it
-        dir_ = std::filesystem::temp_directory_path() /
-               ("slst-notifier-" + std::to_string(::getpid()) + "-" +
-                ::testing::UnitTest::GetInstance()->current_test_info()->name());
-        std::filesystem::remove_all(dir_);
-        std::filesystem::create_directories(dir_);
+        dir_ = testing_dir::freshTestDir("notifier");
         journal_ = Journal::open(dir_ / "journal.sqlite").value();
         notifier_ = std::make_unique<Notifier>(*journal_);
         notifier_->addChannel([this](const AlertRecord& a) { delivered_.push_back(a); });

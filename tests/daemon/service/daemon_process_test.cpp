@@ -7,6 +7,7 @@
 //   a move hangs, STOPPING and a clean exit on SIGTERM;
 // - stage faults injected in the Modbus server during runs: an alarm pauses the run until the
 //   technician asks for the alarm reset; dropped, corrupt, busy and slow replies are retried.
+#include "../../common/test_dir.hpp"
 #include "fake_notify_socket.hpp"
 #include "slicestation/core/atomic_file.hpp"
 #include "slicestation/daemon/storage/journal.hpp"
@@ -263,11 +264,7 @@ private:
 class DaemonProcessTest : public ::testing::Test {
 protected:
     void SetUp() override {
-        dir_ = fs::temp_directory_path() /
-               ("slst-daemon-" + std::to_string(::getpid()) + "-" +
-                ::testing::UnitTest::GetInstance()->current_test_info()->name());
-        fs::remove_all(dir_);
-        fs::create_directories(dir_);
+        dir_ = testing_dir::freshTestDir("daemon");
         sim::StageServerConfig sc;
         sc.slaves = {1, 2, 3};
         auto server = sim::ModbusStageServer::create(sc);

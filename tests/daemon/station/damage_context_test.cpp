@@ -3,6 +3,8 @@
 // of the sections before it in the plan's order, nearest first, unregistered ones passed over.
 #include "slicestation/daemon/station/damage_context.hpp"
 
+#include "../../common/journal_fixture.hpp"
+
 #include <gtest/gtest.h>
 
 #include <filesystem>
@@ -16,46 +18,18 @@ std::vector<cv::Point2f> square(float x, float y, float side) {
     return {{x, y}, {x + side, y}, {x + side, y + side}, {x, y + side}};
 }
 
-class DamageContextTest : public ::testing::Test {
+class DamageContextTest : public testing_journal::JournalDirTest {
 protected:
+    DamageContextTest() : JournalDirTest("damage-context") {}
     void SetUp() override {
-        dir_ = std::filesystem::temp_directory_path() /
-               ("slst-damage-context-" + std::to_string(::getpid()) + "-" +
-                ::testing::UnitTest::GetInstance()->current_test_info()->name());
-        std::filesystem::remove_all(dir_);
-        std::filesystem::create_directories(dir_);
-        auto j = Journal::open(dir_ / "journal.sqlite");
+        JournalDirTest::SetUp();
+        auto j = Journal::open(file());
         ASSERT_TRUE(j) << j.error().message;
         journal_ = std::move(*j);
     }
     void TearDown() override {
         journal_.reset();
-        std::filesystem::remove_all(dir_);
-    }
-    /// A run of `n` sections, each captured once; \return the run id and the section ids.
-    std::pair<std::int64_t, std::vector<std::int64_t>> run(int n) {
-        std::vector<PlannedSection> planned;
-        for (int i = 0; i < n; ++i) {
-            PlannedSection p;
-            p.slideName = "slide-1";
-            p.index = i;
-            p.name = "s" + std::to_string(i + 1);
-            planned.push_back(p);
-        }
-        auto id = journal_->createRun("r", {}, {}, planned);
-        EXPECT_TRUE(id);
-        std::vector<std::int64_t> ids;
-        auto sections = journal_->sections(*id);
-        EXPECT_TRUE(sections);
-        for (const auto& s : *sections) {
-            CaptureRecord c;
-            c.sectionId = s.id;
-            c.imagePath = "x.tif";
-            c.umPerPx = 8;
-            EXPECT_TRUE(journal_->recordCapture(c));
-            ids.push_back(s.id);
-        }
-        return {*id, ids};
+        JournalDirTest::TearDown();
     }
     /// Journals a registration of `sectionId` whose result keeps `outlines`.
     void registered(std::int64_t sectionId, const pipeline::AtlasDamageOutlines& outlines) {
@@ -67,7 +41,6 @@ protected:
         r.result = {{"damage_atlas", atlasOutlinesJson(outlines)}};
         ASSERT_TRUE(journal_->recordRegistration(r));
     }
-    std::filesystem::path dir_;
     std::unique_ptr<Journal> journal_;
 };
 
@@ -87,7 +60,7 @@ TEST_F(DamageContextTest, OutlinesSurviveTheResultDocument) {
 }
 
 TEST_F(DamageContextTest, TheEarlierSectionsAreReadBackNearestFirstSkippingUnregisteredOnes) {
-    const auto [runId, ids] = run(5);
+    const auto [runId, ids] = testing_journal::runWithCaptures(*journal_, 5);
     registered(ids[0], {square(0, 0, 4)});
     registered(ids[1], {square(10, 0, 4)});
     // ids[2] is not registered (pending, failed); ids[1] is rescanned and registered again:
@@ -113,7 +86,7 @@ TEST_F(DamageContextTest, TheEarlierSectionsAreReadBackNearestFirstSkippingUnreg
     EXPECT_EQ(forSecond[0], (pipeline::AtlasDamageOutlines{square(0, 0, 4)}));
     // A journal opened again (a restart) gives the same context.
     journal_.reset();
-    auto reopened = Journal::open(dir_ / "journal.sqlite");
+    auto reopened = Journal::open(file());
     ASSERT_TRUE(reopened);
     journal_ = std::move(*reopened);
     EXPECT_EQ(earlierDamageOutlines(*journal_, runId, ids[3], 2), forFourth);

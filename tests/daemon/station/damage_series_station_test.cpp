@@ -22,20 +22,13 @@ constexpr double kFirstUm = 3300, kSpacingUm = 100;
 
 const sim::VirtualSlide& persistingSlide() {
     static const sim::VirtualSlide s = [] {
-        sim::VirtualSlideSpec spec;
-        spec.columns = kSections;
-        spec.umPerPx = kUmPerPx;
-        spec.sectionWidthUm = 13'000; // the atlas's physical size, as the fixture's slide
-        spec.sectionPitchUm = 14'000;
         const char* damage[kSections] = {"missing", "missing", "missing", "missing", "tear", ""};
         const std::uint64_t seed[kSections] = {700, 700, 700, 700, 710, 711};
+        std::vector<sim::SlideSectionSpec> sections;
         for (int i = 0; i < kSections; ++i)
-            spec.sections.push_back(
+            sections.push_back(
                 {(kFirstUm + kSpacingUm * i) / kBuiltinLengthUm, damage[i], seed[i]});
-        auto r = sim::makeVirtualSlide(spec);
-        if (!r)
-            throw std::runtime_error(r.error().message);
-        return *r;
+        return builtinSlide(std::move(sections), kSections);
     }();
     return s;
 }
@@ -49,24 +42,15 @@ nlohmann::json contextOf(const nlohmann::json& doc) {
 
 TEST_F(StationTest, AGapPersistingOverNeighboursIsNotFlaggedWhileAOneOffTearIs) {
     slide_ = &persistingSlide();
-    stageLimits_ = hw::StageLimits{{0, 110'000}, {0, 25'000}, hw::AxisRange{0, 5'000}};
+    stageLimits_ = kOneRowOfSevenLimits;
     build();
-    nlohmann::json secs = nlohmann::json::array();
-    for (int i = 0; i < kSections; ++i) {
-        const auto& s = persistingSlide().sections[static_cast<std::size_t>(i)];
-        secs.push_back({{"name", "s" + std::to_string(i + 1)},
-                        {"x_um", s.centre.xUm},
-                        {"y_um", s.centre.yUm},
-                        {"atlas_slice", static_cast<int>((kFirstUm + kSpacingUm * i) / 100)}});
-    }
-    const nlohmann::json plan = {{"name", "persisting"},
-                                 {"slides", {{{"name", "slide-01"}, {"sections", secs}}}}};
-    auto id = rig_.station->submitPlan(plan, "plan");
-    ASSERT_TRUE(id) << id.error().message;
-    rig_.station->start();
-    const RunRecord run = waitRun(*id, RunState::Finished);
+    std::vector<PlanEntry> planned;
+    for (int i = 0; i < kSections; ++i)
+        planned.push_back(
+            entryOf(persistingSlide(), i, static_cast<int>((kFirstUm + kSpacingUm * i) / 100)));
+    const RunRecord run = runToTheEnd(planOf(planned, "persisting"));
     EXPECT_EQ(run.doneCount, kSections);
-    auto sections = rig_.station->journal().sections(*id);
+    auto sections = rig_.station->journal().sections(run.id);
     ASSERT_TRUE(sections);
     ASSERT_EQ(sections->size(), std::size_t(kSections));
     std::vector<nlohmann::json> docs;

@@ -9,6 +9,8 @@
 #include "slicestation/sim/sim_camera.hpp"
 #include "slicestation/sim/sim_stage.hpp"
 
+#include "../../common/test_dir.hpp"
+
 #include <gtest/gtest.h>
 
 #include <filesystem>
@@ -63,11 +65,7 @@ struct Rig {
         settings.moveTimeout = 1s;
         settings.captureTimeout = 1s;
         settings.autofocus = false;
-        dir = std::filesystem::temp_directory_path() /
-              ("slst-steps-" + std::to_string(::getpid()) + "-" +
-               ::testing::UnitTest::GetInstance()->current_test_info()->name());
-        std::filesystem::remove_all(dir);
-        std::filesystem::create_directories(dir);
+        dir = testing_dir::freshTestDir("steps");
         journal = daemon::Journal::open(dir / "journal.sqlite").value();
     }
     ~Rig() { std::filesystem::remove_all(dir); }

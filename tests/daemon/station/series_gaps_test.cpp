@@ -15,36 +15,13 @@ using namespace slicestation::testing_station;
 
 namespace {
 
-constexpr double kPitchUm = 14'000;
-
 /// Built-in sections cut at `truthUm` (um from the front of the 8000 um brain), in grid cells
 /// of `columns` in slide order.
 sim::VirtualSlide seriesSlide(const std::vector<double>& truthUm, int columns, std::uint64_t seed) {
-    sim::VirtualSlideSpec spec;
-    spec.columns = columns;
-    spec.umPerPx = kUmPerPx;
-    spec.sectionWidthUm = 13'000; // the atlas's physical size, as the fixture's slide
-    spec.sectionPitchUm = kPitchUm;
+    std::vector<sim::SlideSectionSpec> sections;
     for (std::size_t i = 0; i < truthUm.size(); ++i)
-        spec.sections.push_back({truthUm[i] / kBuiltinLengthUm, "", seed + i});
-    auto r = sim::makeVirtualSlide(spec);
-    if (!r)
-        throw std::runtime_error(r.error().message);
-    return *r;
-}
-
-struct PlanEntry {
-    std::string name;
-    double xUm = 0, yUm = 0;
-    int slice = 0;
-};
-
-nlohmann::json planOf(const std::vector<PlanEntry>& planned) {
-    nlohmann::json secs = nlohmann::json::array();
-    for (const PlanEntry& p : planned)
-        secs.push_back(
-            {{"name", p.name}, {"x_um", p.xUm}, {"y_um", p.yUm}, {"atlas_slice", p.slice}});
-    return {{"name", "series"}, {"slides", {{{"name", "slide-01"}, {"sections", secs}}}}};
+        sections.push_back({truthUm[i] / kBuiltinLengthUm, "", seed + i});
+    return builtinSlide(std::move(sections), columns);
 }
 
 } // namespace
@@ -107,23 +84,19 @@ TEST_F(SeriesGapsTest, ASkippedSectionIsRecordedAndAlertedOnceAndTheOthersStayOn
     // atlas, before any series logic (docs/atlas.md, "Skips and failures, end to end").
     static const sim::VirtualSlide slide = seriesSlide(truth, 7, 300);
     slide_ = &slide;
-    stageLimits_ = hw::StageLimits{{0, 110'000}, {0, 25'000}, hw::AxisRange{0, 5'000}};
+    stageLimits_ = kOneRowOfSevenLimits;
     build();
     std::vector<PlanEntry> planned;
     std::map<std::string, double> truthOf;
     for (std::size_t i = 0; i < truth.size(); ++i) {
-        const std::string name = "s" + std::to_string(i + 1);
-        planned.push_back({name, slide.sections[i].centre.xUm, slide.sections[i].centre.yUm,
-                           16 + 8 * static_cast<int>(i)});
-        truthOf[name] = truth[i];
+        const int slot = static_cast<int>(i);
+        planned.push_back(entryOf(slide, slot, 16 + 8 * slot));
+        truthOf[planned.back().name] = truth[i];
     }
-    auto id = rig_.station->submitPlan(planOf(planned), "plan");
-    ASSERT_TRUE(id) << id.error().message;
-    rig_.station->start();
-    const RunRecord run = waitRun(*id, RunState::Finished);
+    const RunRecord run = runToTheEnd(planOf(planned, "series"));
     EXPECT_EQ(run.doneCount, static_cast<int>(truth.size()));
 
-    const auto regs = registrationsOf(*id, truthOf);
+    const auto regs = registrationsOf(run.id, truthOf);
     ASSERT_EQ(regs.size(), truth.size());
     for (const auto& [name, r] : regs) {
         SCOPED_TRACE(name);
@@ -179,13 +152,10 @@ TEST_F(SeriesGapsTest, AFailedSectionHoldsItsSlotAndIsNoSkip) {
         {"s5", c[3].centre.xUm, c[3].centre.yUm, 48}, {"s6", c[4].centre.xUm, c[4].centre.yUm, 56}};
     const std::map<std::string, double> truthOf = {
         {"s1", 1600}, {"s2", 2400}, {"s3", 3200}, {"s5", 4800}, {"s6", 5600}};
-    auto id = rig_.station->submitPlan(planOf(planned), "plan");
-    ASSERT_TRUE(id) << id.error().message;
-    rig_.station->start();
-    waitRun(*id, RunState::Finished);
+    const RunRecord run = runToTheEnd(planOf(planned, "series"));
 
-    const auto regs = registrationsOf(*id, truthOf);
-    auto sections = rig_.station->journal().sections(*id);
+    const auto regs = registrationsOf(run.id, truthOf);
+    auto sections = rig_.station->journal().sections(run.id);
     ASSERT_TRUE(sections);
     for (const SectionRecord& s : *sections)
         EXPECT_EQ(s.state == SectionState::Failed, s.name == "s4") << s.name;

@@ -20,22 +20,14 @@ namespace {
 // slots 0..6 of an 800 um series from 1600 um, with slots 4 and 5 mounted swapped.
 constexpr double kTruthUm[] = {1600, 2400, 3200, 4000, 5600, 4800, 6400};
 constexpr int kSections = 7;
-constexpr double kPitchUm = 14'000;
 
 const sim::VirtualSlide& swappedSlide() {
     static const sim::VirtualSlide s = [] {
-        sim::VirtualSlideSpec spec;
-        spec.columns = kSections;
-        spec.umPerPx = kUmPerPx;
-        spec.sectionWidthUm = 13'000; // the atlas's physical size, as the fixture's slide
-        spec.sectionPitchUm = kPitchUm;
+        std::vector<sim::SlideSectionSpec> sections;
         for (int i = 0; i < kSections; ++i)
-            spec.sections.push_back(
+            sections.push_back(
                 {kTruthUm[i] / kBuiltinLengthUm, "", static_cast<std::uint64_t>(300 + i)});
-        auto r = sim::makeVirtualSlide(spec);
-        if (!r)
-            throw std::runtime_error(r.error().message);
-        return *r;
+        return builtinSlide(std::move(sections), kSections);
     }();
     return s;
 }
@@ -44,26 +36,16 @@ const sim::VirtualSlide& swappedSlide() {
 
 TEST_F(StationTest, TheSeriesModelPlacesEachSectionAndASwapIsRecordedAndAlertedOnce) {
     slide_ = &swappedSlide();
-    stageLimits_ = hw::StageLimits{{0, 110'000}, {0, 25'000}, hw::AxisRange{0, 5'000}};
+    stageLimits_ = kOneRowOfSevenLimits;
     build();
     // The plan: the sections in cutting order, one slot (800 um = 8 built-in slices) apart.
-    nlohmann::json secs = nlohmann::json::array();
-    for (int i = 0; i < kSections; ++i) {
-        const auto& s = swappedSlide().sections[static_cast<std::size_t>(i)];
-        secs.push_back({{"name", "s" + std::to_string(i + 1)},
-                        {"x_um", s.centre.xUm},
-                        {"y_um", s.centre.yUm},
-                        {"atlas_slice", 16 + 8 * i}});
-    }
-    const nlohmann::json plan = {{"name", "series"},
-                                 {"slides", {{{"name", "slide-01"}, {"sections", secs}}}}};
-    auto id = rig_.station->submitPlan(plan, "plan");
-    ASSERT_TRUE(id) << id.error().message;
-    rig_.station->start();
-    const RunRecord run = waitRun(*id, RunState::Finished);
+    std::vector<PlanEntry> planned;
+    for (int i = 0; i < kSections; ++i)
+        planned.push_back(entryOf(swappedSlide(), i, 16 + 8 * i));
+    const RunRecord run = runToTheEnd(planOf(planned, "series"));
     EXPECT_EQ(run.doneCount, kSections);
 
-    auto sections = rig_.station->journal().sections(*id);
+    auto sections = rig_.station->journal().sections(run.id);
     ASSERT_TRUE(sections);
     ASSERT_EQ(sections->size(), std::size_t(kSections));
     std::map<std::int64_t, std::string> names;

@@ -36,13 +36,10 @@ using namespace slicestation::testing_station;
 
 TEST_F(StationTest, AWholeRunStoresEverySectionRegistersItAndFlagsTheTornOne) {
     build();
-    auto id = rig_.station->submitPlan(planFor({0, 1, 2, 3}), "plan");
-    ASSERT_TRUE(id) << id.error().message;
-    rig_.station->start();
-    const RunRecord run = waitRun(*id, RunState::Finished);
+    const RunRecord run = runToTheEnd(planFor({0, 1, 2, 3}));
     EXPECT_EQ(run.doneCount, 4);
 
-    auto secs = rig_.station->journal().sections(*id);
+    auto secs = rig_.station->journal().sections(run.id);
     ASSERT_TRUE(secs);
     ASSERT_EQ(secs->size(), 4u);
     for (const auto& s : *secs) {
@@ -103,18 +100,19 @@ TEST_F(StationTest, AWholeRunStoresEverySectionRegistersItAndFlagsTheTornOne) {
         EXPECT_TRUE(phases.contains(p)) << p;
 
     // Export: one row per section, CSV and JSON.
-    auto csv = rig_.station->exportRun(*id, "csv");
+    auto csv = rig_.station->exportRun(run.id, "csv");
     ASSERT_TRUE(csv);
     EXPECT_EQ(std::count(csv->begin(), csv->end(), '\n'), 5);
     EXPECT_NE(csv->find("damaged"), std::string::npos);
-    auto json = rig_.station->exportRun(*id, "json");
+    auto json = rig_.station->exportRun(run.id, "json");
     ASSERT_TRUE(json);
     EXPECT_EQ(nlohmann::json::parse(*json)["sections"].size(), 4u);
-    EXPECT_EQ(rig_.station->exportRun(*id, "xml").error().code, core::ErrorCode::InvalidArgument);
+    EXPECT_EQ(rig_.station->exportRun(run.id, "xml").error().code,
+              core::ErrorCode::InvalidArgument);
 
     // Re-mounted: a rescan captures the torn section again and keeps both records.
     ASSERT_TRUE(rig_.station->requestRescan((*secs)[2].id));
-    waitRun(*id, RunState::Finished);
+    waitRun(run.id, RunState::Finished);
     EXPECT_EQ(rig_.station->journal().captures((*secs)[2].id)->size(), 2u);
     EXPECT_EQ(rig_.station->journal().registrations((*secs)[2].id)->size(), 2u);
     EXPECT_EQ(rig_.station->journal().captures((*secs)[0].id)->size(), 1u);
@@ -519,12 +517,9 @@ TEST_F(StationTest, NamesThatLookAlikeAsFileNamesAreStoredInDistinctFiles) {
          {{{"name", "slide 1"}, {"sections", {sectionAt(0, "s 1"), sectionAt(1, "s_1")}}},
           {{"name", "slide_1"},
            {"sections", {sectionAt(2, "s 1"), sectionAt(3, "s01é"), sectionAt(1, "s01è")}}}}}};
-    auto id = rig_.station->submitPlan(plan, "plan");
-    ASSERT_TRUE(id) << id.error().message;
-    rig_.station->start();
-    const RunRecord run = waitRun(*id, RunState::Finished);
+    const RunRecord run = runToTheEnd(plan);
     EXPECT_EQ(run.doneCount, 5);
-    auto secs = rig_.station->journal().sections(*id);
+    auto secs = rig_.station->journal().sections(run.id);
     ASSERT_TRUE(secs);
     ASSERT_EQ(secs->size(), 5u);
     std::set<std::string> paths;

@@ -1,6 +1,7 @@
 // Issue 18 in the journal: schema version 2 (score, verdict, flag score; station settings), the
 // migration of a version-1 file, the damage flags with their answers, and the lab's report
 // computed from them.
+#include "../../common/journal_fixture.hpp"
 #include "slicestation/daemon/config/config_document.hpp"
 #include "slicestation/daemon/config/daemon_settings.hpp"
 #include "slicestation/daemon/station/damage_report.hpp"
@@ -19,43 +20,10 @@ using slicestation::testing_journal::kShippedVersion1;
 
 namespace {
 
-class DamageJournalTest : public ::testing::Test {
+class DamageJournalTest : public testing_journal::JournalDirTest {
 protected:
-    void SetUp() override {
-        dir_ = std::filesystem::temp_directory_path() /
-               ("slst-damage-journal-" + std::to_string(::getpid()) + "-" +
-                ::testing::UnitTest::GetInstance()->current_test_info()->name());
-        std::filesystem::remove_all(dir_);
-        std::filesystem::create_directories(dir_);
-    }
-    void TearDown() override { std::filesystem::remove_all(dir_); }
-    std::filesystem::path file() const { return dir_ / "journal.sqlite"; }
+    DamageJournalTest() : JournalDirTest("damage-journal") {}
 
-    /// A run of `n` sections, each captured once; \return the section ids.
-    static std::vector<std::int64_t> runWithCaptures(Journal& j, int n) {
-        std::vector<PlannedSection> planned;
-        for (int i = 0; i < n; ++i) {
-            PlannedSection p;
-            p.slideName = "slide-1";
-            p.index = i;
-            p.name = "s" + std::to_string(i + 1);
-            planned.push_back(p);
-        }
-        auto run = j.createRun("r", {}, {}, planned);
-        EXPECT_TRUE(run);
-        std::vector<std::int64_t> ids;
-        auto sections = j.sections(*run);
-        EXPECT_TRUE(sections);
-        for (const auto& s : *sections) {
-            CaptureRecord c;
-            c.sectionId = s.id;
-            c.imagePath = "x.tif";
-            c.umPerPx = 8;
-            EXPECT_TRUE(j.recordCapture(c));
-            ids.push_back(s.id);
-        }
-        return ids;
-    }
     static RegistrationRecord scored(std::int64_t captureId, double score, double flagScore,
                                      const std::string& verdict) {
         RegistrationRecord r;
@@ -66,7 +34,6 @@ protected:
         r.damaged = verdict == "damaged";
         return r;
     }
-    std::filesystem::path dir_;
 };
 
 DamageFlag flag(double score, const std::string& action, bool answered = true,
@@ -133,7 +100,7 @@ TEST_F(DamageJournalTest, AVersion1FileMigratesAndItsOldRowsHaveNoScore) {
 TEST_F(DamageJournalTest, ScoresVerdictsAndSettingsAreStoredAndBadOnesRefused) {
     auto j = Journal::open(file());
     ASSERT_TRUE(j);
-    const auto ids = runWithCaptures(**j, 3);
+    const auto ids = testing_journal::runWithCaptures(**j, 3).sectionIds;
     auto caps = [&](std::int64_t s) { return (*j)->captures(s)->back().id; };
     ASSERT_TRUE((*j)->recordRegistration(scored(caps(ids[0]), 0.83, 0.5, "damaged")));
     ASSERT_TRUE((*j)->recordRegistration(scored(caps(ids[1]), 0.62, 0.5, "check_registration")));
@@ -164,7 +131,7 @@ TEST_F(DamageJournalTest, ScoresVerdictsAndSettingsAreStoredAndBadOnesRefused) {
 TEST_F(DamageJournalTest, AFlagCarriesTheScoreOfTheRegistrationItWasRaisedFor) {
     auto j = Journal::open(file());
     ASSERT_TRUE(j);
-    const auto ids = runWithCaptures(**j, 1);
+    const auto ids = testing_journal::runWithCaptures(**j, 1).sectionIds;
     const auto cap1 = (*j)->captures(ids[0])->back().id;
     auto r1 = scored(cap1, 0.9, 0.5, "damaged");
     r1.registeredUtc = "2026-12-02T10:00:00.000Z";

@@ -1,4 +1,5 @@
 // availableBytes: agrees with statvfs, follows what is written, and reports its errors.
+#include "../../common/test_dir.hpp"
 #include "slicestation/daemon/storage/disk_space.hpp"
 
 #include <gtest/gtest.h>
@@ -20,24 +21,8 @@ namespace {
 namespace fs = std::filesystem;
 using core::ErrorCode;
 
-class ScratchDir {
-public:
-    ScratchDir() {
-        std::string tmpl = (fs::temp_directory_path() / "slst-disk-XXXXXX").string();
-        path_ = ::mkdtemp(tmpl.data());
-    }
-    ~ScratchDir() {
-        std::error_code ec;
-        fs::remove_all(path_, ec);
-    }
-    const fs::path& path() const { return path_; }
-
-private:
-    fs::path path_;
-};
-
 TEST(DiskSpace, AgreesWithStatvfs) {
-    ScratchDir dir;
+    testing_dir::ScratchDir dir("disk");
     auto bytes = daemon::availableBytes(dir.path());
     ASSERT_TRUE(bytes) << bytes.error().message;
     struct statvfs st {};
@@ -50,7 +35,7 @@ TEST(DiskSpace, AgreesWithStatvfs) {
 TEST(DiskSpace, FollowsWritesOnASmallFileSystem) {
     if (::geteuid() != 0)
         GTEST_SKIP() << "needs root to mount a tmpfs";
-    ScratchDir dir;
+    testing_dir::ScratchDir dir("disk");
     const fs::path mnt = dir.path() / "m";
     fs::create_directories(mnt);
     if (::mount("tmpfs", mnt.c_str(), "tmpfs", 0, "size=1m") != 0) {
@@ -75,7 +60,7 @@ TEST(DiskSpace, FollowsWritesOnASmallFileSystem) {
 }
 
 TEST(DiskSpace, MissingDirectoryIsNotFound) {
-    ScratchDir dir;
+    testing_dir::ScratchDir dir("disk");
     auto r = daemon::availableBytes(dir.path() / "gone");
     ASSERT_FALSE(r);
     EXPECT_EQ(r.error().code, ErrorCode::NotFound);
@@ -84,7 +69,7 @@ TEST(DiskSpace, MissingDirectoryIsNotFound) {
 }
 
 TEST(DiskSpace, OtherFailuresAreIoErrorsWithErrno) {
-    ScratchDir dir;
+    testing_dir::ScratchDir dir("disk");
     const fs::path loop = dir.path() / "loop";
     fs::create_symlink(loop, loop); // resolving it fails with ELOOP
     auto r = daemon::availableBytes(loop);

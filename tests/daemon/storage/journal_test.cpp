@@ -1,4 +1,5 @@
 // The SQLite journal on real files: states, transactions, rescans, alerts, migrations, bad files.
+#include "../../common/journal_fixture.hpp"
 #include "full_disk_vfs.hpp"
 #include "slicestation/daemon/storage/journal.hpp"
 
@@ -14,17 +15,9 @@ using namespace slicestation::daemon;
 
 namespace {
 
-class JournalTest : public ::testing::Test {
+class JournalTest : public testing_journal::JournalDirTest {
 protected:
-    void SetUp() override {
-        dir_ = std::filesystem::temp_directory_path() /
-               ("slst-journal-" + std::to_string(::getpid()) + "-" +
-                ::testing::UnitTest::GetInstance()->current_test_info()->name());
-        std::filesystem::remove_all(dir_);
-        std::filesystem::create_directories(dir_);
-    }
-    void TearDown() override { std::filesystem::remove_all(dir_); }
-    std::filesystem::path file() const { return dir_ / "journal.sqlite"; }
+    JournalTest() : JournalDirTest("journal") {}
 
     static std::vector<PlannedSection> twoSlides() {
         std::vector<PlannedSection> v;
@@ -51,7 +44,6 @@ protected:
         c.exposureUs = 1000;
         return c;
     }
-    std::filesystem::path dir_;
 };
 
 } // namespace

@@ -2,6 +2,7 @@
 // SubIFDs, BigTIFF when forced or past the threshold, and the OME-XML's metadata, checked with
 // libtiff directly (not only through our own reader) and against the OME schema's rules that
 // Bio-Formats relies on.
+#include "../../common/test_dir.hpp"
 #include "slicestation/core/image_file.hpp"
 #include "slicestation/core/tiff_file.hpp"
 #include "slicestation/daemon/storage/ome_tiff.hpp"
@@ -35,22 +36,6 @@ namespace fs = std::filesystem;
 using core::ErrorCode;
 using daemon::OmeTiffInfo;
 using daemon::OmeTiffLayout;
-
-class TempDir {
-public:
-    TempDir() {
-        std::string tmpl = (fs::temp_directory_path() / "slst-pyr-XXXXXX").string();
-        path_ = ::mkdtemp(tmpl.data());
-    }
-    ~TempDir() {
-        std::error_code ec;
-        fs::remove_all(path_, ec);
-    }
-    const fs::path& path() const { return path_; }
-
-private:
-    fs::path path_;
-};
 
 /// A smooth gradient with noise: reduced levels differ from nearest-neighbour picks.
 cv::Mat sectionLike(int type, int width, int height) {
@@ -116,7 +101,7 @@ RawLevel rawLevel(TIFF* tif) {
 class OmePyramid : public ::testing::TestWithParam<int> {};
 
 TEST_P(OmePyramid, TiledLevelsInSubIfdsAreAreaReductionsOfTheFullImage) {
-    TempDir dir;
+    testing_dir::ScratchDir dir("pyr");
     const fs::path file = dir.path() / "big.ome.tif";
     // 2600 px: levels 2600, 1300, 650 (the last fits in 1024 px).
     const cv::Mat image = sectionLike(GetParam(), 2600, 1900);
@@ -194,7 +179,7 @@ TEST(OmePyramid, LevelSizesHalveUntilTheTopFits) {
 }
 
 TEST(OmePyramid, BigTiffWhenForcedOrPastTheThreshold) {
-    TempDir dir;
+    testing_dir::ScratchDir dir("pyr");
     const cv::Mat image = sectionLike(CV_8UC1, 1500, 700);
     const auto magic = [](const fs::path& p) {
         std::ifstream in(p, std::ios::binary);
@@ -231,7 +216,7 @@ TEST(OmePyramid, BigTiffWhenForcedOrPastTheThreshold) {
 }
 
 TEST(OmePyramid, TileReadsOutsideTheFileAreErrors) {
-    TempDir dir;
+    testing_dir::ScratchDir dir("pyr");
     const fs::path file = dir.path() / "t.ome.tif";
     ASSERT_TRUE(daemon::writeOmeTiffAtomic(file, sectionLike(CV_8UC1, 1100, 600), pyramidInfo()));
     auto edge = core::readTiffTile(file, 0, 2, 1); // the last tile: 76 x 88 px
@@ -261,7 +246,7 @@ TEST(OmePyramid, TileReadsOutsideTheFileAreErrors) {
 }
 
 TEST(OmePyramid, LayoutOutOfRangeIsRefused) {
-    TempDir dir;
+    testing_dir::ScratchDir dir("pyr");
     for (const int tile : {0, 8, 100, 8192}) {
         OmeTiffLayout layout;
         layout.tileSizePx = tile;
@@ -366,7 +351,7 @@ TEST(OmePyramid, OmeXmlFollowsTheSchemaRulesBioFormatsUses) {
 }
 
 TEST(OmePyramid, ObjectiveColourAndVersionComeBack) {
-    TempDir dir;
+    testing_dir::ScratchDir dir("pyr");
     const fs::path file = dir.path() / "m.ome.tif";
     OmeTiffInfo info = pyramidInfo();
     info.channelRgba = 0xFF0000FFu;

@@ -1,5 +1,6 @@
 // OME-TIFF writing and reading: round trips, the OME-XML content, atomic replacement and every
 // error path (bad arguments, missing / read-only directory, disk full, unreadable files).
+#include "../../common/test_dir.hpp"
 #include "slicestation/core/image_file.hpp"
 #include "slicestation/daemon/storage/ome_tiff.hpp"
 
@@ -32,22 +33,6 @@ namespace {
 namespace fs = std::filesystem;
 using core::ErrorCode;
 using daemon::OmeTiffInfo;
-
-class TempDir {
-public:
-    TempDir() {
-        std::string tmpl = (fs::temp_directory_path() / "slst-ome-XXXXXX").string();
-        path_ = ::mkdtemp(tmpl.data());
-    }
-    ~TempDir() {
-        std::error_code ec;
-        fs::remove_all(path_, ec);
-    }
-    const fs::path& path() const { return path_; }
-
-private:
-    fs::path path_;
-};
 
 /// A tmpfs mounted for one test (root only; tests skip when mounting is not permitted).
 class TmpfsMount {
@@ -137,7 +122,7 @@ std::string runCommand(const std::string& command) {
 class OmeTiffRoundTrip : public ::testing::TestWithParam<int> {};
 
 TEST_P(OmeTiffRoundTrip, PixelsAndMetadataComeBackExactly) {
-    TempDir dir;
+    testing_dir::ScratchDir dir("ome");
     const fs::path file = dir.path() / "s.ome.tif";
     const cv::Mat image = randomImage(GetParam());
     const OmeTiffInfo info = sampleInfo();
@@ -190,7 +175,7 @@ INSTANTIATE_TEST_SUITE_P(Types, OmeTiffRoundTrip, ::testing::Values(CV_8UC1, CV_
                          });
 
 TEST(OmeTiff, XmlStatesPixelSizePositionChannelAndDate) {
-    TempDir dir;
+    testing_dir::ScratchDir dir("ome");
     const fs::path file = dir.path() / "x.ome.tif";
     ASSERT_TRUE(daemon::writeOmeTiffAtomic(file, randomImage(CV_8UC3, 64, 48), sampleInfo()));
     const std::string xml = tiffDescription(file);
@@ -237,7 +222,7 @@ TEST(OmeTiff, XmlStatesPixelSizePositionChannelAndDate) {
 }
 
 TEST(OmeTiff, EmptyAcquisitionTimeStoresTheTimeOfWriting) {
-    TempDir dir;
+    testing_dir::ScratchDir dir("ome");
     OmeTiffInfo info = sampleInfo();
     info.acquiredUtc.clear();
     ASSERT_TRUE(daemon::writeOmeTiffAtomic(dir.path() / "t.ome.tif", randomImage(CV_8UC1), info));
@@ -248,7 +233,7 @@ TEST(OmeTiff, EmptyAcquisitionTimeStoresTheTimeOfWriting) {
 }
 
 TEST(OmeTiff, InvalidArgumentsWriteNothing) {
-    TempDir dir;
+    testing_dir::ScratchDir dir("ome");
     const fs::path file = dir.path() / "bad.ome.tif";
     const auto expectInvalid = [&](const cv::Mat& image, const OmeTiffInfo& info,
                                    const std::string& why) {
@@ -286,7 +271,7 @@ TEST(OmeTiff, InvalidArgumentsWriteNothing) {
 }
 
 TEST(OmeTiff, MissingDirectoryIsAnIoErrorWithErrno) {
-    TempDir dir;
+    testing_dir::ScratchDir dir("ome");
     const fs::path file = dir.path() / "no" / "such" / "dir" / "a.ome.tif";
     auto r = daemon::writeOmeTiffAtomic(file, randomImage(CV_8UC1), sampleInfo());
     ASSERT_FALSE(r);
@@ -297,7 +282,7 @@ TEST(OmeTiff, MissingDirectoryIsAnIoErrorWithErrno) {
 }
 
 TEST(OmeTiff, ReadOnlyDirectoryLeavesNothing) {
-    TempDir dir;
+    testing_dir::ScratchDir dir("ome");
     const fs::path ro = dir.path() / "ro";
     std::optional<TmpfsMount> mount;
     if (::geteuid() == 0) {
@@ -321,7 +306,7 @@ TEST(OmeTiff, ReadOnlyDirectoryLeavesNothing) {
 TEST(OmeTiff, DiskFullReportsEnospcAndLeavesNothing) {
     if (::geteuid() != 0)
         GTEST_SKIP() << "needs root to mount a small tmpfs";
-    TempDir dir;
+    testing_dir::ScratchDir dir("ome");
     const fs::path small = dir.path() / "small";
     TmpfsMount mount(small, 0, "size=64k");
     if (!mount.mounted())
@@ -337,7 +322,7 @@ TEST(OmeTiff, DiskFullReportsEnospcAndLeavesNothing) {
 }
 
 TEST(OmeTiff, AnExistingFileIsNeverReplaced) {
-    TempDir dir;
+    testing_dir::ScratchDir dir("ome");
     const fs::path file = dir.path() / "r.ome.tif";
     const cv::Mat first = randomImage(CV_16UC1, 200, 100, 1);
     const cv::Mat second = randomImage(CV_16UC1, 120, 80, 2);
@@ -377,7 +362,7 @@ TEST(OmeTiff, AnExistingFileIsNeverReplaced) {
 
 TEST(OmeTiff, AFailingWriteReportsItsErrnoAndLeavesNothing) {
     // The injected fault goes through the writer's real error path (no root, no mount).
-    TempDir dir;
+    testing_dir::ScratchDir dir("ome");
     daemon::setOmeTiffWriteFaultForTesting(ENOSPC);
     auto r =
         daemon::writeOmeTiffAtomic(dir.path() / "full.ome.tif", randomImage(CV_8UC1), sampleInfo());
@@ -391,7 +376,7 @@ TEST(OmeTiff, AFailingWriteReportsItsErrnoAndLeavesNothing) {
 }
 
 TEST(OmeTiff, ReadErrors) {
-    TempDir dir;
+    testing_dir::ScratchDir dir("ome");
     auto missing = daemon::readOmeTiff(dir.path() / "none.ome.tif");
     ASSERT_FALSE(missing);
     EXPECT_EQ(missing.error().code, ErrorCode::NotFound);
@@ -435,7 +420,7 @@ TEST(OmeTiff, ReadErrors) {
 }
 
 TEST(OmeTiff, UnsupportedPixelTypeOnRead) {
-    TempDir dir;
+    testing_dir::ScratchDir dir("ome");
     // A float OME-TIFF (another writer's): valid XML, pixel type we do not take.
     const fs::path file = dir.path() / "f.tif";
     TIFF* tif = TIFFOpen(file.c_str(), "w");

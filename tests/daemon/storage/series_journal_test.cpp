@@ -1,13 +1,12 @@
 // Issue 19 in the journal: schema version 3 (each registration's planned, matched and found
 // plane and the series model's word), the migration of a version-2 file, and the series word
 // updated as the model refits.
+#include "../../common/journal_fixture.hpp"
 #include "slicestation/daemon/storage/journal.hpp"
 #include "storage/shipped_schemas.hpp"
 
 #include <gtest/gtest.h>
 #include <sqlite3.h>
-
-#include <unistd.h>
 
 #include <filesystem>
 
@@ -18,17 +17,9 @@ using slicestation::testing_journal::kShippedVersion2;
 
 namespace {
 
-class SeriesJournalTest : public ::testing::Test {
+class SeriesJournalTest : public testing_journal::JournalDirTest {
 protected:
-    void SetUp() override {
-        dir_ = std::filesystem::temp_directory_path() /
-               ("slst-series-journal-" + std::to_string(::getpid()) + "-" +
-                ::testing::UnitTest::GetInstance()->current_test_info()->name());
-        std::filesystem::remove_all(dir_);
-        std::filesystem::create_directories(dir_);
-    }
-    void TearDown() override { std::filesystem::remove_all(dir_); }
-    std::filesystem::path file() const { return dir_ / "journal.sqlite"; }
+    SeriesJournalTest() : JournalDirTest("series-journal") {}
 
     /// A run of one section with expected slice 40, captured once; \return the capture id.
     static std::int64_t captured(Journal& j, std::int64_t& sectionId) {
@@ -47,7 +38,6 @@ protected:
         EXPECT_TRUE(id);
         return id ? *id : 0;
     }
-    std::filesystem::path dir_;
 };
 
 } // namespace
