@@ -557,6 +557,16 @@ TEST_F(DaemonProcessTest, AStageAlarmPausesTheRunUntilTheTechnicianAsksForTheRes
     const int hookPort = hook.bind_to_any_port("127.0.0.1");
     ASSERT_GT(hookPort, 0);
     std::thread hookThread([&] { hook.listen_after_bind(); });
+    // Stops the receiver on every way out of the test, a failed ASSERT included.
+    struct HookGuard {
+        httplib::Server& server;
+        std::thread& thread;
+        ~HookGuard() {
+            server.stop();
+            if (thread.joinable())
+                thread.join();
+        }
+    } hookGuard{hook, hookThread};
     const fs::path commandOut = dir_ / "command-alerts.txt";
     {
         std::ofstream t(dir_ / "station.toml", std::ios::app);
@@ -565,11 +575,13 @@ TEST_F(DaemonProcessTest, AStageAlarmPausesTheRunUntilTheTechnicianAsksForTheRes
              "\"echo \\\"$SLST_ALERT_ID $SLST_ALERT_KIND\\\" >> "
           << commandOut.string() << "\"]\n";
     }
+    // The X drive alarms in its first move, the one to section 1. Arming it once section 1 was
+    // done raced the run: captures go ahead of registration, and in CI's sanitizer build every
+    // move had been made before the first section was registered (the run finished unpaused).
+    server_->armAlarm(1, 0x30);
     startDaemon(true);
     const int port = httpPort();
     ASSERT_GT(port, 0);
-    waitDone(port, 1);
-    server_->armAlarm(1, 0x30); // the X drive alarms in its next move
     auto run = waitRun(port, {"paused", "finished"});
     ASSERT_EQ(run.value("state", ""), "paused");
     EXPECT_NE(run.value("reason", "").find("stage_fault"), std::string::npos) << run.dump();
