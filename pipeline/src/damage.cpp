@@ -11,9 +11,11 @@
 #include <array>
 #include <cmath>
 #include <cstdio>
+#include <limits>
 #include <map>
 #include <optional>
 #include <unordered_map>
+#include <utility>
 
 namespace slicestation::pipeline {
 namespace {
@@ -408,7 +410,8 @@ cv::Mat valleysOf(const cv::Mat& sharp, GreyLevels levels, const DamageParams& p
 std::vector<DamageRegion> thinCracks(const cv::Mat& grey, const cv::Mat& tissue,
                                      const AtlasExpectation& expected, const cv::Mat& ventricles,
                                      double brainWidthPx, const DamageParams& params,
-                                     const Midline& midline, const cv::Mat& known) {
+                                     const Midline& midline, const cv::Mat& known,
+                                     std::vector<DamageRegion>* pieces) {
     CV_Assert(grey.type() == CV_32F && tissue.type() == CV_8U && tissue.size() == grey.size() &&
               expected.brain.size() == grey.size() && ventricles.size() == grey.size() &&
               (known.empty() || known.size() == grey.size()) &&
@@ -426,10 +429,14 @@ std::vector<DamageRegion> thinCracks(const cv::Mat& grey, const cv::Mat& tissue,
                                      crop(expected.parts), crop(expected.dark)};
         const cv::Point2f shift(float(work.x), float(work.y));
         const Midline boxMidline{midline.a - shift, midline.b - shift};
+        const std::size_t firstPiece = pieces ? pieces->size() : 0;
         out = thinCracks(grey(work), tissue(work), inBox, ventricles(work), brainWidthPx, params,
-                         boxMidline, crop(known));
+                         boxMidline, crop(known), pieces);
         for (DamageRegion& d : out)
             for (cv::Point2f& p : d.polygon)
+                p += shift;
+        for (std::size_t k = firstPiece; pieces && k < pieces->size(); ++k)
+            for (cv::Point2f& p : (*pieces)[k].polygon)
                 p += shift;
         return out;
     }
@@ -521,9 +528,13 @@ std::vector<DamageRegion> thinCracks(const cv::Mat& grey, const cv::Mat& tissue,
     cv::Mat labels, stats, centroids;
     const int n = cv::connectedComponentsWithStats(thin, labels, stats, centroids, 8, CV_32S);
     const double minLength = params.crackMinFrac * brainWidthPx;
+    // Shorter lines are looked at only when the caller collects the pieces of a crack.
+    const double pieceLength = pieces && params.crackPieceFrac > 0
+                                   ? std::min(minLength, params.crackPieceFrac * brainWidthPx)
+                                   : minLength;
     for (int i = 1; i < n; ++i) {
         const int w = stats.at<int>(i, cv::CC_STAT_WIDTH), h = stats.at<int>(i, cv::CC_STAT_HEIGHT);
-        if (std::max(w, h) < 0.7 * minLength)
+        if (std::max(w, h) < 0.7 * pieceLength)
             continue;
         const double area = stats.at<int>(i, cv::CC_STAT_AREA);
         const cv::Rect bounds(stats.at<int>(i, cv::CC_STAT_LEFT), stats.at<int>(i, cv::CC_STAT_TOP),
@@ -541,7 +552,7 @@ std::vector<DamageRegion> thinCracks(const cv::Mat& grey, const cv::Mat& tissue,
         double radius = 0;
         cv::minMaxLoc(dist, nullptr, &radius);
         const double thickness = 2 * radius;
-        if (length < minLength || length < params.crackElongation * std::max(thickness, 1.0))
+        if (length < pieceLength || length < params.crackElongation * std::max(thickness, 1.0))
             continue;
         if (!tissueParts.empty() &&
             betweenParts(region, tissueParts(roi), ringPx, params.fissurePurity))
@@ -577,9 +588,144 @@ std::vector<DamageRegion> thinCracks(const cv::Mat& grey, const cv::Mat& tissue,
         d.share = area / tissueArea;
         d.lengthPx = length;
         d.thicknessPx = thickness;
-        out.push_back(std::move(d));
+        if (length < minLength)
+            pieces->push_back(std::move(d));
+        else
+            out.push_back(std::move(d));
     }
     return out;
+}
+
+namespace {
+/// The closest points of two outlines, each a closed polygon of at least one point (the
+/// distance between two polygons is reached at a vertex of one of them).
+std::pair<cv::Point2f, cv::Point2f> closestPoints(const std::vector<cv::Point2f>& a,
+                                                  const std::vector<cv::Point2f>& b) {
+    std::pair<cv::Point2f, cv::Point2f> best{a.front(), b.front()};
+    double bestD = std::numeric_limits<double>::infinity();
+    const auto scan = [&](const std::vector<cv::Point2f>& from, const std::vector<cv::Point2f>& to,
+                          bool swapped) {
+        for (const cv::Point2f& p : from)
+            for (std::size_t k = 0; k < to.size(); ++k) {
+                const cv::Point2f q0 = to[k], q1 = to[(k + 1) % to.size()];
+                const cv::Point2f d = q1 - q0;
+                const float len2 = d.dot(d);
+                const float t = len2 > 0 ? std::clamp((p - q0).dot(d) / len2, 0.0f, 1.0f) : 0.0f;
+                const cv::Point2f q = q0 + t * d;
+                const double dist = cv::norm(p - q);
+                if (dist < bestD) {
+                    bestD = dist;
+                    best = swapped ? std::make_pair(q, p) : std::make_pair(p, q);
+                }
+            }
+    };
+    scan(a, b, false);
+    scan(b, a, true);
+    return best;
+}
+
+/// Whether the break between two outlines (mask px of `grey`, CV_32F) is a fainter stretch of a
+/// crack: at most `maxBreak` long, and bridged by pixels of `inside` (CV_8U) darker than the
+/// tissue around the break by `depth`, within a box around it as wide as it is long each way.
+bool fainterStretch(const cv::Mat& grey, const cv::Mat& inside, const std::vector<cv::Point2f>& a,
+                    const std::vector<cv::Point2f>& b, double maxBreak, float depth) {
+    if (a.empty() || b.empty())
+        return false;
+    const auto [p, q] = closestPoints(a, b);
+    const double length = cv::norm(p - q);
+    if (length > maxBreak)
+        return false;
+    const cv::Point2f mid = 0.5f * (p + q);
+    const int reach = static_cast<int>(std::ceil(length)) + 2;
+    const cv::Rect box =
+        cv::Rect(cvRound(mid.x) - reach, cvRound(mid.y) - reach, 2 * reach + 1, 2 * reach + 1) &
+        cv::Rect(0, 0, grey.cols, grey.rows);
+    if (box.area() == 0)
+        return false;
+    const auto paint = [&](const std::vector<cv::Point2f>& poly) {
+        cv::Mat m = cv::Mat::zeros(box.size(), CV_8U);
+        std::vector<cv::Point> pts;
+        for (const cv::Point2f& v : poly)
+            pts.emplace_back(cvRound(v.x) - box.x, cvRound(v.y) - box.y);
+        // A thin line's outline may be two points: its outline drawn as well as its inside.
+        const std::vector<std::vector<cv::Point>> outline{pts};
+        cv::fillPoly(m, outline, cv::Scalar(255));
+        cv::polylines(m, outline, true, cv::Scalar(255));
+        return m;
+    };
+    const cv::Mat ma = paint(a), mb = paint(b);
+    // The tissue around the break: its median level in the box, the two lines left out.
+    const cv::Mat around = inside(box) & ~ma & ~mb;
+    if (cv::countNonZero(ma) == 0 || cv::countNonZero(mb) == 0 || cv::countNonZero(around) == 0)
+        return false;
+    const cv::Mat g = grey(box);
+    const float level = percentile(g, 0.5, around);
+    const cv::Mat bridge = ((g < level - depth) & inside(box)) | ma | mb;
+    cv::Mat labels;
+    const int n = cv::connectedComponents(bridge, labels, 8, CV_32S);
+    std::vector<bool> reachedFromA(static_cast<std::size_t>(n), false);
+    for (int y = 0; y < box.height; ++y)
+        for (int x = 0; x < box.width; ++x)
+            if (ma.at<std::uint8_t>(y, x))
+                reachedFromA[static_cast<std::size_t>(labels.at<std::int32_t>(y, x))] = true;
+    for (int y = 0; y < box.height; ++y)
+        for (int x = 0; x < box.width; ++x)
+            if (mb.at<std::uint8_t>(y, x) &&
+                reachedFromA[static_cast<std::size_t>(labels.at<std::int32_t>(y, x))])
+                return true;
+    return false;
+}
+} // namespace
+
+std::vector<DamageRegion> continueTears(std::vector<DamageRegion>& regions,
+                                        const std::vector<DamageRegion>& pieces,
+                                        const cv::Mat& grey, const cv::Mat& tissue,
+                                        double brainWidthPx, const DamageParams& params,
+                                        double polygonScale) {
+    CV_Assert(grey.type() == CV_32F && tissue.type() == CV_8U && tissue.size() == grey.size());
+    std::vector<DamageRegion> joined;
+    if (pieces.empty() || brainWidthPx <= 0)
+        return joined;
+    const GreyLevels levels = greyLevels(grey, tissue);
+    const float span = levels.tissue - levels.glass;
+    if (span <= 0)
+        return joined;
+    const float depth = static_cast<float>(params.threadDepth) * span;
+    const cv::Mat inside = fillHoles(tissue);
+    const double maxBreak = params.crackMinFrac * brainWidthPx;
+    const auto toMask = [polygonScale](const std::vector<cv::Point2f>& poly) {
+        std::vector<cv::Point2f> o;
+        o.reserve(poly.size());
+        for (const cv::Point2f& p : poly)
+            o.emplace_back(float((p.x + 0.5) * polygonScale - 0.5),
+                           float((p.y + 0.5) * polygonScale - 0.5));
+        return o;
+    };
+    std::vector<std::vector<cv::Point2f>> pieceOutlines;
+    for (const DamageRegion& d : pieces)
+        pieceOutlines.push_back(toMask(d.polygon));
+    std::vector<bool> taken(pieces.size(), false);
+    for (DamageRegion& tear : regions) {
+        if (tear.kind != DamageKind::Tear)
+            continue;
+        std::vector<std::vector<cv::Point2f>> frontier{toMask(tear.polygon)};
+        double added = 0;
+        while (!frontier.empty()) {
+            const std::vector<cv::Point2f> from = std::move(frontier.back());
+            frontier.pop_back();
+            for (std::size_t k = 0; k < pieces.size(); ++k) {
+                if (taken[k] ||
+                    !fainterStretch(grey, inside, pieceOutlines[k], from, maxBreak, depth))
+                    continue;
+                taken[k] = true;
+                added += pieces[k].lengthPx;
+                frontier.push_back(pieceOutlines[k]);
+                joined.push_back(pieces[k]);
+            }
+        }
+        tear.lengthPx += added;
+    }
+    return joined;
 }
 
 std::vector<DamageRegion> foldBands(const cv::Mat& grey, const cv::Mat& tissueMask,

@@ -1065,11 +1065,18 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
                 if (poly.size() >= 3)
                     cv::fillPoly(known, std::vector<std::vector<cv::Point>>{poly}, cv::Scalar(255));
             }
+            std::vector<DamageRegion> pieces;
+            const cv::Mat tissueAtCracks = up(sectionTissue);
             std::vector<DamageRegion> cracks =
-                thinCracks(grey, up(sectionTissue), fullExpected, up(ventricles),
-                           brainWidth / s * c, options.damage, midline, known);
+                thinCracks(grey, tissueAtCracks, fullExpected, up(ventricles), brainWidth / s * c,
+                           options.damage, midline, known, &pieces);
             toFullPixels(cracks, c);
+            toFullPixels(pieces, c);
             for (DamageRegion& d : cracks)
+                regions.push_back(std::move(d));
+            // A crack hidden for a stretch under debris: the pieces beyond continue its tear.
+            for (DamageRegion& d : continueTears(regions, pieces, grey, tissueAtCracks,
+                                                 brainWidth / s * c, options.damage, c))
                 regions.push_back(std::move(d));
         }
         // Bilateral anatomy is not damage: a gap whose mirror image across the brain's midline

@@ -378,9 +378,14 @@ int main(int argc, char** argv) {
     app.add_option("--crack-darkness", crackDarkness,
                    "DamageParams::crackDarkness (0: cracks must show glass, as before 2026-12-02)")
         ->check(CLI::Range(0.0, 1.0));
-    std::string mirroredGaps = "off";
+    std::string mirroredGaps = "on";
     app.add_option("--mirrored-gaps", mirroredGaps,
                    "DamageParams::leaveOutMirroredGaps: gaps with a mirrored twin left out")
+        ->check(CLI::IsMember({"on", "off"}));
+    std::string crackPieces = "on";
+    app.add_option("--crack-pieces", crackPieces,
+                   "DamageParams::crackPieceFrac: a tear followed across a break to the pieces of "
+                   "crack beyond it (off: crackPieceFrac 0)")
         ->check(CLI::IsMember({"on", "off"}));
     bool damageOnly = false;
     pipeline::SeriesContextParams contextParams;
@@ -461,6 +466,8 @@ int main(int argc, char** argv) {
             }
             ro.damage.crackDarkness = crackDarkness;
             ro.damage.leaveOutMirroredGaps = mirroredGaps == "on";
+            if (crackPieces == "off")
+                ro.damage.crackPieceFrac = 0;
             const auto t0 = std::chrono::steady_clock::now();
             auto reg0 = pipeline::registerSection(s.image, s.atlas, ro);
             const double sec0 =

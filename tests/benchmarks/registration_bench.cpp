@@ -465,9 +465,14 @@ int main(int argc, char** argv) {
                    "Run only these case indices of the --cases set (to look into them)");
     std::string overlayDir, refineMode = "on", nonLinearMode = "on", smoothMode = "off";
     std::string damageLogPath;
-    std::string mirroredGaps = "off";
+    std::string mirroredGaps = "on";
     app.add_option("--mirrored-gaps", mirroredGaps,
                    "DamageParams::leaveOutMirroredGaps: gaps with a mirrored twin left out")
+        ->check(CLI::IsMember({"on", "off"}));
+    std::string crackPieces = "on";
+    app.add_option("--crack-pieces", crackPieces,
+                   "DamageParams::crackPieceFrac: a tear followed across a break to the pieces of "
+                   "crack beyond it (off: crackPieceFrac 0)")
         ->check(CLI::IsMember({"on", "off"}));
     bool diagnoseErrors = false;
     std::vector<std::string> smoothSettings;
@@ -583,6 +588,8 @@ int main(int argc, char** argv) {
     // knowledge, nothing the generators know.
     pipeline::RegistrationOptions regOptions;
     regOptions.damage.leaveOutMirroredGaps = mirroredGaps == "on";
+    if (crackPieces == "off")
+        regOptions.damage.crackPieceFrac = 0;
     if (allLabels) {
         const pipeline::RegistrationOptions defaults;
         regOptions.ventricleIds.clear();

@@ -2,7 +2,7 @@
 // abba-gerbi-series whose mirror image across the brain's midline shows glass too are anatomy
 // (both lateral ventricles wider than the atlas's; tissue the atlas plane has and the section
 // lacks on both sides), so are pieces lying apart whose mirror image is tissue, and a one-sided
-// tear keeps its flag.
+// tear keeps its flag; and a torn section's crack, followed where it narrows, flags it.
 #include "../common/gerbi_series.hpp"
 #include "slicestation/core/image_file.hpp"
 #include "slicestation/core/nrrd.hpp"
@@ -66,10 +66,12 @@ GerbiSection gerbiSection(int number) {
     return {};
 }
 
-pipeline::Registration registerGerbi(const GerbiSection& s, bool leaveOutMirrored) {
+pipeline::Registration registerGerbi(const GerbiSection& s, bool leaveOutMirrored,
+                                     pipeline::DamageParams damage = {}) {
     pipeline::RegistrationOptions ro;
     ro.imageUmPerPx = s.umPerPx;
     ro.atlasUmPerPx = 25;
+    ro.damage = damage;
     ro.damage.leaveOutMirroredGaps = leaveOutMirrored;
     auto reg = pipeline::registerSection(s.image, s.atlas, ro);
     EXPECT_TRUE(reg.ok()) << reg.error().message;
@@ -106,4 +108,23 @@ TEST(DamageRealSeries, GapsWithAMirroredTwinAreAnatomyAndAOneSidedTearIsNot) {
             EXPECT_LT(d.mirrorShare, pipeline::DamageParams{}.mirroredGap);
         }
     }
+}
+
+TEST(DamageRealSeries, ATornSectionsCrackIsFollowedWhereItNarrowsAtItsBend) {
+    if (!haveGerbi())
+        GTEST_SKIP() << "../shared is absent: real sections not tested";
+    // 14: a crack from the left lateral surface into the cortex, bending at a bright speck. Its
+    // inner, oblique half is a tear (under a tenth of the width: not flagged alone); its outer
+    // half is a 1-2 px line, a piece too short alone; where it bends, the crack is a shallow
+    // line only. Followed across, the tear is long enough to flag the section. The gaps above
+    // both lateral ventricles (bilateral, mirror share 1) are left out by the rule.
+    const GerbiSection s = gerbiSection(14);
+    ASSERT_FALSE(s.image.empty());
+    const pipeline::Registration with = registerGerbi(s, true);
+    EXPECT_TRUE(with.damaged) << with.damageSummary;
+    pipeline::DamageParams noPieces;
+    noPieces.crackPieceFrac = 0;
+    const pipeline::Registration without = registerGerbi(s, true, noPieces);
+    EXPECT_FALSE(without.damaged) << without.damageSummary;
+    EXPECT_GT(with.damageScore, without.damageScore + 0.05);
 }

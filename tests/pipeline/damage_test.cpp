@@ -429,6 +429,61 @@ TEST(Damage, ThinCracksAreGlassLinesWithTissueBesideThemAwayFromTheMidline) {
     EXPECT_FALSE(thinCracks(grey, tissue, expected, none, 1000, anyWall, midline).empty());
 }
 
+TEST(Damage, ACrackIsFollowedAcrossAShallowBreakButNotAcrossTissue) {
+    const cv::Mat brain = ellipseMask({1200, 800}, {600, 400}, {500, 320});
+    const cv::Mat none = cv::Mat::zeros(brain.size(), CV_8U);
+    const AtlasExpectation expected{brain, brain, cv::Mat()};
+    const Midline midline{{600, 0}, {600, 800}};
+    const DamageParams p;
+    // A crack of 80 px (8% of the width: a tear, not flagged alone), then a break of `gap` px
+    // (where it narrowed to a shallow line, neither glass nor a thread, when `shallow`), then
+    // 35 px of it again: a piece (under crackMinFrac, 50 px).
+    struct Found {
+        std::vector<DamageRegion> regions, pieces, joined;
+        double score = 0;
+    };
+    const auto run = [&](int gap, bool shallow, const DamageParams& params) {
+        cv::Mat tissue = brain.clone();
+        cv::line(tissue, {200, 300}, {280, 300}, cv::Scalar(0), 3);
+        cv::line(tissue, {282 + gap, 300}, {317 + gap, 300}, cv::Scalar(0), 3);
+        cv::Mat grey = noisySection(tissue, 0.6f, 0.01f, 11);
+        if (shallow) // 0.2 below the tissue (a thread's depth is 0.25 of 0.55)
+            cv::line(grey, {282, 300}, {280 + gap, 300}, cv::Scalar(0.4), 1);
+        Found f;
+        f.regions =
+            thinCracks(grey, tissue, expected, none, 1000, params, midline, cv::Mat(), &f.pieces);
+        f.joined = continueTears(f.regions, f.pieces, grey, tissue, 1000, params);
+        f.score = damageScore(f.regions, 1000, params);
+        return f;
+    };
+    Found f = run(12, true, p);
+    ASSERT_EQ(f.regions.size(), 1u);
+    ASSERT_EQ(f.pieces.size(), 1u);
+    EXPECT_NEAR(f.pieces[0].lengthPx, 37, 4);
+    ASSERT_EQ(f.joined.size(), 1u);
+    EXPECT_NEAR(f.regions[0].lengthPx, 82 + 37, 8) << "the tear's length runs on along the piece";
+    EXPECT_GE(f.score, p.flagScore);
+    // Ordinary tissue in the break: two lines, the piece is left out and the tear not flagged.
+    f = run(12, false, p);
+    ASSERT_EQ(f.regions.size(), 1u);
+    EXPECT_EQ(f.pieces.size(), 1u);
+    EXPECT_TRUE(f.joined.empty());
+    EXPECT_NEAR(f.regions[0].lengthPx, 82, 6);
+    EXPECT_LT(f.score, p.flagScore);
+    // A break longer than the shortest crack (crackMinFrac, 50 px) is not bridged, shallow or
+    // not.
+    f = run(60, true, p);
+    EXPECT_EQ(f.pieces.size(), 1u);
+    EXPECT_TRUE(f.joined.empty());
+    EXPECT_LT(f.score, p.flagScore);
+    // Switched off: no piece is collected.
+    DamageParams off = p;
+    off.crackPieceFrac = 0;
+    f = run(12, true, off);
+    EXPECT_TRUE(f.pieces.empty());
+    EXPECT_LT(f.score, p.flagScore);
+}
+
 TEST(Damage, ABlurredCrackIsFoundByDefaultButNotInsideADarkAtlasRegion) {
     // A 4 px crack blurred by the optics (1.25 px): its middle keeps about a tenth of the
     // tissue level, far above the glass noise, so only the dark-valley search finds it.

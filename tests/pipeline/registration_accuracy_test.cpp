@@ -257,6 +257,13 @@ TEST(DamageGroundTruth, AVentricleTheAtlasPutsElsewhereIsCheckRegistrationNotDam
     // The ventricle moved by its own width, so that the atlas places it beside the section's.
     const cv::Mat misplaced = withVentricleMoved(atlas, 12);
     pipeline::RegistrationOptions ro;
+    // With the mirror rule (on by default) the section's ventricle gap has its twin in the
+    // other hemisphere's ventricle and is left out as anatomy: clean, not damaged either.
+    auto mirrored = pipeline::registerSection(gen->image, misplaced, ro);
+    ASSERT_TRUE(mirrored.ok()) << mirrored.error().message;
+    EXPECT_FALSE(mirrored->damaged) << mirrored->damageSummary;
+    // The misfit rule alone, as it acts where a gap has no twin.
+    ro.damage.leaveOutMirroredGaps = false;
     auto reg = pipeline::registerSection(gen->image, misplaced, ro);
     ASSERT_TRUE(reg.ok()) << reg.error().message;
     int misfits = 0;

@@ -110,6 +110,15 @@ struct DamageParams {
     /// Beside a crack lies tissue: at most this share of glass-level pixels there. Dim textured
     /// tissue has glass-level grains between its cells, whose thin glass webs are no crack.
     double crackWallGlass = 0.02;
+    /// A crack followed across a break (continueTears): where a crack narrows (at a bend, or
+    /// closing up) it shows only as a shallow line, neither glass nor a thread, and what shows
+    /// beyond is a piece too short to be a crack alone. A piece passing every crack test but
+    /// the length, at least this share of the brain width long (half crackMinFrac: half the
+    /// shortest crack), continues a tear when the break between them is at most crackMinFrac of
+    /// the width and is bridged by pixels darker than the tissue around it by threadDepth of
+    /// the span from glass to tissue (a valley as deep as a thread's). Not fitted
+    /// (docs/damage.md, "A crack followed across a break"). 0: no piece is collected.
+    double crackPieceFrac = 0.025;
     /// Folds (foldBands): the band along the edge at least this many times as far above the
     /// glass as the same region behind it; 2 is tissue doubled, 1 none, 1.5 half way.
     double foldRatio = 1.5;
@@ -125,9 +134,10 @@ struct DamageParams {
     /// apart from the brain stem on both sides, caudally); a piece broken off has no twin.
     /// 0.5: half way between no twin (0) and a full twin (1), not tuned.
     double mirroredGap = 0.5;
-    /// Leave such gaps out (off by default: on the real gerbi series it also takes the torn 14's
-    /// flag, which rested on its bilateral ventricles; docs/damage.md, "Bilateral anatomy").
-    bool leaveOutMirroredGaps = false;
+    /// Leave such gaps out. On since 2026-12-03, when the torn gerbi 14 kept its flag without
+    /// its bilateral ventricle gaps (crackPieceFrac; docs/damage.md, "Bilateral anatomy" and "A
+    /// crack followed where it narrows").
+    bool leaveOutMirroredGaps = true;
     /// The section is flagged when its damage score reaches this (a station setting; 0.5 is the
     /// documented decision line of damagedShare and deepTearFrac).
     double flagScore = 0.5;
@@ -219,11 +229,30 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const AtlasExp
 /// `grey`: CV_32F, tissue bright, full resolution; `tissue`: the section's tissue mask at that
 /// size; `expected` and `ventricles` (CV_8U) the mapped atlas at that size. Returned regions are
 /// tears in those pixels, `share` of the tissue's area, skipping those overlapping `known`
-/// (CV_8U gaps already found, or empty) by half their area.
+/// (CV_8U gaps already found, or empty) by half their area. `pieces` (or null): receives the
+/// lines that pass every test but the length, at least params.crackPieceFrac of the brain width
+/// long (for continueTears).
 std::vector<DamageRegion> thinCracks(const cv::Mat& grey, const cv::Mat& tissue,
                                      const AtlasExpectation& expected, const cv::Mat& ventricles,
                                      double brainWidthPx, const DamageParams& params,
-                                     const Midline& midline, const cv::Mat& known = cv::Mat());
+                                     const Midline& midline, const cv::Mat& known = cv::Mat(),
+                                     std::vector<DamageRegion>* pieces = nullptr);
+
+/// A crack followed across breaks (DamageParams::crackPieceFrac): each tear of `regions` (kind
+/// Tear) is joined by the `pieces` (thinCracks) whose break to its outline, or to a piece
+/// already joined to it, is a fainter stretch of the crack (at most crackMinFrac of
+/// `brainWidthPx` long, and bridged, in a box around it as wide as it is long each way, by
+/// pixels of `tissue`, holes filled, darker in `grey` than the median of the box's other tissue
+/// by threadDepth of the span from the glass to the tissue); each piece joins one tear at most,
+/// and the tear's lengthPx grows by theirs. `grey` (CV_32F, tissue bright) and `tissue` (CV_8U)
+/// are in mask px, `polygonScale` times finer than the regions' frame (polygon px x
+/// polygonScale = mask px); `brainWidthPx` in mask px. Returns the pieces joined to some tear
+/// (to be reported with it); the others are dropped.
+std::vector<DamageRegion> continueTears(std::vector<DamageRegion>& regions,
+                                        const std::vector<DamageRegion>& pieces,
+                                        const cv::Mat& grey, const cv::Mat& tissue,
+                                        double brainWidthPx, const DamageParams& params,
+                                        double polygonScale = 1.0);
 
 /// Folds: a flap of the edge folded back over the tissue. The edge moves in (the atlas expects
 /// tissue where glass now is, along the outline) and the tissue beside it is doubled: within one
