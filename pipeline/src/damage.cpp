@@ -624,17 +624,13 @@ std::pair<cv::Point2f, cv::Point2f> closestPoints(const std::vector<cv::Point2f>
     return best;
 }
 
-/// Whether the break between two outlines (mask px of `grey`, CV_32F) is a fainter stretch of a
-/// crack: at most `maxBreak` long, and bridged by pixels of `inside` (CV_8U) darker than the
-/// tissue around the break by `depth`, within a box around it as wide as it is long each way.
+/// Whether the break between two outlines (mask px of `grey`, CV_32F), from `p` on one to `q`
+/// on the other (their closest points), is a fainter stretch of a crack: bridged by pixels of
+/// `inside` (CV_8U) darker than the tissue around the break by `depth`, within a box around it
+/// as wide as it is long each way.
 bool fainterStretch(const cv::Mat& grey, const cv::Mat& inside, const std::vector<cv::Point2f>& a,
-                    const std::vector<cv::Point2f>& b, double maxBreak, float depth) {
-    if (a.empty() || b.empty())
-        return false;
-    const auto [p, q] = closestPoints(a, b);
+                    const std::vector<cv::Point2f>& b, cv::Point2f p, cv::Point2f q, float depth) {
     const double length = cv::norm(p - q);
-    if (length > maxBreak)
-        return false;
     const cv::Point2f mid = 0.5f * (p + q);
     const int reach = static_cast<int>(std::ceil(length)) + 2;
     const cv::Rect box =
@@ -686,13 +682,29 @@ std::vector<DamageRegion> continueTears(std::vector<DamageRegion>& regions,
     std::vector<DamageRegion> joined;
     if (pieces.empty() || brainWidthPx <= 0)
         return joined;
-    const GreyLevels levels = greyLevels(grey, tissue);
-    const float span = levels.tissue - levels.glass;
-    if (span <= 0)
-        return joined;
-    const float depth = static_cast<float>(params.threadDepth) * span;
-    const cv::Mat inside = fillHoles(tissue);
     const double maxBreak = params.crackMinFrac * brainWidthPx;
+    // The section's levels and its tissue with holes filled: whole-image passes, made only once
+    // a break is short enough to look at (most pieces lie nowhere near a tear).
+    struct Section {
+        cv::Mat inside;
+        float span = 0; ///< from the glass to the tissue level; none when not above 0
+    };
+    std::optional<Section> section;
+    const auto joins = [&](const std::vector<cv::Point2f>& piece,
+                           const std::vector<cv::Point2f>& from) {
+        if (piece.empty() || from.empty())
+            return false;
+        const auto [p, q] = closestPoints(piece, from);
+        if (cv::norm(p - q) > maxBreak)
+            return false;
+        if (!section) {
+            const GreyLevels levels = greyLevels(grey, tissue);
+            section = Section{fillHoles(tissue), levels.tissue - levels.glass};
+        }
+        return section->span > 0 &&
+               fainterStretch(grey, section->inside, piece, from, p, q,
+                              static_cast<float>(params.threadDepth) * section->span);
+    };
     const auto toMask = [polygonScale](const std::vector<cv::Point2f>& poly) {
         std::vector<cv::Point2f> o;
         o.reserve(poly.size());
@@ -714,8 +726,7 @@ std::vector<DamageRegion> continueTears(std::vector<DamageRegion>& regions,
             const std::vector<cv::Point2f> from = std::move(frontier.back());
             frontier.pop_back();
             for (std::size_t k = 0; k < pieces.size(); ++k) {
-                if (taken[k] ||
-                    !fainterStretch(grey, inside, pieceOutlines[k], from, maxBreak, depth))
+                if (taken[k] || !joins(pieceOutlines[k], from))
                     continue;
                 taken[k] = true;
                 added += pieces[k].lengthPx;

@@ -1074,7 +1074,7 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
             toFullPixels(pieces, c);
             for (DamageRegion& d : cracks)
                 regions.push_back(std::move(d));
-            // A crack hidden for a stretch under debris: the pieces beyond continue its tear.
+            // Where a crack narrows to a shallow line, the pieces beyond continue its tear.
             for (DamageRegion& d : continueTears(regions, pieces, grey, tissueAtCracks,
                                                  brainWidth / s * c, options.damage, c))
                 regions.push_back(std::move(d));

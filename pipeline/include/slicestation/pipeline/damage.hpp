@@ -117,7 +117,7 @@ struct DamageParams {
     /// shortest crack), continues a tear when the break between them is at most crackMinFrac of
     /// the width and is bridged by pixels darker than the tissue around it by threadDepth of
     /// the span from glass to tissue (a valley as deep as a thread's). Not fitted
-    /// (docs/damage.md, "A crack followed across a break"). 0: no piece is collected.
+    /// (docs/damage.md, "A crack followed where it narrows"). 0: no piece is collected.
     double crackPieceFrac = 0.025;
     /// Folds (foldBands): the band along the edge at least this many times as far above the
     /// glass as the same region behind it; 2 is tissue doubled, 1 none, 1.5 half way.
