@@ -724,18 +724,14 @@ std::optional<PngHeader> readPngHeader(const fs::path& path) {
 }
 
 /// Width, height and components from a baseline or progressive JPEG's frame header (the first
-/// SOFn marker, ITU T.81 B.2.2); nullopt when `path` is not a JPEG or has no frame header in
-/// its first 1 MiB.
-std::optional<PngHeader> readJpegHeader(const fs::path& path) {
-    std::ifstream in(path, std::ios::binary);
-    std::vector<unsigned char> h(1 << 20);
-    in.read(reinterpret_cast<char*>(h.data()), static_cast<std::streamsize>(h.size()));
-    h.resize(static_cast<std::size_t>(in.gcount()));
-    if (h.size() < 4 || h[0] != 0xFF || h[1] != 0xD8) {
+/// SOFn marker, ITU T.81 B.2.2) in `h`; nullopt when it is not a JPEG or has no frame header.
+/// readJpegHeader looks in a file's first 1 MiB.
+std::optional<PngHeader> jpegHeader(const unsigned char* h, std::size_t size) {
+    if (size < 4 || h[0] != 0xFF || h[1] != 0xD8) {
         return std::nullopt;
     }
     std::size_t at = 2;
-    while (at + 9 < h.size()) {
+    while (at + 9 < size) {
         if (h[at] != 0xFF) {
             return std::nullopt;
         }
@@ -770,6 +766,13 @@ std::optional<PngHeader> readJpegHeader(const fs::path& path) {
     return std::nullopt;
 }
 
+std::optional<PngHeader> readJpegHeader(const fs::path& path) {
+    std::ifstream in(path, std::ios::binary);
+    std::vector<unsigned char> h(1 << 20);
+    in.read(reinterpret_cast<char*>(h.data()), static_cast<std::streamsize>(h.size()));
+    return jpegHeader(h.data(), static_cast<std::size_t>(in.gcount()));
+}
+
 /// Refuses a compressed file too small to hold the pixels its header claims, given the most its
 /// codec turns one stored byte into. Checked before OpenCV allocates the image, which it does
 /// from the header alone.
@@ -792,10 +795,14 @@ Result<void> checkFileHolds(const fs::path& path, const char* format, const PngH
 }
 
 Result<cv::Mat> readWithOpenCv(const fs::path& path) {
-    // OpenCV itself refuses more than 2^30 px (OPENCV_IO_MAX_IMAGE_PIXELS) for every format;
-    // PNG and JPEG, the other formats sections come in, are checked against our own limits and
-    // against what the file can hold first: OpenCV allocates the image from the header alone.
-    if (const auto png = readPngHeader(path)) {
+    // Only PNG and JPEG go to OpenCV, after their headers are checked against our own limits
+    // and against what the file can hold: OpenCV allocates the image from the header alone,
+    // and its other decoders (Radiance HDR, JPEG 2000, PNM, GDAL's hundred formats...) would
+    // allocate up to 2^30 px of floats for a 60-byte file claiming them. Sections, label images
+    // and captures come as TIFF, PNG or JPEG.
+    const auto png = readPngHeader(path);
+    const auto jpeg = png ? std::nullopt : readJpegHeader(path);
+    if (png) {
         if (auto fits = checkImageSize("PNG " + quoted(path), png->width, png->height,
                                        png->channels, png->sampleBytes);
             !fits) {
@@ -804,15 +811,27 @@ Result<cv::Mat> readWithOpenCv(const fs::path& path) {
         if (auto held = checkFileHolds(path, "PNG", *png); !held) {
             return held.error();
         }
-    } else if (const auto jpeg = readJpegHeader(path)) {
+    } else if (jpeg) {
         if (auto fits = checkImageSize("JPEG " + quoted(path), jpeg->width, jpeg->height,
                                        jpeg->channels, jpeg->sampleBytes);
             !fits) {
             return fits.error();
         }
+        if (jpeg->maxExpansion <= 0) {
+            // Arithmetic coding has no floor on the bits a block takes, so a few bytes could
+            // claim gigabytes; no camera or slide scanner writes it.
+            return makeError(ErrorCode::Unsupported,
+                             "JPEG " + quoted(path) +
+                                 " is arithmetic-coded (SOF9..SOF15), which is not read");
+        }
         if (auto held = checkFileHolds(path, "JPEG", *jpeg); !held) {
             return held.error();
         }
+    } else {
+        return makeError(ErrorCode::IoError,
+                         "image " + quoted(path) +
+                             " is not a TIFF, PNG or JPEG file (or its header is corrupt or "
+                             "truncated); sections and label images are read in those formats");
     }
     cv::Mat image = cv::imread(path.string(), cv::IMREAD_UNCHANGED);
     if (image.empty()) {
@@ -1353,6 +1372,14 @@ Result<std::optional<std::string>> readTiffDescription(const std::filesystem::pa
 
 void setTiffWriteFaultForTesting(int err) noexcept {
     gWriteFault.store(err);
+}
+
+std::optional<cv::Size> jpegFrameSize(const std::uint8_t* data, std::size_t size) {
+    const auto header = data == nullptr ? std::nullopt : jpegHeader(data, size);
+    if (!header) {
+        return std::nullopt;
+    }
+    return cv::Size(static_cast<int>(header->width), static_cast<int>(header->height));
 }
 
 } // namespace slicestation::core

@@ -809,6 +809,54 @@ TEST_F(ImageFileTest, RefusesATinyPngOrJpegWhoseDataCannotHoldTheImageItClaims) 
         << read.error().message;
 }
 
+TEST_F(ImageFileTest, RefusesFormatsOtherThanTiffPngAndJpegBeforeTheyAllocate) {
+    // A 60-byte Radiance HDR claiming 20000 x 20000 px: OpenCV would allocate 4.8 GB of floats
+    // from the header (what the fuzzer found on 2026-12-03). It is not read at all.
+    const std::string hdr =
+        "#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y 20000 +X 20000\n\x02\x02\x4e\x20\x80\x01";
+    writeBytes(file("bomb.hdr"), std::vector<std::uint8_t>(hdr.begin(), hdr.end()));
+    Result<cv::Mat> read = readImage(file("bomb.hdr"));
+    ASSERT_FALSE(read.ok());
+    EXPECT_EQ(read.error().code, ErrorCode::IoError) << read.error().message;
+    EXPECT_NE(read.error().message.find("not a TIFF, PNG or JPEG"), std::string::npos)
+        << read.error().message;
+
+    // A real, small BMP is refused the same way: it is no format sections come in.
+    std::vector<std::uint8_t> bmp;
+    ASSERT_TRUE(cv::imencode(".bmp", cv::Mat(16, 16, CV_8UC3, cv::Scalar(1, 2, 3)), bmp));
+    writeBytes(file("small.bmp"), bmp);
+    read = readImage(file("small.bmp"));
+    ASSERT_FALSE(read.ok());
+    EXPECT_EQ(read.error().code, ErrorCode::IoError) << read.error().message;
+
+    // An arithmetic-coded JPEG (SOF9) has no floor on the bits a block takes: refused by name.
+    std::vector<std::uint8_t> jpeg;
+    ASSERT_TRUE(cv::imencode(".jpg", cv::Mat(16, 16, CV_8UC3, cv::Scalar(40, 80, 120)), jpeg));
+    bool patched = false;
+    for (std::size_t i = 2; i + 1 < jpeg.size() && !patched; ++i) {
+        if (jpeg[i] == 0xFF && jpeg[i + 1] == 0xC0) {
+            jpeg[i + 1] = 0xC9;
+            patched = true;
+        }
+    }
+    ASSERT_TRUE(patched);
+    writeBytes(file("arithmetic.jpg"), jpeg);
+    read = readImage(file("arithmetic.jpg"));
+    ASSERT_FALSE(read.ok());
+    EXPECT_EQ(read.error().code, ErrorCode::Unsupported) << read.error().message;
+    EXPECT_NE(read.error().message.find("arithmetic"), std::string::npos) << read.error().message;
+
+    // The formats that are read still are: a PNG and a JPEG of the same 16 x 16 image.
+    for (const char* ext : {".png", ".jpg"}) {
+        std::vector<std::uint8_t> bytes;
+        ASSERT_TRUE(cv::imencode(ext, cv::Mat(16, 16, CV_8UC3, cv::Scalar(40, 80, 120)), bytes));
+        writeBytes(file(std::string("good") + ext), bytes);
+        const Result<cv::Mat> good = readImage(file(std::string("good") + ext));
+        ASSERT_TRUE(good.ok()) << ext << ": " << good.error().message;
+        EXPECT_EQ(good->size(), cv::Size(16, 16));
+    }
+}
+
 TEST_F(ImageFileTest, RefusesNanAndInfinityInFloatImagesNamingTheFile) {
     for (const float bad :
          {std::numeric_limits<float>::quiet_NaN(), std::numeric_limits<float>::infinity(),

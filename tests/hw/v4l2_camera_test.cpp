@@ -376,6 +376,13 @@ TEST(V4l2Capture, CorruptBuffersAreIoErrorAndRequeued) {
     EXPECT_EQ(f.error().code, ErrorCode::IoError);
     j.dev->corruptNext(Corruption::ShortBytesUsed); // bytesused 0
     EXPECT_EQ(cam->capture(1s).error().code, ErrorCode::IoError);
+    // A frame claiming 30000 x 30000 px is refused from its header, before the decoder would
+    // allocate 900 MB for it.
+    j.dev->corruptNext(Corruption::JpegClaimsHugeSize);
+    f = cam->capture(1s);
+    ASSERT_FALSE(f);
+    EXPECT_EQ(f.error().code, ErrorCode::IoError);
+    EXPECT_NE(f.error().message.find("claims 30000x30000"), std::string::npos) << f.error().message;
     EXPECT_TRUE(cam->capture(1s));
 }
 

@@ -328,6 +328,16 @@ int EmulatedV4l2Device::ioctl(int fd, unsigned long request, void* arg) {
                 std::memset(buf.memory.data(), 0x5a, 200);
                 b->bytesused = 200;
                 break;
+            case Corruption::JpegClaimsHugeSize:
+                for (std::size_t i = 2; i + 9 < b->bytesused; ++i) {
+                    std::uint8_t* m = buf.memory.data() + i;
+                    if (m[0] == 0xFF && m[1] == 0xC0) { // SOF0: length, precision, height, width
+                        m[5] = 30000 >> 8, m[6] = 30000 & 0xFF;
+                        m[7] = 30000 >> 8, m[8] = 30000 & 0xFF;
+                        break;
+                    }
+                }
+                break;
             }
         }
         return 0;

@@ -36,7 +36,14 @@ struct EmulatedV4l2Options {
     std::shared_ptr<core::VirtualClock> clock; ///< required
 };
 
-enum class Corruption { ShortBytesUsed, ErrorFlag, BadIndex, GarbageJpeg };
+enum class Corruption {
+    ShortBytesUsed,
+    ErrorFlag,
+    BadIndex,
+    GarbageJpeg,
+    /// MJPEG: the real frame with its SOF0 header changed to claim 30000 x 30000 px.
+    JpegClaimsHugeSize
+};
 
 class EmulatedV4l2Device final : public drivers::V4l2Syscalls {
 public:

@@ -1,5 +1,7 @@
 #include "slicestation/drivers/libcamera_camera.hpp"
 
+#include "slicestation/core/image_file.hpp"
+
 #include <libcamera/libcamera.h>
 
 #include <sys/mman.h>
@@ -89,6 +91,10 @@ core::Result<hw::Frame> convert(const std::uint8_t* p, std::size_t bytes,
         else if (fmt == lc::formats::YUYV)
             cv::cvtColor(cv::Mat(h, w, CV_8UC2, d, stride), rgb, cv::COLOR_YUV2RGB_YUYV);
         else if (fmt == lc::formats::MJPEG) {
+            // The decoder allocates what the frame header claims: check it before decoding.
+            const auto claimed = core::jpegFrameSize(d, bytes);
+            if (!claimed || claimed->width != w || claimed->height != h)
+                return makeError(ErrorCode::IoError, "MJPEG frame cannot be decoded");
             cv::Mat bgr =
                 cv::imdecode(cv::Mat(1, static_cast<int>(bytes), CV_8UC1, d), cv::IMREAD_COLOR);
             if (bgr.empty() || bgr.cols != w || bgr.rows != h)

@@ -1,5 +1,7 @@
 #include "slicestation/drivers/v4l2_camera.hpp"
 
+#include "slicestation/core/image_file.hpp"
+
 #include <fcntl.h>
 #include <linux/videodev2.h>
 #include <sys/mman.h>
@@ -165,6 +167,15 @@ core::Result<hw::Frame> convert(const std::uint8_t* data, std::size_t bytesUsed,
             src = cv::Mat(h, w, CV_8UC3, p, bpl);
             break;
         case V4L2_PIX_FMT_MJPEG: {
+            // The decoder allocates what the frame header claims: check it before decoding.
+            const auto claimed = core::jpegFrameSize(p, bytesUsed);
+            if (!claimed)
+                return makeError(ErrorCode::IoError, "MJPEG frame has no JPEG frame header");
+            if (claimed->width != w || claimed->height != h)
+                return makeError(ErrorCode::IoError, "MJPEG frame header claims " +
+                                                         std::to_string(claimed->width) + "x" +
+                                                         std::to_string(claimed->height) +
+                                                         ", not the negotiated size");
             const cv::Mat raw(1, static_cast<int>(bytesUsed), CV_8UC1, p);
             src = cv::imdecode(raw, target == hw::PixelFormat::Rgb8 ? cv::IMREAD_COLOR
                                                                     : cv::IMREAD_GRAYSCALE);

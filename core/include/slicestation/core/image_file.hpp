@@ -9,8 +9,10 @@
 
 #include <opencv2/core/mat.hpp>
 
+#include <cstddef>
 #include <cstdint>
 #include <filesystem>
+#include <optional>
 
 namespace slicestation::core {
 
@@ -22,7 +24,8 @@ namespace slicestation::core {
 inline constexpr std::uint64_t kMaxImagePixels = std::uint64_t{1} << 30;
 inline constexpr std::uint64_t kMaxImageBytes = std::uint64_t{4} << 30;
 
-/// Reads PNG or TIFF (chosen by content, not extension) as stored.
+/// Reads TIFF, PNG or JPEG (chosen by content, not extension) as stored; no other format is
+/// read (OpenCV's other decoders allocate whatever a few header bytes claim).
 ///
 /// Depths: CV_8U, CV_16U, CV_32S (from int32 and uint32 samples; a uint32 value above INT32_MAX
 /// is Unsupported), CV_32F. Channels 1..4. Colour images (TIFF photometric RGB/YCbCr, PNG) come
@@ -33,17 +36,25 @@ inline constexpr std::uint64_t kMaxImageBytes = std::uint64_t{4} << 30;
 /// Multi-page TIFF: the first page only, except ImageJ hyperstacks (ImageDescription starting
 /// "ImageJ=" with "channels=C", one sample per page), whose first min(C, 4) pages are the channels
 /// of the first slice and become the image's channels in page order (the ABBA sections are such
-/// files). Other formats go through cv::imread(IMREAD_UNCHANGED).
+/// files). PNG and JPEG go through cv::imread(IMREAD_UNCHANGED) once their headers are checked;
+/// arithmetic-coded JPEG is Unsupported.
 ///
-/// Size: at most kMaxImagePixels and kMaxImageBytes (TIFF and PNG from their headers; other
-/// formats are held to OpenCV's own limit of 2^30 pixels). Float images must be finite.
+/// Size: at most kMaxImagePixels and kMaxImageBytes, from the TIFF tags or the PNG or JPEG
+/// header, and the file must be able to hold what its header claims. Float images must be finite.
 ///
 /// \return the image (never empty); NotFound (no such file), IoError (unreadable, empty, corrupt
-///         or truncated file), Unsupported (bit depth, sample format, palette/bilevel TIFF, a
-///         format OpenCV cannot decode to one of the depths above, or an image beyond the size
-///         limits: the message gives its size and the limit), InvalidArgument (a float image
-///         holding NaN or infinity: the message names the file and the first such pixel).
+///         or truncated file, or not a TIFF, PNG or JPEG), Unsupported (bit depth, sample format,
+///         palette/bilevel TIFF, a format OpenCV cannot decode to one of the depths above, or an
+///         image beyond the size limits: the message gives its size and the limit), InvalidArgument
+///         (a float image holding NaN or infinity: the message names the file and the first such
+///         pixel).
 [[nodiscard]] Result<cv::Mat> readImage(const std::filesystem::path& path);
+
+/// Width and height from the frame header (the first SOFn marker) of the JPEG in `data`, e.g. a
+/// camera's MJPEG frame, read before it is decoded; nullopt when `data` is no JPEG with a frame
+/// header. Decoders allocate from this header alone, so a frame is checked against the size the
+/// camera negotiated first.
+[[nodiscard]] std::optional<cv::Size> jpegFrameSize(const std::uint8_t* data, std::size_t size);
 
 /// Writes `image` in the format chosen by the extension (case-insensitive):
 /// - .png: CV_8U or CV_16U, 1, 3 or 4 channels (BGR(A) order), via OpenCV;
