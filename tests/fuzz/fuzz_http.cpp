@@ -14,11 +14,14 @@
 
 #include <arpa/inet.h>
 #include <netinet/in.h>
+#include <poll.h>
 #include <sys/socket.h>
 #include <unistd.h>
 
+#include <cerrno>
 #include <cstdio>
 #include <cstdlib>
+#include <cstring>
 #include <memory>
 
 using namespace slicestation;
@@ -92,16 +95,39 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
     const int port = rig().api->port();
     const int fd = ::socket(AF_INET, SOCK_STREAM | SOCK_CLOEXEC, 0);
     if (fd < 0)
-        die("socket");
+        die(std::string("socket: ") + std::strerror(errno));
     timeval tv{5, 0};
     ::setsockopt(fd, SOL_SOCKET, SO_RCVTIMEO, &tv, sizeof tv);
     ::setsockopt(fd, SOL_SOCKET, SO_SNDTIMEO, &tv, sizeof tv);
+    // Each input is a connection that ends in TIME_WAIT for 60 s on this side (it closes
+    // first). At a thousand inputs a second one source address would run out of ephemeral
+    // ports (28,232 on Debian) within the run, and connect() fail with EADDRNOTAVAIL: CI's
+    // fuzz_http failed so on 2026-12-03. The source address cycles through 127.0.1.0/24..
+    // 127.0.64.0/24 instead; the whole of 127/8 is this host.
+    static std::uint32_t next = 0;
+    sockaddr_in from{};
+    from.sin_family = AF_INET;
+    from.sin_addr.s_addr = htonl((127u << 24) + 256u + next++ % (64u * 256u));
+    if (::bind(fd, reinterpret_cast<sockaddr*>(&from), sizeof from) != 0)
+        die(std::string("bind: ") + std::strerror(errno));
     sockaddr_in addr{};
     addr.sin_family = AF_INET;
     addr.sin_port = htons(static_cast<std::uint16_t>(port));
     addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-    if (::connect(fd, reinterpret_cast<sockaddr*>(&addr), sizeof addr) != 0)
-        die("connect");
+    if (::connect(fd, reinterpret_cast<sockaddr*>(&addr), sizeof addr) != 0) {
+        // A signal (libFuzzer's timers) may interrupt the wait for the handshake; the
+        // connection goes on, and is awaited here.
+        if (errno != EINTR && errno != EINPROGRESS)
+            die(std::string("connect: ") + std::strerror(errno));
+        pollfd p{fd, POLLOUT, 0};
+        int err = 0;
+        socklen_t len = sizeof err;
+        while (::poll(&p, 1, 5000) < 0 && errno == EINTR) {
+        }
+        if (!(p.revents & POLLOUT) || ::getsockopt(fd, SOL_SOCKET, SO_ERROR, &err, &len) != 0 ||
+            err != 0)
+            die(std::string("connect: ") + std::strerror(err != 0 ? err : ETIMEDOUT));
+    }
     std::size_t sent = 0;
     while (sent < size) {
         const auto n = ::send(fd, data + sent, size - sent, MSG_NOSIGNAL);
