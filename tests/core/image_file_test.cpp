@@ -1,5 +1,6 @@
 #include "slicestation/core/image_file.hpp"
 
+#include "../common/jpeg_bytes.hpp"
 #include "../common/test_dir.hpp"
 
 #include <gtest/gtest.h>
@@ -792,15 +793,9 @@ TEST_F(ImageFileTest, RefusesATinyPngOrJpegWhoseDataCannotHoldTheImageItClaims) 
     // A real 16 x 16 JPEG whose frame header is changed to claim 30000 x 30000 px (2.7 GB).
     std::vector<std::uint8_t> jpeg;
     ASSERT_TRUE(cv::imencode(".jpg", cv::Mat(16, 16, CV_8UC3, cv::Scalar(40, 80, 120)), jpeg));
-    bool patched = false;
-    for (std::size_t i = 2; i + 9 < jpeg.size() && !patched; ++i) {
-        if (jpeg[i] == 0xFF && jpeg[i + 1] == 0xC0) { // SOF0: length, precision, height, width
-            jpeg[i + 5] = 30000 >> 8, jpeg[i + 6] = 30000 & 0xFF;
-            jpeg[i + 7] = 30000 >> 8, jpeg[i + 8] = 30000 & 0xFF;
-            patched = true;
-        }
-    }
-    ASSERT_TRUE(patched);
+    std::uint8_t* sof = testing_jpeg::findSof0(jpeg.data(), jpeg.size());
+    ASSERT_NE(sof, nullptr);
+    testing_jpeg::claimSize(sof, 30000, 30000);
     writeBytes(file("claims.jpg"), jpeg);
     read = readImage(file("claims.jpg"));
     ASSERT_FALSE(read.ok());
@@ -832,14 +827,9 @@ TEST_F(ImageFileTest, RefusesFormatsOtherThanTiffPngAndJpegBeforeTheyAllocate) {
     // An arithmetic-coded JPEG (SOF9) has no floor on the bits a block takes: refused by name.
     std::vector<std::uint8_t> jpeg;
     ASSERT_TRUE(cv::imencode(".jpg", cv::Mat(16, 16, CV_8UC3, cv::Scalar(40, 80, 120)), jpeg));
-    bool patched = false;
-    for (std::size_t i = 2; i + 1 < jpeg.size() && !patched; ++i) {
-        if (jpeg[i] == 0xFF && jpeg[i + 1] == 0xC0) {
-            jpeg[i + 1] = 0xC9;
-            patched = true;
-        }
-    }
-    ASSERT_TRUE(patched);
+    std::uint8_t* sof = testing_jpeg::findSof0(jpeg.data(), jpeg.size());
+    ASSERT_NE(sof, nullptr);
+    sof[1] = 0xC9;
     writeBytes(file("arithmetic.jpg"), jpeg);
     read = readImage(file("arithmetic.jpg"));
     ASSERT_FALSE(read.ok());

@@ -1,5 +1,7 @@
 #include "v4l2_emulator.hpp"
 
+#include "../common/jpeg_bytes.hpp"
+
 #include <sys/mman.h>
 
 #include <opencv2/core.hpp>
@@ -329,14 +331,8 @@ int EmulatedV4l2Device::ioctl(int fd, unsigned long request, void* arg) {
                 b->bytesused = 200;
                 break;
             case Corruption::JpegClaimsHugeSize:
-                for (std::size_t i = 2; i + 9 < b->bytesused; ++i) {
-                    std::uint8_t* m = buf.memory.data() + i;
-                    if (m[0] == 0xFF && m[1] == 0xC0) { // SOF0: length, precision, height, width
-                        m[5] = 30000 >> 8, m[6] = 30000 & 0xFF;
-                        m[7] = 30000 >> 8, m[8] = 30000 & 0xFF;
-                        break;
-                    }
-                }
+                if (std::uint8_t* sof = testing_jpeg::findSof0(buf.memory.data(), b->bytesused))
+                    testing_jpeg::claimSize(sof, 30000, 30000);
                 break;
             }
         }

@@ -3,6 +3,8 @@
 // sockets on 127.0.0.1 against the API of a real station in this process.
 #include "station_fixture.hpp"
 
+#include "../../common/time_scale.hpp"
+
 #include "slicestation/core/image_file.hpp"
 #include "slicestation/core/unique_fd.hpp"
 #include "slicestation/daemon/storage/ome_tiff.hpp"
@@ -19,7 +21,6 @@
 
 #include <atomic>
 #include <chrono>
-#include <cstdlib>
 #include <fstream>
 #include <functional>
 #include <mutex>
@@ -36,12 +37,9 @@ using Clock = std::chrono::steady_clock;
 
 namespace {
 /// The API's answer time under attack: 1 s, stretched by SLST_TEST_TIME_SCALE in the sanitizer
-/// build (which sets it: everything runs several times slower there). The release build keeps
-/// the bound itself.
+/// build (everything runs several times slower there). The release build keeps the bound itself.
 double latencyBoundS() {
-    const char* v = std::getenv("SLST_TEST_TIME_SCALE");
-    const double f = v ? std::atof(v) : 1.0;
-    return f >= 1.0 && f <= 100.0 ? f : 1.0;
+    return 1.0 * testing_time::timeScale();
 }
 
 core::UniqueFd connectTo(int port) {

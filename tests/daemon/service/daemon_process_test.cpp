@@ -8,6 +8,7 @@
 // - stage faults injected in the Modbus server during runs: an alarm pauses the run until the
 //   technician asks for the alarm reset; dropped, corrupt, busy and slow replies are retried.
 #include "../../common/test_dir.hpp"
+#include "../../common/time_scale.hpp"
 #include "fake_notify_socket.hpp"
 #include "slicestation/core/atomic_file.hpp"
 #include "slicestation/daemon/storage/journal.hpp"
@@ -53,11 +54,7 @@ using Clock = std::chrono::steady_clock;
 
 /// Deadlines are for a loaded machine; SLST_TEST_TIME_SCALE (the sanitizer build sets it, the
 /// daemon runs several times slower there) stretches every one of them, and the kill moments.
-double timeScale() {
-    const char* v = std::getenv("SLST_TEST_TIME_SCALE");
-    const double f = v ? std::atof(v) : 1.0;
-    return f >= 1.0 && f <= 100.0 ? f : 1.0;
-}
+using testing_time::timeScale;
 template <class Rep, class Period>
 std::chrono::milliseconds scaled(std::chrono::duration<Rep, Period> d) {
     return std::chrono::milliseconds(static_cast<std::int64_t>(
