@@ -5,7 +5,7 @@ set -euo pipefail
 packages=(
     build-essential cmake ninja-build pkg-config ccache
     libopencv-dev libeigen3-dev libcgal-dev libgmp-dev libmpfr-dev
-    libtiff-dev zlib1g-dev libpugixml-dev
+    libtiff-dev zlib1g-dev libpng-dev libturbojpeg0-dev libpugixml-dev
     nlohmann-json3-dev libcli11-dev libtomlplusplus-dev libcpp-httplib-dev libssl-dev
     libmodbus-dev libcamera-dev libsqlite3-dev libsystemd-dev
     libgtest-dev libgmock-dev

@@ -1,10 +1,10 @@
 #include "slicestation/core/image_file.hpp"
 
 #include "slicestation/core/atomic_file.hpp"
+#include "slicestation/core/codec.hpp"
 #include "slicestation/core/tiff_file.hpp"
 
 #include <opencv2/core.hpp>
-#include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
 #include <tiffio.h>
@@ -774,7 +774,7 @@ std::optional<PngHeader> readJpegHeader(const fs::path& path) {
 }
 
 /// Refuses a compressed file too small to hold the pixels its header claims, given the most its
-/// codec turns one stored byte into. Checked before OpenCV allocates the image, which it does
+/// codec turns one stored byte into. Checked before the decoder allocates the image, which it does
 /// from the header alone.
 Result<void> checkFileHolds(const fs::path& path, const char* format, const PngHeader& header) {
     std::error_code ec;
@@ -794,12 +794,13 @@ Result<void> checkFileHolds(const fs::path& path, const char* format, const PngH
     return {};
 }
 
-Result<cv::Mat> readWithOpenCv(const fs::path& path) {
-    // Only PNG and JPEG go to OpenCV, after their headers are checked against our own limits
-    // and against what the file can hold: OpenCV allocates the image from the header alone,
-    // and its other decoders (Radiance HDR, JPEG 2000, PNM, GDAL's hundred formats...) would
-    // allocate up to 2^30 px of floats for a 60-byte file claiming them. Sections, label images
-    // and captures come as TIFF, PNG or JPEG.
+Result<cv::Mat> readPngOrJpeg(const fs::path& path) {
+    // PNG and JPEG are decoded by libpng and libjpeg-turbo (codec.hpp) once their headers are
+    // checked against our own limits and against what the file can hold: the decoders allocate
+    // the image from the header alone. No other format is read (OpenCV's other decoders,
+    // Radiance HDR, JPEG 2000, PNM, GDAL's hundred formats, allocated up to 2^30 px of floats
+    // for a 60-byte file claiming them). Sections, label images and captures come as TIFF, PNG
+    // or JPEG.
     const auto png = readPngHeader(path);
     const auto jpeg = png ? std::nullopt : readJpegHeader(path);
     if (png) {
@@ -833,21 +834,29 @@ Result<cv::Mat> readWithOpenCv(const fs::path& path) {
                              " is not a TIFF, PNG or JPEG file (or its header is corrupt or "
                              "truncated); sections and label images are read in those formats");
     }
-    cv::Mat image = cv::imread(path.string(), cv::IMREAD_UNCHANGED);
-    if (image.empty()) {
-        return makeError(ErrorCode::IoError, "cannot decode image " + quoted(path) +
-                                                 " (corrupt, truncated or unknown format)");
+    std::ifstream in(path, std::ios::binary);
+    std::error_code ec;
+    const std::uint64_t fileSize = fs::file_size(path, ec);
+    if (!in || ec) {
+        return makeError(ErrorCode::IoError, "cannot read image " + quoted(path));
     }
-    const int depth = image.depth();
-    if (depth != CV_8U && depth != CV_16U && depth != CV_32S && depth != CV_32F) {
+    // The header checks above bound the pixels; the file's own size is bounded alike (a PNG or
+    // JPEG never needs more bytes than its pixels take uncompressed, plus slack for metadata).
+    if (fileSize > kMaxImageBytes + (std::uint64_t{64} << 20)) {
         return makeError(ErrorCode::Unsupported,
-                         "image " + quoted(path) + ": depth " + cv::typeToString(image.type()));
+                         "image " + quoted(path) + ": a file of " + megabytes(fileSize) +
+                             " exceeds the limit of " + megabytes(kMaxImageBytes));
     }
-    if (image.channels() > 4) {
-        return makeError(ErrorCode::Unsupported,
-                         "image " + quoted(path) + ": more than 4 channels");
+    std::vector<std::uint8_t> bytes(static_cast<std::size_t>(fileSize));
+    in.read(reinterpret_cast<char*>(bytes.data()), static_cast<std::streamsize>(bytes.size()));
+    if (in.gcount() != static_cast<std::streamsize>(bytes.size())) {
+        return makeError(ErrorCode::IoError,
+                         "cannot read image " + quoted(path) + " (it changed while being read)");
     }
-    return image;
+    if (png) {
+        return decodePng(bytes, "PNG " + quoted(path));
+    }
+    return decodeJpeg(bytes, JpegPixels::AsStored, "JPEG " + quoted(path));
 }
 
 bool hasTiffMagic(const std::array<char, 4>& m) {
@@ -1111,12 +1120,12 @@ Result<void> writeImageImpl(const fs::path& path, const cv::Mat& image) {
                              what + "PNG takes 8/16-bit images with 1, 3 or 4 channels, not " +
                                  cv::typeToString(image.type()));
         }
-        std::vector<std::uint8_t> bytes;
-        if (!cv::imencode(".png", image, bytes)) {
-            return makeError(ErrorCode::Internal, what + "OpenCV could not encode the PNG");
+        auto bytes = encodePng(image);
+        if (!bytes) {
+            return makeError(ErrorCode::Internal, what + bytes.error().message);
         }
         return writeFileAtomically(
-            path, std::string_view(reinterpret_cast<const char*>(bytes.data()), bytes.size()));
+            path, std::string_view(reinterpret_cast<const char*>(bytes->data()), bytes->size()));
     }
     if (ext == ".tif" || ext == ".tiff") {
         if ((depth != CV_8U && depth != CV_16U && depth != CV_32S && depth != CV_32F) ||
@@ -1172,7 +1181,7 @@ Result<cv::Mat> readImage(const std::filesystem::path& path) {
         return makeError(ErrorCode::IoError, "image file " + quoted(path) + " is empty");
     }
     try {
-        auto image = magicBytes == 4 && hasTiffMagic(magic) ? readTiff(path) : readWithOpenCv(path);
+        auto image = magicBytes == 4 && hasTiffMagic(magic) ? readTiff(path) : readPngOrJpeg(path);
         if (image && image->depth() == CV_32F) {
             // NaN and infinity are no intensity: every threshold and mean downstream would turn
             // into nonsense without an error.

@@ -1,8 +1,8 @@
 #include "http_util.hpp"
 
+#include "slicestation/core/codec.hpp"
 #include "slicestation/pipeline/display.hpp"
 
-#include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
 #include <algorithm>
@@ -91,13 +91,11 @@ void sendImage(httplib::Response& res, const cv::Mat& image, int width, const st
         cv::resize(m, small, cv::Size(width, height), 0, 0, cv::INTER_AREA);
         m = small;
     }
-    std::vector<uchar> buf;
-    const std::vector<int> params =
-        ext == ".jpg" ? std::vector<int>{cv::IMWRITE_JPEG_QUALITY, 85} : std::vector<int>{};
-    if (!cv::imencode(ext, m, buf, params))
-        return sendError(res, 500, "cannot encode the image");
+    auto buf = ext == ".jpg" ? core::encodeJpeg(m, 85) : core::encodePng(m);
+    if (!buf)
+        return sendError(res, 500, "cannot encode the image: " + buf.error().message);
     res.set_header("Cache-Control", "no-store");
-    res.set_content(std::string(buf.begin(), buf.end()),
+    res.set_content(std::string(buf->begin(), buf->end()),
                     ext == ".jpg" ? "image/jpeg" : "image/png");
 }
 

@@ -1,7 +1,7 @@
 // Sections: the detail, the latest image and overlay, the atlas region at a pixel, a rescan.
 #include "routes.hpp"
 
-#include <opencv2/imgcodecs.hpp>
+#include "slicestation/core/codec.hpp"
 
 #include <string>
 #include <vector>
@@ -60,11 +60,11 @@ void addSectionRoutes(httplib::Server& srv, StationApi& st, const Authoriser& au
                 auto tile = st.sectionTile(*id, number(2), number(3), number(4));
                 if (!tile)
                     return sendError(res, tile.error());
-                std::vector<uchar> png;
-                if (!cv::imencode(".png", *tile, png))
-                    return sendError(res, 500, "cannot encode the tile");
+                auto png = core::encodePng(*tile);
+                if (!png)
+                    return sendError(res, 500, "cannot encode the tile: " + png.error().message);
                 res.set_header("Cache-Control", "private, max-age=60");
-                res.set_content(std::string(png.begin(), png.end()), "image/png");
+                res.set_content(std::string(png->begin(), png->end()), "image/png");
             });
     // The atlas region at a pixel of the section's latest capture (full resolution), or with
     // ?of_width=W at a pixel of the image shown scaled to width W (the page's overlay).

@@ -1,5 +1,6 @@
 #include "slicestation/drivers/libcamera_camera.hpp"
 
+#include "slicestation/core/codec.hpp"
 #include "slicestation/core/image_file.hpp"
 
 #include <libcamera/libcamera.h>
@@ -7,7 +8,6 @@
 #include <sys/mman.h>
 
 #include <opencv2/core.hpp>
-#include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
 #include <algorithm>
@@ -95,11 +95,13 @@ core::Result<hw::Frame> convert(const std::uint8_t* p, std::size_t bytes,
             const auto claimed = core::jpegFrameSize(d, bytes);
             if (!claimed || claimed->width != w || claimed->height != h)
                 return makeError(ErrorCode::IoError, "MJPEG frame cannot be decoded");
-            cv::Mat bgr =
-                cv::imdecode(cv::Mat(1, static_cast<int>(bytes), CV_8UC1, d), cv::IMREAD_COLOR);
-            if (bgr.empty() || bgr.cols != w || bgr.rows != h)
+            auto decoded = core::decodeJpeg(std::span<const std::uint8_t>(d, bytes),
+                                            core::JpegPixels::Rgb, "MJPEG frame");
+            if (!decoded)
+                return makeError(ErrorCode::IoError, decoded.error().message);
+            if (decoded->cols != w || decoded->rows != h)
                 return makeError(ErrorCode::IoError, "MJPEG frame cannot be decoded");
-            cv::cvtColor(bgr, rgb, cv::COLOR_BGR2RGB);
+            rgb = std::move(*decoded);
         } else {
             return makeError(ErrorCode::IoError, "unexpected pixel format " + fmt.toString());
         }

@@ -1,5 +1,6 @@
 #include "slicestation/drivers/v4l2_camera.hpp"
 
+#include "slicestation/core/codec.hpp"
 #include "slicestation/core/image_file.hpp"
 
 #include <fcntl.h>
@@ -7,7 +8,6 @@
 #include <sys/mman.h>
 
 #include <opencv2/core.hpp>
-#include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
 #include <cerrno>
@@ -176,17 +176,17 @@ core::Result<hw::Frame> convert(const std::uint8_t* data, std::size_t bytesUsed,
                                                          std::to_string(claimed->width) + "x" +
                                                          std::to_string(claimed->height) +
                                                          ", not the negotiated size");
-            const cv::Mat raw(1, static_cast<int>(bytesUsed), CV_8UC1, p);
-            src = cv::imdecode(raw, target == hw::PixelFormat::Rgb8 ? cv::IMREAD_COLOR
-                                                                    : cv::IMREAD_GRAYSCALE);
-            if (src.empty())
-                return makeError(ErrorCode::IoError, "MJPEG frame cannot be decoded");
+            auto decoded = core::decodeJpeg(
+                std::span<const std::uint8_t>(p, bytesUsed),
+                target == hw::PixelFormat::Rgb8 ? core::JpegPixels::Rgb : core::JpegPixels::Grey,
+                "MJPEG frame");
+            if (!decoded)
+                return makeError(ErrorCode::IoError, decoded.error().message);
+            src = std::move(*decoded);
             if (src.cols != w || src.rows != h)
                 return makeError(ErrorCode::IoError, "MJPEG frame is " + std::to_string(src.cols) +
                                                          "x" + std::to_string(src.rows) +
                                                          ", not the negotiated size");
-            if (src.channels() == 3)
-                cv::cvtColor(src, src, cv::COLOR_BGR2RGB);
             break;
         }
         default:

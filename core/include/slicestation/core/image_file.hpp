@@ -25,7 +25,7 @@ inline constexpr std::uint64_t kMaxImagePixels = std::uint64_t{1} << 30;
 inline constexpr std::uint64_t kMaxImageBytes = std::uint64_t{4} << 30;
 
 /// Reads TIFF, PNG or JPEG (chosen by content, not extension) as stored; no other format is
-/// read (OpenCV's other decoders allocate whatever a few header bytes claim).
+/// read (decoders of other formats allocate whatever a few header bytes claim).
 ///
 /// Depths: CV_8U, CV_16U, CV_32S (from int32 and uint32 samples; a uint32 value above INT32_MAX
 /// is Unsupported), CV_32F. Channels 1..4. Colour images (TIFF photometric RGB/YCbCr, PNG) come
@@ -36,15 +36,16 @@ inline constexpr std::uint64_t kMaxImageBytes = std::uint64_t{4} << 30;
 /// Multi-page TIFF: the first page only, except ImageJ hyperstacks (ImageDescription starting
 /// "ImageJ=" with "channels=C", one sample per page), whose first min(C, 4) pages are the channels
 /// of the first slice and become the image's channels in page order (the ABBA sections are such
-/// files). PNG and JPEG go through cv::imread(IMREAD_UNCHANGED) once their headers are checked;
-/// arithmetic-coded JPEG is Unsupported.
+/// files). PNG and JPEG are decoded as stored by libpng and libjpeg-turbo (codec.hpp: decodePng,
+/// decodeJpeg with JpegPixels::AsStored) once their headers are checked; arithmetic-coded JPEG
+/// is Unsupported.
 ///
 /// Size: at most kMaxImagePixels and kMaxImageBytes, from the TIFF tags or the PNG or JPEG
 /// header, and the file must be able to hold what its header claims. Float images must be finite.
 ///
 /// \return the image (never empty); NotFound (no such file), IoError (unreadable, empty, corrupt
 ///         or truncated file, or not a TIFF, PNG or JPEG), Unsupported (bit depth, sample format,
-///         palette/bilevel TIFF, a format OpenCV cannot decode to one of the depths above, or an
+///         palette/bilevel TIFF, or an
 ///         image beyond the size limits: the message gives its size and the limit), InvalidArgument
 ///         (a float image holding NaN or infinity: the message names the file and the first such
 ///         pixel).
@@ -57,7 +58,7 @@ inline constexpr std::uint64_t kMaxImageBytes = std::uint64_t{4} << 30;
 [[nodiscard]] std::optional<cv::Size> jpegFrameSize(const std::uint8_t* data, std::size_t size);
 
 /// Writes `image` in the format chosen by the extension (case-insensitive):
-/// - .png: CV_8U or CV_16U, 1, 3 or 4 channels (BGR(A) order), via OpenCV;
+/// - .png: CV_8U or CV_16U, 1, 3 or 4 channels (BGR(A) order), via libpng (codec.hpp, encodePng);
 /// - .tif/.tiff: via libtiff, deflate-compressed, CV_8U, CV_16U, CV_32S (written as uint32 label
 ///   image, so values must be >= 0), CV_32F; 1..4 channels (3 and 4 are BGR(A), stored as RGB(A)).
 /// The data goes to a temporary file in the same directory, is fsync'ed, then renamed over
