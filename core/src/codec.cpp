@@ -253,6 +253,12 @@ Result<cv::Mat> decodeJpeg(std::span<const std::uint8_t> data, JpegPixels pixels
                                                  ": not a JPEG or a corrupt header (" +
                                                  tjReason(tj.get()) + ")");
     }
+    if (colourSpace == TJCS_CMYK || colourSpace == TJCS_YCCK) {
+        // Print workflows write these; no camera or slide scanner does, and turning ink
+        // coverage into light needs a colour profile.
+        return makeError(ErrorCode::Unsupported,
+                         std::string(what) + ": a CMYK JPEG, which is not read (save it as RGB)");
+    }
     const bool grey =
         pixels == JpegPixels::Grey || (pixels == JpegPixels::AsStored && colourSpace == TJCS_GRAY);
     if (auto fits = checkDecodedSize(what, static_cast<std::uint64_t>(width),

@@ -6,6 +6,7 @@
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 #include <png.h>
+#include <turbojpeg.h>
 #include <zlib.h>
 
 #include <cstdint>
@@ -238,6 +239,21 @@ TEST(Codec, CorruptOrTruncatedJpegsAreErrorsNotHalfImages) {
     ASSERT_FALSE(read.ok());
     EXPECT_EQ(read.error().code, ErrorCode::IoError);
     EXPECT_NE(read.error().message.find("half.jpg"), std::string::npos) << read.error().message;
+    // A CMYK JPEG (as print workflows write them) is refused by name, not as corrupt.
+    const cv::Mat ink(16, 16, CV_8UC4, cv::Scalar(10, 200, 30, 0));
+    tjhandle tj = tjInitCompress();
+    ASSERT_NE(tj, nullptr);
+    unsigned char* cmyk = nullptr;
+    unsigned long cmykSize = 0;
+    ASSERT_EQ(tjCompress2(tj, ink.data, 16, 0, 16, TJPF_CMYK, &cmyk, &cmykSize, TJSAMP_444, 90, 0),
+              0)
+        << tjGetErrorStr2(tj);
+    read = decodeJpeg(std::span(cmyk, cmykSize), JpegPixels::AsStored, "ink.jpg");
+    tjFree(cmyk);
+    tjDestroy(tj);
+    ASSERT_FALSE(read.ok());
+    EXPECT_EQ(read.error().code, ErrorCode::Unsupported);
+    EXPECT_NE(read.error().message.find("CMYK"), std::string::npos) << read.error().message;
     // Not a JPEG at all, or nothing.
     for (const auto& bytes : {std::vector<std::uint8_t>{}, std::vector<std::uint8_t>(100, 0x42)}) {
         read = decodeJpeg(bytes, JpegPixels::AsStored, "garbage.jpg");

@@ -39,9 +39,8 @@ enum class JpegPixels {
 /// Progressive files with more than 500 scans are refused (libjpeg-turbo's scan limit, against
 /// streams built to take minutes).
 ///
-/// \return the image; IoError (not a JPEG, corrupt or truncated, or a colour space that cannot
-///         be converted, e.g. CMYK), Unsupported (larger than kMaxImagePixels or
-///         kMaxImageBytes).
+/// \return the image; IoError (not a JPEG, corrupt or truncated), Unsupported (a CMYK or YCCK
+///         JPEG, or larger than kMaxImagePixels or kMaxImageBytes).
 [[nodiscard]] Result<cv::Mat> decodeJpeg(std::span<const std::uint8_t> data, JpegPixels pixels,
                                          std::string_view what);
 
