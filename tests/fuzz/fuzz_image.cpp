@@ -14,7 +14,7 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
     // A camera's MJPEG frame: decoded in memory once its header claims the size the camera
     // negotiated (the drivers' check; no camera here negotiates more than 16 Mpx).
     if (const auto claimed = core::jpegFrameSize(data, size);
-        claimed && claimed->area() <= 4096 * 4096) {
+        claimed && std::int64_t{claimed->width} * claimed->height <= 4096 * 4096) {
         (void)core::decodeJpeg(std::span(data, size), core::JpegPixels::Rgb, "MJPEG frame");
     }
     return 0;
