@@ -1,6 +1,6 @@
 #include "slicestation/core/codec.hpp"
 
-#include "slicestation/core/image_file.hpp"
+#include "image_limits.hpp"
 
 #include <png.h>
 #include <turbojpeg.h>
@@ -9,27 +9,19 @@
 #include <cstdio>
 #include <cstring>
 #include <memory>
+#include <optional>
 #include <string>
 
 namespace slicestation::core {
 namespace {
 
-Result<void> checkDecodedSize(std::string_view what, std::uint64_t width, std::uint64_t height,
+/// A header claiming no pixels at all is corrupt; one claiming too many is beyond the limits.
+Result<void> checkDecodedSize(const std::string& what, std::uint64_t width, std::uint64_t height,
                               int channels, int sampleBytes) {
-    const std::uint64_t pixels = width * height;
-    const std::uint64_t bytes = pixels * static_cast<std::uint64_t>(channels * sampleBytes);
     if (width == 0 || height == 0) {
-        return makeError(ErrorCode::IoError,
-                         std::string(what) + ": the header claims an empty image");
+        return makeError(ErrorCode::IoError, what + ": the header claims an empty image");
     }
-    if (pixels > kMaxImagePixels || bytes > kMaxImageBytes) {
-        return makeError(ErrorCode::Unsupported,
-                         std::string(what) + ": image of " + std::to_string(width) + " x " +
-                             std::to_string(height) + " px exceeds the limit of " +
-                             std::to_string(kMaxImagePixels) + " px and " +
-                             std::to_string(kMaxImageBytes >> 20) + " MiB");
-    }
-    return {};
+    return checkImageSize(what, width, height, channels, sampleBytes);
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -42,9 +34,10 @@ struct PngJob {
     std::size_t at = 0;
     char message[256] = {};
     // decoding
+    const std::string* what = nullptr; ///< names the data in messages
     cv::Mat* image = nullptr;
     std::vector<png_bytep>* rows = nullptr;
-    bool tooLarge = false;
+    std::optional<Error> sizeError; ///< the decoded image would exceed the limits
     // encoding
     const cv::Mat* source = nullptr;
     std::vector<std::uint8_t>* out = nullptr;
@@ -85,9 +78,10 @@ void pngFlush(png_structp /*png*/) {}
 /// Allocates the decoded image once the header is known (outside the setjmp frame's locals).
 bool pngAllocate(PngJob& job, int width, int height, int channels, int bitDepth) {
     const int sampleBytes = bitDepth > 8 ? 2 : 1;
-    if (!checkDecodedSize("", static_cast<std::uint64_t>(width), static_cast<std::uint64_t>(height),
-                          channels, sampleBytes)) {
-        job.tooLarge = true;
+    if (auto fits = checkDecodedSize(*job.what, static_cast<std::uint64_t>(width),
+                                     static_cast<std::uint64_t>(height), channels, sampleBytes);
+        !fits) {
+        job.sizeError = fits.error();
         return false;
     }
     job.image->create(height, width, CV_MAKETYPE(sampleBytes == 2 ? CV_16U : CV_8U, channels));
@@ -183,7 +177,9 @@ Result<cv::Mat> decodePng(std::span<const std::uint8_t> data, std::string_view w
     }
     cv::Mat image;
     std::vector<png_bytep> rows;
+    const std::string name(what);
     PngJob job;
+    job.what = &name;
     job.data = data.data();
     job.size = data.size();
     job.image = &image;
@@ -196,11 +192,8 @@ Result<cv::Mat> decodePng(std::span<const std::uint8_t> data, std::string_view w
     }
     const bool ok = pngDecodeInto(png, info, &job);
     png_destroy_read_struct(&png, &info, nullptr);
-    if (job.tooLarge) {
-        return makeError(ErrorCode::Unsupported, std::string(what) +
-                                                     ": the image exceeds the limit of " +
-                                                     std::to_string(kMaxImagePixels) + " px and " +
-                                                     std::to_string(kMaxImageBytes >> 20) + " MiB");
+    if (job.sizeError) {
+        return *job.sizeError;
     }
     if (!ok) {
         return makeError(ErrorCode::IoError,
@@ -261,7 +254,7 @@ Result<cv::Mat> decodeJpeg(std::span<const std::uint8_t> data, JpegPixels pixels
     }
     const bool grey =
         pixels == JpegPixels::Grey || (pixels == JpegPixels::AsStored && colourSpace == TJCS_GRAY);
-    if (auto fits = checkDecodedSize(what, static_cast<std::uint64_t>(width),
+    if (auto fits = checkDecodedSize(std::string(what), static_cast<std::uint64_t>(width),
                                      static_cast<std::uint64_t>(height), grey ? 1 : 3, 1);
         !fits) {
         return fits.error();

@@ -1,5 +1,6 @@
 #include "slicestation/core/image_file.hpp"
 
+#include "image_limits.hpp"
 #include "slicestation/core/atomic_file.hpp"
 #include "slicestation/core/codec.hpp"
 #include "slicestation/core/tiff_file.hpp"
@@ -380,28 +381,6 @@ Result<void> readTiles(TIFF* tif, const TiffFile& file, const std::string& where
                           planes > 1 ? plane : 0);
             }
         }
-    }
-    return {};
-}
-
-std::string megabytes(std::uint64_t bytes) {
-    return std::to_string((bytes + (1u << 20) - 1) >> 20) + " MiB";
-}
-
-/// Refuses an image whose decoded size exceeds kMaxImagePixels or kMaxImageBytes.
-Result<void> checkImageSize(const std::string& where, std::uint64_t width, std::uint64_t height,
-                            int channels, int sampleBytes) {
-    const std::uint64_t pixels = width * height; // both < 2^32: no overflow
-    const std::uint64_t bytes =
-        pixels * static_cast<std::uint64_t>(channels) * static_cast<std::uint64_t>(sampleBytes);
-    if (pixels > kMaxImagePixels || bytes > kMaxImageBytes) {
-        return makeError(ErrorCode::Unsupported, where + ": image of " + std::to_string(width) +
-                                                     " x " + std::to_string(height) + " px, " +
-                                                     std::to_string(channels) + " channel(s) of " +
-                                                     std::to_string(8 * sampleBytes) + " bits (" +
-                                                     megabytes(bytes) + ") exceeds the limit of " +
-                                                     std::to_string(kMaxImagePixels) + " px and " +
-                                                     megabytes(kMaxImageBytes));
     }
     return {};
 }
