@@ -5,41 +5,68 @@
 #include <Eigen/Dense>
 
 #include <algorithm>
+#include <array>
 #include <cmath>
+#include <cstdint>
 #include <utility>
 
 namespace slicestation::pipeline {
 
 namespace {
 
-/// Counts over ranks 0..n-1 with prefix sums and the k-th smallest present rank (a Fenwick
-/// tree): an order statistic of a set that changes a little at a time.
-class RankCounts {
+/// A set of ranks 0..n-1 (each present at most once) with the k-th smallest present rank: a bit
+/// per rank, a count per 64-bit word and per block of 8 words. Adding or removing is three
+/// stores; the k-th rank skips whole blocks, then words, then bytes of the word. An order
+/// statistic of a set that changes a little at a time.
+class RankSet {
 public:
-    explicit RankCounts(size_t n) : tree_(n + 1, 0) {
-        while (top_ * 2 <= n)
-            top_ *= 2;
+    explicit RankSet(size_t n)
+        : bits_((n + 63) / 64 + 1, 0), wordCount_(bits_.size(), 0),
+          blockCount_(bits_.size() / 8 + 1, 0) {}
+    void add(int rank) {
+        const auto r = size_t(rank);
+        bits_[r / 64] |= uint64_t(1) << (r % 64);
+        ++wordCount_[r / 64];
+        ++blockCount_[r / 512];
     }
-    void add(int rank, int delta) {
-        for (size_t i = size_t(rank) + 1; i < tree_.size(); i += i & (~i + 1))
-            tree_[i] += delta;
+    void remove(int rank) {
+        const auto r = size_t(rank);
+        bits_[r / 64] &= ~(uint64_t(1) << (r % 64));
+        --wordCount_[r / 64];
+        --blockCount_[r / 512];
     }
     /// The rank at 0-based position `k` in the sorted present ranks (k below the count).
     int kth(int k) const {
-        size_t pos = 0;
-        int left = k + 1;
-        for (size_t step = top_; step > 0; step /= 2) {
-            if (pos + step < tree_.size() && tree_[pos + step] < left) {
-                pos += step;
-                left -= tree_[pos];
-            }
+        size_t b = 0;
+        while (blockCount_[b] <= k)
+            k -= blockCount_[b++];
+        size_t w = b * 8;
+        while (wordCount_[w] <= k)
+            k -= wordCount_[w++];
+        uint64_t word = bits_[w];
+        int base = int(w * 64);
+        for (;;) {
+            const int inByte = kBitsInByte[word & 0xff];
+            if (inByte > k)
+                break;
+            k -= inByte;
+            word >>= 8;
+            base += 8;
         }
-        return int(pos); // 0-based rank = (1-based pos + 1) - 1
+        for (;; word >>= 1, ++base)
+            if ((word & 1) && k-- == 0)
+                return base;
     }
 
 private:
-    std::vector<int> tree_;
-    size_t top_ = 1;
+    static constexpr std::array<uint8_t, 256> kBitsInByte = [] {
+        std::array<uint8_t, 256> t{};
+        for (int i = 0; i < 256; ++i)
+            t[size_t(i)] = uint8_t((i & 1) + t[size_t(i / 2)]);
+        return t;
+    }();
+    std::vector<uint64_t> bits_;
+    std::vector<int> wordCount_, blockCount_;
 };
 
 /// Ranks of `v` (ties in any order) and the values in rank order.
@@ -60,8 +87,8 @@ void rankValues(const std::vector<double>& v, std::vector<int>& rank, std::vecto
 /// For each match k: do the median x and y displacements of the matches within 2 `distance`
 /// of it (itself included, at least 3) lie within distance / 2 of its own? The medians are the
 /// exact order statistics of each neighbourhood; the neighbourhoods are visited in grid order
-/// and kept as rank counts that change only by the points entering and leaving, so each median
-/// costs a few tree steps instead of a selection over the whole neighbourhood.
+/// and kept as sets of ranks that change only by the points entering and leaving, so each median
+/// costs a short scan of counts instead of a selection over the whole neighbourhood.
 std::vector<char> consistentWithNeighbours(const std::vector<cv::Point2f>& at,
                                            const std::vector<cv::Point2d>& disp,
                                            const PointGrid& grid, double distance) {
@@ -89,7 +116,7 @@ std::vector<char> consistentWithNeighbours(const std::vector<cv::Point2f>& at,
         visit[k] = {{cy, cy % 2 ? -cx : cx}, int(k)};
     }
     std::sort(visit.begin(), visit.end());
-    RankCounts countX(n), countY(n);
+    RankSet countX(n), countY(n);
     std::vector<int> stamp(n, -1), members;
     std::vector<char> in(n, 0), keep(n, 0);
     members.reserve(n);
@@ -101,8 +128,8 @@ std::vector<char> consistentWithNeighbours(const std::vector<cv::Point2f>& at,
             ++count;
             if (!in[size_t(j)]) {
                 in[size_t(j)] = 1;
-                countX.add(rankX[size_t(j)], 1);
-                countY.add(rankY[size_t(j)], 1);
+                countX.add(rankX[size_t(j)]);
+                countY.add(rankY[size_t(j)]);
                 members.push_back(j);
             }
         });
@@ -112,8 +139,8 @@ std::vector<char> consistentWithNeighbours(const std::vector<cv::Point2f>& at,
                 members[w++] = j;
             } else {
                 in[size_t(j)] = 0;
-                countX.add(rankX[size_t(j)], -1);
-                countY.add(rankY[size_t(j)], -1);
+                countX.remove(rankX[size_t(j)]);
+                countY.remove(rankY[size_t(j)]);
             }
         }
         members.resize(w);

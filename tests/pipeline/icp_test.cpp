@@ -3,6 +3,7 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 
 using namespace slicestation::pipeline;
@@ -84,4 +85,76 @@ TEST(IcpAffine, ConsistencyCheckDropsAnOutlierMatch) {
     for (const auto& m : kept)
         EXPECT_NE(m.source, 50);
     EXPECT_GT(kept.size(), 40u);
+}
+
+// The consistency check keeps exactly the matches the paper's rule keeps, stated here the slow
+// way: for each match, the median x and y displacements (the element at position count / 2 of
+// each sorted list) of the matches within 2 x distance of it, itself included, must lie within
+// distance / 2 of its own displacement; a match with fewer than 3 such neighbours is dropped.
+// Scattered points (neighbourhoods of 0 to several hundred) and clustered displacements with
+// ties, at several distances, so that the incremental medians are checked on every path.
+TEST(IcpAffine, ConsistencyCheckKeepsExactlyWhatTheRuleStatesKeeps) {
+    cv::RNG rng(20261203);
+    for (const double distance : {0.7, 2.0, 5.5, 13.0, 40.0}) {
+        EdgePoints target;
+        std::vector<cv::Point2f> mp, mn;
+        for (int i = 0; i < 1500; ++i) {
+            // Points on a few curves and some scattered ones, in a field of 60 x 40 distances.
+            const bool onCurve = i % 5 != 0;
+            const double t = rng.uniform(0.0, 2 * CV_PI);
+            const double s = distance / 5;
+            const cv::Point2f p =
+                onCurve ? cv::Point2f(float(s * (150 + (40 + 30 * (i % 3)) * std::cos(t))),
+                                      float(s * (100 + (30 + 20 * (i % 3)) * std::sin(t))))
+                        : cv::Point2f(float(s * rng.uniform(0.0, 300.0)),
+                                      float(s * rng.uniform(0.0, 200.0)));
+            // Normals in four classes 45 degrees apart: with 10 degrees allowed, a point reaches
+            // only targets of its own class, so displacements vary from point to point.
+            const double a = CV_PI / 4 * (i % 4);
+            const cv::Point2f normal(float(std::cos(a)), float(std::sin(a)));
+            mp.push_back(p);
+            mn.push_back(normal);
+            // Displacements: mostly one smooth motion, quantised so that ties occur, and a share
+            // of outliers (not quantised).
+            const double ox = rng.uniform(0.0, 1.0) < 0.3 ? rng.uniform(-distance, distance) : 0;
+            const double dx = std::round(0.4 * distance * std::sin(p.y / (8 * distance))) / 4 + ox;
+            const double dy = std::round(4 * 0.1 * distance * std::cos(p.x / (10 * distance))) / 4;
+            target.points.emplace_back(float(p.x + dx), float(p.y + dy));
+            target.normals.push_back(normal);
+        }
+        const PointGrid grid(target.points, float(distance));
+        const auto all =
+            findMatches(mp, mn, target, grid, distance, 10.0, false, TargetRule::PointToLine);
+        const auto kept =
+            findMatches(mp, mn, target, grid, distance, 10.0, true, TargetRule::PointToLine);
+        std::vector<int> expected;
+        const float r = float(2 * distance);
+        for (const Match& m : all) {
+            const cv::Point2f at = mp[size_t(m.source)];
+            std::vector<double> xs, ys;
+            for (const Match& o : all) {
+                const cv::Point2f q = mp[size_t(o.source)];
+                const float ex = q.x - at.x, ey = q.y - at.y;
+                if (ex * ex + ey * ey <= r * r) {
+                    xs.push_back(o.target.x - q.x);
+                    ys.push_back(o.target.y - q.y);
+                }
+            }
+            if (xs.size() < 3)
+                continue;
+            const size_t mid = xs.size() / 2;
+            std::nth_element(xs.begin(), xs.begin() + long(mid), xs.end());
+            std::nth_element(ys.begin(), ys.begin() + long(mid), ys.end());
+            const double dx = (m.target.x - at.x) - xs[mid], dy = (m.target.y - at.y) - ys[mid];
+            if (std::hypot(dx, dy) <= 0.5 * distance)
+                expected.push_back(m.source);
+        }
+        std::vector<int> got;
+        for (const Match& m : kept)
+            got.push_back(m.source);
+        EXPECT_EQ(got, expected) << "distance " << distance;
+        // The rule must have something to decide: some kept, some dropped.
+        EXPECT_GT(got.size(), all.size() / 4) << "distance " << distance;
+        EXPECT_LT(got.size(), all.size()) << "distance " << distance;
+    }
 }
