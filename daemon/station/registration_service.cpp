@@ -201,6 +201,7 @@ json resultDocument(const RegisterRequest& rq, const cv::Mat& section, const cv:
                       {"intensity_warp_kept", q.intensityWarpKept},
                       {"region_warp_kept", q.regionWarpKept},
                       {"min_jacobian", q.minJacobian},
+                      {"fold_repairs", q.foldRepairs},
                       {"scale_atlas_px_per_image_px", q.scaleAtlasPxPerImagePx}};
     return out;
 }

@@ -262,20 +262,29 @@ void addWarpConditions(const EdgePoints& section, const cv::Matx23d& atlasFromWo
     }
 }
 
-/// Smallest Jacobian determinant of working px -> atlas px (affine + warp) on the warp's nodes,
-/// relative to the affine's.
-double minJacobianRelative(const cv::Matx23d& affine, const DisplacementField& warp) {
+/// Jacobian determinant of working px -> atlas px (affine + warp) on the warp's nodes, relative
+/// to the affine's (CV_32F, the node grid; empty without a warp).
+cv::Mat relativeJacobian(const cv::Matx23d& affine, const DisplacementField& warp) {
     if (warp.empty() || warp.dx().cols < 2 || warp.dx().rows < 2)
-        return 1.0;
+        return {};
     const double inv = 1.0 / warp.cellPx();
     cv::Mat xx, xy, yx, yy;
     cv::Sobel(warp.dx(), xx, CV_32F, 1, 0, 1, 0.5 * inv, affine(0, 0), cv::BORDER_REPLICATE);
     cv::Sobel(warp.dx(), xy, CV_32F, 0, 1, 1, 0.5 * inv, affine(0, 1), cv::BORDER_REPLICATE);
     cv::Sobel(warp.dy(), yx, CV_32F, 1, 0, 1, 0.5 * inv, affine(1, 0), cv::BORDER_REPLICATE);
     cv::Sobel(warp.dy(), yy, CV_32F, 0, 1, 1, 0.5 * inv, affine(1, 1), cv::BORDER_REPLICATE);
+    return (xx.mul(yy) - xy.mul(yx)) / det(affine);
+}
+
+/// Smallest Jacobian determinant of working px -> atlas px (affine + warp) on the warp's nodes,
+/// relative to the affine's.
+double minJacobianRelative(const cv::Matx23d& affine, const DisplacementField& warp) {
+    const cv::Mat j = relativeJacobian(affine, warp);
+    if (j.empty())
+        return 1.0;
     double m = 0;
-    cv::minMaxLoc(xx.mul(yy) - xy.mul(yx), &m);
-    return m / det(affine);
+    cv::minMaxLoc(j, &m);
+    return m;
 }
 
 /// `warp` plus a displacement sampled on a reduced copy (`ux`, `uy`, CV_32F) of the working
@@ -893,8 +902,10 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
             reg.quality.smoothAfter = sw.rmsAfter;
             reg.quality.smoothMatches = sw.matches;
         }
+        std::vector<cv::Point2d> pts, disp;
         for (const auto& [dist, ang] : rounds) {
-            std::vector<cv::Point2d> pts, disp;
+            pts.clear();
+            disp.clear();
             addWarpConditions(reg.sectionEdges, reg.atlasFromWorking, reg.warp, reg.atlasEdges,
                               atlasGrid, dist, ang, pts, disp);
             if (pts.size() < 12)
@@ -906,6 +917,38 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
             for (size_t k = 0; k < pts.size(); ++k)
                 disp[k] -= base.at(pts[k]);
             reg.warp = addFields(solveLaplaceWarp(reg.workingGrey.size(), pts, disp, lo), base);
+        }
+        // Tissue cannot lie over itself: where the map folds (Jacobian determinant at most
+        // 0), neighbouring conditions disagree by more than their distance allows. The
+        // conditions within two nodes of a fold are dropped and the field solved again, so
+        // Laplace's equation carries the neighbours' motion across instead.
+        for (int repair = 0; repair < options.foldRepairs && !pts.empty(); ++repair) {
+            const cv::Mat j = relativeJacobian(reg.atlasFromWorking, reg.warp);
+            if (j.empty())
+                break;
+            cv::Mat folded = j <= 0;
+            if (cv::countNonZero(folded) == 0)
+                break;
+            cv::dilate(folded, folded, cv::getStructuringElement(cv::MORPH_RECT, cv::Size(5, 5)));
+            const double cell = reg.warp.cellPx();
+            size_t w = 0;
+            for (size_t k = 0; k < pts.size(); ++k) {
+                const int c =
+                    std::clamp(static_cast<int>(std::lround(pts[k].x / cell)), 0, folded.cols - 1);
+                const int r =
+                    std::clamp(static_cast<int>(std::lround(pts[k].y / cell)), 0, folded.rows - 1);
+                if (folded.at<std::uint8_t>(r, c))
+                    continue;
+                pts[w] = pts[k];
+                disp[w] = disp[k];
+                ++w;
+            }
+            if (w == pts.size() || w < 12)
+                break;
+            pts.resize(w);
+            disp.resize(w);
+            reg.warp = addFields(solveLaplaceWarp(reg.workingGrey.size(), pts, disp, lo), base);
+            ++reg.quality.foldRepairs;
         }
     }
     timer.lap("warp");

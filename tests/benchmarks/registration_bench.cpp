@@ -469,6 +469,11 @@ int main(int argc, char** argv) {
     app.add_option("--mirrored-gaps", mirroredGaps,
                    "DamageParams::leaveOutMirroredGaps: gaps with a mirrored twin left out")
         ->check(CLI::IsMember({"on", "off"}));
+    int foldRepairs = pipeline::RegistrationOptions{}.foldRepairs;
+    app.add_option("--fold-repairs", foldRepairs,
+                   "RegistrationOptions::foldRepairs: times the Laplace warp is solved again "
+                   "without the conditions around a fold (0: folds kept)")
+        ->check(CLI::Range(0, 10));
     std::string crackPieces = "on";
     app.add_option("--crack-pieces", crackPieces,
                    "DamageParams::crackPieceFrac: a tear followed across a break to the pieces of "
@@ -588,6 +593,7 @@ int main(int argc, char** argv) {
     // knowledge, nothing the generators know.
     pipeline::RegistrationOptions regOptions;
     regOptions.damage.leaveOutMirroredGaps = mirroredGaps == "on";
+    regOptions.foldRepairs = foldRepairs;
     if (crackPieces == "off")
         regOptions.damage.crackPieceFrac = 0;
     if (allLabels) {
@@ -810,9 +816,9 @@ int main(int argc, char** argv) {
                     std::cerr << path << ": " << written.error().message << "\n";
             }
             char refined[64];
-            std::snprintf(refined, sizeof refined, " | explained %.3f -> %.3f%s",
+            std::snprintf(refined, sizeof refined, " | explained %.3f -> %.3f%s | min J %.2f",
                           reg->quality.explainedBeforeRefine, reg->quality.explainedAfterRefine,
-                          reg->quality.refined ? " kept" : "");
+                          reg->quality.refined ? " kept" : "", reg->quality.minJacobian);
             steps += refined;
             if (ro.intensityAffine && !ro.atlasIntensity.empty()) {
                 std::snprintf(refined, sizeof refined, " | intensity %.3f -> %.3f%s",

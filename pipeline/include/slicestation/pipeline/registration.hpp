@@ -52,6 +52,9 @@ struct RegistrationOptions {
     /// outline up to outlinePullReach x the atlas height away.
     double outlinePullBelowOverlap = 0.87;
     double outlinePullReach = 1.0 / 6;
+    /// Where the Laplace warp's map folds, drop the conditions within two nodes of the fold and
+    /// solve again, at most this many times (0: keep the fold).
+    int foldRepairs = 3;
     /// After the geometric stages, refine the map densely so that the atlas regions fit the
     /// section's own contrast inside the tissue (dense_refine.hpp, docs/registration.md).
     bool denseRefine = true;
@@ -132,6 +135,8 @@ struct RegistrationQuality {
     /// Smallest Jacobian determinant of the final map (affine + warp) relative to the affine's,
     /// over the working domain: 1 = no local change of area, <= 0 = the map folds.
     double minJacobian = 1;
+    /// Times the Laplace warp was solved again without the conditions around a fold.
+    int foldRepairs = 0;
     /// Share of the section's intensity variance (tissue and a glass band, damage left out)
     /// that the atlas regions, each painted at one fitted level, explain before and after the
     /// dense refinement (0 when it did not run).
