@@ -262,9 +262,9 @@ void addWarpConditions(const EdgePoints& section, const cv::Matx23d& atlasFromWo
     }
 }
 
-/// Jacobian determinant of working px -> atlas px (affine + warp) on the warp's nodes, relative
-/// to the affine's (CV_32F, the node grid; empty without a warp).
-cv::Mat relativeJacobian(const cv::Matx23d& affine, const DisplacementField& warp) {
+/// Jacobian determinant of working px -> atlas px (affine + warp) on the warp's nodes (CV_32F,
+/// the node grid; empty without a warp).
+cv::Mat mapJacobian(const cv::Matx23d& affine, const DisplacementField& warp) {
     if (warp.empty() || warp.dx().cols < 2 || warp.dx().rows < 2)
         return {};
     const double inv = 1.0 / warp.cellPx();
@@ -273,18 +273,18 @@ cv::Mat relativeJacobian(const cv::Matx23d& affine, const DisplacementField& war
     cv::Sobel(warp.dx(), xy, CV_32F, 0, 1, 1, 0.5 * inv, affine(0, 1), cv::BORDER_REPLICATE);
     cv::Sobel(warp.dy(), yx, CV_32F, 1, 0, 1, 0.5 * inv, affine(1, 0), cv::BORDER_REPLICATE);
     cv::Sobel(warp.dy(), yy, CV_32F, 0, 1, 1, 0.5 * inv, affine(1, 1), cv::BORDER_REPLICATE);
-    return (xx.mul(yy) - xy.mul(yx)) / det(affine);
+    return xx.mul(yy) - xy.mul(yx);
 }
 
 /// Smallest Jacobian determinant of working px -> atlas px (affine + warp) on the warp's nodes,
 /// relative to the affine's.
 double minJacobianRelative(const cv::Matx23d& affine, const DisplacementField& warp) {
-    const cv::Mat j = relativeJacobian(affine, warp);
+    const cv::Mat j = mapJacobian(affine, warp);
     if (j.empty())
         return 1.0;
     double m = 0;
     cv::minMaxLoc(j, &m);
-    return m;
+    return m / det(affine);
 }
 
 /// `warp` plus a displacement sampled on a reduced copy (`ux`, `uy`, CV_32F) of the working
@@ -923,10 +923,11 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         // conditions within two nodes of a fold are dropped and the field solved again, so
         // Laplace's equation carries the neighbours' motion across instead.
         for (int repair = 0; repair < options.foldRepairs && !pts.empty(); ++repair) {
-            const cv::Mat j = relativeJacobian(reg.atlasFromWorking, reg.warp);
+            const cv::Mat j = mapJacobian(reg.atlasFromWorking, reg.warp);
             if (j.empty())
                 break;
-            cv::Mat folded = j <= 0;
+            // Relative to the affine's determinant: a fold has the opposite sign.
+            cv::Mat folded = det(reg.atlasFromWorking) > 0 ? j <= 0 : j >= 0;
             if (cv::countNonZero(folded) == 0)
                 break;
             cv::dilate(folded, folded, cv::getStructuringElement(cv::MORPH_RECT, cv::Size(5, 5)));

@@ -243,6 +243,7 @@ TEST_F(SlicectlAtlas, RegisterUsesTheStacksTemplatePlane) {
     EXPECT_FALSE(withoutJson.at("quality").at("intensity_warp_kept").get<bool>());
     EXPECT_FALSE(withJson.at("quality").at("region_warp_kept").get<bool>());
     EXPECT_TRUE(withJson.at("quality").at("min_jacobian").is_number());
+    EXPECT_TRUE(withJson.at("quality").at("fold_repairs").is_number_integer());
     EXPECT_LT(with, 0.8 * without) << "landmark RMSE " << without << " -> " << with;
 
     // A plain label image with its plane given by --atlas-template registers as the stack does;

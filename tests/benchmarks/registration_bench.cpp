@@ -472,7 +472,7 @@ int main(int argc, char** argv) {
     int foldRepairs = pipeline::RegistrationOptions{}.foldRepairs;
     app.add_option("--fold-repairs", foldRepairs,
                    "RegistrationOptions::foldRepairs: times the Laplace warp is solved again "
-                   "without the conditions around a fold (0: folds kept)")
+                   "without the conditions around a fold (0, the default: folds kept)")
         ->check(CLI::Range(0, 10));
     std::string crackPieces = "on";
     app.add_option("--crack-pieces", crackPieces,

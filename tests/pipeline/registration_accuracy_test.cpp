@@ -85,6 +85,44 @@ cv::Mat realPlane(int ap25) {
     return pipeline::collapseLabels(*p, *onto, pipeline::majorRegionIds(), 8);
 }
 
+/// A second-family section (another generator, every Allen id stained) of the real Allen plane
+/// at QuickNII 25 um index `ap`, and the plane collapsed to the major regions the registration
+/// gets.
+struct SecondFamilyCase {
+    cv::Mat major;
+    core::Result<sim::GeneratedSectionB> gen;
+};
+SecondFamilyCase secondFamilyCase(const core::Volume& vol, int ap) {
+    auto full = pipeline::coronalPlane(vol, pipeline::VolumeAxes::QuickNii, ap);
+    EXPECT_TRUE(full.ok());
+    if (!full)
+        return {{}, full.error()};
+    sim::GeneratorOptionsB o;
+    o.seed = 700 + std::uint64_t(ap);
+    return {pipeline::collapseLabels(*full, *ontology(), pipeline::majorRegionIds(), 8),
+            sim::generateSectionB(*full, *ontology(), o)};
+}
+
+/// Registers the second-family sections at QuickNII indices `aps` twice each, with the options
+/// `vary(options, v)` sets for v = 0 and 1, and calls `check(ap, v, registration, rmse)`.
+template <class Vary, class Check>
+void registerSecondFamilyTwice(std::initializer_list<int> aps, Vary vary, Check check) {
+    static const auto vol = core::readNrrd(kAtlasDir / "annotation_25_quicknii.nrrd");
+    ASSERT_TRUE(vol.ok());
+    ASSERT_TRUE(ontology().ok());
+    for (int ap : aps) {
+        auto [major, gen] = secondFamilyCase(*vol, ap);
+        ASSERT_TRUE(gen.ok()) << gen.error().message;
+        for (int v = 0; v < 2; ++v) {
+            pipeline::RegistrationOptions ro;
+            vary(ro, v);
+            auto reg = pipeline::registerSection(gen->image, major, ro);
+            ASSERT_TRUE(reg.ok()) << reg.error().message;
+            check(ap, v, *reg, landmarkScore(*reg, gen->truth.landmarks).rmse);
+        }
+    }
+}
+
 const fs::path kSeriesDir = fs::path(SLST_SHARED_DIR) / "sections" / "abba-mouse-series";
 
 /// A section of the real ABBA series (20 um/px) registered against the coronal slice of the
@@ -529,71 +567,40 @@ TEST(RegistrationAccuracy, TheSmoothWarpFollowsADeformationBeyondTheAffine) {
     // (on the bench's 24 report cases: 2.65 -> 1.94 px clean, 2.83 -> 1.89 damaged).
     if (!fs::exists(kAtlasDir / "annotation_25_quicknii.nrrd"))
         GTEST_SKIP() << "../shared/atlas is absent: real-atlas accuracy not tested";
-    static const auto vol = core::readNrrd(kAtlasDir / "annotation_25_quicknii.nrrd");
-    ASSERT_TRUE(vol.ok());
-    ASSERT_TRUE(ontology().ok());
     double sum[2] = {0, 0};
-    const int aps[] = {240, 330};
-    for (int ap : aps) {
-        auto full = pipeline::coronalPlane(*vol, pipeline::VolumeAxes::QuickNii, ap);
-        ASSERT_TRUE(full.ok());
-        const cv::Mat major =
-            pipeline::collapseLabels(*full, *ontology(), pipeline::majorRegionIds(), 8);
-        sim::GeneratorOptionsB o;
-        o.seed = 700 + std::uint64_t(ap);
-        auto gen = sim::generateSectionB(*full, *ontology(), o);
-        ASSERT_TRUE(gen.ok()) << gen.error().message;
-        for (int v = 0; v < 2; ++v) {
-            pipeline::RegistrationOptions ro;
-            ro.smoothWarp = v == 1;
-            auto reg = pipeline::registerSection(gen->image, major, ro);
-            ASSERT_TRUE(reg.ok()) << reg.error().message;
-            const double rmse = landmarkScore(*reg, gen->truth.landmarks).rmse;
+    registerSecondFamilyTwice(
+        {240, 330}, [](pipeline::RegistrationOptions& ro, int v) { ro.smoothWarp = v == 1; },
+        [&](int ap, int v, const pipeline::Registration&, double rmse) {
             sum[v] += rmse;
             std::printf("AP %d, smooth warp %s: landmark RMSE %.2f atlas px\n", ap,
                         v ? "on" : "off", rmse);
-        }
-    }
+        });
     EXPECT_LT(sum[1], 0.85 * sum[0]) << "without " << sum[0] / 2 << ", with " << sum[1] / 2;
 }
 
 TEST(RegistrationAccuracy, TheWarpDoesNotFoldTheTissue) {
-    // Tissue cannot lie over itself: the final map's Jacobian determinant must stay positive.
-    // Without the fold repair the Laplace warp folded on 43 of the bench's 48 second-family
+    // Tissue cannot lie over itself: with the fold repair (3 solves; off by default, see
+    // RegistrationOptions::foldRepairs) the final map's Jacobian determinant stays positive.
+    // Without it the Laplace warp folded on 43 of the bench's 48 second-family
     // sections (smallest -3.7); here two of them, each checked to fold without the repair, so
     // that the check can fail, and to land its landmarks no worse with it.
     if (!fs::exists(kAtlasDir / "annotation_25_quicknii.nrrd"))
         GTEST_SKIP() << "../shared/atlas is absent: real-atlas accuracy not tested";
-    static const auto vol = core::readNrrd(kAtlasDir / "annotation_25_quicknii.nrrd");
-    ASSERT_TRUE(vol.ok());
-    ASSERT_TRUE(ontology().ok());
     double sum[2] = {0, 0};
-    for (int ap : {240, 330}) {
-        auto full = pipeline::coronalPlane(*vol, pipeline::VolumeAxes::QuickNii, ap);
-        ASSERT_TRUE(full.ok());
-        const cv::Mat major =
-            pipeline::collapseLabels(*full, *ontology(), pipeline::majorRegionIds(), 8);
-        sim::GeneratorOptionsB o;
-        o.seed = 700 + std::uint64_t(ap);
-        auto gen = sim::generateSectionB(*full, *ontology(), o);
-        ASSERT_TRUE(gen.ok()) << gen.error().message;
-        for (int v = 0; v < 2; ++v) {
-            pipeline::RegistrationOptions ro;
-            ro.foldRepairs = v == 1 ? pipeline::RegistrationOptions{}.foldRepairs : 0;
-            auto reg = pipeline::registerSection(gen->image, major, ro);
-            ASSERT_TRUE(reg.ok()) << reg.error().message;
-            const double rmse = landmarkScore(*reg, gen->truth.landmarks).rmse;
+    registerSecondFamilyTwice(
+        {240, 330},
+        [](pipeline::RegistrationOptions& ro, int v) { ro.foldRepairs = v == 1 ? 3 : 0; },
+        [&](int ap, int v, const pipeline::Registration& reg, double rmse) {
             sum[v] += rmse;
             std::printf("AP %d, fold repair %s: min Jacobian %.3f, repairs %d, RMSE %.2f px\n", ap,
-                        v ? "on" : "off", reg->quality.minJacobian, reg->quality.foldRepairs, rmse);
+                        v ? "on" : "off", reg.quality.minJacobian, reg.quality.foldRepairs, rmse);
             if (v == 0) {
-                EXPECT_LE(reg->quality.minJacobian, 0) << "AP " << ap << ": no fold to repair";
+                EXPECT_LE(reg.quality.minJacobian, 0) << "AP " << ap << ": no fold to repair";
             } else {
-                EXPECT_GT(reg->quality.minJacobian, 0) << "AP " << ap;
-                EXPECT_GE(reg->quality.foldRepairs, 1) << "AP " << ap;
+                EXPECT_GT(reg.quality.minJacobian, 0) << "AP " << ap;
+                EXPECT_GE(reg.quality.foldRepairs, 1) << "AP " << ap;
             }
-        }
-    }
+        });
     EXPECT_LT(sum[1], sum[0] + 0.1) << "without " << sum[0] / 2 << ", with " << sum[1] / 2;
 }
 

@@ -53,8 +53,10 @@ struct RegistrationOptions {
     double outlinePullBelowOverlap = 0.87;
     double outlinePullReach = 1.0 / 6;
     /// Where the Laplace warp's map folds, drop the conditions within two nodes of the fold and
-    /// solve again, at most this many times (0: keep the fold).
-    int foldRepairs = 3;
+    /// solve again, at most this many times (0: keep the fold). Off by default: with 3 it
+    /// removes the folds and helps generated sections, but the clean real abba-mouse section 08
+    /// gets a false tear (docs/registration.md, "No folds").
+    int foldRepairs = 0;
     /// After the geometric stages, refine the map densely so that the atlas regions fit the
     /// section's own contrast inside the tissue (dense_refine.hpp, docs/registration.md).
     bool denseRefine = true;
