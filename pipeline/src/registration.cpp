@@ -908,8 +908,10 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
             disp.clear();
             addWarpConditions(reg.sectionEdges, reg.atlasFromWorking, reg.warp, reg.atlasEdges,
                               atlasGrid, dist, ang, pts, disp);
-            if (pts.size() < 12)
+            if (pts.size() < 12) {
+                pts.clear(); // not solved: the fold repair below has no conditions to revise
                 break;
+            }
             if (pullOutline)
                 addWarpConditions(outline, reg.atlasFromWorking, reg.warp, atlasOuter,
                                   atlasOuterGrid, std::max(dist, outlineReach), 15, pts, disp);
