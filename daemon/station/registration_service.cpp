@@ -202,6 +202,7 @@ json resultDocument(const RegisterRequest& rq, const cv::Mat& section, const cv:
                       {"region_warp_kept", q.regionWarpKept},
                       {"min_jacobian", q.minJacobian},
                       {"fold_repairs", q.foldRepairs},
+                      {"fold_repair_nodes", q.foldRepairNodes},
                       {"scale_atlas_px_per_image_px", q.scaleAtlasPxPerImagePx}};
     return out;
 }

@@ -147,4 +147,22 @@ DisplacementField solveLaplaceWarp(cv::Size domain, const std::vector<cv::Point2
     return {ux, uy, options.cellPx};
 }
 
+DisplacementField relaxWithin(const DisplacementField& field, const cv::Mat& region, int sweeps,
+                              double relaxation) {
+    CV_Assert(region.type() == CV_8U);
+    if (field.empty() || region.size() != field.dx().size())
+        return field;
+    const cv::Rect grid(0, 0, region.cols, region.rows);
+    const cv::Rect free = cv::boundingRect(region);
+    if (free.area() == 0)
+        return field;
+    // The free nodes and a ring of held ones around them (the grid's own edge mirrors).
+    const cv::Rect roi = cv::Rect(free.x - 1, free.y - 1, free.width + 2, free.height + 2) & grid;
+    cv::Mat ux = field.dx().clone(), uy = field.dy().clone();
+    const cv::Mat held = region(roi) == 0;
+    cv::Mat rx = ux(roi), ry = uy(roi);
+    relax(rx, field.dx()(roi), ry, field.dy()(roi), held, sweeps, relaxation);
+    return {ux, uy, field.cellPx()};
+}
+
 } // namespace slicestation::pipeline

@@ -908,10 +908,8 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
             disp.clear();
             addWarpConditions(reg.sectionEdges, reg.atlasFromWorking, reg.warp, reg.atlasEdges,
                               atlasGrid, dist, ang, pts, disp);
-            if (pts.size() < 12) {
-                pts.clear(); // not solved: the fold repair below has no conditions to revise
+            if (pts.size() < 12)
                 break;
-            }
             if (pullOutline)
                 addWarpConditions(outline, reg.atlasFromWorking, reg.warp, atlasOuter,
                                   atlasOuterGrid, std::max(dist, outlineReach), 15, pts, disp);
@@ -919,39 +917,6 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
             for (size_t k = 0; k < pts.size(); ++k)
                 disp[k] -= base.at(pts[k]);
             reg.warp = addFields(solveLaplaceWarp(reg.workingGrey.size(), pts, disp, lo), base);
-        }
-        // Tissue cannot lie over itself: where the map folds (Jacobian determinant at most
-        // 0), neighbouring conditions disagree by more than their distance allows. The
-        // conditions within two nodes of a fold are dropped and the field solved again, so
-        // Laplace's equation carries the neighbours' motion across instead.
-        for (int repair = 0; repair < options.foldRepairs && !pts.empty(); ++repair) {
-            const cv::Mat j = mapJacobian(reg.atlasFromWorking, reg.warp);
-            if (j.empty())
-                break;
-            // Relative to the affine's determinant: a fold has the opposite sign.
-            cv::Mat folded = det(reg.atlasFromWorking) > 0 ? j <= 0 : j >= 0;
-            if (cv::countNonZero(folded) == 0)
-                break;
-            cv::dilate(folded, folded, cv::getStructuringElement(cv::MORPH_RECT, cv::Size(5, 5)));
-            const double cell = reg.warp.cellPx();
-            size_t w = 0;
-            for (size_t k = 0; k < pts.size(); ++k) {
-                const int c =
-                    std::clamp(static_cast<int>(std::lround(pts[k].x / cell)), 0, folded.cols - 1);
-                const int r =
-                    std::clamp(static_cast<int>(std::lround(pts[k].y / cell)), 0, folded.rows - 1);
-                if (folded.at<std::uint8_t>(r, c))
-                    continue;
-                pts[w] = pts[k];
-                disp[w] = disp[k];
-                ++w;
-            }
-            if (w == pts.size() || w < 12)
-                break;
-            pts.resize(w);
-            disp.resize(w);
-            reg.warp = addFields(solveLaplaceWarp(reg.workingGrey.size(), pts, disp, lo), base);
-            ++reg.quality.foldRepairs;
         }
     }
     timer.lap("warp");
@@ -1018,6 +983,23 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
             meanByLabel(dense.confidence, reg.warpedLabels(atlasLabels, gs), weight);
         timer.lap("refine");
     }
+    // Tissue cannot lie over itself: where the final map folds (Jacobian determinant of the
+    // opposite sign to the affine's), the field around the fold is relaxed to the harmonic
+    // interpolation of its surroundings, which moves nothing else.
+    for (int round = 0; round < options.foldRepairs; ++round) {
+        const cv::Mat j = mapJacobian(reg.atlasFromWorking, reg.warp);
+        if (j.empty())
+            break;
+        cv::Mat folded = det(reg.atlasFromWorking) > 0 ? j <= 0 : j >= 0;
+        if (cv::countNonZero(folded) == 0)
+            break;
+        const int k = 2 * (2 + round) + 1;
+        cv::dilate(folded, folded, cv::getStructuringElement(cv::MORPH_RECT, cv::Size(k, k)));
+        reg.warp = relaxWithin(reg.warp, folded);
+        ++reg.quality.foldRepairs;
+        reg.quality.foldRepairNodes += cv::countNonZero(folded);
+    }
+    timer.lap("fold-repair");
     reg.quality.minJacobian = minJacobianRelative(reg.atlasFromWorking, reg.warp);
 
     std::vector<cv::Point2f> mp, mn;

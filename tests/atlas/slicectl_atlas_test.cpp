@@ -244,6 +244,8 @@ TEST_F(SlicectlAtlas, RegisterUsesTheStacksTemplatePlane) {
     EXPECT_FALSE(withJson.at("quality").at("region_warp_kept").get<bool>());
     EXPECT_TRUE(withJson.at("quality").at("min_jacobian").is_number());
     EXPECT_TRUE(withJson.at("quality").at("fold_repairs").is_number_integer());
+    EXPECT_TRUE(withJson.at("quality").at("fold_repair_nodes").is_number_integer());
+    EXPECT_GT(withJson.at("quality").at("min_jacobian").get<double>(), 0);
     EXPECT_LT(with, 0.8 * without) << "landmark RMSE " << without << " -> " << with;
 
     // A plain label image with its plane given by --atlas-template registers as the stack does;

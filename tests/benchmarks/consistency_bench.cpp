@@ -387,6 +387,11 @@ int main(int argc, char** argv) {
                    "DamageParams::crackPieceFrac: a tear followed across a break to the pieces of "
                    "crack beyond it (off: crackPieceFrac 0)")
         ->check(CLI::IsMember({"on", "off"}));
+    int foldRepairs = pipeline::RegistrationOptions{}.foldRepairs;
+    app.add_option("--fold-repairs", foldRepairs,
+                   "RegistrationOptions::foldRepairs: rounds of relaxing the final warp where "
+                   "its map folds (0: keep the folds)")
+        ->check(CLI::Range(0, 10));
     bool damageOnly = false;
     pipeline::SeriesContextParams contextParams;
     app.add_option("--context-window", contextParams.window,
@@ -459,6 +464,7 @@ int main(int argc, char** argv) {
             ro.atlasUmPerPx = 25;
             ro.maxTurnDeg = maxTurnDeg;
             ro.smoothWarp = smoothMode == "on";
+            ro.foldRepairs = foldRepairs;
             if (regionWarpMode == "on" && s.fine.type() == CV_32S &&
                 s.fine.size() == s.atlas.size()) {
                 ro.regionLabels = s.fine;

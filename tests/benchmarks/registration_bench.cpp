@@ -471,8 +471,8 @@ int main(int argc, char** argv) {
         ->check(CLI::IsMember({"on", "off"}));
     int foldRepairs = pipeline::RegistrationOptions{}.foldRepairs;
     app.add_option("--fold-repairs", foldRepairs,
-                   "RegistrationOptions::foldRepairs: times the Laplace warp is solved again "
-                   "without the conditions around a fold (0, the default: folds kept)")
+                   "RegistrationOptions::foldRepairs: rounds of relaxing the final warp where "
+                   "its map folds (0: keep the folds)")
         ->check(CLI::Range(0, 10));
     std::string crackPieces = "on";
     app.add_option("--crack-pieces", crackPieces,

@@ -45,3 +45,57 @@ TEST(LaplaceWarp, NoPointsGivesAnEmptyZeroField) {
     EXPECT_TRUE(f.empty());
     EXPECT_EQ(f.at({5, 5}), cv::Point2d(0, 0));
 }
+
+TEST(LaplaceWarp, RelaxWithinUndoesAFoldAndMovesNothingElse) {
+    // A smooth (linear) field with one node pushed 20 px along x, five cells of 4 px: the map
+    // x + u folds beside it. Relaxing the 5 x 5 nodes around it gives back the linear field
+    // there (the harmonic interpolation of a linear field is linear); every other node is held.
+    const int rows = 40, cols = 50;
+    const double cell = 4;
+    cv::Mat dx(rows, cols, CV_32F), dy(rows, cols, CV_32F);
+    for (int i = 0; i < rows; ++i)
+        for (int j = 0; j < cols; ++j) {
+            dx.at<float>(i, j) = float(0.1 * j * cell + 10);
+            dy.at<float>(i, j) = float(-0.05 * i * cell);
+        }
+    const cv::Mat smoothX = dx.clone(), smoothY = dy.clone();
+    dx.at<float>(20, 25) += 20;
+    const DisplacementField folded(dx, dy, cell);
+    const auto minJacobian = [&](const DisplacementField& f) {
+        double m = 1e9;
+        for (int i = 1; i + 1 < rows; ++i)
+            for (int j = 1; j + 1 < cols; ++j) {
+                const double xx =
+                    1 + (f.dx().at<float>(i, j + 1) - f.dx().at<float>(i, j - 1)) / (2 * cell);
+                const double xy =
+                    (f.dx().at<float>(i + 1, j) - f.dx().at<float>(i - 1, j)) / (2 * cell);
+                const double yx =
+                    (f.dy().at<float>(i, j + 1) - f.dy().at<float>(i, j - 1)) / (2 * cell);
+                const double yy =
+                    1 + (f.dy().at<float>(i + 1, j) - f.dy().at<float>(i - 1, j)) / (2 * cell);
+                m = std::min(m, xx * yy - xy * yx);
+            }
+        return m;
+    };
+    ASSERT_LT(minJacobian(folded), 0);
+    cv::Mat region = cv::Mat::zeros(rows, cols, CV_8U);
+    region(cv::Rect(23, 18, 5, 5)).setTo(255);
+    const DisplacementField relaxed = relaxWithin(folded, region);
+    EXPECT_GT(minJacobian(relaxed), 0.5);
+    for (int i = 0; i < rows; ++i)
+        for (int j = 0; j < cols; ++j) {
+            if (region.at<uchar>(i, j)) {
+                EXPECT_NEAR(relaxed.dx().at<float>(i, j), smoothX.at<float>(i, j), 1e-3);
+                EXPECT_NEAR(relaxed.dy().at<float>(i, j), smoothY.at<float>(i, j), 1e-3);
+            } else {
+                EXPECT_EQ(relaxed.dx().at<float>(i, j), folded.dx().at<float>(i, j));
+                EXPECT_EQ(relaxed.dy().at<float>(i, j), folded.dy().at<float>(i, j));
+            }
+        }
+    // At the grid's edge the free nodes have mirror borders: a corner block relaxes to the
+    // held values around it, not to zero.
+    cv::Mat corner = cv::Mat::zeros(rows, cols, CV_8U);
+    corner(cv::Rect(0, 0, 3, 3)).setTo(255);
+    const DisplacementField c = relaxWithin(DisplacementField(smoothX, smoothY, cell), corner);
+    EXPECT_NEAR(c.dx().at<float>(0, 0), smoothX.at<float>(0, 0), 2.0);
+}

@@ -45,4 +45,11 @@ DisplacementField solveLaplaceWarp(cv::Size domain, const std::vector<cv::Point2
                                    const std::vector<cv::Point2d>& displacements,
                                    const LaplaceOptions& options = {});
 
+/// `field` with the nodes under `region` (CV_8U, the field's node grid, nonzero = free)
+/// replaced by the harmonic interpolation of the nodes around them: every other node is held,
+/// the free ones relaxed by `sweeps` SOR sweeps of the same five-point Laplacian (mirror
+/// borders at the grid's edge). Nothing outside `region` changes.
+DisplacementField relaxWithin(const DisplacementField& field, const cv::Mat& region,
+                              int sweeps = 200, double relaxation = 1.85);
+
 } // namespace slicestation::pipeline

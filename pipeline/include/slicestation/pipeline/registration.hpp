@@ -52,11 +52,11 @@ struct RegistrationOptions {
     /// outline up to outlinePullReach x the atlas height away.
     double outlinePullBelowOverlap = 0.87;
     double outlinePullReach = 1.0 / 6;
-    /// Where the Laplace warp's map folds, drop the conditions within two nodes of the fold and
-    /// solve again, at most this many times (0: keep the fold). Off by default: with 3 it
-    /// removes the folds and helps generated sections, but the clean real abba-mouse section 08
-    /// gets a false tear (docs/registration.md, "No folds").
-    int foldRepairs = 0;
+    /// Where the final map folds (Jacobian determinant of the other sign than the affine's),
+    /// relax the warp's nodes within 2 + r nodes of the fold (round r) to the harmonic
+    /// interpolation of the nodes around them (relaxWithin), at most this many rounds; the field
+    /// elsewhere is kept (0: keep the fold; docs/registration.md, "No folds").
+    int foldRepairs = 3;
     /// After the geometric stages, refine the map densely so that the atlas regions fit the
     /// section's own contrast inside the tissue (dense_refine.hpp, docs/registration.md).
     bool denseRefine = true;
@@ -137,8 +137,10 @@ struct RegistrationQuality {
     /// Smallest Jacobian determinant of the final map (affine + warp) relative to the affine's,
     /// over the working domain: 1 = no local change of area, <= 0 = the map folds.
     double minJacobian = 1;
-    /// Times the Laplace warp was solved again without the conditions around a fold.
+    /// Rounds of relaxWithin where the final map folded (RegistrationOptions::foldRepairs), and
+    /// the warp nodes they relaxed in all.
     int foldRepairs = 0;
+    int foldRepairNodes = 0;
     /// Share of the section's intensity variance (tissue and a glass band, damage left out)
     /// that the atlas regions, each painted at one fitted level, explain before and after the
     /// dense refinement (0 when it did not run).
