@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <cstdint>
 
 using namespace slicestation::pipeline;
 
@@ -98,4 +99,58 @@ TEST(LaplaceWarp, RelaxWithinUndoesAFoldAndMovesNothingElse) {
     corner(cv::Rect(0, 0, 3, 3)).setTo(255);
     const DisplacementField c = relaxWithin(DisplacementField(smoothX, smoothY, cell), corner);
     EXPECT_NEAR(c.dx().at<float>(0, 0), smoothX.at<float>(0, 0), 2.0);
+}
+
+TEST(LaplaceWarp, TheSweepsGiveWhatPlainRowOrderGivesToTheBit) {
+    // One level only (coarsestNodes above the grid), nodes 1 px apart, conditions on nodes:
+    // the solver's wavefront sweeps must give the plain row-by-row Gauss-Seidel SOR's values
+    // exactly, whatever the grid's row count left over by the wavefront's blocks.
+    for (const cv::Size domain : {cv::Size(97, 70), cv::Size(64, 71), cv::Size(5, 3)}) {
+        cv::RNG rng(static_cast<std::uint64_t>(domain.area()));
+        cv::Mat fixed = cv::Mat::zeros(domain, CV_8U);
+        cv::Mat fx = cv::Mat::zeros(domain, CV_32F), fy = cv::Mat::zeros(domain, CV_32F);
+        std::vector<cv::Point2d> pts, disp;
+        for (int k = 0; k < domain.area() / 12 + 1; ++k) {
+            const int x = rng.uniform(0, domain.width), y = rng.uniform(0, domain.height);
+            if (fixed.at<uchar>(y, x))
+                continue;
+            fixed.at<uchar>(y, x) = 1;
+            const double dx = rng.uniform(-4.0, 4.0), dy = rng.uniform(-4.0, 4.0);
+            fx.at<float>(y, x) = float(dx);
+            fy.at<float>(y, x) = float(dy);
+            pts.emplace_back(x, y);
+            disp.emplace_back(dx, dy);
+        }
+        LaplaceOptions o;
+        o.cellPx = 1;
+        o.coarsestNodes = 100000;
+        o.sweepsCoarsest = 37;
+        const auto f = solveLaplaceWarp(domain, pts, disp, o);
+        ASSERT_EQ(f.dx().size(), domain);
+
+        const int rows = domain.height, cols = domain.width;
+        cv::Mat ux(domain, CV_32F, cv::Scalar(cv::mean(fx, fixed)[0]));
+        cv::Mat uy(domain, CV_32F, cv::Scalar(cv::mean(fy, fixed)[0]));
+        const float w = float(o.relaxation);
+        for (int s = 0; s < o.sweepsCoarsest; ++s)
+            for (int i = 0; i < rows; ++i)
+                for (int j = 0; j < cols; ++j) {
+                    if (fixed.at<uchar>(i, j)) {
+                        ux.at<float>(i, j) = fx.at<float>(i, j);
+                        uy.at<float>(i, j) = fy.at<float>(i, j);
+                        continue;
+                    }
+                    const int iu = i > 0 ? i - 1 : std::min(1, rows - 1);
+                    const int id = i + 1 < rows ? i + 1 : std::max(rows - 2, 0);
+                    const int jl = j > 0 ? j - 1 : std::min(1, cols - 1);
+                    const int jr = j + 1 < cols ? j + 1 : std::max(cols - 2, 0);
+                    for (cv::Mat* u : {&ux, &uy}) {
+                        const float avg = 0.25f * (u->at<float>(i, jl) + u->at<float>(i, jr) +
+                                                   u->at<float>(iu, j) + u->at<float>(id, j));
+                        u->at<float>(i, j) += w * (avg - u->at<float>(i, j));
+                    }
+                }
+        EXPECT_EQ(cv::norm(f.dx(), ux, cv::NORM_INF), 0.0) << domain;
+        EXPECT_EQ(cv::norm(f.dy(), uy, cv::NORM_INF), 0.0) << domain;
+    }
 }
