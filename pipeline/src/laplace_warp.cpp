@@ -62,9 +62,9 @@ Level makeLevel(cv::Size domain, double cell, const std::vector<cv::Point2d>& pt
 
 /// SOR sweeps of the five-point Laplacian (Eq. 5 of the paper) with Dirichlet nodes held and
 /// mirror (Neumann) borders, in the usual row-by-row order. Each row is a chain of dependent
-/// updates; to keep the processor busy, both components are updated side by side and four rows
-/// at a time, each a node behind the one above it (a wavefront): every node still reads exactly
-/// the values it reads in plain row order (its left and upper neighbours updated, its right and
+/// updates; to keep the processor busy, both components are updated side by side and two rows
+/// at a time, the lower one a node behind (a wavefront): every node still reads exactly the
+/// values it reads in plain row order (its left and upper neighbours updated, its right and
 /// lower ones not yet), so the result is the same to the bit.
 void relax(cv::Mat& ux, const cv::Mat& fixedX, cv::Mat& uy, const cv::Mat& fixedY,
            const cv::Mat& isFixed, int sweeps, double w) {
@@ -87,22 +87,19 @@ void relax(cv::Mat& ux, const cv::Mat& fixedX, cv::Mat& uy, const cv::Mat& fixed
         rx[j] += wf * (avgX - rx[j]);
         ry[j] += wf * (avgY - ry[j]);
     };
-    constexpr int kRows = 4;
     for (int s = 0; s < sweeps; ++s) {
-        for (int i = 0; i < rows; i += kRows) {
-            const int n = std::min(kRows, rows - i);
-            // Step t updates node t - k of row i + k.
-            for (int t = 0; t < cols + n - 1; ++t) {
-                if (n == kRows && t >= kRows - 1 && t < cols) {
-                    for (int k = 0; k < kRows; ++k)
-                        update(i + k, t - k);
-                    continue;
-                }
-                for (int k = 0; k < n; ++k)
-                    if (t - k >= 0 && t - k < cols)
-                        update(i + k, t - k);
+        int i = 0;
+        for (; i + 1 < rows; i += 2) {
+            update(i, 0);
+            for (int j = 1; j < cols; ++j) {
+                update(i, j);
+                update(i + 1, j - 1);
             }
+            update(i + 1, cols - 1);
         }
+        for (; i < rows; ++i)
+            for (int j = 0; j < cols; ++j)
+                update(i, j);
     }
 }
 
