@@ -11,6 +11,7 @@
 #include <array>
 #include <cmath>
 #include <cstdio>
+#include <functional>
 #include <limits>
 #include <map>
 #include <optional>
@@ -370,22 +371,80 @@ bool alongMidline(const cv::Mat& region, cv::Point offset, const Midline& midlin
     const double cosTurn = std::abs(std::cos(angle) * u.x + std::sin(angle) * u.y);
     return cosTurn >= std::cos(20.0 * 3.14159265358979 / 180.0);
 }
-/// The area of the dim (dark, not glass) pieces that `region` touches: a crack's are its own
-/// blurred flanks; the thin end of a dim structure (a dark fibre tract narrowing) leads into the
-/// structure's wide body.
-double dimBodyArea(const cv::Mat& region, const cv::Mat& dimLabels, const cv::Mat& dimStats) {
+/// The 8-connected pieces of a mask, labelled only where asked: a crack candidate needs the
+/// areas of the few dim pieces beside it, and labelling the whole full-resolution mask for them
+/// cost more than all the candidates' other tests (the areas are those
+/// cv::connectedComponentsWithStats gives).
+class PiecesOnDemand {
+public:
+    /// `makeMask` gives the mask (CV_8U) when it is first needed.
+    explicit PiecesOnDemand(std::function<cv::Mat()> makeMask) : makeMask_(std::move(makeMask)) {}
+    /// The label (1, 2, ...) of the piece holding (x, y), 0 where the mask is not set.
+    int pieceAt(int x, int y) {
+        if (mask_.empty()) {
+            mask_ = makeMask_();
+            labels_ = cv::Mat::zeros(mask_.size(), CV_32S);
+        }
+        if (!mask_.at<std::uint8_t>(y, x))
+            return 0;
+        const std::int32_t label = labels_.at<std::int32_t>(y, x);
+        return label != 0 ? label : fill(x, y);
+    }
+    /// The area in pixels of piece `label` (a value pieceAt returned).
+    int area(int label) const { return area_[static_cast<std::size_t>(label - 1)]; }
+
+private:
+    int fill(int x0, int y0) {
+        const auto id = static_cast<std::int32_t>(area_.size() + 1);
+        int count = 0;
+        stack_.assign(1, cv::Point(x0, y0));
+        labels_.at<std::int32_t>(y0, x0) = id;
+        while (!stack_.empty()) {
+            const cv::Point p = stack_.back();
+            stack_.pop_back();
+            ++count;
+            for (int dy = -1; dy <= 1; ++dy) {
+                const int y = p.y + dy;
+                if (y < 0 || y >= mask_.rows)
+                    continue;
+                const std::uint8_t* m = mask_.ptr<std::uint8_t>(y);
+                std::int32_t* l = labels_.ptr<std::int32_t>(y);
+                for (int x = std::max(0, p.x - 1); x <= std::min(mask_.cols - 1, p.x + 1); ++x)
+                    if (m[x] && l[x] == 0) {
+                        l[x] = id;
+                        stack_.emplace_back(x, y);
+                    }
+            }
+        }
+        area_.push_back(count);
+        return id;
+    }
+
+    std::function<cv::Mat()> makeMask_;
+    cv::Mat mask_, labels_;
+    std::vector<int> area_;
+    std::vector<cv::Point> stack_;
+};
+
+/// The area of the dim (dark, not glass) pieces that `region` (at `offset` in the dim mask)
+/// touches: a crack's are its own blurred flanks; the thin end of a dim structure (a dark fibre
+/// tract narrowing) leads into the structure's wide body.
+double dimBodyArea(const cv::Mat& region, cv::Point offset, PiecesOnDemand& dim) {
     cv::Mat near;
     cv::dilate(region, near, cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(5, 5)));
     std::vector<int> seen;
     double area = 0;
     for (int y = 0; y < near.rows; ++y) {
         const std::uint8_t* m = near.ptr<std::uint8_t>(y);
-        const std::int32_t* l = dimLabels.ptr<std::int32_t>(y);
-        for (int x = 0; x < near.cols; ++x)
-            if (m[x] && l[x] > 0 && std::find(seen.begin(), seen.end(), l[x]) == seen.end()) {
-                seen.push_back(l[x]);
-                area += dimStats.at<int>(l[x], cv::CC_STAT_AREA);
+        for (int x = 0; x < near.cols; ++x) {
+            if (!m[x])
+                continue;
+            const int id = dim.pieceAt(x + offset.x, y + offset.y);
+            if (id != 0 && std::find(seen.begin(), seen.end(), id) == seen.end()) {
+                seen.push_back(id);
+                area += dim.area(id);
             }
+        }
     }
     return area;
 }
@@ -473,16 +532,13 @@ std::vector<DamageRegion> thinCracks(const cv::Mat& grey, const cv::Mat& tissue,
                                            }) &
                              tissue);
     }
-    // The dark pixels that are not glass, 8-connected: labelled only when a candidate reaches
-    // the test that needs them (most sections have none).
-    cv::Mat dimLabels, dimStats;
-    const auto labelDim = [&] {
-        const cv::Mat dim = (light < levels.glass + static_cast<float>(params.crackDarkness) *
-                                                        (levels.tissue - levels.glass)) &
-                            ~glassPx;
-        cv::Mat dimCentroids;
-        cv::connectedComponentsWithStats(dim, dimLabels, dimStats, dimCentroids, 8, CV_32S);
-    };
+    // The dark pixels that are not glass, 8-connected: labelled piece by piece around the
+    // candidates that reach the test needing them.
+    PiecesOnDemand dim([&] {
+        return cv::Mat((light < levels.glass + static_cast<float>(params.crackDarkness) *
+                                                   (levels.tissue - levels.glass)) &
+                       ~glassPx);
+    });
     // Where a crack may be: inside the mapped brain, away from the mapped ventricles. The
     // dilations and the closing below matter only at such pixels, so they are evaluated on the
     // tiles that hold one.
@@ -525,8 +581,8 @@ std::vector<DamageRegion> thinCracks(const cv::Mat& grey, const cv::Mat& tissue,
         tissueParts = cv::Mat::zeros(tissue.size(), CV_8U);
         expected.parts.copyTo(tissueParts, tissue);
     }
-    cv::Mat labels, stats, centroids;
-    const int n = cv::connectedComponentsWithStats(thin, labels, stats, centroids, 8, CV_32S);
+    cv::Mat labels, stats;
+    const int n = labelComponents(thin, labels, stats);
     const double minLength = params.crackMinFrac * brainWidthPx;
     // Shorter lines are looked at only when the caller collects the pieces of a crack.
     const double pieceLength = pieces && params.crackPieceFrac > 0
@@ -570,9 +626,7 @@ std::vector<DamageRegion> thinCracks(const cv::Mat& grey, const cv::Mat& tissue,
         if (besideGlass > params.crackWallGlass)
             continue;
         if (params.crackDarkness > 0) {
-            if (dimLabels.empty())
-                labelDim();
-            if (dimBodyArea(region, dimLabels(roi), dimStats) > params.crackDimBody * area)
+            if (dimBodyArea(region, roi.tl(), dim) > params.crackDimBody * area)
                 continue;
         }
         // Inside a mapped region the section shows dark (an unstained tract), a dark line is
@@ -754,8 +808,8 @@ std::vector<DamageRegion> foldBands(const cv::Mat& grey, const cv::Mat& tissueMa
         return out;
     const float glass = percentile(grey, 0.5, outside);
     const cv::Mat gaps = expectedTissue & ~tissueMask;
-    cv::Mat gapLabels, stats, centroids;
-    const int n = cv::connectedComponentsWithStats(gaps, gapLabels, stats, centroids, 8, CV_32S);
+    cv::Mat gapLabels, stats;
+    const int n = labelComponents(gaps, gapLabels, stats);
     const double minLength = params.crackMinFrac * brainWidthPx;
     for (int i = 1; i < n; ++i) {
         const int w = stats.at<int>(i, cv::CC_STAT_WIDTH), h = stats.at<int>(i, cv::CC_STAT_HEIGHT);
@@ -906,9 +960,7 @@ GapThreads gapThreads(const cv::Mat& rawGaps, const cv::Mat& openedGaps) {
     CV_Assert(rawGaps.type() == CV_8U && openedGaps.type() == CV_8U &&
               rawGaps.size() == openedGaps.size());
     GapThreads t;
-    cv::Mat centroids;
-    cv::connectedComponentsWithStats(rawGaps & ~openedGaps, t.labels, t.stats, centroids, 8,
-                                     CV_32S);
+    labelComponents(rawGaps & ~openedGaps, t.labels, t.stats);
     return t;
 }
 
@@ -1005,8 +1057,8 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const AtlasExp
     }
     const int ringPx =
         std::max(1, static_cast<int>(std::lround(params.fissureRingFrac * brainWidthPx)));
-    cv::Mat labels, stats, centroids;
-    int n = cv::connectedComponentsWithStats(deficit, labels, stats, centroids, 8, CV_32S);
+    cv::Mat labels, stats;
+    int n = labelComponents(deficit, labels, stats);
     for (int i = 1; i < n; ++i) {
         const double area = stats.at<int>(i, cv::CC_STAT_AREA);
         if (area < minArea / 4)
@@ -1080,7 +1132,7 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const AtlasExp
 
     // Fragments: tissue pieces apart from the main one that lie mostly outside the mapped atlas
     // brain (a piece the atlas expects, such as a separate olfactory bulb, stays inside it).
-    n = cv::connectedComponentsWithStats(tissueMask, labels, stats, centroids, 8, CV_32S);
+    n = labelComponents(tissueMask, labels, stats);
     int main = 0, mainArea = 0;
     for (int i = 1; i < n; ++i)
         if (stats.at<int>(i, cv::CC_STAT_AREA) > mainArea) {
@@ -1114,8 +1166,8 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const AtlasExp
 namespace {
 /// Component masks of `mask` with at least `minShare` of the largest one's area, largest first.
 std::vector<cv::Mat> pieces(const cv::Mat& mask, double minShare) {
-    cv::Mat labels, stats, centroids;
-    const int n = cv::connectedComponentsWithStats(mask, labels, stats, centroids, 8, CV_32S);
+    cv::Mat labels, stats;
+    const int n = labelComponents(mask, labels, stats);
     std::vector<std::pair<int, int>> byArea;
     for (int i = 1; i < n; ++i)
         byArea.emplace_back(stats.at<int>(i, cv::CC_STAT_AREA), i);

@@ -1,5 +1,7 @@
 #include "slicestation/pipeline/edges.hpp"
 
+#include "slicestation/pipeline/mask_ops.hpp"
+
 #include <opencv2/imgproc.hpp>
 
 #include <algorithm>
@@ -101,8 +103,8 @@ cv::Mat dominantEdges(const cv::Mat& grey, const DominantEdgeParams& params) {
     cv::Canny(dx, dy, edges, params.lowRatio * high, high, true);
     const int minChain = static_cast<int>(params.minChainFrac * longSide);
     if (minChain > 1) {
-        cv::Mat labels, stats, centroids;
-        const int n = cv::connectedComponentsWithStats(edges, labels, stats, centroids, 8, CV_32S);
+        cv::Mat labels, stats;
+        const int n = labelComponents(edges, labels, stats);
         std::vector<uchar> drop(static_cast<size_t>(n), 0);
         for (int i = 1; i < n; ++i)
             drop[i] = stats.at<int>(i, cv::CC_STAT_AREA) < minChain;

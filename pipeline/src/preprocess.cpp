@@ -254,8 +254,8 @@ core::Result<PreparedSection> prepareSection(const cv::Mat& image, int workingMa
     }
 
     // Remove debris: keep components of at least 2% of the largest one.
-    cv::Mat labels, stats, centroids;
-    const int n = cv::connectedComponentsWithStats(mask, labels, stats, centroids, 8, CV_32S);
+    cv::Mat labels, stats;
+    const int n = labelComponents(mask, labels, stats);
     int largest = 0;
     for (int i = 1; i < n; ++i)
         largest = std::max(largest, stats.at<int>(i, cv::CC_STAT_AREA));

@@ -568,6 +568,57 @@ TEST(MaskOps, KthSmallestIsTheValueNthElementGives) {
     }
 }
 
+TEST(MaskOps, LabelComponentsGivesWhatOpenCvGives) {
+    // Sparse specks, thin lines, blobs touching diagonally, dense noise, a full row and column,
+    // masks of odd sizes and views at odd offsets; OpenCV with one thread and with its default.
+    cv::RNG rng(47);
+    const int threads = cv::getNumThreads();
+    int compared = 0;
+    for (int t = 0; t < 120; ++t) {
+        const int w = rng.uniform(1, 400), h = rng.uniform(1, 300);
+        cv::Mat parent = cv::Mat::zeros(h + 3, w + 5, CV_8U);
+        cv::Mat m = parent(cv::Rect(t % 5, t % 3, w, h)); // a view, not continuous
+        const int kind = t % 4;
+        for (int i = rng.uniform(0, 40); i > 0; --i) {
+            const cv::Point c(rng.uniform(0, w), rng.uniform(0, h));
+            if (kind == 0)
+                m.at<uchar>(c) = static_cast<uchar>(rng.uniform(1, 256));
+            else if (kind == 1)
+                cv::line(m, c, {rng.uniform(0, w), rng.uniform(0, h)}, cv::Scalar(255), 1, 8);
+            else
+                cv::circle(m, c, rng.uniform(0, 12), cv::Scalar(255), -1);
+        }
+        if (kind == 3) {
+            cv::Mat noise(m.size(), CV_8U);
+            rng.fill(noise, cv::RNG::UNIFORM, 0, 256);
+            m.setTo(255, noise > 170);
+        }
+        if (t % 7 == 0 && h > 1 && w > 1) {
+            m.row(h - 1).setTo(255);
+            m.col(0).setTo(9);
+        }
+        for (const int n : {1, threads}) {
+            cv::setNumThreads(n);
+            cv::Mat cvLabels, cvStats, centroids, labels, stats;
+            const int expected =
+                cv::connectedComponentsWithStats(m, cvLabels, cvStats, centroids, 8, CV_32S);
+            ASSERT_EQ(labelComponents(m, labels, stats), expected) << "mask " << t;
+            EXPECT_EQ(cv::countNonZero(labels != cvLabels), 0) << "mask " << t;
+            ASSERT_EQ(stats.rows, expected);
+            if (expected > 1) {
+                EXPECT_EQ(
+                    cv::countNonZero(stats.rowRange(1, expected) != cvStats.rowRange(1, expected)),
+                    0)
+                    << "mask " << t;
+            }
+            EXPECT_EQ(stats.at<int>(0, cv::CC_STAT_AREA), cvStats.at<int>(0, cv::CC_STAT_AREA));
+            ++compared;
+        }
+    }
+    cv::setNumThreads(threads);
+    EXPECT_EQ(compared, 240);
+}
+
 TEST(Damage, AFoldIsADoubledBandBesideAGapAlongTheEdgeAndASliverIsNot) {
     // The atlas expects an ellipse; along its top the section's edge moved in by 12 px.
     const cv::Mat expected = ellipseMask({600, 400}, {300, 200}, {250, 160});
