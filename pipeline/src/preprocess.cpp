@@ -16,22 +16,35 @@ namespace {
 using core::ErrorCode;
 using core::makeError;
 
-/// Median of the outer ring of the image: the glass, on any sensibly framed capture.
+/// Calls `f(y, x)` for every valid pixel of the ring along the border of the valid area's
+/// bounding box (a band of 1/25 of its shorter side, at least 2 px), row by row: the pixels where
+/// a sensibly framed capture shows the glass.
+template <typename F> void forEachRingPixel(const cv::Mat& valid, F&& f) {
+    const cv::Rect box = cv::boundingRect(valid);
+    const int b = std::max(2, std::min(box.width, box.height) / 25);
+    for (int y = box.y; y < box.y + box.height; ++y) {
+        const uchar* ok = valid.ptr<uchar>(y);
+        const bool edgeRow = y < box.y + b || y >= box.y + box.height - b;
+        const auto visit = [&](int x0, int x1) {
+            for (int x = x0; x < x1; ++x)
+                if (ok[x])
+                    f(y, x);
+        };
+        if (edgeRow) {
+            visit(box.x, box.x + box.width);
+        } else { // the band's left and right parts only (they may meet in a narrow box)
+            const int left = std::min(box.x + b, box.x + box.width);
+            visit(box.x, left);
+            visit(std::max(left, box.x + box.width - b), box.x + box.width);
+        }
+    }
+}
+
 /// Median of the valid pixels nearest the image border: the glass, on any sensibly framed
 /// capture. The ring is found on the valid area's bounding box so zero padding is skipped.
 float borderMedian(const cv::Mat& f32, const cv::Mat& valid) {
-    const cv::Rect box = cv::boundingRect(valid);
-    const int b = std::max(2, std::min(box.height, box.width) / 25);
     std::vector<float> v;
-    for (int y = box.y; y < box.y + box.height; ++y) {
-        const float* row = f32.ptr<float>(y);
-        const uchar* ok = valid.ptr<uchar>(y);
-        const bool edgeRow = y < box.y + b || y >= box.y + box.height - b;
-        for (int x = box.x; x < box.x + box.width; ++x) {
-            if (ok[x] && (edgeRow || x < box.x + b || x >= box.x + box.width - b))
-                v.push_back(row[x]);
-        }
-    }
+    forEachRingPixel(valid, [&](int y, int x) { v.push_back(f32.at<float>(y, x)); });
     if (v.empty())
         return 0.0f;
     std::nth_element(v.begin(), v.begin() + static_cast<std::ptrdiff_t>(v.size() / 2), v.end());
@@ -41,16 +54,9 @@ float borderMedian(const cv::Mat& f32, const cv::Mat& valid) {
 /// Robust spread (1.4826 x median absolute deviation from `glass`) of `image` over the valid
 /// border ring: the glass noise at that blur.
 float ringDeviation(const cv::Mat& image, const cv::Mat& valid, float glass) {
-    const cv::Rect box = cv::boundingRect(valid);
-    const int b = std::max(2, std::min(box.width, box.height) / 25);
     std::vector<float> ring;
-    for (int y = box.y; y < box.y + box.height; ++y)
-        for (int x = box.x; x < box.x + box.width; ++x) {
-            const bool edge = y < box.y + b || y >= box.y + box.height - b || x < box.x + b ||
-                              x >= box.x + box.width - b;
-            if (edge && valid.at<uchar>(y, x))
-                ring.push_back(std::abs(image.at<float>(y, x) - glass));
-        }
+    forEachRingPixel(
+        valid, [&](int y, int x) { ring.push_back(std::abs(image.at<float>(y, x) - glass)); });
     if (ring.empty())
         return 0.01f;
     std::nth_element(ring.begin(), ring.begin() + static_cast<std::ptrdiff_t>(ring.size() / 2),
@@ -244,14 +250,13 @@ core::Result<PreparedSection> prepareSection(const cv::Mat& image, int workingMa
     out.grey = grey;
 
     const float glassLevel = out.contrast == Contrast::Brightfield ? 1.0f - glass : glass;
-    cv::Mat fineMask;
-    cv::Mat mask = segmentTissue(grey, valid, glassLevel, &fineMask);
     // Uneven illumination (vignetting) makes glass corners look like tissue: flatten the glass
-    // with a smooth fit, then segment again.
-    if (flattenBackground(grey, valid, mask, glassLevel)) {
+    // with a smooth fit, then segment again. The fine mask is wanted of the final pass only.
+    cv::Mat fineMask;
+    cv::Mat mask = segmentTissue(grey, valid, glassLevel);
+    if (flattenBackground(grey, valid, mask, glassLevel))
         out.grey = grey;
-        mask = segmentTissue(grey, valid, glassLevel, &fineMask);
-    }
+    mask = segmentTissue(grey, valid, glassLevel, &fineMask);
 
     // Remove debris: keep components of at least 2% of the largest one.
     cv::Mat labels, stats;
