@@ -22,12 +22,12 @@ float kthSmallest(std::vector<float>& values, size_t k);
 /// set, on a strided sample of about 250,000 pixels; 0 when none is set.
 float percentile(const cv::Mat& f32, double q, const cv::Mat& valid);
 
-/// cv::connectedComponentsWithStats (8-connected, CV_32S labels) run on the box holding the
-/// mask's set pixels only, which is what the labelling's time goes with: the same labels on the
-/// mask's whole size (0 outside the box) and the same stats rows (boxes in the mask's
-/// coordinates) as on the whole mask. The box starts on even coordinates, so that the labelling's
-/// 2 x 2 blocks lie as on the whole mask and the components are numbered alike. Row 0 (the
-/// background) carries its area; its box is the whole mask. Returns the number of labels.
+/// What cv::connectedComponentsWithStats(mask, labels, stats, centroids, 8, CV_32S) gives for
+/// labels and stats, computed from the mask's runs of set pixels (a union-find over runs), so
+/// that it costs what the set pixels cost rather than the whole image. The components are
+/// numbered as OpenCV's block-based labelling numbers them: by the first 2 x 2 block (block row,
+/// then block column) holding one of their pixels. Row 0 of `stats` (the background) carries its
+/// area; its box is the whole mask. Returns the number of labels (components + 1).
 int labelComponents(const cv::Mat& mask, cv::Mat& labels, cv::Mat& stats);
 
 } // namespace slicestation::pipeline
