@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # Whole-process timing of the registration (issue 17, "Speed"): `slicectl register` as a process
 # against elastix + transformix as processes, on the same generated 1500x1100 sections, each on
-# one core (taskset -c 0); then one 8000x5000 section through `slicectl register` under
-# /usr/bin/time -v (wall time and peak memory). Prints a table.
+# one core (taskset -c 0) and each on both cores (slicectl's default threads, elastix -threads 2);
+# then one 8000x5000 section through `slicectl register` under /usr/bin/time -v (wall time and
+# peak memory). Prints the tables.
 #
 # Usage: scripts/bench-registration.sh [build-dir] [sections]   (default build/, 4 sections,
 # each timed twice; sections alternate the first and the second generator family)
@@ -21,7 +22,7 @@ work=$(mktemp -d /tmp/slst-bench-reg.XXXXXX)
 trap 'rm -rf "$work"' EXIT
 
 now() { date +%s.%N; }
-ours=() theirs=()
+ours=() theirs=() ours2=() theirs2=()
 for ((i = 0; i < sections; i++)); do
     fam=$(( i % 2 == 0 ? 1 : 2 ))
     d="$work/s$i"
@@ -42,18 +43,52 @@ for ((i = 0; i < sections; i++)); do
             -out "$e" -threads 1 >"$e/transformix.out" 2>&1
         t1=$(now)
         theirs+=("$(echo "$t1 - $t0" | bc -l)")
+        # Both cores: slicectl with its default threads (one per core), elastix with two.
+        t0=$(now)
+        "$slicectl" register --atlas "$d/atlas.tif" --image "$d/section.tif" \
+            --points "$d/points.csv" --output "$d/out2.json" >/dev/null
+        t1=$(now)
+        ours2+=("$(echo "$t1 - $t0" | bc -l)")
+        python3 - "$d/out.json" "$d/out2.json" <<'PY' ||
+import json, sys
+a, b = (json.load(open(f)) for f in sys.argv[1:])
+fields = [open(f[:-len(".json")] + ".field.tif", "rb").read() for f in sys.argv[1:]]
+for r in (a, b):
+    for k in ("timings_ms", "cpu_timings_ms"):
+        r.pop(k)
+    r["mapping"].pop("field")
+sys.exit(a != b or fields[0] != fields[1])
+PY
+            { echo "section $i: the two-core result differs from the one-core result" >&2; exit 1; }
+        t0=$(now)
+        elastix -f "$e/fixed.mha" -m "$e/moving.mha" -p "$e/affine.txt" \
+            -p "$e/bspline.txt" -out "$e" -threads 2 >"$e/elastix.out" 2>&1
+        transformix -def "$e/points.txt" -tp "$e/TransformParameters.1.txt" \
+            -out "$e" -threads 2 >"$e/transformix.out" 2>&1
+        t1=$(now)
+        theirs2+=("$(echo "$t1 - $t0" | bc -l)")
     done
 done
 median() { printf '%s\n' "$@" | sort -g | awk '{v[NR]=$1} END {print (NR%2 ? v[(NR+1)/2] : (v[NR/2]+v[NR/2+1])/2)}'; }
-mo=$(median "${ours[@]}")
-me=$(median "${theirs[@]}")
-printf '\nwhole processes on one core (taskset -c 0), %d sections of 1500x1100 px, twice each\n' "$sections"
-printf '%-28s %10s %10s %10s\n' "tool" "median s" "min s" "max s"
-printf '%-28s %10.3f %10.3f %10.3f\n' "slicectl register" "$mo" \
-    "$(printf '%s\n' "${ours[@]}" | sort -g | head -1)" "$(printf '%s\n' "${ours[@]}" | sort -g | tail -1)"
-printf '%-28s %10.3f %10.3f %10.3f\n' "elastix + transformix" "$me" \
-    "$(printf '%s\n' "${theirs[@]}" | sort -g | head -1)" "$(printf '%s\n' "${theirs[@]}" | sort -g | tail -1)"
-printf 'elastix / slicectl: %.1fx\n' "$(echo "$me / $mo" | bc -l)"
+# A table of slicectl's times (ours_t) against elastix's (theirs_t), titled $1.
+row() { # row TOOL TIMES...
+    local tool=$1
+    shift
+    printf '%-28s %10.3f %10.3f %10.3f\n' "$tool" "$(median "$@")" \
+        "$(printf '%s\n' "$@" | sort -g | head -1)" "$(printf '%s\n' "$@" | sort -g | tail -1)"
+}
+table() {
+    printf '\n%s\n' "$1"
+    printf '%-28s %10s %10s %10s\n' "tool" "median s" "min s" "max s"
+    row "slicectl register" "${ours_t[@]}"
+    row "elastix + transformix" "${theirs_t[@]}"
+    printf 'elastix / slicectl: %.1fx\n' \
+        "$(echo "$(median "${theirs_t[@]}") / $(median "${ours_t[@]}")" | bc -l)"
+}
+ours_t=("${ours[@]}") theirs_t=("${theirs[@]}")
+table "$(printf 'whole processes on one core (taskset -c 0), %d sections of 1500x1100 px, twice each' "$sections")"
+ours_t=("${ours2[@]}") theirs_t=("${theirs2[@]}")
+table "whole processes on both cores (slicectl one thread per core, elastix -threads 2)"
 # Process CPU time per step (result.json's cpu_timings_ms; "process" includes the process's
 # start): what a step costs even when other work shares the machine.
 printf '\nslicectl register, process CPU ms per step (median over the runs above; load %s)\n' \

@@ -6,6 +6,8 @@
 #include "slicestation/pipeline/atlas_slicing.hpp"
 #include "slicestation/pipeline/registration.hpp"
 
+#include <opencv2/core/utility.hpp>
+
 #include <cmath>
 #include <iostream>
 #include <memory>
@@ -43,6 +45,7 @@ CommandRunner addRegisterCommand(CLI::App& app) {
         RegisterRequest rq;
         std::string points, overlay, warped, atlasTemplate;
         int slice = -1;
+        int threads = 0;
     };
     auto o = std::make_shared<Opts>();
     auto* reg = app.add_subcommand("register", "Register one section image to one atlas slice");
@@ -71,9 +74,15 @@ CommandRunner addRegisterCommand(CLI::App& app) {
                     "How far sections are turned on the slide at most, in degrees (the lab's "
                     "mounting rule; 180 = any way)")
         ->check(CLI::Range(0.0, 180.0));
+    reg->add_option("--threads", o->threads,
+                    "Threads the registration may use (0: one per core; results are the same "
+                    "with any number)")
+        ->check(CLI::Range(0, 256));
     return [o, reg]() -> int {
         if (!*reg)
             return -1;
+        if (o->threads > 0)
+            cv::setNumThreads(o->threads);
         RegisterRequest rq = o->rq;
         if (!o->points.empty())
             rq.points = o->points;

@@ -5,6 +5,7 @@
 #include "slicestation/pipeline/medial_axis.hpp"
 #include "slicestation/pipeline/point_grid.hpp"
 
+#include <opencv2/core/utility.hpp>
 #include <opencv2/imgproc.hpp>
 
 #include <algorithm>
@@ -206,6 +207,7 @@ template <class Op> cv::Mat onNeededTiles(const cv::Mat& need, int reachPx, cons
     constexpr int kTile = 64;
     cv::Mat out = cv::Mat::zeros(need.size(), CV_8U);
     const cv::Rect image(0, 0, need.cols, need.rows);
+    std::vector<cv::Rect> runs;
     for (int y = 0; y < need.rows; y += kTile) {
         const int h = std::min(kTile, need.rows - y);
         int runStart = -1;
@@ -217,14 +219,23 @@ template <class Op> cv::Mat onNeededTiles(const cv::Mat& need, int reachPx, cons
             if (needed && runStart < 0)
                 runStart = x;
             if (!needed && runStart >= 0) {
-                const cv::Rect run(runStart, y, std::min(x, need.cols) - runStart, h);
-                const cv::Rect reach = grown(run, reachPx, need.size()) & image;
-                const cv::Mat r = op(reach);
-                r(run - reach.tl()).copyTo(out(run));
+                runs.emplace_back(runStart, y, std::min(x, need.cols) - runStart, h);
                 runStart = -1;
             }
         }
     }
+    // Each run writes only its own pixels: side by side on OpenCV's threads.
+    cv::parallel_for_(
+        cv::Range(0, int(runs.size())),
+        [&](const cv::Range& range) {
+            for (int i = range.start; i < range.end; ++i) {
+                const cv::Rect& run = runs[size_t(i)];
+                const cv::Rect reach = grown(run, reachPx, need.size()) & image;
+                const cv::Mat r = op(reach);
+                r(run - reach.tl()).copyTo(out(run));
+            }
+        },
+        double(runs.size()));
     return out;
 }
 
@@ -588,17 +599,25 @@ std::vector<DamageRegion> thinCracks(const cv::Mat& grey, const cv::Mat& tissue,
     const double pieceLength = pieces && params.crackPieceFrac > 0
                                    ? std::min(minLength, params.crackPieceFrac * brainWidthPx)
                                    : minLength;
-    for (int i = 1; i < n; ++i) {
+    // The tests up to the dim pieces' read only shared images: every line is tested side by
+    // side on OpenCV's threads; the rest, whose pieces are labelled on demand, goes in order.
+    struct Candidate {
+        cv::Rect roi;
+        cv::Mat region;
+        double area, length, thickness;
+    };
+    std::vector<std::optional<Candidate>> candidates(size_t(std::max(n, 1)));
+    const auto test = [&](int i) -> std::optional<Candidate> {
         const int w = stats.at<int>(i, cv::CC_STAT_WIDTH), h = stats.at<int>(i, cv::CC_STAT_HEIGHT);
         if (std::max(w, h) < 0.7 * pieceLength)
-            continue;
+            return std::nullopt;
         const double area = stats.at<int>(i, cv::CC_STAT_AREA);
         const cv::Rect bounds(stats.at<int>(i, cv::CC_STAT_LEFT), stats.at<int>(i, cv::CC_STAT_TOP),
                               w, h);
         const cv::Rect roi = grown(bounds, ringPx + 1, labels.size());
         const cv::Mat region = labels(roi) == i;
         if (!known.empty() && cv::countNonZero(region & known(roi)) > 0.5 * area)
-            continue;
+            return std::nullopt;
         std::vector<cv::Point> pts;
         cv::findNonZero(region, pts);
         const cv::RotatedRect box = cv::minAreaRect(pts);
@@ -609,10 +628,10 @@ std::vector<DamageRegion> thinCracks(const cv::Mat& grey, const cv::Mat& tissue,
         cv::minMaxLoc(dist, nullptr, &radius);
         const double thickness = 2 * radius;
         if (length < pieceLength || length < params.crackElongation * std::max(thickness, 1.0))
-            continue;
+            return std::nullopt;
         if (!tissueParts.empty() &&
             betweenParts(region, tissueParts(roi), ringPx, params.fissurePurity))
-            continue;
+            return std::nullopt;
         // Tissue on both sides: beside a crack (past its blurred edge) lies tissue, not more
         // glass-level speckle, as between the grains of dim textured tissue.
         cv::Mat nearBand, farBand;
@@ -624,7 +643,20 @@ std::vector<DamageRegion> thinCracks(const cv::Mat& grey, const cv::Mat& tissue,
         const double besideGlass = cv::countNonZero(beside & glassPx(roi)) /
                                    std::max(1.0, double(cv::countNonZero(beside)));
         if (besideGlass > params.crackWallGlass)
+            return std::nullopt;
+        return Candidate{roi, region, area, length, thickness};
+    };
+    cv::parallel_for_(
+        cv::Range(1, std::max(n, 1)),
+        [&](const cv::Range& range) {
+            for (int i = range.start; i < range.end; ++i)
+                candidates[size_t(i)] = test(i);
+        },
+        std::max(1, n - 1));
+    for (int i = 1; i < n; ++i) {
+        if (!candidates[size_t(i)])
             continue;
+        const auto& [roi, region, area, length, thickness] = *candidates[size_t(i)];
         if (params.crackDarkness > 0) {
             if (dimBodyArea(region, roi.tl(), dim) > params.crackDimBody * area)
                 continue;

@@ -3,6 +3,7 @@
 #include "slicestation/pipeline/affine.hpp"
 
 #include <Eigen/Dense>
+#include <opencv2/core/utility.hpp>
 
 #include <algorithm>
 #include <array>
@@ -13,6 +14,10 @@
 namespace slicestation::pipeline {
 
 namespace {
+
+/// Matching and its consistency check run side by side on OpenCV's threads from this many
+/// points (fewer cost less than handing them out).
+constexpr size_t kParallelMatches = 512;
 
 /// A set of ranks 0..n-1 (each present at most once) with the k-th smallest present rank: a bit
 /// per rank, a count per 64-bit word and per block of 8 words. Adding or removing is three
@@ -116,41 +121,53 @@ std::vector<char> consistentWithNeighbours(const std::vector<cv::Point2f>& at,
         visit[k] = {{cy, cy % 2 ? -cx : cx}, int(k)};
     }
     std::sort(visit.begin(), visit.end());
-    RankSet countX(n), countY(n);
-    std::vector<int> stamp(n, -1), members;
-    std::vector<char> in(n, 0), keep(n, 0);
-    members.reserve(n);
-    for (size_t v = 0; v < n; ++v) {
-        const int k = visit[v].second;
-        int count = 0;
-        grid.forEachWithin(at[size_t(k)], float(2 * distance), [&](int j, float) {
-            stamp[size_t(j)] = int(v);
-            ++count;
-            if (!in[size_t(j)]) {
-                in[size_t(j)] = 1;
-                countX.add(rankX[size_t(j)]);
-                countY.add(rankY[size_t(j)]);
-                members.push_back(j);
+    std::vector<char> keep(n, 0);
+    // The visit is cut into consecutive stretches, one per thread, each with its own sets: a
+    // match's medians are exact, so its verdict does not depend on the cut.
+    const int stretches = n >= kParallelMatches ? std::max(1, std::min(cv::getNumThreads(), 8)) : 1;
+    cv::parallel_for_(
+        cv::Range(0, stretches),
+        [&](const cv::Range& range) {
+            for (int t = range.start; t < range.end; ++t) {
+                const size_t v0 = n * size_t(t) / size_t(stretches);
+                const size_t v1 = n * size_t(t + 1) / size_t(stretches);
+                RankSet countX(n), countY(n);
+                std::vector<int> stamp(n, -1), members;
+                std::vector<char> in(n, 0);
+                for (size_t v = v0; v < v1; ++v) {
+                    const int k = visit[v].second;
+                    int count = 0;
+                    grid.forEachWithin(at[size_t(k)], float(2 * distance), [&](int j, float) {
+                        stamp[size_t(j)] = int(v);
+                        ++count;
+                        if (!in[size_t(j)]) {
+                            in[size_t(j)] = 1;
+                            countX.add(rankX[size_t(j)]);
+                            countY.add(rankY[size_t(j)]);
+                            members.push_back(j);
+                        }
+                    });
+                    size_t w = 0;
+                    for (const int j : members) {
+                        if (stamp[size_t(j)] == int(v)) {
+                            members[w++] = j;
+                        } else {
+                            in[size_t(j)] = 0;
+                            countX.remove(rankX[size_t(j)]);
+                            countY.remove(rankY[size_t(j)]);
+                        }
+                    }
+                    members.resize(w);
+                    if (count < 3)
+                        continue; // an isolated match has nothing to agree with
+                    const int mid = count / 2;
+                    const double dx = disp[size_t(k)].x - sortedX[size_t(countX.kth(mid))];
+                    const double dy = disp[size_t(k)].y - sortedY[size_t(countY.kth(mid))];
+                    keep[size_t(k)] = std::hypot(dx, dy) <= 0.5 * distance;
+                }
             }
-        });
-        size_t w = 0;
-        for (const int j : members) {
-            if (stamp[size_t(j)] == int(v)) {
-                members[w++] = j;
-            } else {
-                in[size_t(j)] = 0;
-                countX.remove(rankX[size_t(j)]);
-                countY.remove(rankY[size_t(j)]);
-            }
-        }
-        members.resize(w);
-        if (count < 3)
-            continue; // an isolated match has nothing to agree with
-        const int mid = count / 2;
-        const double dx = disp[size_t(k)].x - sortedX[size_t(countX.kth(mid))];
-        const double dy = disp[size_t(k)].y - sortedY[size_t(countY.kth(mid))];
-        keep[size_t(k)] = std::hypot(dx, dy) <= 0.5 * distance;
-    }
+        },
+        stretches);
     return keep;
 }
 
@@ -162,40 +179,60 @@ std::vector<Match> findMatches(const std::vector<cv::Point2f>& mappedPoints,
                                double distance, double angleDeg, bool consistencyCheck,
                                TargetRule rule) {
     const double cosMax = std::cos(angleDeg * CV_PI / 180.0);
-    std::vector<Match> matches;
-    matches.reserve(mappedPoints.size());
-    for (size_t i = 0; i < mappedPoints.size(); ++i) {
-        const cv::Point2f q = mappedPoints[i];
-        const cv::Point2f n = mappedNormals[i];
-        double sw = 0, sx = 0, sy = 0;
-        int nearest = -1;
-        float nearestD2 = 0;
-        targetGrid.forEachWithin(q, float(distance), [&](int j, float d2) {
-            const cv::Point2f m = target.normals[j];
-            if (std::abs(m.x * n.x + m.y * n.y) < cosMax)
-                return;
-            if (nearest < 0 || d2 < nearestD2) {
-                nearest = j;
-                nearestD2 = d2;
+    const bool weighted = rule == TargetRule::WeightedAverage;
+    // Each point's match in its own slot (side by side on OpenCV's threads), then gathered in
+    // the points' order: the same matches whatever the threads.
+    const size_t n = mappedPoints.size();
+    std::vector<Match> slot(n);
+    std::vector<char> found(n, 0);
+    const auto matchRange = [&](const cv::Range& range) {
+        for (int ii = range.start; ii < range.end; ++ii) {
+            const auto i = size_t(ii);
+            const cv::Point2f q = mappedPoints[i];
+            const cv::Point2f nq = mappedNormals[i];
+            double sw = 0, sx = 0, sy = 0;
+            int nearest = -1;
+            float nearestD2 = 0;
+            targetGrid.forEachWithin(q, float(distance), [&](int j, float d2) {
+                const cv::Point2f m = target.normals[size_t(j)];
+                if (std::abs(m.x * nq.x + m.y * nq.y) < cosMax)
+                    return;
+                if (nearest < 0 || d2 < nearestD2) {
+                    nearest = j;
+                    nearestD2 = d2;
+                }
+                if (!weighted)
+                    return;
+                // Eq. 1: weight 1/d, and 100 for an exact hit.
+                const double d = std::sqrt(double(d2));
+                const double w = d < 1e-9 ? 100.0 : 1.0 / d;
+                sw += w;
+                sx += w * target.points[size_t(j)].x;
+                sy += w * target.points[size_t(j)].y;
+            });
+            if (nearest < 0)
+                continue;
+            found[i] = 1;
+            if (weighted) {
+                slot[i] = {ii, {sx / sw, sy / sw}};
+            } else {
+                const cv::Point2d a = target.points[size_t(nearest)];
+                const cv::Point2d m = target.normals[size_t(nearest)];
+                const double along = (a - cv::Point2d(q)).dot(m);
+                slot[i] = {ii, cv::Point2d(q) + m * along};
             }
-            // Eq. 1: weight 1/d, and 100 for an exact hit.
-            const double d = std::sqrt(double(d2));
-            const double w = d < 1e-9 ? 100.0 : 1.0 / d;
-            sw += w;
-            sx += w * target.points[j].x;
-            sy += w * target.points[j].y;
-        });
-        if (nearest < 0)
-            continue;
-        if (rule == TargetRule::WeightedAverage) {
-            matches.push_back({static_cast<int>(i), {sx / sw, sy / sw}});
-        } else {
-            const cv::Point2d a = target.points[nearest];
-            const cv::Point2d m = target.normals[nearest];
-            const double along = (a - cv::Point2d(q)).dot(m);
-            matches.push_back({static_cast<int>(i), cv::Point2d(q) + m * along});
         }
-    }
+    };
+    const cv::Range all(0, int(n));
+    if (n >= kParallelMatches)
+        cv::parallel_for_(all, matchRange, double(n) / 128);
+    else
+        matchRange(all);
+    std::vector<Match> matches;
+    matches.reserve(n);
+    for (size_t i = 0; i < n; ++i)
+        if (found[i])
+            matches.push_back(slot[i]);
     if (!consistencyCheck || matches.size() < 8)
         return matches;
 

@@ -1,5 +1,6 @@
 #include "slicestation/pipeline/laplace_warp.hpp"
 
+#include <opencv2/core/utility.hpp>
 #include <opencv2/imgproc.hpp>
 
 #include <algorithm>
@@ -61,31 +62,26 @@ Level makeLevel(cv::Size domain, double cell, const std::vector<cv::Point2d>& pt
 }
 
 /// SOR sweeps of the five-point Laplacian (Eq. 5 of the paper) with Dirichlet nodes held and
-/// mirror (Neumann) borders, in the usual row-by-row order. Each row is a chain of dependent
-/// updates; to keep the processor busy, both components are updated side by side and two rows
-/// at a time, the lower one a node behind (a wavefront): every node still reads exactly the
-/// values it reads in plain row order (its left and upper neighbours updated, its right and
-/// lower ones not yet), so the result is the same to the bit.
-void relax(cv::Mat& ux, const cv::Mat& fixedX, cv::Mat& uy, const cv::Mat& fixedY,
-           const cv::Mat& isFixed, int sweeps, double w) {
-    const int rows = ux.rows, cols = ux.cols;
+/// mirror (Neumann) borders, in the usual row-by-row order, of one component. Each row is a
+/// chain of dependent updates; to keep the processor busy, two rows are updated at a time, the
+/// lower one a node behind (a wavefront): every node still reads exactly the values it reads in
+/// plain row order (its left and upper neighbours updated, its right and lower ones not yet), so
+/// the result is the same to the bit.
+void relaxOne(cv::Mat& u, const cv::Mat& fixed, const cv::Mat& isFixed, int sweeps, double w) {
+    const int rows = u.rows, cols = u.cols;
     const float wf = float(w);
     const auto update = [&](int i, int j) {
         if (isFixed.ptr<uchar>(i)[j]) {
-            ux.ptr<float>(i)[j] = fixedX.ptr<float>(i)[j];
-            uy.ptr<float>(i)[j] = fixedY.ptr<float>(i)[j];
+            u.ptr<float>(i)[j] = fixed.ptr<float>(i)[j];
             return;
         }
         const int iu = i > 0 ? i - 1 : std::min(1, rows - 1);
         const int id = i + 1 < rows ? i + 1 : std::max(rows - 2, 0);
         const int jl = j > 0 ? j - 1 : std::min(1, cols - 1);
         const int jr = j + 1 < cols ? j + 1 : std::max(cols - 2, 0);
-        float* rx = ux.ptr<float>(i);
-        float* ry = uy.ptr<float>(i);
-        const float avgX = 0.25f * (rx[jl] + rx[jr] + ux.ptr<float>(iu)[j] + ux.ptr<float>(id)[j]);
-        const float avgY = 0.25f * (ry[jl] + ry[jr] + uy.ptr<float>(iu)[j] + uy.ptr<float>(id)[j]);
-        rx[j] += wf * (avgX - rx[j]);
-        ry[j] += wf * (avgY - ry[j]);
+        float* r = u.ptr<float>(i);
+        const float avg = 0.25f * (r[jl] + r[jr] + u.ptr<float>(iu)[j] + u.ptr<float>(id)[j]);
+        r[j] += wf * (avg - r[j]);
     };
     for (int s = 0; s < sweeps; ++s) {
         int i = 0;
@@ -101,6 +97,22 @@ void relax(cv::Mat& ux, const cv::Mat& fixedX, cv::Mat& uy, const cv::Mat& fixed
             for (int j = 0; j < cols; ++j)
                 update(i, j);
     }
+}
+
+/// Both components, which do not interact: side by side on OpenCV's threads.
+void relax(cv::Mat& ux, const cv::Mat& fixedX, cv::Mat& uy, const cv::Mat& fixedY,
+           const cv::Mat& isFixed, int sweeps, double w) {
+    cv::parallel_for_(
+        cv::Range(0, 2),
+        [&](const cv::Range& range) {
+            for (int c = range.start; c < range.end; ++c) {
+                if (c == 0)
+                    relaxOne(ux, fixedX, isFixed, sweeps, w);
+                else
+                    relaxOne(uy, fixedY, isFixed, sweeps, w);
+            }
+        },
+        2);
 }
 
 } // namespace

@@ -33,6 +33,9 @@ PointGrid::PointGrid(const std::vector<cv::Point2f>& points, float cellSize)
     std::vector<int> fill(start_.begin(), start_.end() - 1);
     for (size_t i = 0; i < points_.size(); ++i)
         order_[fill[cellOf[i]]++] = static_cast<int>(i);
+    sorted_.resize(points_.size());
+    for (size_t k = 0; k < order_.size(); ++k)
+        sorted_[k] = points_[size_t(order_[k])];
 }
 
 int PointGrid::cellX(float x) const {

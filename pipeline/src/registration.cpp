@@ -9,6 +9,7 @@
 #include "slicestation/pipeline/point_grid.hpp"
 #include "slicestation/pipeline/smooth_warp.hpp"
 
+#include <opencv2/core/utility.hpp>
 #include <opencv2/imgproc.hpp>
 
 #include <algorithm>
@@ -17,6 +18,7 @@
 #include <ctime>
 #include <functional>
 #include <limits>
+#include <optional>
 
 namespace slicestation::pipeline {
 namespace {
@@ -30,6 +32,26 @@ double processCpuMs() {
     timespec ts{};
     clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &ts);
     return double(ts.tv_sec) * 1e3 + double(ts.tv_nsec) * 1e-6;
+}
+
+/// CPU time of the calling thread in milliseconds.
+double threadCpuMs() {
+    timespec ts{};
+    clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ts);
+    return double(ts.tv_sec) * 1e3 + double(ts.tv_nsec) * 1e-6;
+}
+
+/// Runs `task(i)` for i in [0, n), side by side on OpenCV's threads (cv::setNumThreads is the
+/// one setting; under one core or one thread they run in turn). The tasks must be independent:
+/// each writes only its own results, so what comes out does not depend on the threads.
+template <class Task> void runTasks(int n, const Task& task) {
+    cv::parallel_for_(
+        cv::Range(0, n),
+        [&](const cv::Range& r) {
+            for (int i = r.start; i < r.end; ++i)
+                task(i);
+        },
+        n);
 }
 
 /// Times each step (wall and process CPU) and reports it done to the options' progress
@@ -50,6 +72,14 @@ public:
         last_ = now;
         cpuLast_ = cpuNow;
         if (progress_ && step)
+            progress_(std::min(++done_, kRegistrationSteps), kRegistrationSteps);
+    }
+    /// Records the step `name` timed on another thread (its own wall and CPU time), after the
+    /// steps it ran beside; the next lap still starts where the previous one ended.
+    void record(const char* name, double wallMs, double cpuMs) {
+        out_.emplace_back(name, wallMs);
+        cpu_.emplace_back(name, cpuMs);
+        if (progress_)
             progress_(std::min(++done_, kRegistrationSteps), kRegistrationSteps);
     }
     void total() {
@@ -133,16 +163,16 @@ public:
     /// IoU for an atlasFromWorking affine.
     double operator()(const cv::Matx23d& atlasFromWorking) const {
         const cv::Matx23d m = compose(atlasFromWorking, scaling(1.0 / factor_));
-        cv::warpAffine(atlasMask_, mapped_, cv::Mat(m), small_.size(),
+        cv::Mat mapped; // one per call: placements are scored side by side
+        cv::warpAffine(atlasMask_, mapped, cv::Mat(m), small_.size(),
                        cv::INTER_NEAREST | cv::WARP_INVERSE_MAP, cv::BORDER_CONSTANT, 0);
-        const double inter = cv::countNonZero(mapped_ & small_);
-        const double uni = area_ + cv::countNonZero(mapped_) - inter;
+        const double inter = cv::countNonZero(mapped & small_);
+        const double uni = area_ + cv::countNonZero(mapped) - inter;
         return uni > 0 ? inter / uni : 0.0;
     }
 
 private:
     cv::Mat atlasMask_, small_;
-    mutable cv::Mat mapped_;
     double factor_ = 1.0;
     int area_ = 0;
 };
@@ -623,32 +653,41 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     reg.workingTissueMask = prepared->tissueMask;
     timer.lap("prepare");
 
-    // Section edges (MEI): only where tissue is, not on debris, and not where excluded.
-    cv::Mat mei = dominantEdges(reg.workingGrey, options.edges);
-    cv::Mat near;
+    // Section edges (MEI): only where tissue is, not on debris, and not where excluded. Nothing
+    // before the edge points needs them: they are found beside the placement search below.
     const int grow = std::max(2, static_cast<int>(std::lround(reg.workingGrey.cols / 200.0)));
-    cv::dilate(reg.workingTissueMask, near,
-               cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * grow + 1, 2 * grow + 1)));
-    mei &= near;
-    if (!options.excludeMask.empty()) {
-        cv::Mat ex;
-        cv::resize(options.excludeMask != 0, ex, reg.workingGrey.size(), 0, 0, cv::INTER_NEAREST);
-        mei.setTo(0, ex);
-    }
-    timer.lap("edges");
+    cv::Mat mei;
+    double edgesWallMs = 0, edgesCpuMs = 0;
+    const auto findEdges = [&] {
+        const auto start = Clock::now();
+        const double cpuStart = threadCpuMs();
+        mei = dominantEdges(reg.workingGrey, options.edges);
+        cv::Mat near;
+        cv::dilate(
+            reg.workingTissueMask, near,
+            cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * grow + 1, 2 * grow + 1)));
+        mei &= near;
+        if (!options.excludeMask.empty()) {
+            cv::Mat ex;
+            cv::resize(options.excludeMask != 0, ex, reg.workingGrey.size(), 0, 0,
+                       cv::INTER_NEAREST);
+            mei.setTo(0, ex);
+        }
+        edgesWallMs = std::chrono::duration<double, std::milli>(Clock::now() - start).count();
+        edgesCpuMs = threadCpuMs() - cpuStart;
+    };
 
     // Detached fragments (more tissue pieces than the atlas brain has) would pull the outline,
     // the overlap and the edges: the placement uses the main pieces only.
     const cv::Mat fragments =
         options.detectDamage ? extraPieces(fillHoles(reg.workingTissueMask), atlasMask) : cv::Mat();
     cv::Mat mainTissue = reg.workingTissueMask;
+    cv::Mat nearFragments; // the edges here are the fragments', not the placed tissue's
     if (!fragments.empty()) {
         mainTissue = reg.workingTissueMask & ~fragments;
-        cv::Mat grown;
         cv::dilate(
-            fragments, grown,
+            fragments, nearFragments,
             cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * grow + 1, 2 * grow + 1)));
-        mei.setTo(0, grown);
     }
     // The fragments are damage detection's share of this step.
     timer.lap("damage-fragments", false);
@@ -732,7 +771,38 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
                 break;
         }
     }
-    for (const cv::Matx23d& init : inits) {
+    // The thin cracks' grey image, at full resolution up to crackMaxSidePx (damage detection
+    // at the end): it needs only the section.
+    const int longSide = std::max(section.cols, section.rows);
+    const double c = longSide > options.damage.crackMaxSidePx
+                         ? double(options.damage.crackMaxSidePx) / longSide
+                         : 1.0;
+    const cv::Size crackSize = c < 1 ? cv::Size(std::max(1, cvRound(section.cols * c)),
+                                                std::max(1, cvRound(section.rows * c)))
+                                     : section.size();
+    std::optional<cv::Mat> crackGrey;
+    const auto makeCrackGrey = [&] {
+        cv::Mat crackSection = section;
+        if (c < 1)
+            cv::resize(section, crackSection, crackSize, 0, 0, cv::INTER_AREA);
+        if (auto full = toGreyFloat(crackSection); full) {
+            crackGrey = reg.contrast == Contrast::Brightfield ? cv::Mat(-*full) : *full;
+        }
+    };
+    // Each starting placement is refined on its own, side by side with the others, with the
+    // section's edges (task 0) and with the cracks' grey image (task 1).
+    placed.resize(inits.size());
+    runTasks(int(inits.size()) + 2, [&](int task) {
+        if (task == 0) {
+            findEdges();
+            return;
+        }
+        if (task == 1) {
+            if (options.detectDamage)
+                makeCrackGrey();
+            return;
+        }
+        const cv::Matx23d& init = inits[size_t(task - 2)];
         const IcpResult r = multiLevelIcp(imgOuter, atlasOuter, init, coarse, 6, scaleGuess);
         // The refinement can wander off on an odd outline; the placement it started from stays
         // in the running, and the overlap search polishes whichever is better.
@@ -741,8 +811,10 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         double score = 0;
         const cv::Matx23d t =
             refineByOverlap(scorer, start, imgBox.centre, 2 * imgBox.halfMajor, score);
-        placed.push_back({init, t, score});
-    }
+        placed[size_t(task - 2)] = {init, t, score};
+    });
+    if (!nearFragments.empty())
+        mei.setTo(0, nearFragments);
     std::sort(placed.begin(), placed.end(),
               [](const Placed& a, const Placed& b) { return a.overlap > b.overlap; });
     if (options.maxTurnDeg < 180) {
@@ -759,6 +831,7 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     reg.stageAffines.emplace_back("obb", bestInit);
     reg.stageAffines.emplace_back("outline", best);
     timer.lap("initialise");
+    timer.record("edges", edgesWallMs, edgesCpuMs);
 
     // Algorithm 2: deep, asymmetric concavities of the outline are damage; their edges stay out
     // of the matching. The mirror is the atlas midline seen through the initial placement.
@@ -789,7 +862,17 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     // section: 10, 8, 6, 4 degrees and H/10 .. H/80.
     const std::vector<IcpLevel> fine{
         {10, atlasH / 10}, {8, atlasH / 20}, {6, atlasH / 40}, {4, atlasH / 80}};
-    IcpResult affine = multiLevelIcp(reg.sectionEdges, reg.atlasEdges, best, fine, 8, scaleGuess);
+    // The full ICP from the best placement and from each close one (within 0.05 of its
+    // overlap), side by side; which of them is kept is settled in order below.
+    size_t close = 1;
+    while (close < placed.size() && placed[close].overlap >= placed.front().overlap - 0.05)
+        ++close;
+    std::vector<IcpResult> fromPlaced(close);
+    runTasks(int(close), [&](int k) {
+        fromPlaced[size_t(k)] = multiLevelIcp(reg.sectionEdges, reg.atlasEdges, placed[size_t(k)].t,
+                                              fine, 8, scaleGuess);
+    });
+    IcpResult affine = std::move(fromPlaced.front());
     // An outline alone can fit nearly as well upside down (a roundish section, a piece missing):
     // close calls are settled by how well the internal edges agree after the full ICP.
     auto edgeAgreement = [&](const cv::Matx23d& t) {
@@ -833,11 +916,8 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     };
     double agreement = edgeAgreement(affine.targetFromSource);
     double fitOfBest = std::numeric_limits<double>::quiet_NaN();
-    for (size_t k = 1; k < placed.size(); ++k) {
-        if (placed[k].overlap < placed.front().overlap - 0.05)
-            break;
-        IcpResult other =
-            multiLevelIcp(reg.sectionEdges, reg.atlasEdges, placed[k].t, fine, 8, scaleGuess);
+    for (size_t k = 1; k < close; ++k) {
+        IcpResult& other = fromPlaced[k];
         const double a = edgeAgreement(other.targetFromSource);
         bool better = a > agreement + kTieMargin;
         double fit = std::numeric_limits<double>::quiet_NaN();
@@ -1060,10 +1140,17 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         // lobe cut apart), not glass.
         const cv::Mat sectionTissue =
             prepared->tissueMaskFine | piecesInside(prepared->smallPiecesFine, expectedBrain, 0.7);
-        std::vector<DamageRegion> regions = tissueDamage(
-            sectionTissue, expected, brainWidth, options.damage, fragments, reg.workingGrey);
-        for (DamageRegion& d : foldBands(reg.workingGrey, sectionTissue, expected.tissue, seen,
-                                         brainWidth, options.damage))
+        // Gaps and fold bands do not depend on each other: side by side.
+        std::vector<DamageRegion> regions, folds;
+        runTasks(2, [&](int task) {
+            if (task == 0)
+                regions = tissueDamage(sectionTissue, expected, brainWidth, options.damage,
+                                       fragments, reg.workingGrey);
+            else
+                folds = foldBands(reg.workingGrey, sectionTissue, expected.tissue, seen, brainWidth,
+                                  options.damage);
+        });
+        for (DamageRegion& d : folds)
             regions.push_back(std::move(d));
         // Report in full-resolution pixels.
         const double s = reg.workingScale;
@@ -1071,24 +1158,8 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         timer.lap("damage");
         // Thin cracks, at full resolution (up to crackMaxSidePx): glass lines narrower than the
         // working image shows.
-        const int longSide = std::max(section.cols, section.rows);
-        const double c = longSide > options.damage.crackMaxSidePx
-                             ? double(options.damage.crackMaxSidePx) / longSide
-                             : 1.0;
-        const cv::Size crackSize = c < 1 ? cv::Size(std::max(1, cvRound(section.cols * c)),
-                                                    std::max(1, cvRound(section.rows * c)))
-                                         : section.size();
-        const cv::Mat crackSection = [&] {
-            if (c >= 1)
-                return section;
-            cv::Mat o;
-            cv::resize(section, o, crackSize, 0, 0, cv::INTER_AREA);
-            return o;
-        }();
-        if (auto full = toGreyFloat(crackSection); full) {
-            cv::Mat grey = *full;
-            if (reg.contrast == Contrast::Brightfield)
-                grey = -grey;
+        if (crackGrey) {
+            const cv::Mat& grey = *crackGrey;
             const auto up = [&](const cv::Mat& m) {
                 cv::Mat o;
                 cv::resize(m, o, crackSize, 0, 0, cv::INTER_NEAREST);

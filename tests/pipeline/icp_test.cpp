@@ -2,6 +2,7 @@
 #include "slicestation/pipeline/icp.hpp"
 
 #include <gtest/gtest.h>
+#include <opencv2/core/utility.hpp>
 
 #include <algorithm>
 #include <cmath>
@@ -9,6 +10,18 @@
 using namespace slicestation::pipeline;
 
 namespace {
+/// OpenCV's thread count for one scope (matching and its consistency check run on its threads).
+class Threads {
+public:
+    explicit Threads(int n) : before_(cv::getNumThreads()) { cv::setNumThreads(n); }
+    ~Threads() { cv::setNumThreads(before_); }
+    Threads(const Threads&) = delete;
+    Threads& operator=(const Threads&) = delete;
+
+private:
+    int before_;
+};
+
 /// An irregular closed curve with internal structure: a flower outline and an inner ellipse.
 EdgePoints shape() {
     std::vector<cv::Point2f> raw;
@@ -94,67 +107,113 @@ TEST(IcpAffine, ConsistencyCheckDropsAnOutlierMatch) {
 // Scattered points (neighbourhoods of 0 to several hundred) and clustered displacements with
 // ties, at several distances, so that the incremental medians are checked on every path.
 TEST(IcpAffine, ConsistencyCheckKeepsExactlyWhatTheRuleStatesKeeps) {
-    cv::RNG rng(20261203);
-    for (const double distance : {0.7, 2.0, 5.5, 13.0, 40.0}) {
-        EdgePoints target;
-        std::vector<cv::Point2f> mp, mn;
-        for (int i = 0; i < 1500; ++i) {
-            // Points on a few curves and some scattered ones, in a field of 60 x 40 distances.
-            const bool onCurve = i % 5 != 0;
-            const double t = rng.uniform(0.0, 2 * CV_PI);
-            const double s = distance / 5;
-            const cv::Point2f p =
-                onCurve ? cv::Point2f(float(s * (150 + (40 + 30 * (i % 3)) * std::cos(t))),
-                                      float(s * (100 + (30 + 20 * (i % 3)) * std::sin(t))))
-                        : cv::Point2f(float(s * rng.uniform(0.0, 300.0)),
-                                      float(s * rng.uniform(0.0, 200.0)));
-            // Normals in four classes 45 degrees apart: with 10 degrees allowed, a point reaches
-            // only targets of its own class, so displacements vary from point to point.
-            const double a = CV_PI / 4 * (i % 4);
-            const cv::Point2f normal(float(std::cos(a)), float(std::sin(a)));
-            mp.push_back(p);
-            mn.push_back(normal);
-            // Displacements: mostly one smooth motion, quantised so that ties occur, and a share
-            // of outliers (not quantised).
-            const double ox = rng.uniform(0.0, 1.0) < 0.3 ? rng.uniform(-distance, distance) : 0;
-            const double dx = std::round(0.4 * distance * std::sin(p.y / (8 * distance))) / 4 + ox;
-            const double dy = std::round(4 * 0.1 * distance * std::cos(p.x / (10 * distance))) / 4;
-            target.points.emplace_back(float(p.x + dx), float(p.y + dy));
-            target.normals.push_back(normal);
-        }
-        const PointGrid grid(target.points, float(distance));
-        const auto all =
-            findMatches(mp, mn, target, grid, distance, 10.0, false, TargetRule::PointToLine);
-        const auto kept =
-            findMatches(mp, mn, target, grid, distance, 10.0, true, TargetRule::PointToLine);
-        std::vector<int> expected;
-        const float r = float(2 * distance);
-        for (const Match& m : all) {
-            const cv::Point2f at = mp[size_t(m.source)];
-            std::vector<double> xs, ys;
-            for (const Match& o : all) {
-                const cv::Point2f q = mp[size_t(o.source)];
-                const float ex = q.x - at.x, ey = q.y - at.y;
-                if (ex * ex + ey * ey <= r * r) {
-                    xs.push_back(o.target.x - q.x);
-                    ys.push_back(o.target.y - q.y);
-                }
+    // With one thread the visit is one stretch; with two it is cut in two, each with its own
+    // sets.
+    for (const int threads : {1, 2}) {
+        SCOPED_TRACE("threads " + std::to_string(threads));
+        const Threads scope(threads);
+        cv::RNG rng(20261203);
+        for (const double distance : {0.7, 2.0, 5.5, 13.0, 40.0}) {
+            EdgePoints target;
+            std::vector<cv::Point2f> mp, mn;
+            for (int i = 0; i < 1500; ++i) {
+                // Points on a few curves and some scattered ones, in a field of 60 x 40 distances.
+                const bool onCurve = i % 5 != 0;
+                const double t = rng.uniform(0.0, 2 * CV_PI);
+                const double s = distance / 5;
+                const cv::Point2f p =
+                    onCurve ? cv::Point2f(float(s * (150 + (40 + 30 * (i % 3)) * std::cos(t))),
+                                          float(s * (100 + (30 + 20 * (i % 3)) * std::sin(t))))
+                            : cv::Point2f(float(s * rng.uniform(0.0, 300.0)),
+                                          float(s * rng.uniform(0.0, 200.0)));
+                // Normals in four classes 45 degrees apart: with 10 degrees allowed, a point
+                // reaches only targets of its own class, so displacements vary from point to point.
+                const double a = CV_PI / 4 * (i % 4);
+                const cv::Point2f normal(float(std::cos(a)), float(std::sin(a)));
+                mp.push_back(p);
+                mn.push_back(normal);
+                // Displacements: mostly one smooth motion, quantised so that ties occur, and a
+                // share of outliers (not quantised).
+                const double ox =
+                    rng.uniform(0.0, 1.0) < 0.3 ? rng.uniform(-distance, distance) : 0;
+                const double dx =
+                    std::round(0.4 * distance * std::sin(p.y / (8 * distance))) / 4 + ox;
+                const double dy =
+                    std::round(4 * 0.1 * distance * std::cos(p.x / (10 * distance))) / 4;
+                target.points.emplace_back(float(p.x + dx), float(p.y + dy));
+                target.normals.push_back(normal);
             }
-            if (xs.size() < 3)
-                continue;
-            const size_t mid = xs.size() / 2;
-            std::nth_element(xs.begin(), xs.begin() + long(mid), xs.end());
-            std::nth_element(ys.begin(), ys.begin() + long(mid), ys.end());
-            const double dx = (m.target.x - at.x) - xs[mid], dy = (m.target.y - at.y) - ys[mid];
-            if (std::hypot(dx, dy) <= 0.5 * distance)
-                expected.push_back(m.source);
+            const PointGrid grid(target.points, float(distance));
+            const auto all =
+                findMatches(mp, mn, target, grid, distance, 10.0, false, TargetRule::PointToLine);
+            const auto kept =
+                findMatches(mp, mn, target, grid, distance, 10.0, true, TargetRule::PointToLine);
+            std::vector<int> expected;
+            const float r = float(2 * distance);
+            for (const Match& m : all) {
+                const cv::Point2f at = mp[size_t(m.source)];
+                std::vector<double> xs, ys;
+                for (const Match& o : all) {
+                    const cv::Point2f q = mp[size_t(o.source)];
+                    const float ex = q.x - at.x, ey = q.y - at.y;
+                    if (ex * ex + ey * ey <= r * r) {
+                        xs.push_back(o.target.x - q.x);
+                        ys.push_back(o.target.y - q.y);
+                    }
+                }
+                if (xs.size() < 3)
+                    continue;
+                const size_t mid = xs.size() / 2;
+                std::nth_element(xs.begin(), xs.begin() + long(mid), xs.end());
+                std::nth_element(ys.begin(), ys.begin() + long(mid), ys.end());
+                const double dx = (m.target.x - at.x) - xs[mid], dy = (m.target.y - at.y) - ys[mid];
+                if (std::hypot(dx, dy) <= 0.5 * distance)
+                    expected.push_back(m.source);
+            }
+            std::vector<int> got;
+            for (const Match& m : kept)
+                got.push_back(m.source);
+            EXPECT_EQ(got, expected) << "distance " << distance;
+            // The rule must have something to decide: some kept, some dropped.
+            EXPECT_GT(got.size(), all.size() / 4) << "distance " << distance;
+            EXPECT_LT(got.size(), all.size()) << "distance " << distance;
         }
-        std::vector<int> got;
-        for (const Match& m : kept)
-            got.push_back(m.source);
-        EXPECT_EQ(got, expected) << "distance " << distance;
-        // The rule must have something to decide: some kept, some dropped.
-        EXPECT_GT(got.size(), all.size() / 4) << "distance " << distance;
-        EXPECT_LT(got.size(), all.size()) << "distance " << distance;
     }
+}
+
+TEST(IcpAffine, MatchesAreTheSameWithAnyNumberOfThreads) {
+    // 4000 points (over the size from which matching runs side by side): both target rules,
+    // with and without the consistency check, one thread against two.
+    cv::RNG rng(20261204);
+    EdgePoints target;
+    std::vector<cv::Point2f> mp, mn;
+    for (int i = 0; i < 4000; ++i) {
+        const double t = rng.uniform(0.0, 2 * CV_PI);
+        const double r = 200 + 40 * (i % 4) + rng.gaussian(3.0);
+        const cv::Point2f p(float(400 + r * std::cos(t)), float(300 + 0.8 * r * std::sin(t)));
+        const cv::Point2f normal(float(std::cos(t)), float(std::sin(t)));
+        mp.push_back(p);
+        mn.push_back(normal);
+        target.points.emplace_back(p.x + float(rng.gaussian(2.0)), p.y + float(rng.gaussian(2.0)));
+        target.normals.push_back(normal);
+    }
+    const PointGrid grid(target.points, 6.0f);
+    for (const TargetRule rule : {TargetRule::WeightedAverage, TargetRule::PointToLine})
+        for (const bool check : {false, true}) {
+            std::vector<Match> one, two;
+            {
+                const Threads scope(1);
+                one = findMatches(mp, mn, target, grid, 6.0, 10.0, check, rule);
+            }
+            {
+                const Threads scope(2);
+                two = findMatches(mp, mn, target, grid, 6.0, 10.0, check, rule);
+            }
+            ASSERT_GT(one.size(), 1000u);
+            ASSERT_EQ(one.size(), two.size());
+            for (size_t k = 0; k < one.size(); ++k) {
+                EXPECT_EQ(one[k].source, two[k].source);
+                EXPECT_EQ(one[k].target, two[k].target); // exactly, not nearly
+            }
+        }
 }

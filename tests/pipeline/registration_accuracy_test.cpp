@@ -13,6 +13,7 @@
 #include "slicestation/sim/section_generator_b.hpp"
 
 #include <gtest/gtest.h>
+#include <opencv2/core/utility.hpp>
 #include <opencv2/imgproc.hpp>
 
 #include <algorithm>
@@ -190,6 +191,52 @@ TEST(DamageGroundTruth, CleanSectionsAreNotFlagged) {
         auto reg = pipeline::registerSection(gen->image, sim::builtinAtlasPlane(0.45));
         ASSERT_TRUE(reg.ok());
         EXPECT_FALSE(reg->damaged) << "seed " << seed << ": " << reg->damageSummary;
+    }
+}
+
+TEST(RegistrationAccuracy, TheResultIsTheSameWithAnyNumberOfThreads) {
+    // The placements, the section's edges and the close ICP runs go side by side on OpenCV's
+    // threads: one thread against two, on a torn section of the built-in atlas (every damage
+    // step runs) and a roundish real plane (the olfactory bulbs' tip: seven starting placements,
+    // scored side by side).
+    if (!fs::exists(kAtlasDir / "annotation_25_quicknii.nrrd"))
+        GTEST_SKIP() << "../shared/atlas is absent: the roundish real plane is not at hand";
+    for (const bool torn : {true, false}) {
+        const cv::Mat atlas = torn ? sim::builtinAtlasPlane(0.55) : realPlane(62);
+        ASSERT_FALSE(atlas.empty());
+        sim::GeneratorOptions o;
+        o.seed = torn ? 71 : 1110;
+        o.damage = {torn, false, false};
+        auto gen = sim::generateSection(atlas, o);
+        ASSERT_TRUE(gen.ok());
+        const int before = cv::getNumThreads();
+        cv::setNumThreads(1);
+        auto one = pipeline::registerSection(gen->image, atlas);
+        cv::setNumThreads(2);
+        auto two = pipeline::registerSection(gen->image, atlas);
+        cv::setNumThreads(before);
+        ASSERT_TRUE(one.ok() && two.ok());
+        EXPECT_TRUE(!torn || one->damaged);
+        ASSERT_EQ(one->stageAffines.size(), two->stageAffines.size());
+        for (size_t k = 0; k < one->stageAffines.size(); ++k)
+            EXPECT_EQ(one->stageAffines[k].second, two->stageAffines[k].second)
+                << one->stageAffines[k].first;
+        EXPECT_EQ(one->atlasFromWorking, two->atlasFromWorking);
+        EXPECT_EQ(cv::norm(one->warp.dx(), two->warp.dx(), cv::NORM_INF), 0.0);
+        EXPECT_EQ(cv::norm(one->warp.dy(), two->warp.dy(), cv::NORM_INF), 0.0);
+        EXPECT_EQ(one->quality.correspondences, two->quality.correspondences);
+        EXPECT_EQ(one->damageSummary, two->damageSummary);
+        ASSERT_EQ(one->damage.size(), two->damage.size());
+        for (size_t k = 0; k < one->damage.size(); ++k)
+            EXPECT_EQ(one->damage[k].polygon, two->damage[k].polygon);
+        // Every step is timed either way, the edges found beside the placement too.
+        const auto steps = [](const pipeline::Registration& r) {
+            std::vector<std::string> names;
+            for (const auto& [name, ms] : r.timingsMs)
+                names.push_back(name);
+            return names;
+        };
+        EXPECT_EQ(steps(*one), steps(*two));
     }
 }
 

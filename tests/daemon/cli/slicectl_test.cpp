@@ -95,6 +95,32 @@ TEST_F(SlicectlRegister, WritesTheResultContractAndMapsEveryPoint) {
     EXPECT_GT(cv::countNonZero(*warped), 100000);
 }
 
+TEST_F(SlicectlRegister, OneThreadGivesTheSameResultAsOnePerCore) {
+    // --threads 1 runs every step on the calling thread; the default (0) one thread per core.
+    for (const char* t : {"1", "0"}) {
+        const CommandResult r =
+            slicectl("register --threads " + std::string(t) + " --atlas " + p("atlas.tif") +
+                     " --image " + p("section.tif") + " --points " + p("points.csv") +
+                     " --output " + p(std::string("threads") + t + ".json"));
+        ASSERT_EQ(r.exitCode, 0) << r.output;
+    }
+    const auto read = [&](const char* name) {
+        std::ifstream in(p(name));
+        auto j = nlohmann::json::parse(in);
+        j.erase("timings_ms");
+        j.erase("cpu_timings_ms");
+        j["mapping"].erase("field"); // its own file name
+        return j;
+    };
+    const auto one = read("threads1.json"), all = read("threads0.json");
+    EXPECT_EQ(one, all) << "one thread:\n" << one.dump(1).substr(0, 2000);
+    EXPECT_GT(one.at("points").size(), 10u);
+    EXPECT_NE(slicectl("register --threads -1 --atlas " + p("atlas.tif") + " --image " +
+                       p("section.tif") + " --output " + p("threads-bad.json"))
+                  .exitCode,
+              0);
+}
+
 TEST_F(SlicectlRegister, InvalidInputFailsWithAMessageAndKeepsTheOldResult) {
     {
         std::ofstream(p("empty.tif"));

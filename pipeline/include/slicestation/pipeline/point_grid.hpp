@@ -19,19 +19,16 @@ public:
         const int cy0 = cellY(p.y - radius), cy1 = cellY(p.y + radius);
         const float r2 = radius * radius;
         for (int cy = cy0; cy <= cy1; ++cy) {
-            for (int cx = cx0; cx <= cx1; ++cx) {
-                const int c = cy * cols_ + cx;
-                for (int k = start_[c]; k < start_[c + 1]; ++k) {
-                    const int i = order_[k];
-                    const float dx = points_[i].x - p.x, dy = points_[i].y - p.y;
-                    const float d2 = dx * dx + dy * dy;
-                    if (d2 <= r2)
-                        fn(i, d2);
-                }
+            // The cells of a row are consecutive in the cell order: one stretch of points.
+            const int row = cy * cols_;
+            for (int k = start_[row + cx0], end = start_[row + cx1 + 1]; k < end; ++k) {
+                const float dx = sorted_[k].x - p.x, dy = sorted_[k].y - p.y;
+                const float d2 = dx * dx + dy * dy;
+                if (d2 <= r2)
+                    fn(order_[k], d2);
             }
         }
     }
-
     /// Index of the nearest point within `radius`, or -1.
     int nearest(cv::Point2f p, float radius) const;
 
@@ -42,8 +39,9 @@ private:
     int cellY(float y) const;
 
     std::vector<cv::Point2f> points_;
-    std::vector<int> order_; ///< point indices sorted by cell
-    std::vector<int> start_; ///< cell -> first position in order_ (size cells + 1)
+    std::vector<int> order_;          ///< point indices sorted by cell
+    std::vector<cv::Point2f> sorted_; ///< the points in that order (read in stretches)
+    std::vector<int> start_;          ///< cell -> first position in order_ (size cells + 1)
     float cell_ = 1.0f;
     float x0_ = 0.0f, y0_ = 0.0f;
     int cols_ = 1, rows_ = 1;

@@ -175,7 +175,9 @@ struct Registration {
     RegistrationQuality quality;
     std::vector<std::pair<std::string, double>> timingsMs; ///< step name -> milliseconds
     /// Step name -> process CPU milliseconds (all threads), the same steps as timingsMs: what
-    /// a step costs on a loaded machine, where wall time also counts waiting.
+    /// a step costs on a loaded machine, where wall time also counts waiting. With more than one
+    /// thread a step's figure includes work running beside it ("edges" runs beside
+    /// "initialise" and carries its own thread's time).
     std::vector<std::pair<std::string, double>> cpuMs;
     cv::Mat workingGrey;       ///< CV_32F [0,1] tissue bright, working resolution
     cv::Mat workingTissueMask; ///< CV_8U, working resolution
@@ -218,6 +220,9 @@ struct Registration {
 /// Registers `section` (any supported image, see prepareSection) to `atlasLabels` (CV_32S, 0
 /// outside the brain). Returns a result whenever the inputs are valid, even for a poor match:
 /// `quality` tells.
+/// Threading: blocks the calling thread until done; independent parts run side by side on
+/// OpenCV's threads (cv::setNumThreads; 1 runs everything on the caller), and the result is the
+/// same to the bit with any number of them. Reentrant: calls from several threads share nothing.
 /// \return InvalidArgument (empty or invalid atlas, bad options), NoTissue (see prepareSection).
 [[nodiscard]] core::Result<Registration> registerSection(const cv::Mat& section,
                                                          const cv::Mat& atlasLabels,
