@@ -1,11 +1,11 @@
 #include "slicestation/pipeline/damage.hpp"
 
+#include "side_by_side.hpp"
 #include "slicestation/pipeline/affine.hpp"
 #include "slicestation/pipeline/mask_ops.hpp"
 #include "slicestation/pipeline/medial_axis.hpp"
 #include "slicestation/pipeline/point_grid.hpp"
 
-#include <opencv2/core/utility.hpp>
 #include <opencv2/imgproc.hpp>
 
 #include <algorithm>
@@ -225,17 +225,12 @@ template <class Op> cv::Mat onNeededTiles(const cv::Mat& need, int reachPx, cons
         }
     }
     // Each run writes only its own pixels: side by side on OpenCV's threads.
-    cv::parallel_for_(
-        cv::Range(0, int(runs.size())),
-        [&](const cv::Range& range) {
-            for (int i = range.start; i < range.end; ++i) {
-                const cv::Rect& run = runs[size_t(i)];
-                const cv::Rect reach = grown(run, reachPx, need.size()) & image;
-                const cv::Mat r = op(reach);
-                r(run - reach.tl()).copyTo(out(run));
-            }
-        },
-        double(runs.size()));
+    runTasks(int(runs.size()), [&](int i) {
+        const cv::Rect& run = runs[size_t(i)];
+        const cv::Rect reach = grown(run, reachPx, need.size()) & image;
+        const cv::Mat r = op(reach);
+        r(run - reach.tl()).copyTo(out(run));
+    });
     return out;
 }
 
@@ -646,13 +641,7 @@ std::vector<DamageRegion> thinCracks(const cv::Mat& grey, const cv::Mat& tissue,
             return std::nullopt;
         return Candidate{roi, region, area, length, thickness};
     };
-    cv::parallel_for_(
-        cv::Range(1, std::max(n, 1)),
-        [&](const cv::Range& range) {
-            for (int i = range.start; i < range.end; ++i)
-                candidates[size_t(i)] = test(i);
-        },
-        std::max(1, n - 1));
+    runTasks(n - 1, [&](int k) { candidates[size_t(k + 1)] = test(k + 1); });
     for (int i = 1; i < n; ++i) {
         if (!candidates[size_t(i)])
             continue;

@@ -1,6 +1,7 @@
 #include "slicestation/pipeline/laplace_warp.hpp"
 
-#include <opencv2/core/utility.hpp>
+#include "side_by_side.hpp"
+
 #include <opencv2/imgproc.hpp>
 
 #include <algorithm>
@@ -102,17 +103,12 @@ void relaxOne(cv::Mat& u, const cv::Mat& fixed, const cv::Mat& isFixed, int swee
 /// Both components, which do not interact: side by side on OpenCV's threads.
 void relax(cv::Mat& ux, const cv::Mat& fixedX, cv::Mat& uy, const cv::Mat& fixedY,
            const cv::Mat& isFixed, int sweeps, double w) {
-    cv::parallel_for_(
-        cv::Range(0, 2),
-        [&](const cv::Range& range) {
-            for (int c = range.start; c < range.end; ++c) {
-                if (c == 0)
-                    relaxOne(ux, fixedX, isFixed, sweeps, w);
-                else
-                    relaxOne(uy, fixedY, isFixed, sweeps, w);
-            }
-        },
-        2);
+    runTasks(2, [&](int c) {
+        if (c == 0)
+            relaxOne(ux, fixedX, isFixed, sweeps, w);
+        else
+            relaxOne(uy, fixedY, isFixed, sweeps, w);
+    });
 }
 
 } // namespace

@@ -1,5 +1,6 @@
 #include "slicestation/pipeline/preprocess.hpp"
 
+#include "side_by_side.hpp"
 #include "slicestation/pipeline/mask_ops.hpp"
 
 #include <Eigen/Dense>
@@ -72,9 +73,16 @@ float ringDeviation(const cv::Mat& image, const cv::Mat& valid, float glass) {
 cv::Mat segmentTissue(const cv::Mat& grey, const cv::Mat& valid, float glass,
                       cv::Mat* fine = nullptr) {
     const int longSide = std::max(grey.rows, grey.cols);
-    cv::Mat heavy, light;
-    cv::GaussianBlur(grey, heavy, cv::Size(), std::max(2.0, longSide / 150.0));
-    cv::GaussianBlur(grey, light, cv::Size(), std::max(1.0, longSide / 500.0));
+    // The three blurs side by side (the sharp one only for the fine mask).
+    cv::Mat heavy, light, sharp;
+    runTasks(fine ? 3 : 2, [&](int k) {
+        if (k == 0)
+            cv::GaussianBlur(grey, heavy, cv::Size(), std::max(2.0, longSide / 150.0));
+        else if (k == 1)
+            cv::GaussianBlur(grey, light, cv::Size(), std::max(1.0, longSide / 500.0));
+        else
+            cv::GaussianBlur(grey, sharp, cv::Size(), 1.0);
+    });
 
     const float mad = ringDeviation(heavy, valid, glass);
     const float madLight = ringDeviation(light, valid, glass);
@@ -114,8 +122,6 @@ cv::Mat segmentTissue(const cv::Mat& grey, const cv::Mat& valid, float glass,
         // For damage: everything clearly above the glass is tissue, also dark tissue at the
         // outline (the outline's exact place does not matter there), and thin cracks survive
         // only the lightest blur.
-        cv::Mat sharp;
-        cv::GaussianBlur(grey, sharp, cv::Size(), 1.0);
         *fine = (sharp > insideT) & valid & reach;
     }
     // Close the gaps between cells in dim, textured tissue.

@@ -1,5 +1,6 @@
 #include "slicestation/pipeline/registration.hpp"
 
+#include "side_by_side.hpp"
 #include "slicestation/pipeline/affine.hpp"
 #include "slicestation/pipeline/icp.hpp"
 #include "slicestation/pipeline/intensity_affine.hpp"
@@ -9,10 +10,10 @@
 #include "slicestation/pipeline/point_grid.hpp"
 #include "slicestation/pipeline/smooth_warp.hpp"
 
-#include <opencv2/core/utility.hpp>
 #include <opencv2/imgproc.hpp>
 
 #include <algorithm>
+#include <array>
 #include <chrono>
 #include <cmath>
 #include <ctime>
@@ -39,19 +40,6 @@ double threadCpuMs() {
     timespec ts{};
     clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ts);
     return double(ts.tv_sec) * 1e3 + double(ts.tv_nsec) * 1e-6;
-}
-
-/// Runs `task(i)` for i in [0, n), side by side on OpenCV's threads (cv::setNumThreads is the
-/// one setting; under one core or one thread they run in turn). The tasks must be independent:
-/// each writes only its own results, so what comes out does not depend on the threads.
-template <class Task> void runTasks(int n, const Task& task) {
-    cv::parallel_for_(
-        cv::Range(0, n),
-        [&](const cv::Range& r) {
-            for (int i = r.start; i < r.end; ++i)
-                task(i);
-        },
-        n);
 }
 
 /// Times each step (wall and process CPU) and reports it done to the options' progress
@@ -98,6 +86,9 @@ private:
     Clock::time_point start_ = Clock::now(), last_ = start_;
     double cpuStart_ = processCpuMs(), cpuLast_ = cpuStart_;
 };
+
+/// Two placements whose section box ends lie this close (atlas px) are the same placement.
+constexpr double kSamePlaceAtlasPx = 2.0;
 
 /// IoU of the section's (filled) tissue and the atlas brain mapped into the working frame.
 double overlap(const cv::Mat& tissueFilled, const cv::Mat& atlasMask, const cv::Matx23d& t) {
@@ -774,16 +765,17 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     // The thin cracks' grey image, at full resolution up to crackMaxSidePx (damage detection
     // at the end): it needs only the section.
     const int longSide = std::max(section.cols, section.rows);
-    const double c = longSide > options.damage.crackMaxSidePx
-                         ? double(options.damage.crackMaxSidePx) / longSide
-                         : 1.0;
-    const cv::Size crackSize = c < 1 ? cv::Size(std::max(1, cvRound(section.cols * c)),
-                                                std::max(1, cvRound(section.rows * c)))
-                                     : section.size();
+    const double crackScale = longSide > options.damage.crackMaxSidePx
+                                  ? double(options.damage.crackMaxSidePx) / longSide
+                                  : 1.0;
+    const cv::Size crackSize = crackScale < 1
+                                   ? cv::Size(std::max(1, cvRound(section.cols * crackScale)),
+                                              std::max(1, cvRound(section.rows * crackScale)))
+                                   : section.size();
     std::optional<cv::Mat> crackGrey;
     const auto makeCrackGrey = [&] {
         cv::Mat crackSection = section;
-        if (c < 1)
+        if (crackScale < 1)
             cv::resize(section, crackSection, crackSize, 0, 0, cv::INTER_AREA);
         if (auto full = toGreyFloat(crackSection); full) {
             crackGrey = reg.contrast == Contrast::Brightfield ? cv::Mat(-*full) : *full;
@@ -825,6 +817,27 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         };
         if (!std::all_of(placed.begin(), placed.end(), turned))
             placed.erase(std::remove_if(placed.begin(), placed.end(), turned), placed.end());
+    }
+    // Starts that the outline search brought to the same place (the section box's four ends
+    // within kSamePlaceAtlasPx of a better placement's) are one placement: the full ICP from
+    // each would end in the same basin, so only the better one is kept as a close call.
+    {
+        const std::array<cv::Point2d, 4> ends{
+            cv::Point2d(imgBox.centre) + imgBox.halfMajor * cv::Point2d(imgBox.major),
+            cv::Point2d(imgBox.centre) - imgBox.halfMajor * cv::Point2d(imgBox.major),
+            cv::Point2d(imgBox.centre) + imgBox.halfMinor * cv::Point2d(imgBox.minor),
+            cv::Point2d(imgBox.centre) - imgBox.halfMinor * cv::Point2d(imgBox.minor)};
+        const auto samePlace = [&](const Placed& a, const Placed& b) {
+            return std::all_of(ends.begin(), ends.end(), [&](const cv::Point2d& e) {
+                return cv::norm(apply(a.t, e) - apply(b.t, e)) <= kSamePlaceAtlasPx;
+            });
+        };
+        std::vector<Placed> distinct;
+        for (const Placed& p : placed)
+            if (std::none_of(distinct.begin(), distinct.end(),
+                             [&](const Placed& q) { return samePlace(p, q); }))
+                distinct.push_back(p);
+        placed = std::move(distinct);
     }
     const cv::Matx23d bestInit = placed.front().init;
     cv::Matx23d best = placed.front().t;
@@ -1174,8 +1187,8 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
                 const cv::Matx23d imageFromAtlas = invert(reg.affineAtlasFromImage());
                 const cv::Point2d a = apply(imageFromAtlas, cv::Point2d(mx, 0));
                 const cv::Point2d b = apply(imageFromAtlas, cv::Point2d(mx, atlasLabels.rows));
-                midline = {cv::Point2f(float(a.x * c), float(a.y * c)),
-                           cv::Point2f(float(b.x * c), float(b.y * c))};
+                midline = {cv::Point2f(float(a.x * crackScale), float(a.y * crackScale)),
+                           cv::Point2f(float(b.x * crackScale), float(b.y * crackScale))};
             }
             if (!expected.parts.empty())
                 fullExpected.parts = up(expected.parts);
@@ -1189,23 +1202,24 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
             for (const DamageRegion& d : regions) {
                 std::vector<cv::Point> poly;
                 for (const cv::Point2f& p : d.polygon)
-                    poly.emplace_back(cvRound((p.x + 0.5) * c - 0.5),
-                                      cvRound((p.y + 0.5) * c - 0.5));
+                    poly.emplace_back(cvRound((p.x + 0.5) * crackScale - 0.5),
+                                      cvRound((p.y + 0.5) * crackScale - 0.5));
                 if (poly.size() >= 3)
                     cv::fillPoly(known, std::vector<std::vector<cv::Point>>{poly}, cv::Scalar(255));
             }
             std::vector<DamageRegion> pieces;
             const cv::Mat tissueAtCracks = up(sectionTissue);
             std::vector<DamageRegion> cracks =
-                thinCracks(grey, tissueAtCracks, fullExpected, up(ventricles), brainWidth / s * c,
-                           options.damage, midline, known, &pieces);
-            toFullPixels(cracks, c);
-            toFullPixels(pieces, c);
+                thinCracks(grey, tissueAtCracks, fullExpected, up(ventricles),
+                           brainWidth / s * crackScale, options.damage, midline, known, &pieces);
+            toFullPixels(cracks, crackScale);
+            toFullPixels(pieces, crackScale);
             for (DamageRegion& d : cracks)
                 regions.push_back(std::move(d));
             // Where a crack narrows to a shallow line, the pieces beyond continue its tear.
-            for (DamageRegion& d : continueTears(regions, pieces, grey, tissueAtCracks,
-                                                 brainWidth / s * c, options.damage, c))
+            for (DamageRegion& d :
+                 continueTears(regions, pieces, grey, tissueAtCracks, brainWidth / s * crackScale,
+                               options.damage, crackScale))
                 regions.push_back(std::move(d));
         }
         // Bilateral anatomy is not damage: a gap whose mirror image across the brain's midline
