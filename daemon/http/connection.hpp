@@ -16,6 +16,9 @@
 #include <cstdlib>
 #include <cstring>
 #include <optional>
+#include <string>
+#include <string_view>
+#include <utility>
 
 namespace slicestation::daemon::http {
 
@@ -28,16 +31,24 @@ using L = HttpLimits;
 /// Writes give up after kWriteStall without progress. Used on the connection's worker only.
 class Connection final : public httplib::Stream {
 public:
-    explicit Connection(int fd) : fd_(fd) {}
-
-    /// Waits up to `idle` for the next request to begin. False: closed, idle, or refused.
-    bool awaitRequest(Clock::duration idle) {
-        if (mustClose_)
-            return false;
-        if (pos_ < len_)
-            return true;
-        return waitFor(POLLIN, Clock::now() + idle) && fill() > 0;
+    /// `received`: what the acceptor already read from the socket (a request head, and what
+    /// came with it), read first.
+    Connection(int fd, std::string received) : fd_(fd), buf_(std::move(received)) {
+        len_ = buf_.size();
+        if (buf_.size() < kChunk)
+            buf_.resize(kChunk);
     }
+
+    /// The next request's head is buffered here whole (or as much of it as a head may take:
+    /// reading it then refuses it). Ends as BoundedServer::readHead sees it.
+    bool hasCompleteHead() const {
+        if (mustClose_ || pos_ >= len_)
+            return false;
+        const std::string_view rest(buf_.data() + pos_, len_ - pos_);
+        return rest.size() >= L::kMaxHead || rest.find("\n\r\n") != std::string_view::npos;
+    }
+    /// What is buffered and not yet read (a pipelined request's beginning).
+    std::string unread() const { return buf_.substr(pos_, len_ - pos_); }
     /// A new request: its head may take kMaxHead bytes and kHeadDeadline.
     void beginRequest() {
         used_ = 0;
@@ -60,21 +71,11 @@ public:
         pollfd p{fd_, POLLRDHUP, 0};
         return ::poll(&p, 1, 0) > 0 && (p.revents & (POLLRDHUP | POLLHUP | POLLERR)) != 0;
     }
-    /// Before closing a connection whose request body was left unread: the answer is sent
-    /// (FIN) and what the client still sends is discarded for a moment, so that the close does
-    /// not reset the connection before the client has read the answer.
-    void lingerBeforeClose() {
-        ::shutdown(fd_, SHUT_WR);
-        const auto until = Clock::now() + std::chrono::seconds(1);
-        std::size_t discarded = 0;
-        while (discarded < (4u << 20) && waitFor(POLLIN, until)) {
-            char tmp[16384];
-            const ssize_t n = ::recv(fd_, tmp, sizeof tmp, 0);
-            if (n <= 0)
-                break;
-            discarded += static_cast<std::size_t>(n);
-        }
-    }
+    /// Before closing a connection whose request body may be left unread: the answer is sent
+    /// (FIN), and the socket is then drained for a moment by BoundedServer's acceptor (not by
+    /// this worker), so that the close does not reset the connection before the client has read
+    /// the answer.
+    void finishSending() { ::shutdown(fd_, SHUT_WR); }
 
     bool is_readable() const override { return pos_ < len_ || waitFor(POLLIN, deadline_); }
     bool is_writable() const override { return waitFor(POLLOUT, Clock::now() + L::kWriteStall); }
@@ -142,6 +143,8 @@ private:
     }
     ssize_t fill() {
         for (;;) {
+            if (buf_.size() > kChunk)
+                buf_.resize(kChunk); // a long head, read: back to the usual chunk
             const ssize_t n = ::recv(fd_, buf_.data(), buf_.size(), 0);
             if (n < 0 && errno == EINTR)
                 continue;
@@ -165,7 +168,8 @@ private:
     }
 
     int fd_;
-    std::array<char, 4096> buf_{};
+    static constexpr std::size_t kChunk = 4096;
+    std::string buf_;
     std::size_t pos_ = 0, len_ = 0;
     std::size_t used_ = 0, limit_ = L::kMaxHead;
     bool eofAtLimit_ = false;

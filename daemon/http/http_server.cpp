@@ -8,9 +8,11 @@
 #include <sys/socket.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <charconv>
 #include <cstdint>
 #include <limits>
+#include <optional>
 #include <utility>
 
 namespace slicestation::daemon::http {
@@ -133,7 +135,7 @@ void BoundedServer::stopServing() noexcept {
         [[maybe_unused]] const auto n = ::write(wake_[1], "x", 1);
     }
     if (acceptor_.joinable())
-        acceptor_.join();
+        acceptor_.join(); // it closed the connections parked with it
     {
         std::lock_guard lock(mutex_);
         for (int fd : open_)
@@ -142,6 +144,14 @@ void BoundedServer::stopServing() noexcept {
     if (pool_)
         pool_->shutdown();
     pool_.reset();
+    {
+        std::lock_guard lock(mutex_); // parked after the acceptor ended
+        for (const Parked& p : handedOver_) {
+            open_.erase(p.fd);
+            ::close(p.fd);
+        }
+        handedOver_.clear();
+    }
     for (int& fd : wake_)
         if (fd >= 0)
             ::close(std::exchange(fd, -1));
@@ -150,63 +160,167 @@ void BoundedServer::stopServing() noexcept {
 }
 
 void BoundedServer::acceptLoop() {
-    for (;;) {
-        std::array<pollfd, 2> p{pollfd{listenFd_, POLLIN, 0}, pollfd{wake_[0], POLLIN, 0}};
-        if (::poll(p.data(), p.size(), -1) < 0 && errno != EINTR)
-            break;
-        if (stopping_ || p[1].revents)
-            break;
-        if (!(p[0].revents & POLLIN))
-            continue;
-        const int fd = ::accept4(listenFd_, nullptr, nullptr, SOCK_CLOEXEC);
-        if (fd < 0) {
-            if (errno == EMFILE || errno == ENFILE) // out of descriptors: let the others finish
-                ::poll(nullptr, 0, 10);
-            continue;
-        }
+    std::vector<Parked> parked; // this thread's own
+    std::vector<pollfd> p;
+    while (!stopping_) {
         {
             std::lock_guard lock(mutex_);
-            if (open_.size() >= static_cast<std::size_t>(L::kMaxConnections)) {
-                static const std::string busy =
-                    "HTTP/1.1 503 Service Unavailable\r\nContent-Type: application/json\r\n"
-                    "Content-Length: 52\r\nConnection: close\r\nRetry-After: 5\r\n\r\n"
-                    "{\"error\": \"too many connections; try again shortly\"}";
-                [[maybe_unused]] auto n =
-                    ::send(fd, busy.data(), busy.size(), MSG_NOSIGNAL | MSG_DONTWAIT);
-                ::close(fd);
-                continue;
-            }
-            open_.insert(fd);
+            for (Parked& h : handedOver_)
+                parked.push_back(std::move(h));
+            handedOver_.clear();
         }
-        pool_->enqueue([this, fd] { serve(fd); });
+        p.assign({pollfd{listenFd_, POLLIN, 0}, pollfd{wake_[0], POLLIN, 0}});
+        auto next = Clock::time_point::max();
+        for (const Parked& c : parked) {
+            p.push_back(pollfd{c.fd, POLLIN, 0});
+            next = std::min(next, c.until);
+        }
+        int timeoutMs = -1;
+        if (!parked.empty())
+            timeoutMs = static_cast<int>(std::clamp<long long>(
+                std::chrono::duration_cast<std::chrono::milliseconds>(next - Clock::now()).count() +
+                    1,
+                0, 1000));
+        if (::poll(p.data(), p.size(), timeoutMs) < 0 && errno != EINTR)
+            break;
+        if (p[1].revents) {
+            char drained[64];
+            while (::read(wake_[0], drained, sizeof drained) > 0) {
+            }
+        }
+        if (stopping_)
+            break;
+        const auto now = Clock::now();
+        std::size_t kept = 0;
+        for (std::size_t i = 0; i < parked.size(); ++i) {
+            Parked& c = parked[i];
+            Step step = now >= c.until ? Step::Close : Step::Keep;
+            if (p[i + 2].revents != 0)
+                step = readParked(c, now);
+            if (step == Step::Close) {
+                closeConnection(c.fd);
+            } else if (step == Step::Serve) {
+                pool_->enqueue([this, fd = c.fd, head = std::move(c.head),
+                                left = c.left]() mutable { serve(fd, std::move(head), left); });
+            } else {
+                if (kept != i) // not onto itself: a string moved onto itself is left empty
+                    parked[kept] = std::move(c);
+                ++kept;
+            }
+        }
+        parked.resize(kept);
+        if (p[0].revents & POLLIN)
+            acceptOne(parked);
+    }
+    for (const Parked& c : parked)
+        closeConnection(c.fd);
+}
+
+BoundedServer::Step BoundedServer::readParked(Parked& c, Clock::time_point now) {
+    for (;;) {
+        char tmp[16384];
+        const ssize_t n = ::recv(c.fd, tmp, sizeof tmp, MSG_DONTWAIT);
+        if (n < 0 && errno == EINTR)
+            continue;
+        if (n < 0 && (errno == EAGAIN || errno == EWOULDBLOCK))
+            return now >= c.until ? Step::Close : Step::Keep;
+        if (n <= 0)
+            return Step::Close; // the client closed, or the connection failed
+        if (c.lingering) {      // read and dropped
+            c.discarded += static_cast<std::size_t>(n);
+            if (c.discarded >= kLingerBytes)
+                return Step::Close;
+            continue;
+        }
+        if (!c.begun) {
+            c.begun = true;
+            c.until = now + L::kHeadDeadline;
+        }
+        const std::size_t from = c.head.size() < 2 ? 0 : c.head.size() - 2;
+        c.head.append(tmp, static_cast<std::size_t>(n));
+        // The blank line that ends a head (httplib skips a header line without its CR, so a
+        // head ends at "\r\n" after a line's end); past kMaxHead the worker's reads refuse it.
+        if (c.head.find("\n\r\n", from) != std::string::npos || c.head.size() >= L::kMaxHead)
+            return Step::Serve;
     }
 }
 
-void BoundedServer::serve(int fd) noexcept {
+void BoundedServer::closeConnection(int fd) {
+    std::lock_guard lock(mutex_);
+    open_.erase(fd);
+    ::close(fd);
+}
+
+void BoundedServer::park(Parked c) {
+    {
+        std::lock_guard lock(mutex_);
+        handedOver_.push_back(std::move(c));
+    }
+    [[maybe_unused]] const auto n = ::write(wake_[1], "p", 1); // a full pipe: already woken
+}
+
+void BoundedServer::acceptOne(std::vector<Parked>& parked) {
+    const int fd = ::accept4(listenFd_, nullptr, nullptr, SOCK_CLOEXEC);
+    if (fd < 0) {
+        if (errno == EMFILE || errno == ENFILE) // out of descriptors: let the others finish
+            ::poll(nullptr, 0, 10);
+        return;
+    }
+    std::lock_guard lock(mutex_);
+    if (open_.size() >= static_cast<std::size_t>(L::kMaxConnections)) {
+        static const std::string busy =
+            "HTTP/1.1 503 Service Unavailable\r\nContent-Type: application/json\r\n"
+            "Content-Length: 52\r\nConnection: close\r\nRetry-After: 5\r\n\r\n"
+            "{\"error\": \"too many connections; try again shortly\"}";
+        [[maybe_unused]] auto n = ::send(fd, busy.data(), busy.size(), MSG_NOSIGNAL | MSG_DONTWAIT);
+        ::close(fd);
+        return;
+    }
+    open_.insert(fd);
+    parked.push_back(
+        Parked{fd, Clock::now() + L::kIdle, false, false, L::kKeepAliveRequests, 0, {}});
+}
+
+void BoundedServer::serve(int fd, std::string received, int left) noexcept {
+    std::optional<Parked> after; // where the connection goes when this worker is done with it
     try {
-        Connection conn(fd);
+        Connection conn(fd, std::move(received));
         tConnection = &conn;
-        for (int left = L::kKeepAliveRequests; left > 0 && !stopping_; --left) {
-            if (!conn.awaitRequest(L::kIdle))
+        while (left > 0 && !stopping_) {
+            if (!conn.hasCompleteHead()) { // the next head (or its beginning) is the acceptor's
+                std::string rest = conn.unread();
+                const bool begun = !rest.empty();
+                after = Parked{fd,
+                               Clock::now() + (begun ? L::kHeadDeadline : L::kIdle),
+                               false,
+                               begun,
+                               left,
+                               0,
+                               std::move(rest)};
                 break;
+            }
             conn.beginRequest();
             bool closed = false;
             // Range headers are ignored (the whole content is sent, as HTTP allows): httplib
             // 0.11 bounds neither their number nor their offsets.
             const bool ok = process_request(conn, left == 1 || stopping_, closed,
                                             [](httplib::Request& req) { req.ranges.clear(); });
+            --left;
             if (!ok || closed || conn.mustClose()) {
-                if (ok && conn.mustClose())
-                    conn.lingerBeforeClose();
+                if (ok && conn.mustClose()) {
+                    conn.finishSending();
+                    after = Parked{fd, Clock::now() + kLinger, true, false, 0, 0, {}};
+                }
                 break;
             }
         }
     } catch (...) { // nothing leaves a worker; the connection just ends
+        after.reset();
     }
     tConnection = nullptr;
-    std::lock_guard lock(mutex_);
-    open_.erase(fd);
-    ::close(fd);
+    if (after && !stopping_)
+        return park(std::move(*after));
+    closeConnection(fd);
 }
 
 void installAdmission(httplib::Server& server, const Authoriser& authorised) {

@@ -10,18 +10,23 @@
 
 #include <array>
 #include <atomic>
+#include <chrono>
 #include <memory>
 #include <mutex>
 #include <set>
 #include <string>
 #include <thread>
+#include <vector>
 
 namespace slicestation::daemon::http {
 
 /// httplib 0.11's own loop bounds neither the size of a request head or chunked body nor the
 /// total time a client may take to send them, and serves a fixed pool from an unbounded queue:
 /// this server accepts connections itself, at most HttpLimits::kMaxConnections open (past them
-/// 503 and closed) and kWorkers served at once, each through a Connection.
+/// 503 and closed). Its acceptor thread reads each request head until it is complete and only
+/// then hands the connection to one of kWorkers workers, which serves it through a Connection
+/// and gives it back between requests: a worker is held by a request being answered (and an
+/// event stream), never by a client that is slow to send its head, idles or was refused.
 class BoundedServer final : public httplib::Server {
 public:
     ~BoundedServer() override { stopServing(); }
@@ -32,8 +37,33 @@ public:
     void stopServing() noexcept;
 
 private:
+    using Clock = std::chrono::steady_clock;
+    /// A connection no worker serves: either waiting for its next request's head (read here
+    /// until complete, then handed to a worker with it) or, after an answer whose request was
+    /// not read to its end, drained until the client closes, kLinger passes or kLingerBytes
+    /// came, then closed. Both are the acceptor's, so a client that sends slowly, idles
+    /// between requests or was refused holds no worker.
+    struct Parked {
+        int fd;
+        Clock::time_point until; ///< when it is given up (idle, head deadline, linger)
+        bool lingering = false;
+        bool begun = false; ///< the head's first byte came (the head deadline runs)
+        int left = 0;       ///< requests it may still make
+        std::size_t discarded = 0;
+        std::string head;
+    };
+    enum class Step { Keep, Serve, Close };
+    static constexpr auto kLinger = std::chrono::seconds(1);
+    static constexpr std::size_t kLingerBytes = 4u << 20;
+
     void acceptLoop();
-    void serve(int fd) noexcept;
+    void acceptOne(std::vector<Parked>& parked);
+    void serve(int fd, std::string received, int left) noexcept;
+    /// Reads what `c` has to read: a head's bytes, kept, or a lingering one's, dropped.
+    /// \return what to do with it now.
+    static Step readParked(Parked& c, Clock::time_point now);
+    void park(Parked p);
+    void closeConnection(int fd);
 
     int listenFd_ = -1;
     std::array<int, 2> wake_{-1, -1};
@@ -41,7 +71,8 @@ private:
     std::unique_ptr<httplib::ThreadPool> pool_;
     std::thread acceptor_;
     std::mutex mutex_;
-    std::set<int> open_;
+    std::set<int> open_;             ///< every accepted connection until it is closed
+    std::vector<Parked> handedOver_; ///< from workers to the acceptor (under mutex_)
 };
 
 /// Installs the admission check, run after a request's head and before its body: POSTs need

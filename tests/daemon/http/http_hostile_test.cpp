@@ -21,6 +21,7 @@
 
 #include <atomic>
 #include <chrono>
+#include <cstring>
 #include <fstream>
 #include <functional>
 #include <mutex>
@@ -359,6 +360,156 @@ TEST_F(HttpHostileTest, PostBodiesAreRefusedBeforeTheyAreRead) {
     auto ok = cli.Post("/api/runs", auth_, planFor({0}).dump(), "application/json");
     ASSERT_TRUE(ok);
     EXPECT_EQ(ok->status, 201) << ok->body;
+}
+
+// Slow and idle clients hold no worker: with 110 connections open (60 trickling a request
+// head a byte at a time, 50 connected and silent), more than the 64 workers, a normal client is
+// answered at once, request after request. When a worker waited on each connection's head, the
+// 65th connection waited for a slow one to be cut off (5 s).
+TEST_F(HttpHostileTest, SlowAndIdleClientsDoNotHoldTheWorkers) {
+    startApi();
+    std::vector<core::UniqueFd> slow, idle;
+    for (int i = 0; i < 60; ++i) {
+        slow.push_back(connectTo(port_));
+        ASSERT_TRUE(slow.back());
+        ASSERT_TRUE(sendAll(slow.back().get(), "GET /api/status HTTP/1.1\r\nX-Slow: "));
+    }
+    for (int i = 0; i < 50; ++i) {
+        idle.push_back(connectTo(port_));
+        ASSERT_TRUE(idle.back());
+    }
+    httplib::Client cli("127.0.0.1", port_);
+    cli.set_keep_alive(true);
+    std::vector<double> took;
+    for (int i = 0; i < 20; ++i) {
+        for (auto& fd : slow)
+            sendAll(fd.get(), "a"); // a byte now and then, never the end of the head
+        const auto t0 = Clock::now();
+        auto r = cli.Get("/api/status");
+        ASSERT_TRUE(r) << "request " << i;
+        EXPECT_EQ(r->status, 200);
+        took.push_back(std::chrono::duration<double>(Clock::now() - t0).count());
+        std::this_thread::sleep_for(50ms); // the normal client's pace
+    }
+    for (std::size_t i = 0; i < took.size(); ++i)
+        EXPECT_LT(took[i], 0.5 * latencyBoundS()) << "request " << i;
+    // The slow ones are still cut off after the head's 5 s, the silent ones after 5 s idle.
+    const auto until =
+        Clock::now() + 10s +
+        std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(latencyBoundS()));
+    for (auto* group : {&slow, &idle})
+        for (std::size_t i = 0; i < group->size(); ++i) {
+            std::string got;
+            readUntil((*group)[i].get(), got, [](const std::string&) { return false; }, until);
+            EXPECT_LT(Clock::now(), until) << "connection " << i << " was never closed";
+        }
+}
+
+// What the acceptor hands a worker is exactly what came: a head arriving in pieces, two
+// requests in one packet, a keep-alive connection idle between its requests.
+TEST_F(HttpHostileTest, HeadsInPiecesPipelinedAndKeptAliveRequestsAreAnswered) {
+    startApi();
+    const std::string req = "GET /api/status HTTP/1.1\r\nHost: x\r\n\r\n";
+    auto fd = connectTo(port_);
+    ASSERT_TRUE(fd);
+    // In pieces, the blank line split between two of them.
+    for (const std::string& piece : {req.substr(0, 5), req.substr(5, req.size() - 8),
+                                     req.substr(req.size() - 3, 2), req.substr(req.size() - 1)}) {
+        ASSERT_TRUE(sendAll(fd.get(), piece));
+        std::this_thread::sleep_for(100ms);
+    }
+    // The number of whole 200 responses at the start of `b` (each head's Content-Length).
+    auto whole = [](const std::string& b) {
+        int n = 0;
+        for (std::size_t at = 0;;) {
+            const auto head = b.find("\r\n\r\n", at);
+            const auto len = b.find("Content-Length: ", at);
+            if (head == std::string::npos || len == std::string::npos || len > head ||
+                b.compare(at, 12, "HTTP/1.1 200") != 0)
+                return n;
+            const std::size_t end = head + 4 + std::stoul(b.substr(len + 16, 12));
+            if (end > b.size())
+                return n;
+            ++n;
+            at = end;
+        }
+    };
+    auto answers = [&](int n) {
+        std::string got;
+        readUntil(
+            fd.get(), got, [&](const std::string& b) { return whole(b) >= n; }, Clock::now() + 3s);
+        EXPECT_EQ(whole(got), n) << got;
+        return got;
+    };
+    std::string got = answers(1);
+    EXPECT_EQ(statusOf(got), 200) << got;
+    // Idle for a while on the same connection, then two requests in one packet, then a third
+    // whose head comes half now, half later.
+    std::this_thread::sleep_for(1500ms);
+    ASSERT_TRUE(sendAll(fd.get(), req + req + req.substr(0, 10)));
+    got = answers(2);
+    EXPECT_EQ(statusOf(got), 200) << got;
+    std::this_thread::sleep_for(300ms);
+    ASSERT_TRUE(sendAll(fd.get(), req.substr(10)));
+    got = answers(1);
+    EXPECT_EQ(statusOf(got), 200) << got;
+}
+
+// A refused request's connection is drained for a moment before it is closed (so that the
+// client reads the answer rather than a reset), but not by a worker: 100 clients that are
+// refused and then keep their connections open, one after the other, are each answered at
+// once, and a normal client after them too. When each refusal held a worker for its second of
+// draining, the 65th (past the 64 workers) waited for the first to finish.
+TEST_F(HttpHostileTest, RefusedClientsThatStayDoNotHoldTheWorkers) {
+    startApi();
+    std::vector<core::UniqueFd> refused;
+    std::vector<double> took;
+    for (int i = 0; i < 100; ++i) {
+        const auto t0 = Clock::now();
+        auto fd = connectTo(port_);
+        ASSERT_TRUE(fd);
+        // A body announced and never sent: the 405 comes without it being read.
+        ASSERT_TRUE(
+            sendAll(fd.get(), "PUT /api/runs HTTP/1.1\r\nHost: x\r\nContent-Length: 1000\r\n\r\n"));
+        std::string got;
+        ASSERT_TRUE(readUntil(
+            fd.get(), got, [](const std::string& b) { return b.find('}') != std::string::npos; },
+            t0 + 3s))
+            << "client " << i << ": " << got;
+        EXPECT_EQ(statusOf(got), 405) << got;
+        took.push_back(std::chrono::duration<double>(Clock::now() - t0).count());
+        refused.push_back(std::move(fd));
+    }
+    for (std::size_t i = 0; i < took.size(); ++i)
+        EXPECT_LT(took[i], 0.5 * latencyBoundS()) << "refused client " << i;
+    httplib::Client cli("127.0.0.1", port_);
+    const auto t0 = Clock::now();
+    auto status = cli.Get("/api/status");
+    ASSERT_TRUE(status);
+    EXPECT_EQ(status->status, 200);
+    EXPECT_LT(std::chrono::duration<double>(Clock::now() - t0).count(), 0.5 * latencyBoundS());
+    // The server closes each of them after its moment of draining (1 s): end of file, no reset.
+    const auto until =
+        Clock::now() + 3s +
+        std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(latencyBoundS()));
+    for (std::size_t i = 0; i < refused.size(); ++i) {
+        std::string rest;
+        bool eof = false;
+        while (!eof && Clock::now() < until) {
+            pollfd p{refused[i].get(), POLLIN, 0};
+            if (::poll(&p, 1, 100) <= 0)
+                continue;
+            char tmp[256];
+            const ssize_t n = ::recv(refused[i].get(), tmp, sizeof tmp, 0);
+            EXPECT_GE(n, 0) << "client " << i << ": " << std::strerror(errno);
+            eof = n <= 0;
+        }
+        EXPECT_TRUE(eof) << "client " << i << " was never closed";
+    }
+    // And their places are free again.
+    auto again = cli.Get("/api/status");
+    ASSERT_TRUE(again);
+    EXPECT_EQ(again->status, 200);
 }
 
 // Finding 3 and the hostile clients: 50 event streams, 20 slow-header clients and a
