@@ -262,6 +262,11 @@ Result<void> Station::requestRescan(std::int64_t sectionId) {
 }
 
 Result<AlertRecord> Station::acknowledgeAlert(std::int64_t alertId, const std::string& action) {
+    if (alertId < 0) // ids of alerts held in memory (Notifier)
+        return makeError(ErrorCode::InvalidArgument,
+                         "alert " + std::to_string(alertId) +
+                             " is held in memory while the disk is full: it can be acknowledged "
+                             "once it is stored");
     auto alert = journal_->alert(alertId);
     if (!alert)
         return alert.error();

@@ -75,7 +75,15 @@ Result<std::vector<SectionRecord>> Station::sections(std::int64_t runId) {
 }
 
 Result<std::vector<AlertRecord>> Station::alerts(bool openOnly) {
-    return journal_->alerts(openOnly);
+    // The stored ones first, then those held in memory while the disk is full (not yet
+    // acknowledged, so open): in this order an alert stored in between is missed for a moment
+    // rather than listed twice.
+    auto stored = journal_->alerts(openOnly);
+    if (!stored)
+        return stored.error();
+    for (AlertRecord& held : notifier_->heldAlerts())
+        stored->push_back(std::move(held));
+    return stored;
 }
 
 Result<cv::Mat> Station::sectionImage(std::int64_t sectionId, bool overlay) {

@@ -581,6 +581,21 @@ TEST_F(StationTest, AFullDiskPausesTheRunOnceAndKeepsTheAlertUntilItCanBeStored)
     EXPECT_LT(held[0].id, 0);
     EXPECT_EQ(held[1].kind, AlertKind::RunPaused);
     EXPECT_TRUE(imagesUnder(rig_.dir / "runs").empty());
+    // The alert list (the API's and the page's) shows them already, open, with their ids.
+    for (const bool openOnly : {true, false}) {
+        auto listed = rig_.station->alerts(openOnly);
+        ASSERT_TRUE(listed) << listed.error().message;
+        ASSERT_GE(listed->size(), 2u);
+        EXPECT_EQ((*listed)[listed->size() - 2].id, held[0].id);
+        EXPECT_EQ(listed->back().id, held[1].id);
+        EXPECT_EQ(listed->back().kind, AlertKind::RunPaused);
+    }
+    // Acknowledging one waits until it is stored: a clear refusal, nothing lost.
+    auto ack = rig_.station->acknowledgeAlert(held[0].id, "accept");
+    ASSERT_FALSE(ack);
+    EXPECT_EQ(ack.error().code, core::ErrorCode::InvalidArgument);
+    EXPECT_NE(ack.error().message.find("held in memory while the disk is full"), std::string::npos)
+        << ack.error().message;
 
     // Paused in memory: the stage does not go back to the section. (Waiting for something not
     // to happen needs a time; the loop used to retry at once, many times a second.)

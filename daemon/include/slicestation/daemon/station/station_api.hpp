@@ -55,6 +55,8 @@ public:
     [[nodiscard]] virtual core::Result<std::string> exportRun(std::int64_t runId,
                                                               const std::string& format) = 0;
     [[nodiscard]] virtual core::Result<nlohmann::json> sectionDetail(std::int64_t sectionId) = 0;
+    /// The stored alerts (all, or the open ones), then those held in memory while the disk is
+    /// full (negative ids, open; stored and renumbered once the journal takes writes again).
     [[nodiscard]] virtual core::Result<std::vector<AlertRecord>> alerts(bool openOnly) = 0;
     /// The latest camera frame, null before the first.
     virtual std::shared_ptr<const hw::Frame> liveFrame() const = 0;
@@ -105,7 +107,8 @@ public:
     [[nodiscard]] virtual core::Result<void> cancelRun(std::int64_t runId) = 0;
     [[nodiscard]] virtual core::Result<void> requestRescan(std::int64_t sectionId) = 0;
     /// Acknowledges an alert with `action` ("rescan": the alert's section is rescanned first,
-    /// InvalidArgument when it concerns no section; "accept" or any text).
+    /// InvalidArgument when it concerns no section, or when it is held in memory (a negative
+    /// id); "accept" or any text).
     [[nodiscard]] virtual core::Result<AlertRecord> acknowledgeAlert(std::int64_t alertId,
                                                                      const std::string& action) = 0;
 
