@@ -25,6 +25,14 @@ namespace slicestation::daemon::http {
 using Clock = std::chrono::steady_clock;
 using L = HttpLimits;
 
+/// A request head is all in `buffered` (searched from `from`): the blank line that ends it has
+/// come (httplib skips a header line without its CR, so a head ends at "\r\n" after a line's
+/// end), or kMaxHead bytes have, past which reading it refuses it.
+inline bool headComplete(std::string_view buffered, std::size_t from = 0) {
+    return buffered.size() >= L::kMaxHead ||
+           buffered.find("\n\r\n", from) != std::string_view::npos;
+}
+
 /// One client connection, as the httplib::Stream the request parser reads: every read is
 /// bounded in bytes (the head to kMaxHead, the body to what the admission allowed) and in time
 /// (a deadline per request, not per byte, so a client trickling bytes is cut off all the same).
@@ -39,13 +47,10 @@ public:
             buf_.resize(kChunk);
     }
 
-    /// The next request's head is buffered here whole (or as much of it as a head may take:
-    /// reading it then refuses it). Ends as BoundedServer::readHead sees it.
+    /// The next request's head is buffered here whole (headComplete).
     bool hasCompleteHead() const {
-        if (mustClose_ || pos_ >= len_)
-            return false;
-        const std::string_view rest(buf_.data() + pos_, len_ - pos_);
-        return rest.size() >= L::kMaxHead || rest.find("\n\r\n") != std::string_view::npos;
+        return !mustClose_ && pos_ < len_ &&
+               headComplete(std::string_view(buf_.data() + pos_, len_ - pos_));
     }
     /// What is buffered and not yet read (a pipelined request's beginning).
     std::string unread() const { return buf_.substr(pos_, len_ - pos_); }

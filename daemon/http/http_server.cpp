@@ -160,7 +160,7 @@ void BoundedServer::stopServing() noexcept {
 }
 
 void BoundedServer::acceptLoop() {
-    std::vector<Parked> parked; // this thread's own
+    std::vector<Parked> parked, kept; // this thread's own
     std::vector<pollfd> p;
     while (!stopping_) {
         {
@@ -191,7 +191,7 @@ void BoundedServer::acceptLoop() {
         if (stopping_)
             break;
         const auto now = Clock::now();
-        std::size_t kept = 0;
+        kept.clear();
         for (std::size_t i = 0; i < parked.size(); ++i) {
             Parked& c = parked[i];
             Step step = now >= c.until ? Step::Close : Step::Keep;
@@ -203,12 +203,10 @@ void BoundedServer::acceptLoop() {
                 pool_->enqueue([this, fd = c.fd, head = std::move(c.head),
                                 left = c.left]() mutable { serve(fd, std::move(head), left); });
             } else {
-                if (kept != i) // not onto itself: a string moved onto itself is left empty
-                    parked[kept] = std::move(c);
-                ++kept;
+                kept.push_back(std::move(c));
             }
         }
-        parked.resize(kept);
+        parked.swap(kept);
         if (p[0].revents & POLLIN)
             acceptOne(parked);
     }
@@ -232,15 +230,11 @@ BoundedServer::Step BoundedServer::readParked(Parked& c, Clock::time_point now) 
                 return Step::Close;
             continue;
         }
-        if (!c.begun) {
-            c.begun = true;
+        if (c.head.empty()) // its first byte: the head deadline runs
             c.until = now + L::kHeadDeadline;
-        }
         const std::size_t from = c.head.size() < 2 ? 0 : c.head.size() - 2;
         c.head.append(tmp, static_cast<std::size_t>(n));
-        // The blank line that ends a head (httplib skips a header line without its CR, so a
-        // head ends at "\r\n" after a line's end); past kMaxHead the worker's reads refuse it.
-        if (c.head.find("\n\r\n", from) != std::string::npos || c.head.size() >= L::kMaxHead)
+        if (headComplete(c.head, from))
             return Step::Serve;
     }
 }
@@ -277,8 +271,7 @@ void BoundedServer::acceptOne(std::vector<Parked>& parked) {
         return;
     }
     open_.insert(fd);
-    parked.push_back(
-        Parked{fd, Clock::now() + L::kIdle, false, false, L::kKeepAliveRequests, 0, {}});
+    parked.push_back(Parked::awaiting(fd, L::kKeepAliveRequests));
 }
 
 void BoundedServer::serve(int fd, std::string received, int left) noexcept {
@@ -288,15 +281,7 @@ void BoundedServer::serve(int fd, std::string received, int left) noexcept {
         tConnection = &conn;
         while (left > 0 && !stopping_) {
             if (!conn.hasCompleteHead()) { // the next head (or its beginning) is the acceptor's
-                std::string rest = conn.unread();
-                const bool begun = !rest.empty();
-                after = Parked{fd,
-                               Clock::now() + (begun ? L::kHeadDeadline : L::kIdle),
-                               false,
-                               begun,
-                               left,
-                               0,
-                               std::move(rest)};
+                after = Parked::awaiting(fd, left, conn.unread());
                 break;
             }
             conn.beginRequest();
@@ -309,7 +294,7 @@ void BoundedServer::serve(int fd, std::string received, int left) noexcept {
             if (!ok || closed || conn.mustClose()) {
                 if (ok && conn.mustClose()) {
                     conn.finishSending();
-                    after = Parked{fd, Clock::now() + kLinger, true, false, 0, 0, {}};
+                    after = Parked::draining(fd);
                 }
                 break;
             }

@@ -5,6 +5,7 @@
 #include "http_util.hpp"
 
 #include "slicestation/core/result.hpp"
+#include "slicestation/daemon/http/http_api.hpp"
 
 #include <httplib.h>
 
@@ -38,6 +39,8 @@ public:
 
 private:
     using Clock = std::chrono::steady_clock;
+    static constexpr auto kLinger = std::chrono::seconds(1);
+    static constexpr std::size_t kLingerBytes = 4u << 20;
     /// A connection no worker serves: either waiting for its next request's head (read here
     /// until complete, then handed to a worker with it) or, after an answer whose request was
     /// not read to its end, drained until the client closes, kLinger passes or kLingerBytes
@@ -47,14 +50,20 @@ private:
         int fd;
         Clock::time_point until; ///< when it is given up (idle, head deadline, linger)
         bool lingering = false;
-        bool begun = false; ///< the head's first byte came (the head deadline runs)
-        int left = 0;       ///< requests it may still make
-        std::size_t discarded = 0;
-        std::string head;
+        int left = 0;              ///< requests it may still make
+        std::size_t discarded = 0; ///< lingering: bytes read and dropped
+        std::string head;          ///< awaiting: the head so far (its deadline runs once begun)
+
+        /// Waiting for a request head, `head` of it come already.
+        static Parked awaiting(int fd, int left, std::string head = {}) {
+            const auto limit = head.empty() ? HttpLimits::kIdle : HttpLimits::kHeadDeadline;
+            return Parked{fd, Clock::now() + limit, false, left, 0, std::move(head)};
+        }
+        static Parked draining(int fd) {
+            return Parked{fd, Clock::now() + kLinger, true, 0, 0, {}};
+        }
     };
     enum class Step { Keep, Serve, Close };
-    static constexpr auto kLinger = std::chrono::seconds(1);
-    static constexpr std::size_t kLingerBytes = 4u << 20;
 
     void acceptLoop();
     void acceptOne(std::vector<Parked>& parked);
