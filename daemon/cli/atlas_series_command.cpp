@@ -3,9 +3,13 @@
 // section by section. Prints a table, a progress line on stderr, and writes the JSON.
 #include "slicestation/core/atomic_file.hpp"
 #include "slicestation/core/image_file.hpp"
+#include "slicestation/core/nrrd.hpp"
+#include "slicestation/core/ontology.hpp"
 #include "slicestation/daemon/cli/cli.hpp"
 #include "slicestation/daemon/storage/atlas_stack.hpp"
+#include "slicestation/pipeline/atlas.hpp"
 #include "slicestation/pipeline/atlas_matching.hpp"
+#include "slicestation/pipeline/atlas_slicing.hpp"
 #include "slicestation/pipeline/series_matching.hpp"
 
 #include <nlohmann/json.hpp>
@@ -16,6 +20,7 @@
 #include <filesystem>
 #include <iostream>
 #include <memory>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -34,7 +39,146 @@ struct SeriesRequest {
     std::vector<double> umPerPx;  ///< none (unknown), one for all, or one per image
     fs::path output;              ///< JSON; empty = none
     bool quiet = false;
+    bool tiltSearch = false; ///< the brain's tilt from planes cut from the stack's volume
+    fs::path volume;         ///< label volume; empty = the manifest's source.volume
+    fs::path ontology;       ///< empty = the manifest's source.ontology (major-region stacks)
 };
+
+/// A file the manifest names: as written, or else beside the stack directory when the stack was
+/// cut with a relative path from elsewhere.
+fs::path manifestPath(const AtlasStack& stack, const std::string& key) {
+    const std::string given = stack.source.value(key, std::string());
+    if (given.empty())
+        return {};
+    const fs::path p(given);
+    if (p.is_relative() && !fs::exists(p) && fs::exists(stack.dir / p))
+        return stack.dir / p;
+    return p;
+}
+
+/// What --tilt-search cuts its planes from: the volume the stack was cut from, read before any
+/// section is matched so that a wrong file is refused at once.
+struct TiltSource {
+    fs::path path;
+    core::Volume volume;
+    core::Ontology ontology;
+    pipeline::VolumeAxes axes = pipeline::VolumeAxes::Allen;
+    pipeline::PlaneOrientation orientation = pipeline::PlaneOrientation::Coronal;
+    bool major = true; ///< the stack's labels were collapsed to the major regions
+    double umPerPx = 0;
+};
+
+core::Result<TiltSource> readTiltSource(const SeriesRequest& rq, const AtlasStack& stack) {
+    const json& src = stack.source;
+    if (src.value("kind", std::string()) != "volume")
+        return makeError(ErrorCode::InvalidArgument,
+                         "--tilt-search needs a stack cut from a volume (atlas slice --volume); " +
+                             stack.dir.string() + " is not");
+    TiltSource t;
+    t.path = rq.volume.empty() ? manifestPath(stack, "volume") : rq.volume;
+    if (t.path.empty())
+        return makeError(ErrorCode::InvalidArgument,
+                         "--tilt-search: the manifest names no volume; give --volume");
+    t.axes = src.value("axes", std::string()) == "quicknii" ? pipeline::VolumeAxes::QuickNii
+                                                            : pipeline::VolumeAxes::Allen;
+    auto orientation = pipeline::parsePlaneOrientation(src.value("plane", std::string()));
+    if (!orientation)
+        return makeError(ErrorCode::InvalidArgument,
+                         stack.dir.string() +
+                             ": manifest source.plane: " + orientation.error().message);
+    t.orientation = *orientation;
+    t.major = src.value("regions", std::string("major")) == "major";
+    t.umPerPx = stack.slices.front().umPerPx;
+    auto volume = core::readNrrd(t.path);
+    if (!volume)
+        return makeError(volume.error().code,
+                         "--volume " + t.path.string() + ": " + volume.error().message);
+    if (!src.contains("volume_sizes") || src["volume_sizes"] != json(volume->sizes))
+        return makeError(ErrorCode::InvalidArgument,
+                         "--volume " + t.path.string() +
+                             ": its size differs from the volume the stack was cut from");
+    t.volume = std::move(*volume);
+    if (t.major) {
+        const fs::path o = rq.ontology.empty() ? manifestPath(stack, "ontology") : rq.ontology;
+        auto read = core::readOntologyCsvIfGiven(o);
+        if (!read)
+            return makeError(read.error().code,
+                             "--ontology " + o.string() + ": " + read.error().message);
+        if (read->structures().empty())
+            return makeError(ErrorCode::InvalidArgument,
+                             "--tilt-search on a major-region stack needs its ontology "
+                             "(--ontology)");
+        t.ontology = std::move(*read);
+    }
+    return t;
+}
+
+/// searchSeriesTilt with planes cut as `atlas slice` cut the stack's (same axes, orientation,
+/// pixel size and region set).
+core::Result<json> searchTilt(const TiltSource& t, double workUm,
+                              const std::vector<pipeline::SectionFeatures>& sections,
+                              const pipeline::SeriesMatcher& matcher) {
+    using Clock = std::chrono::steady_clock;
+    const auto t0 = Clock::now();
+    const pipeline::PlaneFeatures planes = [&](double pos, double tc,
+                                               double tr) -> core::Result<pipeline::SliceFeatures> {
+        auto g = pipeline::planeGeometry(t.volume, t.axes, {t.orientation, pos, tc, tr, t.umPerPx});
+        if (!g)
+            return g.error();
+        auto l = pipeline::sampleLabels(t.volume, t.axes, *g);
+        if (!l)
+            return l.error();
+        if (t.major)
+            *l = pipeline::collapseLabels(*l, t.ontology, pipeline::majorRegionIds(), 8);
+        return pipeline::sliceFeatures(*l, t.umPerPx, pos, workUm);
+    };
+    auto e = pipeline::searchSeriesTilt(sections, matcher.matches(), matcher.fit(), planes);
+    if (!e)
+        return e.error();
+    return json{{"tilt_lr_deg", e->tiltColumnsDeg},
+                {"tilt_dv_deg", e->tiltRowsDeg},
+                {"score", e->score},
+                {"sections", e->sections},
+                {"tilts", e->tiltsScored},
+                {"volume", t.path.string()},
+                {"ms", std::chrono::duration<double, std::milli>(Clock::now() - t0).count()}};
+}
+
+/// One section's entry of the JSON: `atlas match`'s fields plus its place in the series.
+json sectionJson(const fs::path& image, const AtlasStack& stack, const pipeline::SectionMatch& m,
+                 const pipeline::SeriesSectionFit& s, const pipeline::SeriesSearch& q) {
+    json candidates = json::array();
+    for (const auto& c : m.candidates)
+        candidates.push_back({{"index", c.index},
+                              {"position_um", stack.slices[size_t(c.index)].positionUm},
+                              {"score", c.score},
+                              {"overlap", c.overlap}});
+    double ms = 0;
+    for (const auto& [step, v] : m.timingsMs)
+        ms += v;
+    return {{"image", image.string()},
+            {"index", m.index},
+            {"position_um", m.positionUm},
+            {"slice_position_um", stack.slices[size_t(m.index)].positionUm},
+            {"score", m.score},
+            {"tilt_lr_deg", m.tiltColumnsDeg},
+            {"tilt_dv_deg", m.tiltRowsDeg},
+            {"tilt_estimated", m.tiltEstimated},
+            {"candidates", std::move(candidates)},
+            {"timings_ms", {{"match", ms}, {"search", q.ms}}},
+            {"series",
+             {{"slot", s.slot},
+              {"position_um", s.positionUm},
+              {"line_position_um", s.predictedUm},
+              {"residual_um", s.residualUm},
+              {"on_line", s.inlier},
+              {"anomaly", std::string(pipeline::toString(s.anomaly))},
+              {"missing_before", s.missingBefore},
+              {"predicted_um", q.predictedUm},
+              {"searched", {q.first, q.last}},
+              {"windowed", q.windowed},
+              {"fell_back", q.fellBack}}}};
+}
 
 core::Result<json> runSeries(const SeriesRequest& rq) {
     using Clock = std::chrono::steady_clock;
@@ -53,6 +197,13 @@ core::Result<json> runSeries(const SeriesRequest& rq) {
     if (!features)
         return features.error();
     const double workUm = features->front().workUmPerPx;
+    std::optional<TiltSource> tiltSource;
+    if (rq.tiltSearch) {
+        auto t = readTiltSource(rq, *stack);
+        if (!t)
+            return t.error();
+        tiltSource = std::move(*t);
+    }
     pipeline::SeriesMatchOptions options;
     options.model.intervalUm = rq.intervalUm;
     pipeline::SeriesMatcher matcher(*features, options);
@@ -87,47 +238,23 @@ core::Result<json> runSeries(const SeriesRequest& rq) {
     json out;
     out["stack"] = stack->dir.string();
     json list = json::array();
-    for (size_t i = 0; i < matcher.matches().size(); ++i) {
-        const pipeline::SectionMatch& m = matcher.matches()[i];
-        const pipeline::SeriesSectionFit& s = fit.sections[i];
-        const pipeline::SeriesSearch& q = matcher.searches()[i];
-        json candidates = json::array();
-        for (const auto& c : m.candidates)
-            candidates.push_back({{"index", c.index},
-                                  {"position_um", stack->slices[size_t(c.index)].positionUm},
-                                  {"score", c.score},
-                                  {"overlap", c.overlap}});
-        double ms = 0;
-        for (const auto& [step, v] : m.timingsMs)
-            ms += v;
-        list.push_back({{"image", rq.images[i].string()},
-                        {"index", m.index},
-                        {"position_um", m.positionUm},
-                        {"slice_position_um", stack->slices[size_t(m.index)].positionUm},
-                        {"score", m.score},
-                        {"tilt_lr_deg", m.tiltColumnsDeg},
-                        {"tilt_dv_deg", m.tiltRowsDeg},
-                        {"tilt_estimated", m.tiltEstimated},
-                        {"candidates", std::move(candidates)},
-                        {"timings_ms", {{"match", ms}, {"search", q.ms}}},
-                        {"series",
-                         {{"slot", s.slot},
-                          {"position_um", s.positionUm},
-                          {"line_position_um", s.predictedUm},
-                          {"residual_um", s.residualUm},
-                          {"on_line", s.inlier},
-                          {"anomaly", std::string(pipeline::toString(s.anomaly))},
-                          {"missing_before", s.missingBefore},
-                          {"predicted_um", q.predictedUm},
-                          {"searched", {q.first, q.last}},
-                          {"windowed", q.windowed},
-                          {"fell_back", q.fellBack}}}});
-    }
+    for (size_t i = 0; i < matcher.matches().size(); ++i)
+        list.push_back(sectionJson(rq.images[i], *stack, matcher.matches()[i], fit.sections[i],
+                                   matcher.searches()[i]));
     out["sections"] = std::move(list);
     out["series"] = {{"interval_um", rq.intervalUm},   {"spacing_um", fit.spacingUm},
                      {"origin_um", fit.originUm},      {"on_line", fit.inliers},
                      {"sigma_um", fit.sigmaUm},        {"tilt_lr_deg", fit.tiltColumnsDeg},
                      {"tilt_dv_deg", fit.tiltRowsDeg}, {"tilt_sections", fit.tiltSections}};
+    if (tiltSource) {
+        if (!rq.quiet)
+            std::fprintf(stderr, "searching the tilt with planes cut from %s\n",
+                         tiltSource->path.filename().string().c_str());
+        auto t = searchTilt(*tiltSource, workUm, sections, matcher);
+        if (!t)
+            return t.error();
+        out["series"]["tilt_search"] = std::move(*t);
+    }
     out["timings_ms"] = {
         {"total", std::chrono::duration<double, std::milli>(Clock::now() - t0).count()}};
     if (!rq.output.empty())
@@ -154,6 +281,13 @@ CommandRunner addAtlasSeriesCommand(CLI::App& app) {
         ->check(finiteRange(0.01, 1000));
     cmd->add_option("--output", rq->output, "Series JSON");
     cmd->add_flag("--quiet", rq->quiet, "No progress line on stderr");
+    cmd->add_flag("--tilt-search", rq->tiltSearch,
+                  "After the series, find the brain's cutting angle by matching the best sections "
+                  "against tilted planes cut from the stack's volume (a few seconds)");
+    cmd->add_option("--volume", rq->volume,
+                    "Label volume for --tilt-search (default: the one the stack was cut from)");
+    cmd->add_option("--ontology", rq->ontology,
+                    "Ontology for --tilt-search on a major-region stack (default: the stack's)");
     cmd->add_option("images", rq->images, "Section images in cutting order")->required();
     return [=]() -> int {
         if (!*cmd)
@@ -181,6 +315,14 @@ CommandRunner addAtlasSeriesCommand(CLI::App& app) {
                     f["sigma_um"].get<double>(), f["tilt_lr_deg"].get<double>(),
                     f["tilt_dv_deg"].get<double>(), f["tilt_sections"].get<int>(),
                     out["timings_ms"]["total"].get<double>() / 1000);
+        if (f.contains("tilt_search")) {
+            const json& t = f["tilt_search"];
+            std::printf("tilt from tilted planes: LR %.2f DV %.2f deg (%d sections, %d tilts, "
+                        "%.1f s)\n",
+                        t["tilt_lr_deg"].get<double>(), t["tilt_dv_deg"].get<double>(),
+                        t["sections"].get<int>(), t["tilts"].get<int>(),
+                        t["ms"].get<double>() / 1000);
+        }
         return 0;
     };
 }

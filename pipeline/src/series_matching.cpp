@@ -1,8 +1,12 @@
 #include "slicestation/pipeline/series_matching.hpp"
 
+#include <opencv2/core.hpp>
+
 #include <algorithm>
+#include <array>
 #include <chrono>
 #include <cmath>
+#include <map>
 
 namespace slicestation::pipeline {
 namespace {
@@ -300,10 +304,14 @@ core::Result<TiltEstimate> searchSeriesTilt(const std::vector<SectionFeatures>& 
             std::vector<SliceFeatures> three;
             for (int d = -1; d <= 1; ++d) {
                 auto f = planes(matches[k].positionUm + d * options.positionStepUm, tc, tr);
+                if (!f && f.error().code == core::ErrorCode::OutOfRange)
+                    continue; // beyond the volume's end: that plane is not a candidate
                 if (!f)
                     return f.error();
                 three.push_back(std::move(*f));
             }
+            if (three.empty())
+                continue;
             auto m = matchSection(sections[k], three, mo);
             if (m)
                 total += m->score;
@@ -312,28 +320,111 @@ core::Result<TiltEstimate> searchSeriesTilt(const std::vector<SectionFeatures>& 
     };
     TiltEstimate best;
     best.score = -1;
-    auto grid = [&](double c0, double r0, double half, double step) -> core::Result<void> {
-        const int n = int(std::lround(half / step));
-        for (int i = -n; i <= n; ++i)
-            for (int j = -n; j <= n; ++j) {
-                const double tc = c0 + i * step, tr = r0 + j * step;
-                auto sc = scoreAt(tc, tr);
-                if (!sc)
-                    return sc.error();
-                if (*sc > best.score) {
-                    best.score = *sc;
-                    best.tiltColumnsDeg = tc;
-                    best.tiltRowsDeg = tr;
+    // Scores by tilt, so a tilt the search comes back to is not cut and matched again.
+    std::map<std::pair<long, long>, double> scored;
+    auto scoreOf = [&](double tc, double tr) -> core::Result<double> {
+        const std::pair<long, long> key{std::lround(tc * 1000), std::lround(tr * 1000)};
+        if (auto it = scored.find(key); it != scored.end())
+            return it->second;
+        auto sc = scoreAt(tc, tr);
+        if (!sc)
+            return sc.error();
+        scored.emplace(key, *sc);
+        if (*sc > best.score) {
+            best.score = *sc;
+            best.tiltColumnsDeg = tc;
+            best.tiltRowsDeg = tr;
+        }
+        return *sc;
+    };
+    if (options.method == TiltSearchMethod::Grid) {
+        auto grid = [&](double c0, double r0, double half, double step) -> core::Result<void> {
+            const int n = int(std::lround(half / step));
+            for (int i = -n; i <= n; ++i)
+                for (int j = -n; j <= n; ++j)
+                    if (auto sc = scoreOf(c0 + i * step, r0 + j * step); !sc)
+                        return sc.error();
+            return {};
+        };
+        if (auto r = grid(0, 0, options.maxDeg, options.coarseStepDeg); !r)
+            return r.error();
+        if (auto r = grid(best.tiltColumnsDeg, best.tiltRowsDeg, options.coarseStepDeg,
+                          options.fineStepDeg);
+            !r)
+            return r.error();
+    } else {
+        // Vertex of the parabola through (-h, a), (0, b), (h, c), within one step; the best of
+        // the three where the scores do not bend down.
+        auto vertex = [](double a, double b, double c, double h) {
+            const double den = a - 2 * b + c;
+            if (den < 0)
+                return std::clamp(0.5 * h * (a - c) / den, -h, h);
+            return a > b && a >= c ? -h : (c > b && c > a ? h : 0.0);
+        };
+        const double lim = options.maxDeg;
+        double c0 = 0, r0 = 0;
+        for (double h = options.coarseStepDeg;; h /= 2) {
+            // Grid-aligned to the last step, so the cache serves returning searches.
+            const double q = std::min(h, options.fineStepDeg) / 4;
+            c0 = std::clamp(std::round(c0 / q) * q, -lim, lim);
+            r0 = std::clamp(std::round(r0 / q) * q, -lim, lim);
+            auto mid = scoreOf(c0, r0);
+            auto cm = scoreOf(c0 - h, r0), cp = scoreOf(c0 + h, r0);
+            auto rm = scoreOf(c0, r0 - h), rp = scoreOf(c0, r0 + h);
+            for (auto* sc : {&mid, &cm, &cp, &rm, &rp})
+                if (!*sc)
+                    return sc->error();
+            const double dc = vertex(*cm, *mid, *cp, h), dr = vertex(*rm, *mid, *rp, h);
+            c0 = std::clamp(c0 + dc, -lim, lim);
+            r0 = std::clamp(r0 + dr, -lim, lim);
+            if (h <= options.fineStepDeg * 1.0001)
+                break;
+        }
+        // A quadratic surface through every tilt scored within three last steps of the last
+        // centre: its vertex, when it bends down both ways and lies within the last step (the
+        // scores are noisy at the finest steps; many points average that out).
+        if (options.surfaceFit) {
+            const double reach = 3 * options.fineStepDeg;
+            std::vector<std::array<double, 3>> pts; // tc, tr, score
+            for (const auto& [key, sc] : scored) {
+                const double tc = double(key.first) / 1000, tr = double(key.second) / 1000;
+                if (std::abs(tc - c0) <= reach && std::abs(tr - r0) <= reach)
+                    pts.push_back({tc - c0, tr - r0, sc});
+            }
+            if (pts.size() >= 8) {
+                cv::Mat a(int(pts.size()), 6, CV_64F), b(int(pts.size()), 1, CV_64F), x;
+                for (int i = 0; i < a.rows; ++i) {
+                    const auto& [u, v, f] = pts[size_t(i)];
+                    double* r = a.ptr<double>(i);
+                    r[0] = 1, r[1] = u, r[2] = v, r[3] = u * u, r[4] = u * v, r[5] = v * v;
+                    b.at<double>(i) = f;
+                }
+                if (cv::solve(a, b, x, cv::DECOMP_SVD)) {
+                    const double gx = x.at<double>(1), gy = x.at<double>(2);
+                    const double hxx = 2 * x.at<double>(3), hxy = x.at<double>(4),
+                                 hyy = 2 * x.at<double>(5);
+                    const double det = hxx * hyy - hxy * hxy;
+                    if (hxx < 0 && det > 0) {
+                        const double du = -(hyy * gx - hxy * gy) / det;
+                        const double dv = -(hxx * gy - hxy * gx) / det;
+                        if (std::abs(du) <= options.fineStepDeg &&
+                            std::abs(dv) <= options.fineStepDeg) {
+                            c0 = std::clamp(c0 + du, -lim, lim);
+                            r0 = std::clamp(r0 + dv, -lim, lim);
+                        }
+                    }
                 }
             }
-        return {};
-    };
-    if (auto r = grid(0, 0, options.maxDeg, options.coarseStepDeg); !r)
-        return r.error();
-    if (auto r =
-            grid(best.tiltColumnsDeg, best.tiltRowsDeg, options.coarseStepDeg, options.fineStepDeg);
-        !r)
-        return r.error();
+        }
+        // The answer is the last vertex, not a scored grid point: score it for the record.
+        auto fin = scoreOf(std::round(c0 * 1000) / 1000, std::round(r0 * 1000) / 1000);
+        if (!fin)
+            return fin.error();
+        best.tiltColumnsDeg = std::round(c0 * 1000) / 1000;
+        best.tiltRowsDeg = std::round(r0 * 1000) / 1000;
+        best.score = *fin;
+    }
+    best.tiltsScored = int(scored.size());
     best.sections = int(chosen.size());
     return best;
 }

@@ -369,3 +369,66 @@ TEST_F(SlicectlAtlas, MatchSeriesFindsPositionsSpacingAndASkip) {
     EXPECT_EQ(bad.exitCode, 2) << bad.output;
     EXPECT_NE(bad.output.find("one per image"), std::string::npos) << bad.output;
 }
+
+// The brain's cutting angle through the command: eight sections generated from planes of the real
+// annotation cut at a known tilt (LR 2.0, DV -1.5 degrees, 300 um apart), matched against a
+// straight stack; --tilt-search cuts tilted planes from the stack's own volume and must find the
+// tilt within 0.5 degree (the target). Bad requests are refused with a message.
+TEST_F(SlicectlAtlas, MatchSeriesFindsTheCuttingTiltFromTheStacksVolume) {
+    const fs::path atlasDir = fs::path(SLST_SHARED_DIR) / "atlas" / "allen-ccf-2017";
+    if (!fs::exists(atlasDir / "annotation_50.nrrd"))
+        GTEST_SKIP() << "no Allen annotation under " << atlasDir;
+    const std::string volume =
+        " --volume " + (atlasDir / "annotation_50.nrrd").string() + " --ontology " +
+        (atlasDir / "structure_tree_safe_2017.csv").string() + " --axes allen --um-per-px 25";
+    constexpr double kLr = 2.0, kDv = -1.5, kFirst = 4000, kStep = 300;
+    CommandResult r = slicectl("atlas slice" + volume + " --interval-um 100 --first-um 2500" +
+                               " --output " + p("allen-stack"));
+    ASSERT_EQ(r.exitCode, 0) << r.output;
+    r = slicectl("atlas slice" + volume + " --interval-um 300 --first-um 4000 --tilt-lr-deg 2" +
+                 " --tilt-dv-deg -1.5 --output " + p("tilted"));
+    ASSERT_EQ(r.exitCode, 0) << r.output;
+    std::string images, um;
+    for (int i = 0; i < 8; ++i) {
+        char name[64];
+        std::snprintf(name, sizeof name, "slice-%03d.tif", i);
+        auto labels = core::readImage(dir_ / "tilted" / name);
+        ASSERT_TRUE(labels.ok()) << labels.error().message;
+        sim::GeneratorOptions o;
+        o.seed = 60 + std::uint64_t(i);
+        o.imageSize = {1000, 740};
+        auto gen = sim::generateSection(*labels, o);
+        ASSERT_TRUE(gen.ok()) << gen.error().message;
+        const std::string file = "tilted-section-" + std::to_string(i) + ".tif";
+        ASSERT_TRUE(core::writeImage(dir_ / file, gen->image).ok());
+        images += " " + p(file);
+        const auto& a = gen->truth.affineAtlasFromImage;
+        um += " " + std::to_string(std::sqrt(std::abs(a(0, 0) * a(1, 1) - a(0, 1) * a(1, 0))) *
+                                   kAtlasUmPerPx);
+    }
+    r = slicectl("atlas match-series --stack " + p("allen-stack") +
+                 " --interval-um 300 --tilt-search --quiet --output " + p("tilt.json") +
+                 " --image-um-per-px" + um + " --" + images);
+    ASSERT_EQ(r.exitCode, 0) << r.output;
+    EXPECT_NE(r.output.find("tilt from tilted planes"), std::string::npos) << r.output;
+    const auto j = readJson(dir_ / "tilt.json");
+    ASSERT_TRUE(j["series"].contains("tilt_search")) << j["series"].dump(1);
+    const auto& t = j["series"]["tilt_search"];
+    EXPECT_NEAR(t["tilt_lr_deg"].get<double>(), kLr, 0.5) << t.dump();
+    EXPECT_NEAR(t["tilt_dv_deg"].get<double>(), kDv, 0.5) << t.dump();
+    EXPECT_GE(t["sections"].get<int>(), 2);
+    for (size_t i = 0; i < 8; ++i)
+        EXPECT_LE(std::abs(j["sections"][i]["position_um"].get<double>() - (kFirst + kStep * i)),
+                  150)
+            << i;
+
+    // Refused: a stack not cut from a volume, and a volume that is not the stack's.
+    r = slicectl("atlas match-series --stack " + p("stack") + " --tilt-search --quiet -- " +
+                 p("section.tif") + " " + p("section.tif"));
+    EXPECT_EQ(r.exitCode, 2) << r.output;
+    EXPECT_NE(r.output.find("stack cut from a volume"), std::string::npos) << r.output;
+    r = slicectl("atlas match-series --stack " + p("allen-stack") + " --tilt-search --volume " +
+                 p("missing.nrrd") + " --quiet --image-um-per-px" + um + " --" + images);
+    EXPECT_EQ(r.exitCode, 2) << r.output;
+    EXPECT_NE(r.output.find("missing.nrrd"), std::string::npos) << r.output;
+}

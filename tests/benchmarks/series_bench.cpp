@@ -213,7 +213,18 @@ int main(int argc, char** argv) {
                  "Give the model the series' spacing as the plan's interval");
     app.add_flag("--tilt-search,!--no-tilt-search", tiltSearch,
                  "Search the brain's tilt with tilted planes cut from the volume");
+    std::string tiltMethod = "cross";
+    app.add_option("--tilt-method", tiltMethod, "Tilt search: cross (parabolas) or grid")
+        ->check(CLI::IsMember({"cross", "grid"}));
+    pipeline::TiltSearchOptions tiltOptions;
+    app.add_option("--tilt-fine-deg", tiltOptions.fineStepDeg, "Tilt search: last step (deg)");
+    app.add_option("--tilt-sections", tiltOptions.sections,
+                   "Tilt search: best-scoring on-line sections used");
+    app.add_flag("--tilt-surface,!--no-tilt-surface", tiltOptions.surfaceFit,
+                 "Tilt search (cross): finish with a quadratic surface over the scored tilts");
     CLI11_PARSE(app, argc, argv);
+    tiltOptions.method =
+        tiltMethod == "grid" ? pipeline::TiltSearchMethod::Grid : pipeline::TiltSearchMethod::Cross;
     const fs::path atlasDir = fs::path(shared) / "atlas" / "allen-ccf-2017";
     if (!fs::exists(atlasDir / "annotation_50.nrrd")) {
         std::printf("skipped: no Allen annotation under %s\n", shared.c_str());
@@ -238,8 +249,20 @@ int main(int argc, char** argv) {
     Stack stack;
     stack.workUm = cut->workUm;
     stack.features = std::move(cut->features);
+    double planeMs = 0; // time spent cutting planes for the tilt search
+    int planeCount = 0;
     const pipeline::PlaneFeatures planes = [&](double pos, double tc,
                                                double tr) -> core::Result<pipeline::SliceFeatures> {
+        const auto tp = Clock::now();
+        struct Add {
+            double& ms;
+            int& n;
+            Clock::time_point t;
+            ~Add() {
+                ms += msSince(t);
+                ++n;
+            }
+        } add{planeMs, planeCount, tp};
         auto g = pipeline::planeGeometry(
             *volume, pipeline::VolumeAxes::Allen,
             {pipeline::PlaneOrientation::Coronal, pos, tc, tr, stackUmPerPx});
@@ -252,11 +275,17 @@ int main(int argc, char** argv) {
     };
     auto searchTilt = [&](const RunResult& r) -> core::Result<pipeline::TiltEstimate> {
         const auto t = Clock::now();
-        auto e = pipeline::searchSeriesTilt(r.sections, r.matches, r.fit, planes);
+        planeMs = 0;
+        planeCount = 0;
+        auto e = pipeline::searchSeriesTilt(r.sections, r.matches, r.fit, planes, tiltOptions);
+        const double s = msSince(t) / 1000;
         if (e)
-            std::printf("tilt search with tilted planes (%d sections, %.1f s): columns(LR) %.2f "
-                        "rows(DV) %.2f deg\n",
-                        e->sections, msSince(t) / 1000, e->tiltColumnsDeg, e->tiltRowsDeg);
+            std::printf(
+                "tilt search with tilted planes (%s, %d sections, %d tilts, %.1f s = %.2f s "
+                "per section of the series, of which %d planes cut in %.1f s): "
+                "columns(LR) %.2f rows(DV) %.2f deg\n",
+                tiltMethod.c_str(), e->sections, e->tiltsScored, s, s / double(r.matches.size()),
+                planeCount, planeMs / 1000, e->tiltColumnsDeg, e->tiltRowsDeg);
         else
             std::printf("tilt search failed: %s\n", e.error().message.c_str());
         return e;
@@ -415,6 +444,12 @@ int main(int argc, char** argv) {
                     percentile(series, 0.5), percentile(series, 0.9), found.skip ? "yes" : "NO",
                     found.swap ? "yes" : "NO", r->fit.spacingUm);
         printTimes(*r);
+        std::printf("template: tilt error from the sections LR %.2f DV %.2f deg\n",
+                    r->fit.tiltColumnsDeg - genTiltLr, r->fit.tiltRowsDeg - genTiltDv);
+        if (tiltSearch)
+            if (auto e = searchTilt(*r))
+                std::printf("template: tilt error with tilted planes LR %.2f DV %.2f deg\n",
+                            e->tiltColumnsDeg - genTiltLr, e->tiltRowsDeg - genTiltDv);
     }
 
     if (data == "gerbi" || data == "all") {

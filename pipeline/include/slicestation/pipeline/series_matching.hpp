@@ -58,12 +58,29 @@ struct SeriesSearch {
 using PlaneFeatures = std::function<core::Result<SliceFeatures>(
     double positionUm, double tiltColumnsDeg, double tiltRowsDeg)>;
 
+/// How the tilt plane is searched.
+enum class TiltSearchMethod {
+    /// A cross of five tilts (the centre and one step either way on each angle); each angle's
+    /// new centre is the vertex of the parabola through its three scores (or the best of them
+    /// where the scores do not bend down), then the step is halved: coarseStepDeg, /2, ... down to
+    /// fineStepDeg. About 5 tilts per step instead of a grid's (2n+1)^2.
+    Cross,
+    /// A grid within +-maxDeg at coarseStepDeg, then a grid at fineStepDeg within one coarse step
+    /// of the best (the first version: 106 tilts with the defaults).
+    Grid,
+};
+
 struct TiltSearchOptions {
     int sections = 6;           ///< the best-scoring on-line sections used
-    double maxDeg = 4;          ///< coarse grid within +-maxDeg on both angles
-    double coarseStepDeg = 2;   ///< coarse grid step
-    double fineStepDeg = 0.5;   ///< then a grid of this step within one coarse step of the best
+    double maxDeg = 4;          ///< tilts within +-maxDeg on both angles
+    double coarseStepDeg = 2;   ///< first step (grid: the coarse grid's step)
+    double fineStepDeg = 0.5;   ///< last step (grid: the fine grid's)
     double positionStepUm = 50; ///< planes at the section's position and this far either side
+    TiltSearchMethod method = TiltSearchMethod::Cross;
+    /// Cross: the answer is the vertex of a quadratic surface fitted to every tilt scored within
+    /// three fineStepDeg of the last cross's vertex (when it bends down and moves the answer at
+    /// most one fineStepDeg), else that vertex.
+    bool surfaceFit = true;
 };
 
 struct TiltEstimate {
@@ -71,11 +88,12 @@ struct TiltEstimate {
     double tiltRowsDeg = 0;
     double score = 0; ///< summed best score of the sections at that tilt
     int sections = 0;
+    int tiltsScored = 0; ///< distinct tilts whose planes were cut and matched
 };
 
 /// The brain's cutting angle from tilted planes: the sections on the series' line with the best
-/// scores are matched against planes cut at their positions and each candidate tilt (a coarse
-/// grid, then a fine one around the best); the tilt whose planes the sections match best wins.
+/// scores are matched against planes cut at their positions and each candidate tilt (see
+/// TiltSearchMethod); the tilt whose planes the sections match best wins.
 /// \return InvalidArgument (fewer than two on-line sections, bad options), the errors of
 ///         `planes`.
 [[nodiscard]] core::Result<TiltEstimate>
