@@ -16,6 +16,7 @@
 #include <limits>
 #include <map>
 #include <optional>
+#include <tuple>
 #include <unordered_map>
 #include <utility>
 
@@ -814,6 +815,117 @@ std::vector<DamageRegion> continueTears(std::vector<DamageRegion>& regions,
     return joined;
 }
 
+namespace {
+
+/// Where a flap folded back over the tissue can lie: a straight crease is fitted (Huber) to
+/// where the gap meets the tissue, and the band is the tissue within the gap's depth of that line
+/// (measured square to it) along the stretch the gap spans. `farBand` is the tissue behind the
+/// band (one to two depths from the line) and beside it (up to a depth past its ends). Empty
+/// when the gap touches too little tissue to place a line.
+cv::Mat flapBand(const cv::Mat& gap, const cv::Mat& tissue, cv::Mat& farBand) {
+    cv::Mat tissueNear;
+    cv::dilate(tissue, tissueNear, cv::Mat());
+    std::vector<cv::Point2f> seam, all;
+    for (int y = 0; y < gap.rows; ++y) {
+        const std::uint8_t* g = gap.ptr<std::uint8_t>(y);
+        const std::uint8_t* t = tissueNear.ptr<std::uint8_t>(y);
+        for (int x = 0; x < gap.cols; ++x) {
+            if (!g[x])
+                continue;
+            all.emplace_back(float(x), float(y));
+            if (t[x])
+                seam.emplace_back(float(x), float(y));
+        }
+    }
+    if (seam.size() < 8)
+        return {};
+    cv::Vec4f line;
+    cv::fitLine(seam, line, cv::DIST_HUBER, 0, 0.01, 0.01);
+    const cv::Point2d p0(line[2], line[3]), t(line[0], line[1]);
+    cv::Point2d n(-t.y, t.x); // unit normal, turned toward the gap
+    double cx = 0, cy = 0;
+    for (const auto& q : all)
+        cx += q.x, cy += q.y;
+    if ((cv::Point2d(cx / double(all.size()), cy / double(all.size())) - p0).dot(n) < 0)
+        n = -n;
+    // The gap's depth beyond the line and its stretch along it.
+    double depth = 0, lo = 1e300, hi = -1e300;
+    for (const auto& q : all) {
+        const cv::Point2d d = cv::Point2d(q) - p0;
+        depth = std::max(depth, d.dot(n));
+        lo = std::min(lo, d.dot(t));
+        hi = std::max(hi, d.dot(t));
+    }
+    if (depth < 1)
+        return {};
+    cv::Mat band = cv::Mat::zeros(gap.size(), CV_8U);
+    farBand = cv::Mat::zeros(gap.size(), CV_8U);
+    for (int y = 0; y < gap.rows; ++y) {
+        const std::uint8_t* tm = tissue.ptr<std::uint8_t>(y);
+        std::uint8_t* f = band.ptr<std::uint8_t>(y);
+        std::uint8_t* fb = farBand.ptr<std::uint8_t>(y);
+        for (int x = 0; x < gap.cols; ++x) {
+            if (!tm[x])
+                continue;
+            const cv::Point2d d = cv::Point2d(x, y) - p0;
+            const double side = -d.dot(n), along = d.dot(t); // side: depth into the tissue
+            if (side < 0)
+                continue;
+            const bool within = along >= lo && along <= hi;
+            if (within && side <= depth) {
+                f[x] = 255;
+            } else if ((within && side > depth + 2 && side <= 2 * depth + 2) ||
+                       (!within && side <= depth && along >= lo - depth && along <= hi + depth)) {
+                fb[x] = 255;
+            }
+        }
+    }
+    return band;
+}
+
+/// The median of `v` (reordered), which must not be empty.
+float medianOf(std::vector<float>& v) {
+    std::nth_element(v.begin(), v.begin() + std::ptrdiff_t(v.size() / 2), v.end());
+    return v[v.size() / 2];
+}
+
+/// The level of `nearBand` over that of `farBand` above the glass, per atlas region (each with
+/// at least 20 pixels in both) and combined by pixel count: 2 is tissue doubled, 1 none.
+/// \return (ratio, weight: the pixels counted).
+std::pair<double, double> levelRatio(const cv::Mat& grey, const cv::Mat& labels,
+                                     const cv::Mat& nearBand, const cv::Mat& farBand, float glass) {
+    std::map<std::int32_t, std::pair<std::vector<float>, std::vector<float>>> byRegion;
+    for (int y = 0; y < grey.rows; ++y) {
+        const std::uint8_t* nb = nearBand.ptr<std::uint8_t>(y);
+        const std::uint8_t* fb = farBand.ptr<std::uint8_t>(y);
+        const std::int32_t* lb = labels.ptr<std::int32_t>(y);
+        const float* g = grey.ptr<float>(y);
+        for (int x = 0; x < grey.cols; ++x) {
+            if (lb[x] == 0)
+                continue;
+            if (nb[x])
+                byRegion[lb[x]].first.push_back(g[x]);
+            else if (fb[x])
+                byRegion[lb[x]].second.push_back(g[x]);
+        }
+    }
+    double weighted = 0, weight = 0;
+    for (auto& [id, bands] : byRegion) {
+        auto& [nearV, farV] = bands;
+        if (nearV.size() < 20 || farV.size() < 20)
+            continue;
+        const double above = medianOf(farV) - glass;
+        if (above <= 0)
+            continue;
+        const double count = double(std::min(nearV.size(), farV.size()));
+        weighted += count * (medianOf(nearV) - glass) / above;
+        weight += count;
+    }
+    return {weight > 0 ? weighted / weight : 0.0, weight};
+}
+
+} // namespace
+
 std::vector<DamageRegion> foldBands(const cv::Mat& grey, const cv::Mat& tissueMask,
                                     const cv::Mat& expectedTissue, const cv::Mat& labels,
                                     double brainWidthPx, const DamageParams& params) {
@@ -857,46 +969,27 @@ std::vector<DamageRegion> foldBands(const cv::Mat& grey, const cv::Mat& tissueMa
             cv::countNonZero(rim & outside(roi)) / std::max(1.0, double(cv::countNonZero(rim)));
         if (openShare <= params.alongOutlineShare)
             continue;
-        // The band of tissue as deep as the gap along it, and the band behind that.
-        cv::Mat away;
-        cv::distanceTransform(~region, away, cv::DIST_L2, 3);
-        const cv::Mat d1 = away <= depth + 1;
-        const cv::Mat d2 = away <= 2 * depth + 1;
         const cv::Mat tissueRoi = tissueMask(roi);
-        const cv::Mat nearBand = d1 & tissueRoi;
-        const cv::Mat farBand = d2 & ~d1 & tissueRoi;
-        std::map<std::int32_t, std::pair<std::vector<float>, std::vector<float>>> byRegion;
-        for (int y = 0; y < roi.height; ++y) {
-            const std::uint8_t* nb = nearBand.ptr<std::uint8_t>(y);
-            const std::uint8_t* fb = farBand.ptr<std::uint8_t>(y);
-            const std::int32_t* lb = labels.ptr<std::int32_t>(y + roi.y) + roi.x;
-            const float* g = grey.ptr<float>(y + roi.y) + roi.x;
-            for (int x = 0; x < roi.width; ++x) {
-                if (lb[x] == 0)
-                    continue;
-                if (nb[x])
-                    byRegion[lb[x]].first.push_back(g[x]);
-                else if (fb[x])
-                    byRegion[lb[x]].second.push_back(g[x]);
-            }
-        }
-        double weighted = 0, weight = 0;
-        for (auto& [id, bands] : byRegion) {
-            auto& [nearV, farV] = bands;
-            if (nearV.size() < 20 || farV.size() < 20)
+        cv::Mat nearBand, farBand;
+        double ratio = 0, weight = 0;
+        if (params.foldFromCrease) {
+            // A flap folds about a straight crease, where the gap now meets the tissue (the
+            // section's new edge), and lies over the tissue as deep as the gap reaches beyond
+            // that line, along the gap's stretch.
+            nearBand = flapBand(region, tissueRoi, farBand);
+            if (nearBand.empty())
                 continue;
-            const auto median = [](std::vector<float>& v) {
-                std::nth_element(v.begin(), v.begin() + std::ptrdiff_t(v.size() / 2), v.end());
-                return v[v.size() / 2];
-            };
-            const double above = median(farV) - glass;
-            if (above <= 0)
-                continue;
-            const double count = double(std::min(nearV.size(), farV.size()));
-            weighted += count * (median(nearV) - glass) / above;
-            weight += count;
+        } else {
+            // The band of tissue as deep as the gap along it, and the band behind that.
+            cv::Mat away;
+            cv::distanceTransform(~region, away, cv::DIST_L2, 3);
+            const cv::Mat d1 = away <= depth + 1;
+            const cv::Mat d2 = away <= 2 * depth + 1;
+            nearBand = d1 & tissueRoi;
+            farBand = d2 & ~d1 & tissueRoi;
         }
-        if (weight < 40 || weighted / weight < params.foldRatio)
+        std::tie(ratio, weight) = levelRatio(grey(roi), labels(roi), nearBand, farBand, glass);
+        if (weight < 40 || ratio < params.foldRatio)
             continue;
         DamageRegion d;
         d.kind = DamageKind::Fold;
@@ -906,7 +999,7 @@ std::vector<DamageRegion> foldBands(const cv::Mat& grey, const cv::Mat& tissueMa
         d.lengthPx = std::max(w, h);
         d.thicknessPx = depth;
         d.openShare = openShare;
-        d.levelShare = weighted / weight;
+        d.levelShare = ratio;
         out.push_back(std::move(d));
     }
     return out;

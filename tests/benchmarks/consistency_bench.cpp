@@ -379,6 +379,11 @@ int main(int argc, char** argv) {
                    "DamageParams::crackDarkness (0: cracks must show glass, as before 2026-12-02)")
         ->check(CLI::Range(0.0, 1.0));
     std::string mirroredGaps = "on";
+    std::string foldCrease = "on";
+    app.add_option("--fold-crease", foldCrease,
+                   "DamageParams::foldFromCrease: a fold's band from the crease as deep as the gap "
+                   "(off: a band as deep as the gap all round it)")
+        ->check(CLI::IsMember({"on", "off"}));
     app.add_option("--mirrored-gaps", mirroredGaps,
                    "DamageParams::leaveOutMirroredGaps: gaps with a mirrored twin left out")
         ->check(CLI::IsMember({"on", "off"}));
@@ -472,6 +477,7 @@ int main(int argc, char** argv) {
             }
             ro.damage.crackDarkness = crackDarkness;
             ro.damage.leaveOutMirroredGaps = mirroredGaps == "on";
+            ro.damage.foldFromCrease = foldCrease == "on";
             if (crackPieces == "off")
                 ro.damage.crackPieceFrac = 0;
             const auto t0 = std::chrono::steady_clock::now();

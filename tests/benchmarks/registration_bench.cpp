@@ -466,6 +466,11 @@ int main(int argc, char** argv) {
     std::string overlayDir, refineMode = "on", nonLinearMode = "on", smoothMode = "off";
     std::string damageLogPath;
     std::string mirroredGaps = "on";
+    std::string foldCrease = "on";
+    app.add_option("--fold-crease", foldCrease,
+                   "DamageParams::foldFromCrease: a fold's band from the crease as deep as the gap "
+                   "(off: a band as deep as the gap all round it)")
+        ->check(CLI::IsMember({"on", "off"}));
     app.add_option("--mirrored-gaps", mirroredGaps,
                    "DamageParams::leaveOutMirroredGaps: gaps with a mirrored twin left out")
         ->check(CLI::IsMember({"on", "off"}));
@@ -593,6 +598,7 @@ int main(int argc, char** argv) {
     // knowledge, nothing the generators know.
     pipeline::RegistrationOptions regOptions;
     regOptions.damage.leaveOutMirroredGaps = mirroredGaps == "on";
+    regOptions.damage.foldFromCrease = foldCrease == "on";
     regOptions.foldRepairs = foldRepairs;
     if (crackPieces == "off")
         regOptions.damage.crackPieceFrac = 0;

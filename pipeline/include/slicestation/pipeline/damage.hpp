@@ -122,6 +122,11 @@ struct DamageParams {
     /// Folds (foldBands): the band along the edge at least this many times as far above the
     /// glass as the same region behind it; 2 is tissue doubled, 1 none, 1.5 half way.
     double foldRatio = 1.5;
+    /// Folds: the band that would hold a flap folded about the crease (a line fitted where the
+    /// gap meets the tissue), as deep as the gap reaches beyond that line, along the gap's
+    /// stretch, against the tissue behind and beside it; off: a band as deep as the gap all
+    /// round it against the band behind that (the first version).
+    bool foldFromCrease = true;
     /// A gap with at least this much misplaced tissue beside it (DamageRegion::excessShare) is
     /// a misfit: a boundary shifted leaves as much tissue where the atlas expects glass as glass
     /// where it expects tissue (share 1); lost tissue leaves none (0). 0.5: half way, not tuned.
