@@ -261,13 +261,16 @@ std::vector<DamageRegion> continueTears(std::vector<DamageRegion>& regions,
 
 /// Folds: a flap of the edge folded back over the tissue. The edge moves in (the atlas expects
 /// tissue where glass now is, along the outline) and the tissue beside it is doubled: within one
-/// atlas region, the band along that stretch of edge, as deep as the gap, is about twice as far
-/// above the glass as the band behind it (fluorescence adds; absorbance adds in brightfield,
-/// inverted). For each gap along the outline (over alongOutlineShare of its rim on the outside
-/// glass), at least crackMinFrac of the brain width long, the ratio is taken per atlas region
-/// (`labels`, CV_32S, the mapped atlas) over the two bands and combined by pixel count; a fold
-/// when it reaches params.foldRatio. Returns the doubled bands as Fold regions (working px of
-/// the masks given). `expectedTissue`: the mapped atlas brain minus ventricles (CV_8U).
+/// atlas region, the band inside the crease (a straight line fitted where the gap meets the
+/// tissue), as deep as the gap reaches beyond it and along the gap's stretch, is about twice as
+/// far above the glass as the tissue behind and beside it (fluorescence adds; absorbance adds in
+/// brightfield, inverted, less than twice). params.foldFromCrease false: the band as deep as the
+/// gap all round it against the band behind that. For each gap along the outline (over
+/// alongOutlineShare of its rim on the outside glass), at least crackMinFrac of the brain width
+/// long, the ratio is taken per atlas region (`labels`, CV_32S, the mapped atlas) over the two
+/// bands and combined by pixel count; a fold when it reaches params.foldRatio. Returns the doubled
+/// bands as Fold regions (working px of the masks given). `expectedTissue`: the mapped atlas brain
+/// minus ventricles (CV_8U).
 std::vector<DamageRegion> foldBands(const cv::Mat& grey, const cv::Mat& tissueMask,
                                     const cv::Mat& expectedTissue, const cv::Mat& labels,
                                     double brainWidthPx, const DamageParams& params);
