@@ -27,10 +27,6 @@ using nlohmann::json;
 
 namespace {
 
-/// Id of the "everything else" region after the major collapse: Allen's "Basic cell groups and
-/// regions", so the brain keeps its outline where no major region claims a voxel.
-constexpr std::int32_t kOtherId = 8;
-
 void report(const AtlasSliceRequest& rq, const char* phase, int done, int total) {
     if (rq.progress)
         rq.progress(phase, done, total);
@@ -105,11 +101,11 @@ core::Result<void> sliceVolumeFile(const AtlasSliceRequest& rq,
         for (int i = 0; i < n; ++i) {
             report(rq, "collapsing regions", i, n);
             auto& s = slices[static_cast<std::size_t>(i)];
-            s.labels =
-                pipeline::collapseLabels(s.labels, ontology, pipeline::majorRegionIds(), kOtherId);
+            s.labels = pipeline::collapseLabels(s.labels, ontology, pipeline::majorRegionIds(),
+                                                pipeline::kOtherRegionId);
         }
         ids.insert(pipeline::majorRegionIds().begin(), pipeline::majorRegionIds().end());
-        ids.insert(kOtherId);
+        ids.insert(pipeline::kOtherRegionId);
     } else {
         for (const auto& s : slices)
             for (auto it = s.labels.begin<int>(); it != s.labels.end<int>(); ++it)

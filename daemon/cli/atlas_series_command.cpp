@@ -7,6 +7,7 @@
 #include "slicestation/core/ontology.hpp"
 #include "slicestation/daemon/cli/cli.hpp"
 #include "slicestation/daemon/storage/atlas_stack.hpp"
+#include "slicestation/daemon/storage/stack_volume.hpp"
 #include "slicestation/pipeline/atlas.hpp"
 #include "slicestation/pipeline/atlas_matching.hpp"
 #include "slicestation/pipeline/atlas_slicing.hpp"
@@ -44,93 +45,15 @@ struct SeriesRequest {
     fs::path ontology;       ///< empty = the manifest's source.ontology (major-region stacks)
 };
 
-/// A file the manifest names: as written, or else beside the stack directory when the stack was
-/// cut with a relative path from elsewhere.
-fs::path manifestPath(const AtlasStack& stack, const std::string& key) {
-    const std::string given = stack.source.value(key, std::string());
-    if (given.empty())
-        return {};
-    const fs::path p(given);
-    if (p.is_relative() && !fs::exists(p) && fs::exists(stack.dir / p))
-        return stack.dir / p;
-    return p;
-}
-
-/// What --tilt-search cuts its planes from: the volume the stack was cut from, read before any
-/// section is matched so that a wrong file is refused at once.
-struct TiltSource {
-    fs::path path;
-    core::Volume volume;
-    core::Ontology ontology;
-    pipeline::VolumeAxes axes = pipeline::VolumeAxes::Allen;
-    pipeline::PlaneOrientation orientation = pipeline::PlaneOrientation::Coronal;
-    bool major = true; ///< the stack's labels were collapsed to the major regions
-    double umPerPx = 0;
-};
-
-core::Result<TiltSource> readTiltSource(const SeriesRequest& rq, const AtlasStack& stack) {
-    const json& src = stack.source;
-    if (src.value("kind", std::string()) != "volume")
-        return makeError(ErrorCode::InvalidArgument,
-                         "--tilt-search needs a stack cut from a volume (atlas slice --volume); " +
-                             stack.dir.string() + " is not");
-    TiltSource t;
-    t.path = rq.volume.empty() ? manifestPath(stack, "volume") : rq.volume;
-    if (t.path.empty())
-        return makeError(ErrorCode::InvalidArgument,
-                         "--tilt-search: the manifest names no volume; give --volume");
-    t.axes = src.value("axes", std::string()) == "quicknii" ? pipeline::VolumeAxes::QuickNii
-                                                            : pipeline::VolumeAxes::Allen;
-    auto orientation = pipeline::parsePlaneOrientation(src.value("plane", std::string()));
-    if (!orientation)
-        return makeError(ErrorCode::InvalidArgument,
-                         stack.dir.string() +
-                             ": manifest source.plane: " + orientation.error().message);
-    t.orientation = *orientation;
-    t.major = src.value("regions", std::string("major")) == "major";
-    t.umPerPx = stack.slices.front().umPerPx;
-    auto volume = core::readNrrd(t.path);
-    if (!volume)
-        return makeError(volume.error().code,
-                         "--volume " + t.path.string() + ": " + volume.error().message);
-    if (!src.contains("volume_sizes") || src["volume_sizes"] != json(volume->sizes))
-        return makeError(ErrorCode::InvalidArgument,
-                         "--volume " + t.path.string() +
-                             ": its size differs from the volume the stack was cut from");
-    t.volume = std::move(*volume);
-    if (t.major) {
-        const fs::path o = rq.ontology.empty() ? manifestPath(stack, "ontology") : rq.ontology;
-        auto read = core::readOntologyCsvIfGiven(o);
-        if (!read)
-            return makeError(read.error().code,
-                             "--ontology " + o.string() + ": " + read.error().message);
-        if (read->structures().empty())
-            return makeError(ErrorCode::InvalidArgument,
-                             "--tilt-search on a major-region stack needs its ontology "
-                             "(--ontology)");
-        t.ontology = std::move(*read);
-    }
-    return t;
-}
-
 /// searchSeriesTilt with planes cut as `atlas slice` cut the stack's (same axes, orientation,
 /// pixel size and region set).
-core::Result<json> searchTilt(const TiltSource& t, double workUm,
+core::Result<json> searchTilt(const StackVolume& v, double workUm,
                               const std::vector<pipeline::SectionFeatures>& sections,
                               const pipeline::SeriesMatcher& matcher) {
     using Clock = std::chrono::steady_clock;
     const auto t0 = Clock::now();
-    const pipeline::PlaneFeatures planes = [&](double pos, double tc,
-                                               double tr) -> core::Result<pipeline::SliceFeatures> {
-        auto g = pipeline::planeGeometry(t.volume, t.axes, {t.orientation, pos, tc, tr, t.umPerPx});
-        if (!g)
-            return g.error();
-        auto l = pipeline::sampleLabels(t.volume, t.axes, *g);
-        if (!l)
-            return l.error();
-        if (t.major)
-            *l = pipeline::collapseLabels(*l, t.ontology, pipeline::majorRegionIds(), 8);
-        return pipeline::sliceFeatures(*l, t.umPerPx, pos, workUm);
+    const pipeline::PlaneFeatures planes = [&](double pos, double lr, double dv) {
+        return stackPlaneFeatures(v, pos, lr, dv, workUm);
     };
     auto e = pipeline::searchSeriesTilt(sections, matcher.matches(), matcher.fit(), planes);
     if (!e)
@@ -140,7 +63,7 @@ core::Result<json> searchTilt(const TiltSource& t, double workUm,
                 {"score", e->score},
                 {"sections", e->sections},
                 {"tilts", e->tiltsScored},
-                {"volume", t.path.string()},
+                {"volume", v.path.string()},
                 {"ms", std::chrono::duration<double, std::milli>(Clock::now() - t0).count()}};
 }
 
@@ -197,11 +120,12 @@ core::Result<json> runSeries(const SeriesRequest& rq) {
     if (!features)
         return features.error();
     const double workUm = features->front().workUmPerPx;
-    std::optional<TiltSource> tiltSource;
+    // Read before any section is matched, so that a wrong file is refused at once.
+    std::optional<StackVolume> tiltSource;
     if (rq.tiltSearch) {
-        auto t = readTiltSource(rq, *stack);
+        auto t = readStackVolume(*stack, rq.volume, rq.ontology, false);
         if (!t)
-            return t.error();
+            return makeError(t.error().code, "--tilt-search: " + t.error().message);
         tiltSource = std::move(*t);
     }
     pipeline::SeriesMatchOptions options;

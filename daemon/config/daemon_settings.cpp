@@ -78,6 +78,7 @@ Result<void> checkScanTable(const nlohmann::json& t, const FieldReader& rd, cons
                               "register",
                               "check_atlas_match",
                               "atlas_mismatch_tolerance",
+                              "tilted_planes",
                               "max_turn_deg",
                               "count_cells",
                               "cells_channel",
@@ -211,6 +212,25 @@ Result<void> readCameraSettings(const nlohmann::json& t, const FieldReader& rd,
     return {};
 }
 
+/// How the atlas plane of a section is chosen: matching, its tolerance, tilted planes.
+Result<void> readAtlasChoice(const nlohmann::json& t, const FieldReader& rd, const std::string& p,
+                             bool snapshot, ScanSettings& s) {
+    auto cm = rd.boolean(t, p, "check_atlas_match", true);
+    if (!cm)
+        return cm.error();
+    s.checkAtlasMatch = *cm;
+    auto tol = rd.integer(t, p, "atlas_mismatch_tolerance", 2, 0, 1000);
+    if (!tol)
+        return tol.error();
+    s.mismatchToleranceSlices = static_cast<int>(*tol);
+    // A snapshot from before the key kept the straight slices it was registered to.
+    auto tilted = rd.boolean(t, p, "tilted_planes", !snapshot);
+    if (!tilted)
+        return tilted.error();
+    s.tiltedPlanes = *tilted;
+    return {};
+}
+
 /// Focus, tiling, retries, timeouts, disk threshold and atlas matching.
 Result<void> readRunSettings(const nlohmann::json& t, const FieldReader& rd, const std::string& p,
                              bool snapshot, ScanSettings& s) {
@@ -274,14 +294,8 @@ Result<void> readRunSettings(const nlohmann::json& t, const FieldReader& rd, con
         return rd.bad(
             FieldReader::join(p, "register"),
             "false is not supported: every captured section is registered; remove the key");
-    auto cm = rd.boolean(t, p, "check_atlas_match", true);
-    if (!cm)
-        return cm.error();
-    s.checkAtlasMatch = *cm;
-    auto tol = rd.integer(t, p, "atlas_mismatch_tolerance", 2, 0, 1000);
-    if (!tol)
-        return tol.error();
-    s.mismatchToleranceSlices = static_cast<int>(*tol);
+    if (auto a = readAtlasChoice(t, rd, p, snapshot, s); !a)
+        return a.error();
     auto turn = rd.number(t, p, "max_turn_deg", 180.0, 0, 180);
     if (!turn)
         return turn.error();
@@ -447,6 +461,7 @@ nlohmann::json toJson(const ScanSettings& s) {
             {"min_free_mb", static_cast<double>(s.minFreeBytes) / (1024.0 * 1024.0)},
             {"check_atlas_match", s.checkAtlasMatch},
             {"atlas_mismatch_tolerance", s.mismatchToleranceSlices},
+            {"tilted_planes", s.tiltedPlanes},
             {"max_turn_deg", s.maxTurnDeg},
             {"damage_flag_score", s.damageFlagScore},
             {"count_cells", s.countCells},

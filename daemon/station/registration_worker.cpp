@@ -142,6 +142,24 @@ nlohmann::json regionsShown(const cv::Mat& labels, const AtlasStack& stack) {
     return regions;
 }
 
+/// The registration of `image` (at `umPerPx`, 0 unknown) to stack slice `slice` (its labels at
+/// `atlas`), its outputs named from `base`: .result.json, .overlay.png, .labels.tif.
+RegisterRequest stationRequest(const AtlasStack& stack, int slice, std::filesystem::path atlas,
+                               std::filesystem::path image, double umPerPx,
+                               const std::filesystem::path& base) {
+    RegisterRequest rq;
+    rq.atlas = std::move(atlas);
+    rq.image = std::move(image);
+    rq.imageUmPerPx = umPerPx;
+    if (umPerPx > 0)
+        rq.atlasUmPerPx = stack.slices[static_cast<std::size_t>(slice)].umPerPx;
+    rq.atlasSlice = sliceFrame(stack, slice);
+    rq.output = base.string() + ".result.json";
+    rq.overlay = base.string() + ".overlay.png";
+    rq.warpedLabels = base.string() + ".labels.tif";
+    return rq;
+}
+
 } // namespace
 
 void RegistrationWorker::applyFlagScore(RegistrationRecord& rec, const pipeline::Registration& reg,
@@ -181,8 +199,10 @@ RegistrationWorker::chooseSlice(const RunRecord& run, const SectionRecord& secti
     PhaseTimer matchTimer(stats_, "atlas_match");
     auto placed = loadFeatures();
     core::Result<SeriesTracker::Placement> p =
-        placed ? series_.place(run, section, capture)
+        placed ? series_.place(run, section, capture, settings.tiltedPlanes)
                : core::Result<SeriesTracker::Placement>(placed.error());
+    if (p && !p->tiltNews.empty())
+        notifier_.publish({"series_tilt", {{"run_id", run.id}, {"message", p->tiltNews}}});
     if (!p) {
         if (!choice.slice)
             return core::makeError(p.error().code, "no atlas slice planned and matching failed: " +
@@ -294,6 +314,39 @@ void RegistrationWorker::setPlanes(RegistrationRecord& rec, const SectionRecord&
         rec.series = choice.placement->series;
     }
     rec.warning = choice.warning;
+    rec.foundTiltLrDeg = choice.tiltLrDeg;
+    rec.foundTiltDvDeg = choice.tiltDvDeg;
+}
+
+void RegistrationWorker::useTiltedPlane(SliceChoice& choice, const std::filesystem::path& base,
+                                        RegisterRequest& rq) const {
+    const SeriesTracker::Placement* p = choice.placement ? &*choice.placement : nullptr;
+    if (!p || (p->tiltLrDeg == 0 && p->tiltDvDeg == 0))
+        return;
+    const StackSlice& straight = stack_.slices[static_cast<std::size_t>(*choice.slice)];
+    auto plane = series_.cutPlane(straight.positionUm, p->tiltLrDeg, p->tiltDvDeg);
+    const std::filesystem::path labels = base.string() + ".plane.tif";
+    const std::filesystem::path templ = base.string() + ".plane-template.tif";
+    core::Result<void> written =
+        plane ? core::writeImage(labels, plane->labels) : core::Result<void>(plane.error());
+    if (written && plane->intensity.empty() != straight.templateFile.empty())
+        written = core::makeError(core::ErrorCode::InvalidArgument,
+                                  "the tilted plane's template does not match the stack's");
+    if (written && !plane->intensity.empty())
+        written = core::writeImage(templ, plane->intensity);
+    if (!written) {
+        choice.warning += std::string(choice.warning.empty() ? "" : "; ") +
+                          "registered to the straight slice: cannot use the tilted plane: " +
+                          written.error().message;
+        return;
+    }
+    rq.atlas = labels;
+    if (!plane->intensity.empty())
+        rq.atlasTemplate = templ;
+    rq.atlasSlice->geometry = plane->geometry;
+    rq.atlasSlice->templateFile.clear();
+    choice.tiltLrDeg = p->tiltLrDeg;
+    choice.tiltDvDeg = p->tiltDvDeg;
 }
 
 void RegistrationWorker::process(std::int64_t captureId) {
@@ -332,22 +385,15 @@ void RegistrationWorker::process(std::int64_t captureId) {
     if (!atlas)
         return fail(atlas.error().message);
 
-    // Outputs beside the image: <section>-a<attempt>.result.json, .overlay.png, .labels.tif.
+    // Outputs beside the image: <section>-a<attempt>.result.json, .overlay.png, .labels.tif
+    // (and the tilted plane registered to, .plane.tif).
     const std::filesystem::path image = stateDir_ / capture->imagePath;
     const std::string stem =
         image.filename().string().substr(0, image.filename().string().find('.'));
     const std::filesystem::path base = image.parent_path() / stem;
-    RegisterRequest rq;
-    rq.atlas = *atlas;
-    rq.image = image;
-    rq.imageUmPerPx = capture->umPerPx;
+    RegisterRequest rq = stationRequest(stack_, slice, *atlas, image, capture->umPerPx, base);
     rq.maxTurnDeg = settings->maxTurnDeg;
-    if (rq.imageUmPerPx > 0)
-        rq.atlasUmPerPx = stack_.slices[static_cast<std::size_t>(slice)].umPerPx;
-    rq.atlasSlice = sliceFrame(stack_, slice);
-    rq.output = base.string() + ".result.json";
-    rq.overlay = base.string() + ".overlay.png";
-    rq.warpedLabels = base.string() + ".labels.tif";
+    useTiltedPlane(*choice, base, rq);
     auto result = registerSectionFiles(rq);
     if (!result)
         return fail("registration failed: " + result.error().message);
@@ -382,7 +428,7 @@ void RegistrationWorker::process(std::int64_t captureId) {
         PhaseTimer cellsTimer(stats_, "count_cells");
         CellCountJob job;
         job.image = image;
-        job.atlas = *atlas;
+        job.atlas = rq.atlas;
         job.base = base;
         job.runDir = stateDir_ / "runs" / std::to_string(run->id);
         job.ontologyFile = settings->cellsOntology;

@@ -3,7 +3,9 @@
 #include "slicestation/core/image_file.hpp"
 
 #include <algorithm>
+#include <chrono>
 #include <cmath>
+#include <cstdio>
 #include <string>
 
 namespace slicestation::daemon {
@@ -105,6 +107,9 @@ core::Result<void> SeriesTracker::reset(const RunRecord& run) {
     planFailed_.clear();
     finished_ = false;
     matcher_.reset();
+    volumeRefused_ = false; // a volume fixed since the last run is read again
+    nextTiltAt_ = kTiltFirstSections;
+    tilt_.reset();
     auto sections = journal_.sections(run.id);
     if (!sections)
         return sections.error();
@@ -122,7 +127,8 @@ core::Result<void> SeriesTracker::reset(const RunRecord& run) {
 
 core::Result<SeriesTracker::Placement> SeriesTracker::place(const RunRecord& run,
                                                             const SectionRecord& section,
-                                                            const CaptureRecord& capture) {
+                                                            const CaptureRecord& capture,
+                                                            bool tilted) {
     if (slices_.empty())
         return core::makeError(core::ErrorCode::InvalidArgument, "empty atlas stack");
     const bool rebuild = run.id != runId_ || !matcher_;
@@ -169,6 +175,8 @@ core::Result<SeriesTracker::Placement> SeriesTracker::place(const RunRecord& run
             out.positionUm = out.series->positionUm;
         }
         out.slice = nearestSlice(stack_, out.positionUm);
+        if (tilted)
+            applyTilt(out);
         return out;
     }
     auto m = matcher_->add(*features);
@@ -182,7 +190,73 @@ core::Result<SeriesTracker::Placement> SeriesTracker::place(const RunRecord& run
     out.slice = nearestSlice(stack_, out.positionUm);
     entries_.back().registeredSlice = out.slice;
     out.expectedSlice = expectedSlice(entries_.size() - 1);
+    if (tilted) {
+        out.tiltNews = searchTiltIfDue();
+        applyTilt(out);
+    }
     return out;
+}
+
+std::string SeriesTracker::searchTiltIfDue() {
+    const pipeline::SeriesFit& fit = matcher_->fit();
+    if (volumeRefused_ || fit.inliers < nextTiltAt_)
+        return {};
+    if (!volume_) {
+        auto v = readStackVolume(stack_);
+        if (!v) {
+            volumeRefused_ = true;
+            return "the sections stay on the stack's straight slices: " + v.error().message;
+        }
+        volume_ = std::move(*v);
+    }
+    nextTiltAt_ = fit.inliers < 8 ? 8 : (3 * fit.inliers + 1) / 2; // 6, 8, 12, 18, 27, ...
+    const auto t0 = std::chrono::steady_clock::now();
+    std::vector<pipeline::SectionFeatures> sections;
+    for (const Entry& e : entries_)
+        sections.push_back(e.features);
+    const double workUm = slices_.front().workUmPerPx;
+    const pipeline::PlaneFeatures planes = [this, workUm](double pos, double lr, double dv) {
+        return stackPlaneFeatures(*volume_, pos, lr, dv, workUm);
+    };
+    auto e = pipeline::searchSeriesTilt(sections, matcher_->matches(), fit, planes);
+    const double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    if (!e) // the earlier answer (or none) stands
+        return "the tilt search failed: " + e.error().message;
+    tilt_ = *e;
+    const bool applied = tiltApplies();
+    char text[256];
+    std::snprintf(text, sizeof text,
+                  "the brain's cutting angle from tilted planes: LR %.2f DV %.2f deg (%d sections "
+                  "on the line, %d tilts, %.1f s); %s",
+                  e->tiltColumnsDeg, e->tiltRowsDeg, fit.inliers, e->tiltsScored, s,
+                  applied ? "sections are registered to planes cut at that angle"
+                          : "within 0.5 deg of the stack's slices: they are used");
+    return text;
+}
+
+bool SeriesTracker::tiltApplies() const {
+    if (!tilt_ || !volume_)
+        return false;
+    // The stack's own slices may have been cut at a tilt (atlas slice --tilt-*-deg).
+    const double lr = stack_.source.is_object() ? stack_.source.value("tilt_lr_deg", 0.0) : 0.0;
+    const double dv = stack_.source.is_object() ? stack_.source.value("tilt_dv_deg", 0.0) : 0.0;
+    return std::max(std::abs(tilt_->tiltColumnsDeg - lr), std::abs(tilt_->tiltRowsDeg - dv)) >=
+           kMinAppliedTiltDeg;
+}
+
+void SeriesTracker::applyTilt(Placement& out) const {
+    if (!tiltApplies())
+        return;
+    out.tiltLrDeg = tilt_->tiltColumnsDeg;
+    out.tiltDvDeg = tilt_->tiltRowsDeg;
+}
+
+core::Result<pipeline::AtlasSlice> SeriesTracker::cutPlane(double positionUm, double tiltLrDeg,
+                                                           double tiltDvDeg) const {
+    if (!volume_)
+        return core::makeError(core::ErrorCode::InvalidArgument,
+                               "the stack's volume has not been read");
+    return cutStackPlane(*volume_, positionUm, tiltLrDeg, tiltDvDeg);
 }
 
 void SeriesTracker::recorded(std::int64_t sectionId, std::int64_t registrationId,

@@ -119,7 +119,7 @@ CREATE TABLE station_settings (
 CREATE INDEX alerts_by_kind ON alerts(kind, raised_utc);
 )sql";
 
-const std::array<const char*, 3> kMigrations = {kMigration1, kMigration2, kMigration3};
+const std::array<const char*, 4> kMigrations = {kMigration1, kMigration2, kMigration3, kMigration4};
 static_assert(std::tuple_size_v<decltype(kMigrations)> == Journal::kSchemaVersion);
 
 } // namespace
@@ -453,7 +453,8 @@ Result<std::int64_t> Journal::recordRegistration(RegistrationRecord r) {
                   "damage_fraction, summary, warning, quality, result_path, overlay_path, "
                   "labels_path, result_json, registered_utc, damage_score, damage_verdict, "
                   "flag_score, planned_slice, planned_position_um, matched_position_um, "
-                  "found_position_um) VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?)");
+                  "found_position_um, found_tilt_lr_deg, found_tilt_dv_deg) VALUES "
+                  "(?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?)");
     ins.bind(1, r.captureId).bind(2, r.atlasSlice).bind(3, r.matchedSlice);
     ins.bind(4, r.damaged ? 1 : 0).bind(5, r.damageFraction).bind(6, r.summary).bind(7, r.warning);
     ins.bind(8, r.quality).bind(9, r.resultPath).bind(10, r.overlayPath).bind(11, r.labelsPath);
@@ -462,6 +463,7 @@ Result<std::int64_t> Journal::recordRegistration(RegistrationRecord r) {
                                          : std::optional<std::string>(r.damageVerdict));
     ins.bind(16, r.flagScore).bind(17, r.plannedSlice).bind(18, r.plannedPositionUm);
     ins.bind(19, r.matchedPositionUm).bind(20, r.foundPositionUm);
+    ins.bind(21, r.foundTiltLrDeg).bind(22, r.foundTiltDvDeg);
     if (ins.step() != SQLITE_DONE)
         return sqlError(db_, file_, "insert registration");
     const std::int64_t id = sqlite3_last_insert_rowid(db_);

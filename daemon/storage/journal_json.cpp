@@ -87,9 +87,17 @@ nlohmann::json planeJson(const RegistrationRecord& r) {
     nlohmann::json j;
     j["planned"] = slicePlane(r.plannedSlice, r.plannedPositionUm);
     j["matched"] = slicePlane(r.matchedSlice, r.matchedPositionUm);
-    // The stack's slices are straight: the series' tilt is recorded, not applied.
+    // The plane registered to: a stack slice, or the plane through its position cut at the run's
+    // found tilt (unknown, null, for registrations journalled before schema version 4).
     j["found"] = slicePlane(r.atlasSlice, r.foundPositionUm);
-    j["found"]["tilted"] = false;
+    if (r.foundTiltLrDeg && r.foundTiltDvDeg) {
+        j["found"]["tilt_lr_deg"] = *r.foundTiltLrDeg;
+        j["found"]["tilt_dv_deg"] = *r.foundTiltDvDeg;
+        j["found"]["tilted"] = *r.foundTiltLrDeg != 0 || *r.foundTiltDvDeg != 0;
+    } else {
+        j["found"]["tilt_lr_deg"] = j["found"]["tilt_dv_deg"] = nullptr;
+        j["found"]["tilted"] = false;
+    }
     if (r.series)
         j["series"] = {
             {"position_um", r.series->positionUm}, {"slot", r.series->slot},

@@ -29,6 +29,13 @@ ALTER TABLE registrations ADD COLUMN series_tilt_lr_deg REAL;
 ALTER TABLE registrations ADD COLUMN series_tilt_dv_deg REAL;
 )sql";
 
+// Version 4: the tilt of the plane each section was registered to (0 for a stack's straight
+// slice; the daemon registers to tilted planes once the run's tilt is found). NULL before.
+const char* const journal_sql::kMigration4 = R"sql(
+ALTER TABLE registrations ADD COLUMN found_tilt_lr_deg REAL;
+ALTER TABLE registrations ADD COLUMN found_tilt_dv_deg REAL;
+)sql";
+
 Result<void> Journal::writeSeries(std::int64_t id, const SeriesPlacement& p) {
     Statement up(db_, "UPDATE registrations SET series_position_um = ?, series_slot = ?, "
                       "series_anomaly = ?, series_missing_before = ?, series_tilt_lr_deg = ?, "

@@ -185,10 +185,12 @@ constexpr const char* kRegistrationColumns =
     "quality, result_path, overlay_path, labels_path, result_json, registered_utc, damage_score, "
     "damage_verdict, flag_score, planned_slice, planned_position_um, matched_position_um, "
     "found_position_um, series_position_um, series_slot, series_anomaly, series_missing_before, "
-    "series_tilt_lr_deg, series_tilt_dv_deg";
+    "series_tilt_lr_deg, series_tilt_dv_deg, found_tilt_lr_deg, found_tilt_dv_deg";
 
 /// Schema version 3 (journal_series.cpp): the planes of every registration.
 extern const char* const kMigration3;
+/// Schema version 4 (journal_series.cpp): the tilt of the plane registered to.
+extern const char* const kMigration4;
 
 inline std::optional<double> optionalF64(const Statement& st, int c) {
     return st.isNull(c) ? std::nullopt : std::optional<double>(st.f64(c));
@@ -231,6 +233,8 @@ inline RegistrationRecord readRegistration(const Statement& st) {
         p.tiltDvDeg = st.f64(26);
         r.series = p;
     }
+    r.foundTiltLrDeg = optionalF64(st, 27);
+    r.foundTiltDvDeg = optionalF64(st, 28);
     return r;
 }
 

@@ -81,7 +81,9 @@ int main(int argc, char** argv) {
     const double lengthUm =
         real ? pipeline::volumeExtentUm(volume, pipeline::VolumeAxes::Allen)[0] : 8000.0;
     auto collapse = [&](const cv::Mat& l) {
-        return real ? pipeline::collapseLabels(l, ontology, pipeline::majorRegionIds(), 8) : l;
+        return real ? pipeline::collapseLabels(l, ontology, pipeline::majorRegionIds(),
+                                               pipeline::kOtherRegionId)
+                    : l;
     };
     auto cut = [&](double pos, double ta, double tb, double um) -> cv::Mat {
         if (!real)

@@ -142,8 +142,8 @@ core::Result<AtlasSource> loadAtlasPlanes(const std::filesystem::path& sharedDir
         auto plane = pipeline::coronalPlane(*vol, pipeline::VolumeAxes::QuickNii, ap);
         if (!plane)
             return plane.error();
-        src.planes.push_back(
-            pipeline::collapseLabels(*plane, *onto, pipeline::majorRegionIds(), 8));
+        src.planes.push_back(pipeline::collapseLabels(*plane, *onto, pipeline::majorRegionIds(),
+                                                      pipeline::kOtherRegionId));
         src.fullPlanes.push_back(*plane);
         src.apIndices.push_back(ap);
     }

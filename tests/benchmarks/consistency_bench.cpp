@@ -222,7 +222,8 @@ core::Result<std::vector<RealSection>> gerbiSeries(const fs::path& shared) {
         if (!labels)
             return labels.error();
         out.push_back({"gerbi", row.file, *image,
-                       pipeline::collapseLabels(*labels, *onto, pipeline::majorRegionIds(), 8),
+                       pipeline::collapseLabels(*labels, *onto, pipeline::majorRegionIds(),
+                                                pipeline::kOtherRegionId),
                        *labels, ventricleIds(*onto), row.umPerPx});
     }
     return out;

@@ -238,7 +238,8 @@ int main(int argc, char** argv) {
     }
     const double stackUmPerPx = 25;
     auto collapse = [&](const cv::Mat& l) {
-        return pipeline::collapseLabels(l, *onto, pipeline::majorRegionIds(), 8);
+        return pipeline::collapseLabels(l, *onto, pipeline::majorRegionIds(),
+                                        pipeline::kOtherRegionId);
     };
     const auto t0 = Clock::now();
     auto cut = testing_atlas::majorRegionStack(*volume, *onto, intervalUm, stackUmPerPx);

@@ -152,10 +152,11 @@ protected:
         ASSERT_TRUE(camera);
         rig_.camera = camera->get();
 
-        auto doc = parseDocument(std::string("[daemon]\ntoken = \"") + kToken +
-                                     "\"\n[scan]\num_per_px = " + std::to_string(kUmPerPx) +
-                                     "\nwidth = 1280\nheight = 1024\n" + scanExtra,
-                                 DocumentFormat::Toml, "station.toml");
+        auto doc =
+            parseDocument(std::string("[daemon]\ntoken = \"") + kToken + "\"\n" + daemonExtra_ +
+                              "[scan]\num_per_px = " + std::to_string(kUmPerPx) +
+                              "\nwidth = 1280\nheight = 1024\n" + scanExtra,
+                          DocumentFormat::Toml, "station.toml");
         ASSERT_TRUE(doc) << doc.error().message;
         auto settings = parseDaemonSettings(*doc, "station.toml");
         ASSERT_TRUE(settings) << settings.error().message;
@@ -226,6 +227,8 @@ protected:
     /// What the camera sees and how far the stage goes; set before build().
     const sim::VirtualSlide* slide_ = &slide();
     std::optional<hw::StageLimits> stageLimits_;
+    /// More [daemon] keys, one per line (e.g. `atlas = "DIR"\n`); set before build().
+    std::string daemonExtra_;
 };
 
 } // namespace slicestation::testing_station

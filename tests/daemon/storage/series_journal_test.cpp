@@ -76,7 +76,9 @@ TEST_F(SeriesJournalTest, AVersion2FileMigratesAndItsOldRowsHaveNoPlanes) {
     EXPECT_FALSE(r.matchedPositionUm.has_value());
     EXPECT_FALSE(r.foundPositionUm.has_value());
     EXPECT_FALSE(r.series.has_value());
+    EXPECT_FALSE(r.foundTiltLrDeg.has_value()) << "version 4's tilt is unknown for old rows";
     const nlohmann::json plane = toJson(r)["plane"];
+    EXPECT_TRUE(plane["found"]["tilt_lr_deg"].is_null());
     EXPECT_TRUE(plane["planned"].is_null());
     EXPECT_EQ(plane["matched"]["slice"], 43);
     EXPECT_TRUE(plane["matched"]["position_um"].is_null());
@@ -95,7 +97,7 @@ TEST_F(SeriesJournalTest, AVersion2FileMigratesAndItsOldRowsHaveNoPlanes) {
     sqlite3_stmt* st = nullptr;
     sqlite3_prepare_v2(db, "PRAGMA user_version", -1, &st, nullptr);
     ASSERT_EQ(sqlite3_step(st), SQLITE_ROW);
-    EXPECT_EQ(sqlite3_column_int(st, 0), 3);
+    EXPECT_EQ(sqlite3_column_int(st, 0), Journal::kSchemaVersion);
     sqlite3_finalize(st);
     sqlite3_close(db);
 }
@@ -113,6 +115,8 @@ TEST_F(SeriesJournalTest, PlanesAndTheSeriesWordAreStoredUpdatedAndBadOnesRefuse
     r.plannedPositionUm = 4000;
     r.matchedPositionUm = 4730.5;
     r.foundPositionUm = 4800;
+    r.foundTiltLrDeg = 1.75; // registered to a tilted plane (version 4)
+    r.foundTiltDvDeg = -0.5;
     SeriesPlacement w;
     w.positionUm = 4760;
     w.slot = 5;
@@ -138,7 +142,9 @@ TEST_F(SeriesJournalTest, PlanesAndTheSeriesWordAreStoredUpdatedAndBadOnesRefuse
     const nlohmann::json plane = planeJson(back);
     EXPECT_EQ(plane["planned"]["slice"], 40);
     EXPECT_EQ(plane["found"]["slice"], 48);
-    EXPECT_EQ(plane["found"]["tilted"], false);
+    EXPECT_EQ(plane["found"]["tilted"], true);
+    EXPECT_DOUBLE_EQ(plane["found"]["tilt_lr_deg"].get<double>(), 1.75);
+    EXPECT_DOUBLE_EQ(plane["found"]["tilt_dv_deg"].get<double>(), -0.5);
     EXPECT_EQ(plane["series"]["anomaly"], "skipped-before");
 
     // A later section confirms a swap: the word changes, the slice registered to does not.

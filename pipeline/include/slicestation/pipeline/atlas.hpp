@@ -35,6 +35,10 @@ enum class VolumeAxes {
 /// The paper's 20 major regions (Table 2), then fibre tracts (1009) and ventricles (73).
 const std::vector<std::uint32_t>& majorRegionIds();
 
+/// Where collapseLabels to majorRegionIds puts the voxels no major region claims: Allen's "Basic
+/// cell groups and regions" (8), so the brain keeps its outline (`atlas slice --regions major`).
+inline constexpr std::int32_t kOtherRegionId = 8;
+
 /// Replaces every id by its deepest ancestor-or-self among `regionIds` (so Epithalamus stays
 /// itself inside Thalamus); ids with no such ancestor become `otherId` (0 drops them).
 cv::Mat collapseLabels(const cv::Mat& labels, const core::Ontology& ontology,

@@ -72,6 +72,12 @@ struct ScanSettings {
     std::uint64_t minFreeBytes = 500ull << 20;
     bool checkAtlasMatch = true;
     int mismatchToleranceSlices = 2;
+    /// `tilted_planes`: once the run's series model has found the brain's cutting angle from
+    /// tilted planes (docs/atlas.md, "Tilted planes in the daemon"), later sections are
+    /// registered to planes cut at that angle from the stack's volume instead of its straight
+    /// slices. Needs a stack cut from a volume the daemon can read; otherwise straight slices.
+    /// A snapshot without the key (older runs) reads false.
+    bool tiltedPlanes = true;
     /// The lab's mounting rule: sections lie at most this far turned on the slide (degrees; 180
     /// = any way). Registration does not consider placements turned further.
     double maxTurnDeg = 180;

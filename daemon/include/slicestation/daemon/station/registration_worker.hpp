@@ -18,6 +18,7 @@
 #include "slicestation/daemon/alerts/notifier.hpp"
 #include "slicestation/daemon/config/daemon_settings.hpp"
 #include "slicestation/daemon/station/phase_stats.hpp"
+#include "slicestation/daemon/station/registration_service.hpp"
 #include "slicestation/daemon/station/series_tracker.hpp"
 #include "slicestation/daemon/storage/atlas_stack.hpp"
 #include "slicestation/daemon/storage/journal.hpp"
@@ -80,10 +81,19 @@ private:
         std::optional<int> slice;                          ///< set on success
         std::optional<SeriesTracker::Placement> placement; ///< when matching ran and succeeded
         std::string warning;
+        /// The tilt of the plane registered to (useTiltedPlane); 0: the stack's straight slice.
+        double tiltLrDeg = 0, tiltDvDeg = 0;
     };
     core::Result<SliceChoice> chooseSlice(const RunRecord& run, const SectionRecord& section,
                                           const CaptureRecord& capture,
                                           const ScanSettings& settings);
+    /// When the placement carries the run's tilt: the plane through `choice.slice`'s position
+    /// cut at that tilt, written beside the capture (`base`.plane.tif, and
+    /// `base`.plane-template.tif when the stack has template planes), is what `rq` registers to
+    /// (its frame the tilted plane's). A plane that cannot be cut or written leaves the straight
+    /// slice and says why in the choice's warning.
+    void useTiltedPlane(SliceChoice& choice, const std::filesystem::path& base,
+                        RegisterRequest& rq) const;
     /// The planes of the registration: found (`choice.slice`), planned, own match, series word.
     void setPlanes(RegistrationRecord& rec, const SectionRecord& section,
                    const SliceChoice& choice) const;

@@ -3,8 +3,17 @@
 /// the series model in a run"). The registration worker feeds each captured section to one
 /// pipeline::SeriesMatcher per run, in scan (plan) order, with the plan's interval as the prior,
 /// and gives the plane the model says: its position rounded to the stack's nearest slice (the
-/// worker registers to it unless it lies within the tolerance of the planned slice). The
-/// stack's slices are straight; the series' tilt is recorded, not applied.
+/// worker registers to it unless it lies within the tolerance of the planned slice).
+///
+/// Tilted planes (`[scan] tilted_planes`, on by default): once the model holds
+/// kTiltFirstSections sections on its line, the brain's cutting angle is searched with planes
+/// cut from the stack's volume (pipeline::searchSeriesTilt, 4-8 s, on this thread), and again
+/// as the line grows: at 8 sections, then each time it has grown by half (12, 18, 27, ...; seven
+/// searches in a run of 60), so the angle narrows as the run goes without a search per section.
+/// While the found angle leans at least kMinAppliedTiltDeg on either axis, the placement carries it
+/// and the worker registers to the plane cut at that angle through the chosen slice's position
+/// (cutPlane). A stack not cut from a volume, or a volume that cannot be read, leaves the straight
+/// slices (said once per run).
 ///
 /// - A section already in the model (a rescan) keeps its place: it is matched on its own against
 ///   the whole stack and registered to the model's current position for it.
@@ -28,6 +37,7 @@
 #include "slicestation/core/result.hpp"
 #include "slicestation/daemon/storage/atlas_stack.hpp"
 #include "slicestation/daemon/storage/journal.hpp"
+#include "slicestation/daemon/storage/stack_volume.hpp"
 #include "slicestation/pipeline/atlas_matching.hpp"
 #include "slicestation/pipeline/series_matching.hpp"
 
@@ -35,12 +45,20 @@
 #include <filesystem>
 #include <memory>
 #include <optional>
+#include <string>
 #include <vector>
 
 namespace slicestation::daemon {
 
 class SeriesTracker {
 public:
+    /// On-line sections before the first tilt search (the search uses the six best).
+    static constexpr int kTiltFirstSections = 6;
+    /// A found tilt within this of the stack's slices' tilt (0 unless the stack was cut tilted)
+    /// on both axes is not applied: the search's own step
+    /// (TiltSearchOptions::fineStepDeg), below which it cannot tell a tilt from none.
+    static constexpr double kMinAppliedTiltDeg = 0.5;
+
     /// `stack` and `slices` (its matching features, stackFeatures) must outlive the tracker.
     SeriesTracker(Journal& journal, const AtlasStack& stack,
                   const std::vector<pipeline::SliceFeatures>& slices,
@@ -54,12 +72,26 @@ public:
         double matchedPositionUm = 0;
         std::optional<SeriesPlacement> series; ///< the model's word now; none when not in it
         std::optional<int> expectedSlice;      ///< as Settled::expectedSlice, the model's view now
+        /// The tilt of the plane to register to, degrees (as `atlas slice --tilt-*-deg`); both
+        /// 0: the stack's straight slice.
+        double tiltLrDeg = 0, tiltDvDeg = 0;
+        /// What a tilt search run for this placement found, or why tilted planes cannot be cut
+        /// (once per run); empty otherwise. For the station's log and event stream.
+        std::string tiltNews;
     };
-    /// Matches the capture of `section` (of `run`) with the run's series model.
+    /// Matches the capture of `section` (of `run`) with the run's series model; with `tilted`
+    /// (the run's tilted_planes) searches the brain's tilt when due and applies it.
     /// \return the errors of reading the image (NotFound, IoError), of matching (NoTissue,
     ///         InvalidArgument) and of the journal (during a rebuild).
     [[nodiscard]] core::Result<Placement> place(const RunRecord& run, const SectionRecord& section,
-                                                const CaptureRecord& capture);
+                                                const CaptureRecord& capture, bool tilted = false);
+
+    /// The plane at `positionUm` tilted by the two angles, cut from the stack's volume as the
+    /// stack's slices were (labels, geometry, template plane when the stack has them).
+    /// \return InvalidArgument when no tilt search has read the volume, the errors of
+    ///         cutStackPlane.
+    [[nodiscard]] core::Result<pipeline::AtlasSlice> cutPlane(double positionUm, double tiltLrDeg,
+                                                              double tiltDvDeg) const;
 
     /// The section's registration was journalled as `registrationId`, registered to
     /// `registeredSlice`: settle() will update it.
@@ -108,6 +140,9 @@ private:
     core::Result<pipeline::SectionFeatures> featuresOf(const CaptureRecord& capture) const;
     core::Result<pipeline::SectionMatch> matchWhole(const pipeline::SectionFeatures& f) const;
     SeriesPlacement wordOn(std::size_t entry) const;
+    std::string searchTiltIfDue();
+    void applyTilt(Placement& out) const;
+    bool tiltApplies() const;
     std::optional<int> expectedSlice(std::size_t entry) const;
     void finishRun();
 
@@ -122,6 +157,11 @@ private:
     bool finished_ = false;        ///< finish() has run for this run
     std::unique_ptr<pipeline::SeriesMatcher> matcher_;
     std::vector<Entry> entries_; ///< in the order added to the matcher
+
+    std::optional<StackVolume> volume_; ///< read at the first tilt search, kept for the stack
+    bool volumeRefused_ = false;        ///< this run cannot cut tilted planes (said once)
+    int nextTiltAt_ = kTiltFirstSections;
+    std::optional<pipeline::TiltEstimate> tilt_; ///< the run's latest tilt search
 };
 
 } // namespace slicestation::daemon

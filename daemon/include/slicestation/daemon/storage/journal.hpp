@@ -112,7 +112,7 @@ struct SeriesPlacement {
     /// "out-of-order", "duplicate" or "placed-on-line" (the only values the journal accepts).
     std::string anomaly = "none";
     int missingBefore = 0; ///< for "skipped-before"
-    double tiltLrDeg = 0;  ///< the series' cutting angle so far (not applied: straight slices)
+    double tiltLrDeg = 0;  ///< the series' cutting angle from its sections' own estimates
     double tiltDvDeg = 0;
 };
 
@@ -145,6 +145,11 @@ struct RegistrationRecord {
     std::optional<double> matchedPositionUm;
     std::optional<double> foundPositionUm; ///< position of the slice registered to
     std::optional<SeriesPlacement> series;
+    /// Schema version 4: the tilt of the plane registered to (degrees, as `atlas slice
+    /// --tilt-*-deg`): 0 for the stack's straight slices, the run's found tilt once applied.
+    /// Unknown for rows journalled before version 4.
+    std::optional<double> foundTiltLrDeg;
+    std::optional<double> foundTiltDvDeg;
 };
 
 /// A damage alert (kind damaged or check_registration) on a section and how it was answered,
@@ -184,7 +189,7 @@ public:
     Journal(const Journal&) = delete;
     Journal& operator=(const Journal&) = delete;
 
-    static constexpr int kSchemaVersion = 3;
+    static constexpr int kSchemaVersion = 4;
 
     // Runs ----------------------------------------------------------------------------------
     /// Journals a new queued run with its sections in one transaction.
