@@ -264,18 +264,44 @@ core::Result<PreparedSection> prepareSection(const cv::Mat& image, int workingMa
         out.grey = grey;
     mask = segmentTissue(grey, valid, glassLevel, &fineMask);
 
-    // Remove debris: keep components of at least 2% of the largest one.
+    // Remove debris: keep components of at least 2% of the largest one, and smaller ones down
+    // to kMinFragmentShare of it that are solid (their inscribed radius at least
+    // kMinFragmentRadius of the largest's equivalent radius, about 75 um on a 5 mm wide
+    // section): a detached piece of tissue is a filled patch, while dust, fibres and bubble
+    // rings are specks or lines a few pixels thin (docs/damage.md, "Small detached fragments").
     cv::Mat labels, stats;
     const int n = labelComponents(mask, labels, stats);
     int largest = 0;
     for (int i = 1; i < n; ++i)
         largest = std::max(largest, stats.at<int>(i, cv::CC_STAT_AREA));
+    std::vector<float> inscribed(size_t(std::max(n, 1)), 0.0f);
+    {
+        cv::Mat dist;
+        cv::distanceTransform(mask, dist, cv::DIST_L2, 3);
+        for (int y = 0; y < dist.rows; ++y) {
+            const int* l = labels.ptr<int>(y);
+            const float* d = dist.ptr<float>(y);
+            for (int x = 0; x < dist.cols; ++x)
+                inscribed[size_t(l[x])] = std::max(inscribed[size_t(l[x])], d[x]);
+        }
+    }
+    const double minRadius = kMinFragmentRadius * std::sqrt(largest / CV_PI);
     // One pass through a per-label table (a comparison of the whole image per component costs
     // as many passes as there are specks of debris).
     std::vector<uchar> kept(size_t(std::max(n, 1)), 0);
-    for (int i = 1; i < n; ++i)
-        kept[size_t(i)] =
-            stats.at<int>(i, cv::CC_STAT_AREA) >= std::max(16, largest / 50) ? 255 : 0;
+    for (int i = 1; i < n; ++i) {
+        const int area = stats.at<int>(i, cv::CC_STAT_AREA);
+        const bool big = area >= std::max(16, largest / 50);
+        // A piece cut by the image's edge is not seen whole (often a neighbouring section's
+        // part reaching into the frame): only whole pieces are judged as fragments.
+        const int x0 = stats.at<int>(i, cv::CC_STAT_LEFT), y0 = stats.at<int>(i, cv::CC_STAT_TOP);
+        const bool whole = x0 > 0 && y0 > 0 &&
+                           x0 + stats.at<int>(i, cv::CC_STAT_WIDTH) < mask.cols &&
+                           y0 + stats.at<int>(i, cv::CC_STAT_HEIGHT) < mask.rows;
+        const bool fragment = whole && area >= std::max(16.0, kMinFragmentShare * largest) &&
+                              inscribed[size_t(i)] >= minRadius;
+        kept[size_t(i)] = big || fragment ? 255 : 0;
+    }
     cv::Mat keep(mask.size(), CV_8U);
     for (int y = 0; y < keep.rows; ++y) {
         const int* l = labels.ptr<int>(y);

@@ -670,8 +670,9 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
 
     // Detached fragments (more tissue pieces than the atlas brain has) would pull the outline,
     // the overlap and the edges: the placement uses the main pieces only.
-    const cv::Mat fragments =
-        options.detectDamage ? extraPieces(fillHoles(reg.workingTissueMask), atlasMask) : cv::Mat();
+    const cv::Mat fragments = options.detectDamage ? extraPieces(fillHoles(reg.workingTissueMask),
+                                                                 atlasMask, kMinFragmentShare)
+                                                   : cv::Mat();
     cv::Mat mainTissue = reg.workingTissueMask;
     cv::Mat nearFragments; // the edges here are the fragments', not the placed tissue's
     if (!fragments.empty()) {

@@ -58,3 +58,28 @@ TEST(PrepareSection, RejectsBlankEmptyAndTinyImages) {
     EXPECT_EQ(prepareSection(cv::Mat(300, 300, CV_64F, cv::Scalar(1)), 512).error().code,
               ErrorCode::InvalidArgument);
 }
+
+// A detached piece of tissue is kept however small down to kMinFragmentShare of the section when
+// it is solid and whole in the frame; thin debris (a fibre, a bubble's ring) of the same area,
+// and a piece cut by the image's edge (a neighbouring section reaching in), are not.
+TEST(PrepareSection, KeepsASmallSolidFragmentAndDropsThinDebrisAndFrameCutPieces) {
+    cv::Mat img(600, 800, CV_32F, cv::Scalar(0.05));
+    const cv::Scalar tissue(0.6);
+    cv::ellipse(img, {400, 300}, {250, 170}, 0, 0, 360, tissue, cv::FILLED); // area ~133500
+    cv::circle(img, {90, 520}, 16, tissue, cv::FILLED);             // fragment: ~800 px, 0.6%, r 16
+    cv::circle(img, {720, 80}, 45, tissue, 3);                      // ring: ~850 px, 1.5 px thin
+    cv::line(img, {40, 40}, {300, 110}, tissue, 4);                 // fibre: ~1100 px, 2 px thin
+    cv::rectangle(img, {770, 420}, {799, 450}, tissue, cv::FILLED); // cut by the right edge
+    cv::Mat n(img.size(), CV_32F);
+    cv::RNG(5).fill(n, cv::RNG::NORMAL, 0, 0.02);
+    img += n;
+    auto p = prepareSection(img, 800);
+    ASSERT_TRUE(p.ok()) << p.error().message;
+    ASSERT_EQ(p->scale, 1.0);
+    const cv::Mat& m = p->tissueMask;
+    EXPECT_EQ(m.at<std::uint8_t>(520, 90), 255) << "the fragment is tissue";
+    EXPECT_EQ(m.at<std::uint8_t>(35, 720), 0) << "the ring is debris";
+    EXPECT_EQ(m.at<std::uint8_t>(75, 170), 0) << "the fibre is debris";
+    EXPECT_EQ(m.at<std::uint8_t>(435, 790), 0) << "a piece cut by the frame is not judged";
+    EXPECT_EQ(m.at<std::uint8_t>(300, 400), 255);
+}

@@ -24,6 +24,14 @@ struct PreparedSection {
     Contrast contrast = Contrast::Fluorescence;
 };
 
+/// prepareSection keeps tissue pieces of at least 2% of the largest one, and solid pieces down
+/// to kMinFragmentShare of it whose inscribed radius reaches kMinFragmentRadius of the largest
+/// one's equivalent radius and that lie whole inside the image: detached fragments of the
+/// section, which the damage check reports (extraPieces with the same share). Smaller or thin
+/// pieces are debris.
+inline constexpr double kMinFragmentShare = 0.005;
+inline constexpr double kMinFragmentRadius = 0.03;
+
 /// Converts any supported image (CV_8U/16U/32S/32F; 1 channel grey, 2 channels = channel 0 is the
 /// tissue stain, 3/4 channels BGR(A) = luminance) into a normalised grey working image whose
 /// longer side is at most `workingMaxSide`, tells fluorescence from brightfield by the glass
