@@ -238,8 +238,12 @@ bool SeriesTracker::tiltApplies() const {
     if (!tilt_ || !volume_)
         return false;
     // The stack's own slices may have been cut at a tilt (atlas slice --tilt-*-deg).
-    const double lr = stack_.source.is_object() ? stack_.source.value("tilt_lr_deg", 0.0) : 0.0;
-    const double dv = stack_.source.is_object() ? stack_.source.value("tilt_dv_deg", 0.0) : 0.0;
+    const auto stackTilt = [this](const char* key) {
+        const nlohmann::json& src = stack_.source;
+        return src.is_object() && src.contains(key) && src[key].is_number() ? src[key].get<double>()
+                                                                            : 0.0;
+    };
+    const double lr = stackTilt("tilt_lr_deg"), dv = stackTilt("tilt_dv_deg");
     return std::max(std::abs(tilt_->tiltColumnsDeg - lr), std::abs(tilt_->tiltRowsDeg - dv)) >=
            kMinAppliedTiltDeg;
 }
