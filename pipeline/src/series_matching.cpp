@@ -318,8 +318,10 @@ core::Result<TiltEstimate> searchSeriesTilt(const std::vector<SectionFeatures>& 
         }
         return total;
     };
-    TiltEstimate best;
-    best.score = -1;
+    // The highest-scoring tilt scored so far: the grid's answer (the cross answers with its
+    // last vertex instead).
+    TiltEstimate bestScored;
+    bestScored.score = -1;
     // Scores by tilt, so a tilt the search comes back to is not cut and matched again.
     std::map<std::pair<long, long>, double> scored;
     auto scoreOf = [&](double tc, double tr) -> core::Result<double> {
@@ -330,13 +332,14 @@ core::Result<TiltEstimate> searchSeriesTilt(const std::vector<SectionFeatures>& 
         if (!sc)
             return sc.error();
         scored.emplace(key, *sc);
-        if (*sc > best.score) {
-            best.score = *sc;
-            best.tiltColumnsDeg = tc;
-            best.tiltRowsDeg = tr;
+        if (*sc > bestScored.score) {
+            bestScored.score = *sc;
+            bestScored.tiltColumnsDeg = tc;
+            bestScored.tiltRowsDeg = tr;
         }
         return *sc;
     };
+    TiltEstimate out;
     if (options.method == TiltSearchMethod::Grid) {
         auto grid = [&](double c0, double r0, double half, double step) -> core::Result<void> {
             const int n = int(std::lround(half / step));
@@ -348,10 +351,11 @@ core::Result<TiltEstimate> searchSeriesTilt(const std::vector<SectionFeatures>& 
         };
         if (auto r = grid(0, 0, options.maxDeg, options.coarseStepDeg); !r)
             return r.error();
-        if (auto r = grid(best.tiltColumnsDeg, best.tiltRowsDeg, options.coarseStepDeg,
+        if (auto r = grid(bestScored.tiltColumnsDeg, bestScored.tiltRowsDeg, options.coarseStepDeg,
                           options.fineStepDeg);
             !r)
             return r.error();
+        out = bestScored;
     } else {
         // Vertex of the parabola through (-h, a), (0, b), (h, c), within one step; the best of
         // the three where the scores do not bend down.
@@ -420,13 +424,13 @@ core::Result<TiltEstimate> searchSeriesTilt(const std::vector<SectionFeatures>& 
         auto fin = scoreOf(std::round(c0 * 1000) / 1000, std::round(r0 * 1000) / 1000);
         if (!fin)
             return fin.error();
-        best.tiltColumnsDeg = std::round(c0 * 1000) / 1000;
-        best.tiltRowsDeg = std::round(r0 * 1000) / 1000;
-        best.score = *fin;
+        out.tiltColumnsDeg = std::round(c0 * 1000) / 1000;
+        out.tiltRowsDeg = std::round(r0 * 1000) / 1000;
+        out.score = *fin;
     }
-    best.tiltsScored = int(scored.size());
-    best.sections = int(chosen.size());
-    return best;
+    out.tiltsScored = int(scored.size());
+    out.sections = int(chosen.size());
+    return out;
 }
 
 } // namespace slicestation::pipeline
