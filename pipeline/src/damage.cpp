@@ -993,7 +993,9 @@ std::vector<DamageRegion> foldBands(const cv::Mat& grey, const cv::Mat& tissueMa
             continue;
         DamageRegion d;
         d.kind = DamageKind::Fold;
-        d.polygon = polygonOf(nearBand, roi.tl());
+        // The fold is where the flap lies doubled and the place it left (glass now): both are
+        // what the technician looks at; the area and share stay the doubled band's.
+        d.polygon = polygonOf(nearBand | region, roi.tl());
         d.areaPx = cv::countNonZero(nearBand);
         d.share = d.areaPx / tissueArea;
         d.lengthPx = std::max(w, h);

@@ -30,6 +30,24 @@ using namespace slicestation;
 
 namespace {
 
+/// The generator's name for a true damage region's kind (family 2's cracks come as tears, its
+/// bites and folds as missing tissue: the place the flap or piece left).
+const char* trueKindName(sim::DamageKind kind) {
+    switch (kind) {
+    case sim::DamageKind::Tear:
+        return "tear";
+    case sim::DamageKind::Missing:
+        return "missing";
+    case sim::DamageKind::Fragment:
+        return "fragment";
+    case sim::DamageKind::Fold:
+        return "fold";
+    case sim::DamageKind::Chatter:
+        return "chatter";
+    }
+    return "?";
+}
+
 /// Damage detection outcome of one case (ours only).
 struct DamageRow {
     bool truth = false, flagged = false;
@@ -465,6 +483,7 @@ int main(int argc, char** argv) {
                    "Run only these case indices of the --cases set (to look into them)");
     std::string overlayDir, refineMode = "on", nonLinearMode = "on", smoothMode = "off";
     std::string damageLogPath;
+    bool listMissed = false;
     std::string mirroredGaps = "on";
     std::string foldCrease = "on";
     app.add_option("--fold-crease", foldCrease,
@@ -550,6 +569,8 @@ int main(int argc, char** argv) {
     app.add_option("--damage-log", damageLogPath,
                    "Write a row per reported damage region (its measures, the registration's "
                    "confidence around it and how much of it is painted damage) here");
+    app.add_flag("--list-missed", listMissed,
+                 "Print each true damage region no reported region overlaps (a tenth of it)");
     app.add_option("--overlays", overlayDir,
                    "Write each case's overlay (ours, damage in red) here");
     std::string familyText = "all", labelsText = "major";
@@ -778,6 +799,10 @@ int main(int argc, char** argv) {
                 ++d.trueRegions;
                 if (cv::countNonZero(truthMask & reported) >= 0.1 * area)
                     ++d.overlapped;
+                else if (listMissed)
+                    std::printf("missed region: %s case %d, %s of %d px (section %s)\n",
+                                family.c_str(), c.index, trueKindName(t.kind), area,
+                                reg->damaged ? "flagged" : "not flagged");
             }
             damageRows[family].push_back(d);
             if (damageLog) {
