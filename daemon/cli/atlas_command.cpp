@@ -7,6 +7,7 @@
 #include "slicestation/core/ontology.hpp"
 #include "slicestation/daemon/cli/register_command.hpp"
 #include "slicestation/daemon/storage/atlas_stack.hpp"
+#include "slicestation/daemon/storage/stack_volume.hpp"
 #include "slicestation/pipeline/atlas.hpp"
 #include "slicestation/pipeline/atlas_matching.hpp"
 #include "slicestation/pipeline/atlas_slicing.hpp"
@@ -81,19 +82,12 @@ core::Result<void> sliceVolumeFile(const AtlasSliceRequest& rq,
     slices = std::move(*cut);
     if (!rq.templateVolume.empty()) {
         report(rq, "cutting the template", 0, 0);
-        auto templ = core::readNrrd(rq.templateVolume);
+        auto templ = readIntensityVolume(rq.templateVolume, *volume, axes, "--template");
         if (!templ)
             return templ.error();
-        auto offset = pipeline::intensityFrameOffsetUm(*volume, axes, *templ, axes);
-        if (!offset)
-            return makeError(offset.error().code, "--template " + rq.templateVolume.string() +
-                                                      ": " + offset.error().message);
-        const std::uint32_t top = *std::max_element(templ->data.begin(), templ->data.end());
-        if (top == 0)
-            return makeError(ErrorCode::InvalidArgument,
-                             "--template " + rq.templateVolume.string() + ": every voxel is 0");
         for (auto& s : slices)
-            s.intensity = pipeline::sampleIntensity(*templ, axes, s.geometry, *offset, top);
+            s.intensity = pipeline::sampleIntensity(templ->volume, axes, s.geometry,
+                                                    templ->offsetUm, templ->scale);
     }
     std::set<std::uint32_t> ids;
     if (rq.regions == "major") {

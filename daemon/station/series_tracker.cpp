@@ -211,9 +211,7 @@ std::string SeriesTracker::searchTiltIfDue() {
     }
     nextTiltAt_ = fit.inliers < 8 ? 8 : (3 * fit.inliers + 1) / 2; // 6, 8, 12, 18, 27, ...
     const auto t0 = std::chrono::steady_clock::now();
-    std::vector<pipeline::SectionFeatures> sections;
-    for (const Entry& e : entries_)
-        sections.push_back(e.features);
+    const std::vector<pipeline::SectionFeatures> sections = modelFeatures();
     const double workUm = slices_.front().workUmPerPx;
     const pipeline::PlaneFeatures planes = [this, workUm](double pos, double lr, double dv) {
         return stackPlaneFeatures(*volume_, pos, lr, dv, workUm);
@@ -288,11 +286,15 @@ void SeriesTracker::finishRun() {
     if (finished_ || entries_.empty())
         return;
     finished_ = true;
+    // On failure the live fit stands (finish refits only after its own matches succeed).
+    (void)matcher_->finish(modelFeatures());
+}
+
+std::vector<pipeline::SectionFeatures> SeriesTracker::modelFeatures() const {
     std::vector<pipeline::SectionFeatures> features;
     for (const Entry& e : entries_)
         features.push_back(e.features);
-    // On failure the live fit stands (finish refits only after its own matches succeed).
-    (void)matcher_->finish(features);
+    return features;
 }
 
 std::vector<SeriesTracker::Settled> SeriesTracker::settle(std::int64_t runId, bool runComplete) {

@@ -23,10 +23,26 @@ fs::path manifestSourcePath(const AtlasStack& stack, const std::string& key) {
     return p;
 }
 
+core::Result<IntensityVolume> readIntensityVolume(const fs::path& path, const core::Volume& labels,
+                                                  pipeline::VolumeAxes axes,
+                                                  const std::string& what) {
+    auto read = core::readNrrd(path);
+    if (!read)
+        return read.error();
+    auto offset = pipeline::intensityFrameOffsetUm(labels, axes, *read, axes);
+    if (!offset)
+        return makeError(offset.error().code,
+                         what + " " + path.string() + ": " + offset.error().message);
+    const std::uint32_t top = *std::max_element(read->data.begin(), read->data.end());
+    if (top == 0)
+        return makeError(ErrorCode::InvalidArgument,
+                         what + " " + path.string() + ": every voxel is 0");
+    return IntensityVolume{std::move(*read), *offset, double(top)};
+}
+
 namespace {
 
-/// The template volume of a stack with template planes, with the frame offset and the scale
-/// `atlas slice --template` used.
+/// The template volume of a stack with template planes, cut as `atlas slice --template` cut it.
 core::Result<void> readTemplateVolume(const AtlasStack& stack, StackVolume& v) {
     const bool hasPlanes = std::any_of(stack.slices.begin(), stack.slices.end(),
                                        [](const StackSlice& s) { return !s.templateFile.empty(); });
@@ -38,20 +54,9 @@ core::Result<void> readTemplateVolume(const AtlasStack& stack, StackVolume& v) {
                          stack.dir.string() +
                              ": the slices have template planes but the manifest names no "
                              "template volume (source.template)");
-    auto templ = core::readNrrd(path);
+    auto templ = readIntensityVolume(path, v.volume, v.axes, "template volume");
     if (!templ)
-        return makeError(templ.error().code,
-                         "template volume " + path.string() + ": " + templ.error().message);
-    auto offset = pipeline::intensityFrameOffsetUm(v.volume, v.axes, *templ, v.axes);
-    if (!offset)
-        return makeError(offset.error().code,
-                         "template volume " + path.string() + ": " + offset.error().message);
-    const std::uint32_t top = *std::max_element(templ->data.begin(), templ->data.end());
-    if (top == 0)
-        return makeError(ErrorCode::InvalidArgument,
-                         "template volume " + path.string() + ": every voxel is 0");
-    v.templateOffsetUm = *offset;
-    v.templateScale = top;
+        return templ.error();
     v.templateVolume = std::move(*templ);
     return {};
 }
@@ -151,8 +156,9 @@ core::Result<pipeline::AtlasSlice> cutStackPlane(const StackVolume& v, double po
                                                  double tiltLrDeg, double tiltDvDeg) {
     auto s = planeLabels(v, positionUm, tiltLrDeg, tiltDvDeg);
     if (s && v.templateVolume)
-        s->intensity = pipeline::sampleIntensity(*v.templateVolume, v.axes, s->geometry,
-                                                 v.templateOffsetUm, v.templateScale);
+        s->intensity =
+            pipeline::sampleIntensity(v.templateVolume->volume, v.axes, s->geometry,
+                                      v.templateVolume->offsetUm, v.templateVolume->scale);
     return s;
 }
 

@@ -274,8 +274,28 @@ core::Result<PreparedSection> prepareSection(const cv::Mat& image, int workingMa
     int largest = 0;
     for (int i = 1; i < n; ++i)
         largest = std::max(largest, stats.at<int>(i, cv::CC_STAT_AREA));
-    std::vector<float> inscribed(size_t(std::max(n, 1)), 0.0f);
-    {
+    // One pass through a per-label table (a comparison of the whole image per component costs
+    // as many passes as there are specks of debris).
+    std::vector<uchar> kept(size_t(std::max(n, 1)), 0);
+    std::vector<int> candidates; // smaller pieces, whole in the frame, to be judged by body
+    for (int i = 1; i < n; ++i) {
+        const int area = stats.at<int>(i, cv::CC_STAT_AREA);
+        if (area >= std::max(16, largest / 50)) {
+            kept[size_t(i)] = 255;
+            continue;
+        }
+        // A piece cut by the image's edge is not seen whole (often a neighbouring section's
+        // part reaching into the frame): only whole pieces are judged as fragments.
+        const int x0 = stats.at<int>(i, cv::CC_STAT_LEFT), y0 = stats.at<int>(i, cv::CC_STAT_TOP);
+        const bool whole = x0 > 0 && y0 > 0 &&
+                           x0 + stats.at<int>(i, cv::CC_STAT_WIDTH) < mask.cols &&
+                           y0 + stats.at<int>(i, cv::CC_STAT_HEIGHT) < mask.rows;
+        if (whole && area >= std::max(16.0, kMinFragmentShare * largest))
+            candidates.push_back(i);
+    }
+    if (!candidates.empty()) {
+        // Inscribed radius per piece: the largest distance to the glass inside it.
+        std::vector<float> inscribed(size_t(n), 0.0f);
         cv::Mat dist;
         cv::distanceTransform(mask, dist, cv::DIST_L2, 3);
         for (int y = 0; y < dist.rows; ++y) {
@@ -284,23 +304,9 @@ core::Result<PreparedSection> prepareSection(const cv::Mat& image, int workingMa
             for (int x = 0; x < dist.cols; ++x)
                 inscribed[size_t(l[x])] = std::max(inscribed[size_t(l[x])], d[x]);
         }
-    }
-    const double minRadius = kMinFragmentRadius * std::sqrt(largest / CV_PI);
-    // One pass through a per-label table (a comparison of the whole image per component costs
-    // as many passes as there are specks of debris).
-    std::vector<uchar> kept(size_t(std::max(n, 1)), 0);
-    for (int i = 1; i < n; ++i) {
-        const int area = stats.at<int>(i, cv::CC_STAT_AREA);
-        const bool big = area >= std::max(16, largest / 50);
-        // A piece cut by the image's edge is not seen whole (often a neighbouring section's
-        // part reaching into the frame): only whole pieces are judged as fragments.
-        const int x0 = stats.at<int>(i, cv::CC_STAT_LEFT), y0 = stats.at<int>(i, cv::CC_STAT_TOP);
-        const bool whole = x0 > 0 && y0 > 0 &&
-                           x0 + stats.at<int>(i, cv::CC_STAT_WIDTH) < mask.cols &&
-                           y0 + stats.at<int>(i, cv::CC_STAT_HEIGHT) < mask.rows;
-        const bool fragment = whole && area >= std::max(16.0, kMinFragmentShare * largest) &&
-                              inscribed[size_t(i)] >= minRadius;
-        kept[size_t(i)] = big || fragment ? 255 : 0;
+        const double minRadius = kMinFragmentRadius * std::sqrt(largest / CV_PI);
+        for (int i : candidates)
+            kept[size_t(i)] = inscribed[size_t(i)] >= minRadius ? 255 : 0;
     }
     cv::Mat keep(mask.size(), CV_8U);
     for (int y = 0; y < keep.rows; ++y) {

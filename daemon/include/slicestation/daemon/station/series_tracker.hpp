@@ -145,6 +145,8 @@ private:
     bool tiltApplies() const;
     std::optional<int> expectedSlice(std::size_t entry) const;
     void finishRun();
+    /// The features of the model's sections, in the matcher's order (its matches' order).
+    std::vector<pipeline::SectionFeatures> modelFeatures() const;
 
     Journal& journal_;
     const AtlasStack& stack_;

@@ -19,6 +19,22 @@
 
 namespace slicestation::daemon {
 
+/// An intensity volume (e.g. the Allen average template) ready to be cut along the planes of a
+/// label volume: where the labels' frame lies in it and the divisor that maps it to [0, 1].
+struct IntensityVolume {
+    core::Volume volume;
+    cv::Vec3d offsetUm{0, 0, 0}; ///< pipeline::intensityFrameOffsetUm
+    double scale = 1;            ///< its largest value
+};
+
+/// Reads `path` to be cut beside `labels` (same axes). \return the errors of core::readNrrd
+/// (naming the file); InvalidArgument "`what` PATH: ..." when the two volumes' extents differ
+/// (pipeline::intensityFrameOffsetUm) or every voxel is 0.
+[[nodiscard]] core::Result<IntensityVolume> readIntensityVolume(const std::filesystem::path& path,
+                                                                const core::Volume& labels,
+                                                                pipeline::VolumeAxes axes,
+                                                                const std::string& what);
+
 struct StackVolume {
     std::filesystem::path path; ///< the label volume read
     core::Volume volume;
@@ -27,11 +43,8 @@ struct StackVolume {
     pipeline::PlaneOrientation orientation = pipeline::PlaneOrientation::Coronal;
     bool major = true; ///< the stack's labels were collapsed to the major regions
     double umPerPx = 0;
-    /// The template volume (the stack has template planes), with the offset of the labels'
-    /// frame in its frame and the divisor that maps it to [0, 1]; empty without one.
-    std::optional<core::Volume> templateVolume;
-    cv::Vec3d templateOffsetUm{0, 0, 0};
-    double templateScale = 1;
+    /// The template volume when the stack has template planes; empty without one.
+    std::optional<IntensityVolume> templateVolume;
 };
 
 /// A file the manifest's `source` names under `key`: as written, or else relative to the stack
