@@ -433,14 +433,23 @@ private:
     std::vector<cv::Point> stack_;
 };
 
-/// The area of the dim (dark, not glass) pieces that `region` (at `offset` in the dim mask)
-/// touches: a crack's are its own blurred flanks; the thin end of a dim structure (a dark fibre
-/// tract narrowing) leads into the structure's wide body.
-double dimBodyArea(const cv::Mat& region, cv::Point offset, PiecesOnDemand& dim) {
+/// The dim (dark, not glass) pieces that `region` (at `offset` in the dim mask) touches: their
+/// area, and the median level of their pixels beside the line (`light` is the grey image of the
+/// region's box; `beside` the band around the line, CV_8U, the same size). A crack's dim pieces
+/// are its own blurred flanks; the thin end of a dim structure (a dark fibre tract narrowing)
+/// leads into the structure's wide body, at the line's own level; a crack crossing a dim region
+/// is a valley below that region's level.
+struct DimBody {
+    double area = 0;
+    float level = 0; ///< median of `light` over the body's pixels in `beside` (0: none there)
+};
+
+DimBody dimBodyNear(const cv::Mat& region, cv::Point offset, PiecesOnDemand& dim,
+                    const cv::Mat& light, const cv::Mat& beside) {
     cv::Mat near;
     cv::dilate(region, near, cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(5, 5)));
     std::vector<int> seen;
-    double area = 0;
+    DimBody body;
     for (int y = 0; y < near.rows; ++y) {
         const std::uint8_t* m = near.ptr<std::uint8_t>(y);
         for (int x = 0; x < near.cols; ++x) {
@@ -449,11 +458,23 @@ double dimBodyArea(const cv::Mat& region, cv::Point offset, PiecesOnDemand& dim)
             const int id = dim.pieceAt(x + offset.x, y + offset.y);
             if (id != 0 && std::find(seen.begin(), seen.end(), id) == seen.end()) {
                 seen.push_back(id);
-                area += dim.area(id);
+                body.area += dim.area(id);
             }
         }
     }
-    return area;
+    if (seen.empty())
+        return body;
+    cv::Mat inBody = cv::Mat::zeros(region.size(), CV_8U);
+    for (int y = 0; y < beside.rows; ++y) {
+        const std::uint8_t* b = beside.ptr<std::uint8_t>(y);
+        for (int x = 0; x < beside.cols; ++x)
+            if (b[x] && std::find(seen.begin(), seen.end(),
+                                  dim.pieceAt(x + offset.x, y + offset.y)) != seen.end())
+                inBody.at<std::uint8_t>(y, x) = 255;
+    }
+    if (cv::countNonZero(inBody) > 0)
+        body.level = percentile(light, 0.5, inBody);
+    return body;
 }
 
 /// darkValleys on a grey image already blurred by 0.7 px.
@@ -599,7 +620,7 @@ std::vector<DamageRegion> thinCracks(const cv::Mat& grey, const cv::Mat& tissue,
     // side on OpenCV's threads; the rest, whose pieces are labelled on demand, goes in order.
     struct Candidate {
         cv::Rect roi;
-        cv::Mat region;
+        cv::Mat region, beside; ///< the line, and the tissue of the band around it (roi frame)
         double area, length, thickness;
     };
     std::vector<std::optional<Candidate>> candidates(size_t(std::max(n, 1)));
@@ -640,15 +661,21 @@ std::vector<DamageRegion> thinCracks(const cv::Mat& grey, const cv::Mat& tissue,
                                    std::max(1.0, double(cv::countNonZero(beside)));
         if (besideGlass > params.crackWallGlass)
             return std::nullopt;
-        return Candidate{roi, region, area, length, thickness};
+        return Candidate{roi, region, beside, area, length, thickness};
     };
     runTasks(n - 1, [&](int k) { candidates[size_t(k + 1)] = test(k + 1); });
     for (int i = 1; i < n; ++i) {
         if (!candidates[size_t(i)])
             continue;
-        const auto& [roi, region, area, length, thickness] = *candidates[size_t(i)];
+        const auto& [roi, region, beside, area, length, thickness] = *candidates[size_t(i)];
         if (params.crackDarkness > 0) {
-            if (dimBodyArea(region, roi.tl(), dim) > params.crackDimBody * area)
+            const DimBody body = dimBodyNear(region, roi.tl(), dim, light(roi), beside);
+            // The line's core: the darker quarter of its pixels (the rest are its blurred flanks).
+            const float lineCore = percentile(light(roi), 0.25, region);
+            const bool valley = params.crackBelowBody > 0 && body.level > levels.glass &&
+                                lineCore <= body.level - static_cast<float>(params.crackBelowBody) *
+                                                             (body.level - levels.glass);
+            if (body.area > params.crackDimBody * area && !valley)
                 continue;
         }
         // Inside a mapped region the section shows dark (an unstained tract), a dark line is
@@ -664,6 +691,7 @@ std::vector<DamageRegion> thinCracks(const cv::Mat& grey, const cv::Mat& tissue,
         d.share = area / tissueArea;
         d.lengthPx = length;
         d.thicknessPx = thickness;
+        d.crack = true;
         if (length < minLength)
             pieces->push_back(std::move(d));
         else
@@ -1492,8 +1520,13 @@ void markMisfit(std::vector<DamageRegion>& regions, const cv::Mat& tissueMask,
         // A structure placed wrong leaves its misplaced tissue across itself from the glass: a
         // hole of width w shifted by s has a crescent of glass and one of tissue, w - s apart,
         // each as long as the hole; a boundary pushed out leaves its tissue beside the band it
-        // left. So within half the gap's length of it, plus the slack on either side.
-        const int reach = static_cast<int>(std::ceil(0.5 * d.lengthPx * polygonScale)) + 2 * r;
+        // left. So within half the gap's length of it, plus the slack on either side. A crack
+        // (a line of glass with tissue on both sides) is no boundary pushed out: only a thin
+        // gap of the atlas (a fissure between two parts, a narrow ventricle) shifted across
+        // itself leaves one, with its misplaced tissue in the mapped gap beside it: within the
+        // line's width and the slack.
+        const double across = d.crack ? d.thicknessPx : 0.5 * d.lengthPx;
+        const int reach = static_cast<int>(std::ceil(across * polygonScale)) + 2 * r;
         const cv::Rect roi = grown(cv::boundingRect(poly), reach + 1, size);
         if (roi.area() <= 0)
             continue;

@@ -526,6 +526,55 @@ TEST(Damage, ABlurredCrackIsFoundByDefaultButNotInsideADarkAtlasRegion) {
     EXPECT_TRUE(thinCracks(grey, tissue, withTract, none, 1000, p, midline).empty());
 }
 
+TEST(Damage, ACrackCrossingADimRegionIsAValleyInItButATractsThinEndIsNot) {
+    // Bright tissue (0.55) with a dim band (0.15: a region stained weakly, wide and long), a
+    // 4 px crack of glass crossing tissue and band, everything blurred by the optics.
+    const cv::Mat brain = ellipseMask({1200, 800}, {600, 400}, {500, 320});
+    const cv::Mat none = cv::Mat::zeros(brain.size(), CV_8U);
+    const Midline midline{{600, 0}, {600, 800}};
+    const auto render = [&](const cv::Mat& sharp, std::uint64_t seed) {
+        cv::Mat grey, noise(brain.size(), CV_32F);
+        cv::GaussianBlur(sharp, grey, cv::Size(), 1.25);
+        cv::RNG rng(seed);
+        rng.fill(noise, cv::RNG::NORMAL, 0, 0.01);
+        return cv::Mat(grey + noise + cv::Scalar(0.05));
+    };
+    cv::Mat sharp = cv::Mat::zeros(brain.size(), CV_32F);
+    sharp.setTo(0.55f, brain);
+    sharp(cv::Rect(300, 150, 60, 500)).setTo(0.15f);
+    cv::line(sharp, {200, 300}, {460, 420}, cv::Scalar(0), 4);
+    const cv::Mat crossing = render(sharp, 41);
+    const AtlasExpectation expected{brain, brain, cv::Mat()};
+    const DamageParams p;
+    ASSERT_GT(p.crackBelowBody, 0) << "on by default";
+    // Found, in one or two lines.
+    const auto cracks = thinCracks(crossing, brain, expected, none, 1000, p, midline);
+    ASSERT_GE(cracks.size(), 1u);
+    ASSERT_LE(cracks.size(), 2u);
+    double length = 0;
+    for (const DamageRegion& d : cracks) {
+        length += d.lengthPx;
+        EXPECT_TRUE(d.crack);
+    }
+    // The two stretches in bright tissue (about 110 px each) touch the band; the 66 px across
+    // the band itself are not part of them (the band is no tissue level for the closing).
+    EXPECT_NEAR(length, 220, 30);
+    // Without the valley test the band the crack touches (over 3 x its area) is taken for a
+    // dim structure the line belongs to: the crack is lost, as before this rule.
+    DamageParams bodyOnly = p;
+    bodyOnly.crackBelowBody = 0;
+    EXPECT_TRUE(thinCracks(crossing, brain, expected, none, 1000, bodyOnly, midline).empty());
+    // A dim tract narrowing to a thin end 5 px wide, at the tract's own level: the thin end is
+    // the tract's, no crack, with the rule or without.
+    cv::Mat tractSharp = cv::Mat::zeros(brain.size(), CV_32F);
+    tractSharp.setTo(0.55f, brain);
+    tractSharp(cv::Rect(300, 150, 60, 250)).setTo(0.15f);
+    cv::line(tractSharp, {330, 400}, {330, 560}, cv::Scalar(0.15), 5);
+    const cv::Mat tract = render(tractSharp, 43);
+    EXPECT_TRUE(thinCracks(tract, brain, expected, none, 1000, p, midline).empty());
+    EXPECT_TRUE(thinCracks(tract, brain, expected, none, 1000, bodyOnly, midline).empty());
+}
+
 TEST(Damage, ABlurredCrackInTheLastPartialTileOfTheBoxIsFound) {
     // The valley closing and the dilations run only on the 64 px tiles that hold a candidate
     // pixel; a crack in the section box's last, partial tile column must be searched too. The
@@ -699,6 +748,43 @@ TEST(Damage, AGapWithTheAtlasFittingAroundItStaysDamage) {
     for (const DamageRegion& r : regions)
         EXPECT_FALSE(r.misfit) << toString(r.kind) << " excess " << r.excessShare;
     EXPECT_EQ(decideDamage(regions, 500, p).verdict, DamageVerdict::Damaged);
+}
+
+TEST(Damage, ACrackIsAMisfitOnlyWhereAThinGapOfTheAtlasLiesBesideIt) {
+    const MisfitScene scene;
+    const DamageParams p;
+    // A thin crack (4 px) whose polygon is drawn by hand, as thinCracks reports it.
+    const auto crackRegion = [](cv::Point a, cv::Point b, bool crack) {
+        DamageRegion d;
+        d.kind = DamageKind::Tear;
+        const cv::Point2f u = cv::Point2f(b - a) * (1.0f / float(cv::norm(b - a)));
+        const cv::Point2f n(-u.y * 2.0f, u.x * 2.0f);
+        d.polygon = {cv::Point2f(a) + n, cv::Point2f(b) + n, cv::Point2f(b) - n,
+                     cv::Point2f(a) - n};
+        d.lengthPx = cv::norm(b - a);
+        d.thicknessPx = 4;
+        d.crack = crack;
+        return d;
+    };
+    // The section's outline bulges 30 px beyond the atlas's, 34 px from the crack's mouth: a
+    // boundary placed wrong near a gap makes a compact gap a misfit (its half length reaches
+    // the bulge), but it cannot have left a line of glass with tissue on both sides.
+    const cv::Mat bulged = scene.brain | ellipseMask(scene.size, {550, 230}, {30, 30});
+    std::vector<DamageRegion> regions{crackRegion({515, 245}, {415, 285}, false),
+                                      crackRegion({515, 245}, {415, 285}, true)};
+    markMisfit(regions, bulged, scene.expected(), 500, p);
+    EXPECT_TRUE(regions[0].misfit) << "excess " << regions[0].excessShare;
+    EXPECT_FALSE(regions[1].misfit) << "excess " << regions[1].excessShare;
+    EXPECT_EQ(regions[1].excessShare, 0.0);
+    // A fissure of the atlas (12 px wide) with tissue where the atlas puts it, and the
+    // section's crack 9 px beside it: the atlas's thin gap placed wrong, a misfit.
+    cv::Mat fissure = cv::Mat::zeros(scene.size, CV_8U);
+    cv::line(fissure, {380, 100}, {380, 300}, cv::Scalar(255), 12);
+    const AtlasExpectation withFissure{scene.brain & ~scene.ventricle & ~fissure, scene.brain, {}};
+    const cv::Mat shifted = scene.brain & ~scene.ventricle;
+    regions = {crackRegion({389, 110}, {389, 290}, true)};
+    markMisfit(regions, shifted, withFissure, 500, p);
+    EXPECT_TRUE(regions[0].misfit) << "excess " << regions[0].excessShare;
 }
 
 TEST(Damage, TrustedDamageDecidesWhateverMisfitLiesBesideIt) {

@@ -57,6 +57,11 @@ struct DamageRegion {
     /// undecided, 0 not measured). At least DamageParams::mirroredGap: a twin on the other side,
     /// anatomy (left out of the regions when DamageParams::leaveOutMirroredGaps).
     double mirrorShare = 0;
+    /// Found by thinCracks: a line of glass (or of a valley as deep as a crack's) no wider than
+    /// DamageParams::crackMaxWidthPx with tissue on both sides. A boundary placed wrong cannot
+    /// leave such a line; only a thin gap of the atlas (a fissure, a narrow ventricle) placed
+    /// wrong can (markMisfit).
+    bool crack = false;
 };
 
 /// Lengths are fractions of the brain width (the OBB's major extent of the section), so the rule
@@ -107,6 +112,12 @@ struct DamageParams {
     /// blurred flanks: at most this many times its area. More is the narrow end of a dim
     /// structure (a dark fibre tract), not a crack.
     double crackDimBody = 3.0;
+    /// ... unless the line is a valley in those pieces: its core (the darker quarter of its
+    /// pixels) at least this share of the way from their level (their median beside it) down
+    /// to the glass. A crack crossing a dim region shows the glass through it; a dim
+    /// structure's thin end is at the structure's own level. 0: every line touching a large
+    /// dim body is that body.
+    double crackBelowBody = 0.5;
     /// Beside a crack lies tissue: at most this share of glass-level pixels there. Dim textured
     /// tissue has glass-level grains between its cells, whose thin glass webs are no crack.
     double crackWallGlass = 0.02;
