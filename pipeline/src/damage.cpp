@@ -777,6 +777,26 @@ bool fainterStretch(const cv::Mat& grey, const cv::Mat& inside, const std::vecto
 }
 } // namespace
 
+void dropAlongMidline(std::vector<DamageRegion>& regions, const Midline& midline, double ringPx,
+                      double maxThicknessPx) {
+    if (midline.a == midline.b)
+        return;
+    const int ring = std::max(1, static_cast<int>(std::lround(ringPx)));
+    std::erase_if(regions, [&](const DamageRegion& d) {
+        if ((d.kind != DamageKind::Tear && d.kind != DamageKind::Missing) || d.polygon.size() < 3 ||
+            d.thicknessPx > maxThicknessPx)
+            return false;
+        std::vector<cv::Point> poly;
+        for (const cv::Point2f& p : d.polygon)
+            poly.emplace_back(cvRound(p.x), cvRound(p.y));
+        const cv::Rect box = cv::boundingRect(poly) + cv::Size(1, 1);
+        cv::Mat mask = cv::Mat::zeros(box.size(), CV_8U);
+        cv::fillPoly(mask, std::vector<std::vector<cv::Point>>{poly}, cv::Scalar(255), cv::LINE_8,
+                     0, -box.tl());
+        return alongMidline(mask, box.tl(), midline, ring);
+    });
+}
+
 std::vector<DamageRegion> continueTears(std::vector<DamageRegion>& regions,
                                         const std::vector<DamageRegion>& pieces,
                                         const cv::Mat& grey, const cv::Mat& tissue,

@@ -1169,6 +1169,19 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         // Report in full-resolution pixels.
         const double s = reg.workingScale;
         toFullPixels(regions, s);
+        // The atlas midline (the brain's centroid column), into the image by the affine: the
+        // longitudinal fissure and the third ventricle lie along it.
+        Midline midline;
+        if (const cv::Moments am = cv::moments(atlasMask, true); am.m00 > 0) {
+            const double mx = am.m10 / am.m00;
+            const cv::Matx23d imageFromAtlas = invert(reg.affineAtlasFromImage());
+            const cv::Point2d a = apply(imageFromAtlas, cv::Point2d(mx, 0));
+            const cv::Point2d b = apply(imageFromAtlas, cv::Point2d(mx, atlasLabels.rows));
+            midline = {cv::Point2f(a), cv::Point2f(b)};
+        }
+        // Gaps no wider than a crack along it are that fissure, as for the cracks below.
+        dropAlongMidline(regions, midline, options.damage.fissureRingFrac * brainWidth / s,
+                         options.damage.crackMaxWidthPx / crackScale);
         timer.lap("damage");
         // Thin cracks, at full resolution (up to crackMaxSidePx): glass lines narrower than the
         // working image shows.
@@ -1180,17 +1193,8 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
                 return o;
             };
             AtlasExpectation fullExpected{cv::Mat(), up(expectedBrain), cv::Mat()};
-            Midline midline;
-            // The atlas midline (the brain's centroid column), into the image by the affine.
-            const cv::Moments am = cv::moments(atlasMask, true);
-            if (am.m00 > 0) {
-                const double mx = am.m10 / am.m00;
-                const cv::Matx23d imageFromAtlas = invert(reg.affineAtlasFromImage());
-                const cv::Point2d a = apply(imageFromAtlas, cv::Point2d(mx, 0));
-                const cv::Point2d b = apply(imageFromAtlas, cv::Point2d(mx, atlasLabels.rows));
-                midline = {cv::Point2f(float(a.x * crackScale), float(a.y * crackScale)),
-                           cv::Point2f(float(b.x * crackScale), float(b.y * crackScale))};
-            }
+            const auto c = static_cast<float>(crackScale);
+            const Midline crackMidline{midline.a * c, midline.b * c};
             if (!expected.parts.empty())
                 fullExpected.parts = up(expected.parts);
             // The mapped regions the section shows dark (an unstained tract): a dark line in
@@ -1210,9 +1214,9 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
             }
             std::vector<DamageRegion> pieces;
             const cv::Mat tissueAtCracks = up(sectionTissue);
-            std::vector<DamageRegion> cracks =
-                thinCracks(grey, tissueAtCracks, fullExpected, up(ventricles),
-                           brainWidth / s * crackScale, options.damage, midline, known, &pieces);
+            std::vector<DamageRegion> cracks = thinCracks(
+                grey, tissueAtCracks, fullExpected, up(ventricles), brainWidth / s * crackScale,
+                options.damage, crackMidline, known, &pieces);
             toFullPixels(cracks, crackScale);
             toFullPixels(pieces, crackScale);
             for (DamageRegion& d : cracks)

@@ -787,6 +787,34 @@ TEST(Damage, ACrackIsAMisfitOnlyWhereAThinGapOfTheAtlasLiesBesideIt) {
     EXPECT_TRUE(regions[0].misfit) << "excess " << regions[0].excessShare;
 }
 
+TEST(Damage, ASlitAlongTheMidlineIsTheFissureButAWiderGapThereIsJudged) {
+    const auto box = [](float x, float y, float w, float h, double thickness) {
+        DamageRegion d;
+        d.kind = DamageKind::Tear;
+        d.polygon = {{x, y}, {x + w, y}, {x + w, y + h}, {x, y + h}};
+        d.lengthPx = std::max(w, h);
+        d.thicknessPx = thickness;
+        return d;
+    };
+    // The midline slightly turned, as the affine puts it: x = 300 + 0.05 y.
+    const Midline midline{{300, 0}, {320, 400}};
+    std::vector<DamageRegion> regions{
+        box(308, 150, 5, 60, 5),   // a slit on the midline: the fissure
+        box(300, 150, 18, 60, 18), // a wedge as wide as a torn ventricle, on the midline
+        box(360, 150, 5, 60, 5),   // a slit 50 px beside the midline
+        box(280, 170, 60, 5, 5),   // a slit across the midline
+    };
+    regions.back().kind = DamageKind::Missing;
+    std::vector<DamageRegion> unknown = regions;
+    dropAlongMidline(regions, midline, 15, 7);
+    ASSERT_EQ(regions.size(), 3u);
+    EXPECT_EQ(regions[0].thicknessPx, 18);
+    EXPECT_EQ(regions[1].polygon[0].x, 360);
+    EXPECT_EQ(regions[2].kind, DamageKind::Missing);
+    dropAlongMidline(unknown, Midline{}, 15, 7);
+    EXPECT_EQ(unknown.size(), 4u) << "no midline, nothing removed";
+}
+
 TEST(Damage, TrustedDamageDecidesWhateverMisfitLiesBesideIt) {
     const MisfitScene scene;
     const DamageParams p;

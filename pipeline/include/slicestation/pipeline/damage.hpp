@@ -215,6 +215,16 @@ struct Midline {
     cv::Point2f a, b;
 };
 
+/// Removes the gaps (Tear, Missing; polygons in the midline's pixels) no thicker than
+/// `maxThicknessPx` (a crack's width) lying along the midline: at least 70% of the gap within
+/// `ringPx` of it and its principal axis within 20 degrees of it, as thinCracks leaves out
+/// lines there. A slit on the midline is the longitudinal fissure (or the third ventricle)
+/// opened, and its mirror image is itself, so the mirror test cannot judge it; a wider gap (a
+/// ventricle torn open along the midline) is judged as any other. Nothing is removed when the
+/// midline is unknown (a == b).
+void dropAlongMidline(std::vector<DamageRegion>& regions, const Midline& midline, double ringPx,
+                      double maxThicknessPx);
+
 /// Beyond the paper, after registration: gaps where the atlas expects tissue but the section
 /// shows glass, anywhere in the section and symmetric or not, and tissue pieces lying mostly
 /// outside the mapped atlas brain away from the main tissue (fragments). A gap with one of
