@@ -399,6 +399,10 @@ public:
     }
     /// The area in pixels of piece `label` (a value pieceAt returned).
     int area(int label) const { return area_[static_cast<std::size_t>(label - 1)]; }
+    /// The label of (x, y) if its piece was labelled already (by pieceAt), else 0; labels nothing.
+    int labelledAt(int x, int y) const {
+        return labels_.empty() ? 0 : labels_.at<std::int32_t>(y, x);
+    }
 
 private:
     int fill(int x0, int y0) {
@@ -433,22 +437,17 @@ private:
     std::vector<cv::Point> stack_;
 };
 
-/// The dim (dark, not glass) pieces that `region` (at `offset` in the dim mask) touches: their
-/// area, and the median level of their pixels beside the line (`light` is the grey image of the
-/// region's box; `beside` the band around the line, CV_8U, the same size). A crack's dim pieces
-/// are its own blurred flanks; the thin end of a dim structure (a dark fibre tract narrowing)
-/// leads into the structure's wide body, at the line's own level; a crack crossing a dim region
-/// is a valley below that region's level.
+/// The dim (dark, not glass) pieces that `region` (at `offset` in the dim mask) touches, and
+/// their area: a crack's are its own blurred flanks; the thin end of a dim structure (a dark
+/// fibre tract narrowing) leads into the structure's wide body.
 struct DimBody {
+    std::vector<int> pieces; ///< their labels in `dim`
     double area = 0;
-    float level = 0; ///< median of `light` over the body's pixels in `beside` (0: none there)
 };
 
-DimBody dimBodyNear(const cv::Mat& region, cv::Point offset, PiecesOnDemand& dim,
-                    const cv::Mat& light, const cv::Mat& beside) {
+DimBody dimBodyOf(const cv::Mat& region, cv::Point offset, PiecesOnDemand& dim) {
     cv::Mat near;
     cv::dilate(region, near, cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(5, 5)));
-    std::vector<int> seen;
     DimBody body;
     for (int y = 0; y < near.rows; ++y) {
         const std::uint8_t* m = near.ptr<std::uint8_t>(y);
@@ -456,25 +455,34 @@ DimBody dimBodyNear(const cv::Mat& region, cv::Point offset, PiecesOnDemand& dim
             if (!m[x])
                 continue;
             const int id = dim.pieceAt(x + offset.x, y + offset.y);
-            if (id != 0 && std::find(seen.begin(), seen.end(), id) == seen.end()) {
-                seen.push_back(id);
+            if (id != 0 &&
+                std::find(body.pieces.begin(), body.pieces.end(), id) == body.pieces.end()) {
+                body.pieces.push_back(id);
                 body.area += dim.area(id);
             }
         }
     }
-    if (seen.empty())
-        return body;
-    cv::Mat inBody = cv::Mat::zeros(region.size(), CV_8U);
+    return body;
+}
+
+/// The median of `light` (the grey image of the line's box, at `offset` in the dim mask) over
+/// the body's pixels in `beside` (the band around the line, CV_8U, the same size); 0 when none
+/// lies there. The thin end of a dim structure is at the structure's level; a crack crossing a
+/// dim region is a valley below it.
+float dimBodyLevel(const DimBody& body, cv::Point offset, const PiecesOnDemand& dim,
+                   const cv::Mat& light, const cv::Mat& beside) {
+    cv::Mat inBody = cv::Mat::zeros(beside.size(), CV_8U);
     for (int y = 0; y < beside.rows; ++y) {
         const std::uint8_t* b = beside.ptr<std::uint8_t>(y);
-        for (int x = 0; x < beside.cols; ++x)
-            if (b[x] && std::find(seen.begin(), seen.end(),
-                                  dim.pieceAt(x + offset.x, y + offset.y)) != seen.end())
+        for (int x = 0; x < beside.cols; ++x) {
+            // The body's pieces are labelled whole already.
+            const int id = b[x] ? dim.labelledAt(x + offset.x, y + offset.y) : 0;
+            if (id != 0 &&
+                std::find(body.pieces.begin(), body.pieces.end(), id) != body.pieces.end())
                 inBody.at<std::uint8_t>(y, x) = 255;
+        }
     }
-    if (cv::countNonZero(inBody) > 0)
-        body.level = percentile(light, 0.5, inBody);
-    return body;
+    return cv::countNonZero(inBody) > 0 ? percentile(light, 0.5, inBody) : 0.0f;
 }
 
 /// darkValleys on a grey image already blurred by 0.7 px.
@@ -669,14 +677,18 @@ std::vector<DamageRegion> thinCracks(const cv::Mat& grey, const cv::Mat& tissue,
             continue;
         const auto& [roi, region, beside, area, length, thickness] = *candidates[size_t(i)];
         if (params.crackDarkness > 0) {
-            const DimBody body = dimBodyNear(region, roi.tl(), dim, light(roi), beside);
-            // The line's core: the darker quarter of its pixels (the rest are its blurred flanks).
-            const float lineCore = percentile(light(roi), 0.25, region);
-            const bool valley = params.crackBelowBody > 0 && body.level > levels.glass &&
-                                lineCore <= body.level - static_cast<float>(params.crackBelowBody) *
-                                                             (body.level - levels.glass);
-            if (body.area > params.crackDimBody * area && !valley)
-                continue;
+            const DimBody body = dimBodyOf(region, roi.tl(), dim);
+            // A large dim body is the line's, unless the line is a valley in it: its core (the
+            // darker quarter of its pixels; the rest are its blurred flanks) far below the body.
+            if (body.area > params.crackDimBody * area) {
+                const float level = dimBodyLevel(body, roi.tl(), dim, light(roi), beside);
+                const float lineCore = percentile(light(roi), 0.25, region);
+                const bool valley = params.crackBelowBody > 0 && level > levels.glass &&
+                                    lineCore <= level - static_cast<float>(params.crackBelowBody) *
+                                                            (level - levels.glass);
+                if (!valley)
+                    continue;
+            }
         }
         // Inside a mapped region the section shows dark (an unstained tract), a dark line is
         // that region's own narrow stretch.
@@ -777,6 +789,21 @@ bool fainterStretch(const cv::Mat& grey, const cv::Mat& inside, const std::vecto
 }
 } // namespace
 
+std::vector<cv::Point> pixelPolygon(const std::vector<cv::Point2f>& polygon, double scale) {
+    std::vector<cv::Point> poly;
+    poly.reserve(polygon.size());
+    for (const cv::Point2f& p : polygon)
+        poly.emplace_back(cvRound((p.x + 0.5) * scale - 0.5), cvRound((p.y + 0.5) * scale - 0.5));
+    return poly;
+}
+
+cv::Mat polygonMask(const std::vector<cv::Point>& poly, cv::Rect box) {
+    cv::Mat mask = cv::Mat::zeros(box.size(), CV_8U);
+    cv::fillPoly(mask, std::vector<std::vector<cv::Point>>{poly}, cv::Scalar(255), cv::LINE_8, 0,
+                 -box.tl());
+    return mask;
+}
+
 void dropAlongMidline(std::vector<DamageRegion>& regions, const Midline& midline, double ringPx,
                       double maxThicknessPx) {
     if (midline.a == midline.b)
@@ -786,14 +813,9 @@ void dropAlongMidline(std::vector<DamageRegion>& regions, const Midline& midline
         if ((d.kind != DamageKind::Tear && d.kind != DamageKind::Missing) || d.polygon.size() < 3 ||
             d.thicknessPx > maxThicknessPx)
             return false;
-        std::vector<cv::Point> poly;
-        for (const cv::Point2f& p : d.polygon)
-            poly.emplace_back(cvRound(p.x), cvRound(p.y));
+        const std::vector<cv::Point> poly = pixelPolygon(d.polygon, 1.0);
         const cv::Rect box = cv::boundingRect(poly) + cv::Size(1, 1);
-        cv::Mat mask = cv::Mat::zeros(box.size(), CV_8U);
-        cv::fillPoly(mask, std::vector<std::vector<cv::Point>>{poly}, cv::Scalar(255), cv::LINE_8,
-                     0, -box.tl());
-        return alongMidline(mask, box.tl(), midline, ring);
+        return alongMidline(polygonMask(poly, box), box.tl(), midline, ring);
     });
 }
 
@@ -1505,11 +1527,7 @@ void markMisfit(std::vector<DamageRegion>& regions, const cv::Mat& tissueMask,
     const cv::Size size = tissueMask.size();
     const int r = std::max(1, static_cast<int>(std::lround(params.slackFrac * brainWidthPx)));
     const auto inMasks = [&](const DamageRegion& d) {
-        std::vector<cv::Point> poly;
-        for (const cv::Point2f& p : d.polygon)
-            poly.emplace_back(cvRound((p.x + 0.5) * polygonScale - 0.5),
-                              cvRound((p.y + 0.5) * polygonScale - 0.5));
-        return poly;
+        return pixelPolygon(d.polygon, polygonScale);
     };
     // Misplaced tissue: the section's tissue where the atlas expects none, beyond the slack
     // (the expected tissue grown by it, as the gaps are found in it shrunk by it, so that slack
@@ -1550,9 +1568,7 @@ void markMisfit(std::vector<DamageRegion>& regions, const cv::Mat& tissueMask,
         const cv::Rect roi = grown(cv::boundingRect(poly), reach + 1, size);
         if (roi.area() <= 0)
             continue;
-        cv::Mat gap = cv::Mat::zeros(roi.size(), CV_8U);
-        cv::fillPoly(gap, std::vector<std::vector<cv::Point>>{poly}, cv::Scalar(255), cv::LINE_8, 0,
-                     -roi.tl());
+        const cv::Mat gap = polygonMask(poly, roi);
         const double gapArea = cv::countNonZero(gap);
         if (gapArea <= 0)
             continue;

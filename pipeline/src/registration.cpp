@@ -543,17 +543,13 @@ void dropMirroredGaps(std::vector<DamageRegion>& regions, const Registration& re
     std::vector<DamageRegion> kept;
     for (DamageRegion& d : regions) {
         if (d.kind != DamageKind::Fold) {
-            std::vector<cv::Point> poly;
-            for (const cv::Point2f& p : d.polygon)
-                poly.emplace_back(cvRound((p.x + 0.5) * s - 0.5), cvRound((p.y + 0.5) * s - 0.5));
+            const std::vector<cv::Point> poly = pixelPolygon(d.polygon, s);
             // The gap in its box (the maps cut alike), not on the whole image.
             const cv::Rect box = poly.empty() ? cv::Rect()
                                               : (cv::boundingRect(poly) + cv::Size(1, 1)) &
                                                     cv::Rect(0, 0, tissue.cols, tissue.rows);
             if (poly.size() >= 3 && box.area() > 0) {
-                cv::Mat mask = cv::Mat::zeros(box.size(), CV_8U);
-                cv::fillPoly(mask, std::vector<std::vector<cv::Point>>{poly}, cv::Scalar(255),
-                             cv::LINE_8, 0, -box.tl());
+                const cv::Mat mask = polygonMask(poly, box);
                 const cv::Mat bx = ax(box), by = ay(box);
                 // A gap's twin shows glass; a piece lying apart has a twin of tissue (the
                 // other side's cortex apart from the brain stem, caudally).
@@ -1205,10 +1201,7 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
                                                         options.damage.crackDarkness));
             cv::Mat known = cv::Mat::zeros(crackSize, CV_8U);
             for (const DamageRegion& d : regions) {
-                std::vector<cv::Point> poly;
-                for (const cv::Point2f& p : d.polygon)
-                    poly.emplace_back(cvRound((p.x + 0.5) * crackScale - 0.5),
-                                      cvRound((p.y + 0.5) * crackScale - 0.5));
+                const std::vector<cv::Point> poly = pixelPolygon(d.polygon, crackScale);
                 if (poly.size() >= 3)
                     cv::fillPoly(known, std::vector<std::vector<cv::Point>>{poly}, cv::Scalar(255));
             }

@@ -1312,4 +1312,20 @@ core::Result<GeneratedSection> generateSection(const cv::Mat& atlasLabels,
     }
 }
 
+std::string_view toString(DamageKind kind) noexcept {
+    switch (kind) {
+    case DamageKind::Tear:
+        return "tear";
+    case DamageKind::Missing:
+        return "missing";
+    case DamageKind::Fragment:
+        return "fragment";
+    case DamageKind::Fold:
+        return "fold";
+    case DamageKind::Chatter:
+        return "chatter";
+    }
+    return "?";
+}
+
 } // namespace slicestation::sim

@@ -30,24 +30,6 @@ using namespace slicestation;
 
 namespace {
 
-/// The generator's name for a true damage region's kind (family 2's cracks come as tears, its
-/// bites and folds as missing tissue: the place the flap or piece left).
-const char* trueKindName(sim::DamageKind kind) {
-    switch (kind) {
-    case sim::DamageKind::Tear:
-        return "tear";
-    case sim::DamageKind::Missing:
-        return "missing";
-    case sim::DamageKind::Fragment:
-        return "fragment";
-    case sim::DamageKind::Fold:
-        return "fold";
-    case sim::DamageKind::Chatter:
-        return "chatter";
-    }
-    return "?";
-}
-
 /// Damage detection outcome of one case (ours only).
 struct DamageRow {
     bool truth = false, flagged = false;
@@ -801,7 +783,7 @@ int main(int argc, char** argv) {
                     ++d.overlapped;
                 else if (listMissed)
                     std::printf("missed region: %s case %d, %s of %d px (section %s)\n",
-                                family.c_str(), c.index, trueKindName(t.kind), area,
+                                family.c_str(), c.index, sim::toString(t.kind).data(), area,
                                 reg->damaged ? "flagged" : "not flagged");
             }
             damageRows[family].push_back(d);

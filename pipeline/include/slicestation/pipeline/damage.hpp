@@ -215,6 +215,14 @@ struct Midline {
     cv::Point2f a, b;
 };
 
+/// A region's polygon (in its frame's pixels) in pixels of a frame `scale` times as fine (the
+/// pixel centres kept: (p + 0.5) scale - 0.5, as cv::resize aligns them), rounded.
+std::vector<cv::Point> pixelPolygon(const std::vector<cv::Point2f>& polygon, double scale);
+
+/// `poly` (at least 3 points) filled in a mask (CV_8U) of `box`'s size, `box` giving the mask's
+/// place in the polygon's frame.
+cv::Mat polygonMask(const std::vector<cv::Point>& poly, cv::Rect box);
+
 /// Removes the gaps (Tear, Missing; polygons in the midline's pixels) no thicker than
 /// `maxThicknessPx` (a crack's width) lying along the midline: at least 70% of the gap within
 /// `ringPx` of it and its principal axis within 20 degrees of it, as thinCracks leaves out

@@ -20,6 +20,7 @@
 #include <opencv2/core/types.hpp>
 
 #include <cstdint>
+#include <string_view>
 #include <vector>
 
 namespace slicestation::sim {
@@ -86,6 +87,7 @@ struct GeneratorOptions {
 
 /// Crack and torn ventricle appear as Tear, the small fragment as Fragment.
 enum class DamageKind { Tear, Missing, Fragment, Fold, Chatter };
+std::string_view toString(DamageKind kind) noexcept; ///< "tear", "missing", ...
 
 struct DamageRegion {
     DamageKind kind;
