@@ -1486,6 +1486,58 @@ double novelty(const DamageRegion& region) {
 }
 } // namespace
 
+std::vector<DamageRegion> followedGaps(std::vector<DamageRegion> againstAffine,
+                                       const std::vector<DamageRegion>& found,
+                                       const cv::Mat& damagedOutline, const Midline& midline,
+                                       double midlineRingPx, const DamageParams& params) {
+    std::vector<DamageRegion> out;
+    if (!params.followedBites || damagedOutline.empty() || againstAffine.empty())
+        return out;
+    CV_Assert(damagedOutline.type() == CV_8U);
+    const cv::Size size = damagedOutline.size();
+    const auto isGap = [](const DamageRegion& d) {
+        return d.kind == DamageKind::Tear || d.kind == DamageKind::Missing;
+    };
+    cv::Mat foundGaps = cv::Mat::zeros(size, CV_8U);
+    for (const DamageRegion& d : found)
+        if (const std::vector<cv::Point> poly = pixelPolygon(d.polygon, 1.0);
+            isGap(d) && poly.size() >= 3)
+            cv::fillPoly(foundGaps, std::vector<std::vector<cv::Point>>{poly}, cv::Scalar(255));
+    const cv::Rect frame(cv::Point(0, 0), size);
+    for (DamageRegion& d : againstAffine) {
+        // Only a gap along the outline: the outline pull and the warps follow the outline, not
+        // a hole inside the tissue, which the final map's own gap pass judges.
+        if (!isGap(d) || d.openShare <= params.alongOutlineShare)
+            continue;
+        if (midline.a != midline.b) {
+            const cv::Point2f along = midline.b - midline.a;
+            const double length = cv::norm(along);
+            double lo = std::numeric_limits<double>::max(), hi = -lo;
+            for (const cv::Point2f& p : d.polygon) {
+                const double side = along.cross(p - midline.a) / length;
+                lo = std::min(lo, side);
+                hi = std::max(hi, side);
+            }
+            if (lo <= midlineRingPx && hi >= -midlineRingPx)
+                continue;
+        }
+        const std::vector<cv::Point> poly = pixelPolygon(d.polygon, 1.0);
+        const cv::Rect box = poly.size() < 3 ? cv::Rect() : cv::boundingRect(poly) & frame;
+        if (box.area() <= 0)
+            continue;
+        const cv::Mat mask = polygonMask(poly, box);
+        const double area = cv::countNonZero(mask);
+        // Where the outline is a deep asymmetric concavity (Algorithm 2): a piece lost from the
+        // edge leaves one; an outline merely shaped otherwise than the atlas's does not.
+        if (area <= 0 || cv::countNonZero(mask & foundGaps(box)) > 0.1 * area ||
+            cv::countNonZero(mask & damagedOutline(box)) == 0)
+            continue;
+        d.followed = true;
+        out.push_back(std::move(d));
+    }
+    return out;
+}
+
 double damageEvidence(const DamageRegion& region, double brainWidthPx, const DamageParams& params) {
     double e = params.damagedShare > 0 ? region.share / params.damagedShare : 0;
     if (region.kind == DamageKind::Tear && brainWidthPx > 0 && params.deepTearFrac > 0 &&

@@ -20,6 +20,7 @@
 #include <functional>
 #include <limits>
 #include <optional>
+#include <utility>
 
 namespace slicestation::pipeline {
 namespace {
@@ -1150,21 +1151,40 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         // lobe cut apart), not glass.
         const cv::Mat sectionTissue =
             prepared->tissueMaskFine | piecesInside(prepared->smallPiecesFine, expectedBrain, 0.7);
-        // Gaps and fold bands do not depend on each other: side by side.
-        std::vector<DamageRegion> regions, folds;
-        runTasks(2, [&](int task) {
+        // The same against the ICP affine alone (DamageParams::followedBites): the outline pull
+        // and the warps bend the atlas onto a cut edge, the affine cannot.
+        const auto underAffine = [&reg](auto&& f) {
+            DisplacementField warp = std::exchange(reg.warp, DisplacementField());
+            f();
+            reg.warp = std::move(warp);
+        };
+        // Only where Algorithm 2 found a deep asymmetric concavity (followedGaps asks for one).
+        const bool lookForBites = options.damage.followedBites && !damagedOutline.empty() &&
+                                  cv::countNonZero(damagedOutline) > 0;
+        AtlasExpectation expectedAffine;
+        if (lookForBites)
+            underAffine([&] {
+                const cv::Mat seenA = reg.warpedLabels(atlasLabels, reg.workingGrey.size());
+                const cv::Mat brainA = seenA != 0;
+                expectedAffine.brain = brainA;
+                expectedAffine.tissue = brainA & ~(partMap(seenA, {options.ventricleIds}) != 0);
+                if (options.separateParts.size() > 1)
+                    expectedAffine.parts = partMap(seenA, options.separateParts);
+            });
+        // Gaps, fold bands and the gaps against the affine do not depend on each other: side by
+        // side.
+        std::vector<DamageRegion> regions, folds, affineGaps;
+        runTasks(lookForBites ? 3 : 2, [&](int task) {
             if (task == 0)
                 regions = tissueDamage(sectionTissue, expected, brainWidth, options.damage,
                                        fragments, reg.workingGrey);
-            else
+            else if (task == 1)
                 folds = foldBands(reg.workingGrey, sectionTissue, expected.tissue, seen, brainWidth,
                                   options.damage);
+            else
+                affineGaps = tissueDamage(sectionTissue, expectedAffine, brainWidth, options.damage,
+                                          fragments, reg.workingGrey);
         });
-        for (DamageRegion& d : folds)
-            regions.push_back(std::move(d));
-        // Report in full-resolution pixels.
-        const double s = reg.workingScale;
-        toFullPixels(regions, s);
         // The atlas midline (the brain's centroid column), into the image by the affine: the
         // longitudinal fissure and the third ventricle lie along it.
         Midline midline;
@@ -1175,6 +1195,16 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
             const cv::Point2d b = apply(imageFromAtlas, cv::Point2d(mx, atlasLabels.rows));
             midline = {cv::Point2f(a), cv::Point2f(b)};
         }
+        const auto ws = static_cast<float>(reg.workingScale);
+        std::vector<DamageRegion> followed = followedGaps(
+            std::move(affineGaps), regions, damagedOutline, Midline{midline.a * ws, midline.b * ws},
+            options.damage.fissureRingFrac * brainWidth, options.damage);
+        for (DamageRegion& d : folds)
+            regions.push_back(std::move(d));
+        // Report in full-resolution pixels.
+        const double s = reg.workingScale;
+        toFullPixels(regions, s);
+        toFullPixels(followed, s);
         // Gaps no wider than a crack along it are that fissure, as for the cracks below.
         dropAlongMidline(regions, midline, options.damage.fissureRingFrac * brainWidth / s,
                          options.damage.crackMaxWidthPx / crackScale);
@@ -1226,6 +1256,19 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         // Misfit is not damage: a gap with tissue beside it where the atlas expects none lies
         // where the atlas fit cannot be trusted (markMisfit, in working px).
         markMisfit(regions, sectionTissue, expected, brainWidth, options.damage, fragments, s);
+        // A bite the warp followed is judged as the affine placed the atlas: its twin across the
+        // midline and misplaced tissue beside it (an affine that is merely off leaves a crescent
+        // of tissue beyond its outline, as any misplaced boundary does).
+        if (!followed.empty()) {
+            underAffine([&] {
+                dropMirroredGaps(followed, reg, sectionTissue, atlasMask, brainWidth,
+                                 options.damage);
+            });
+            markMisfit(followed, sectionTissue, expectedAffine, brainWidth, options.damage,
+                       fragments, s);
+            for (DamageRegion& d : followed)
+                regions.push_back(std::move(d));
+        }
         const DamageDecision decision = decideDamage(regions, brainWidth / s, options.damage);
         reg.damageScore = decision.score;
         reg.damageVerdict = decision.verdict;

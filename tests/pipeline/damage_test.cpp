@@ -815,6 +815,53 @@ TEST(Damage, ASlitAlongTheMidlineIsTheFissureButAWiderGapThereIsJudged) {
     EXPECT_EQ(unknown.size(), 4u) << "no midline, nothing removed";
 }
 
+TEST(Damage, ABiteTheWarpFollowedIsAGapAgainstTheAffineAtADeepConcavity) {
+    // The atlas under the affine: the whole ellipse. The section lost a bite from its right
+    // edge, and the final map bent the atlas onto the cut, so against it nothing is missing.
+    const cv::Size size(600, 400);
+    const cv::Mat atlas = ellipseMask(size, {300, 200}, {250, 160});
+    cv::Mat tissue = atlas.clone();
+    cv::circle(tissue, {550, 200}, 60, cv::Scalar(0), cv::FILLED);
+    const DamageParams p;
+    const AtlasExpectation affine{atlas, atlas, {}};
+    const std::vector<DamageRegion> againstAffine = tissueDamage(tissue, affine, 500, p);
+    ASSERT_FALSE(againstAffine.empty());
+    const std::vector<DamageRegion> found = tissueDamage(tissue, {tissue, tissue, {}}, 500, p);
+    EXPECT_TRUE(found.empty()) << "the final map left no gap";
+    // Algorithm 2's damage candidates: the bite is a deep concavity without a mirrored partner.
+    const Outline outline = tissueOutline(tissue);
+    auto concavities = deepConcavities(outline, 0.05 * 500);
+    const cv::Matx23d mirror(-1, 0, 600 - 1, 0, 1, 0);
+    markSymmetric(concavities, outline, mirror, 500, p);
+    const cv::Mat damagedOutline = concavityExclusion(concavities, size, 10);
+    ASSERT_GT(damagedOutline.at<uchar>(200, 520), 0);
+    const Midline midline{{299.5f, 0}, {299.5f, 400}};
+    const std::vector<DamageRegion> bites =
+        followedGaps(againstAffine, found, damagedOutline, midline, 15, p);
+    ASSERT_EQ(bites.size(), 1u);
+    EXPECT_TRUE(bites[0].followed);
+    EXPECT_GT(bites[0].openShare, p.alongOutlineShare);
+    EXPECT_GT(bites[0].share, 0.02);
+    std::vector<DamageRegion> decided = bites;
+    EXPECT_EQ(decideDamage(decided, 500, p).verdict, DamageVerdict::Damaged);
+    // Not where the outline has no damaged concavity: an outline shaped otherwise than the
+    // atlas's.
+    EXPECT_TRUE(
+        followedGaps(againstAffine, found, cv::Mat::zeros(size, CV_8U), midline, 15, p).empty());
+    // Not where the midline runs through it (the cleft between the hemispheres) or passes
+    // within the ring.
+    EXPECT_TRUE(
+        followedGaps(againstAffine, found, damagedOutline, {{550, 0}, {550, 400}}, 15, p).empty());
+    EXPECT_TRUE(
+        followedGaps(againstAffine, found, damagedOutline, {{480, 0}, {480, 400}}, 15, p).empty());
+    // Not twice: the final map's own gap there.
+    EXPECT_TRUE(followedGaps(againstAffine, againstAffine, damagedOutline, midline, 15, p).empty());
+    // Off: nothing.
+    DamageParams off = p;
+    off.followedBites = false;
+    EXPECT_TRUE(followedGaps(againstAffine, found, damagedOutline, midline, 15, off).empty());
+}
+
 TEST(Damage, TrustedDamageDecidesWhateverMisfitLiesBesideIt) {
     const MisfitScene scene;
     const DamageParams p;

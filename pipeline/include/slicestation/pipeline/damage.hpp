@@ -62,6 +62,10 @@ struct DamageRegion {
     /// leave such a line; only a thin gap of the atlas (a fissure, a narrow ventricle) placed
     /// wrong can (markMisfit).
     bool crack = false;
+    /// Found against the ICP affine alone, where the final map left no gap: a piece lost from
+    /// the edge whose cut the outline pull and the warps bent the atlas onto
+    /// (DamageParams::followedBites; its mirror and misfit are judged under the affine too).
+    bool followed = false;
 };
 
 /// Lengths are fractions of the brain width (the OBB's major extent of the section), so the rule
@@ -154,6 +158,13 @@ struct DamageParams {
     /// its bilateral ventricle gaps (crackPieceFrac; docs/damage.md, "Bilateral anatomy" and "A
     /// crack followed where it narrows").
     bool leaveOutMirroredGaps = true;
+    /// Also look for gaps along the outline (over alongOutlineShare of their rim on the outside
+    /// glass, with the gap rules' own depth and shape limits) against the ICP affine alone, and
+    /// report those the final map closed (DamageRegion::followed). The outline pull and the
+    /// warps follow the section's outline, a cut edge included, so a bite leaves no gap against
+    /// the final map; the affine, fitted with the deep concavities left out (paper Algorithm 2),
+    /// cannot bend into it (docs/damage.md, "Bites the warp followed").
+    bool followedBites = true;
     /// The section is flagged when its damage score reaches this (a station setting; 0.5 is the
     /// documented decision line of damagedShare and deepTearFrac).
     double flagScore = 0.5;
@@ -245,6 +256,20 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const AtlasExp
                                        double brainWidthPx, const DamageParams& params,
                                        const cv::Mat& knownFragments = cv::Mat(),
                                        const cv::Mat& grey = cv::Mat());
+
+/// Bites the final map followed (DamageParams::followedBites): of `againstAffine` (tissueDamage
+/// against the ICP affine alone), the gaps (Tear, Missing) along the outline, over
+/// params.alongOutlineShare of their rim on the outside glass, that reach a deep asymmetric
+/// concavity of the section's outline (`damagedOutline`, concavityExclusion: the paper's damage
+/// candidates, CV_8U), that the midline does not cross (a notch there is the cleft between the
+/// hemispheres, as deep as the brain was pressed together) and that share at most a tenth of
+/// their area with a gap of `found` (tissueDamage against the final map; all in the pixels of
+/// `damagedOutline`), marked DamageRegion::followed. Empty when params.followedBites is off or
+/// `damagedOutline` is empty.
+std::vector<DamageRegion> followedGaps(std::vector<DamageRegion> againstAffine,
+                                       const std::vector<DamageRegion>& found,
+                                       const cv::Mat& damagedOutline, const Midline& midline,
+                                       double midlineRingPx, const DamageParams& params);
 
 /// Thin cracks at full resolution: lines of glass a few pixels wide crossing the tissue, where
 /// the section split and the slide shows through. A pixel is glass when its lightly blurred
