@@ -809,9 +809,16 @@ void dropAlongMidline(std::vector<DamageRegion>& regions, const Midline& midline
     if (midline.a == midline.b)
         return;
     const int ring = std::max(1, static_cast<int>(std::lround(ringPx)));
+    const cv::Point2f dir = midline.b - midline.a;
+    const double dirLength = std::hypot(dir.x, dir.y);
     std::erase_if(regions, [&](const DamageRegion& d) {
-        if ((d.kind != DamageKind::Tear && d.kind != DamageKind::Missing) || d.polygon.size() < 3 ||
-            d.thicknessPx > maxThicknessPx)
+        if ((d.kind != DamageKind::Tear && d.kind != DamageKind::Missing) || d.polygon.size() < 3)
+            return false;
+        if (d.alongVentricle && dirLength > 0)
+            for (const cv::Point2f& p : d.polygon)
+                if (std::abs(dir.cross(p - midline.a)) / dirLength <= ring)
+                    return true;
+        if (d.thicknessPx > maxThicknessPx)
             return false;
         const std::vector<cv::Point> poly = pixelPolygon(d.polygon, 1.0);
         const cv::Rect box = cv::boundingRect(poly) + cv::Size(1, 1);
@@ -1226,6 +1233,11 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const AtlasExp
         return crackLength(labels(roi) == id, gapThreads(thin, deficit(roi)));
     };
     const cv::Mat outside = ~fillHoles(tissueMask);
+    // The glass the section shows inside the mapped ventricles, and within the slack of them:
+    // a ventricle's own lumen.
+    cv::Mat ventricleGlass;
+    cv::dilate(expected.brain & ~expectedTissue, ventricleGlass, disc);
+    ventricleGlass &= ~tissueMask;
     // The glass outside the section: its level and noise, to tell glass showing through a gap
     // from dim tissue (a pale fibre tract) that the tissue mask left out.
     float glassMedian = 0, glassNoise = 0, tissueMedian = 0;
@@ -1286,6 +1298,15 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const AtlasExp
         // it is wide, and a lobe lost whole leaves a gap with glass all round.
         if (alongOutline && openShare < 0.75 && length >= params.bandElongation * 2 * thickness)
             continue;
+        // The same inside: a long band along a ventricle's lumen (much of its rim on the glass
+        // the section shows in the mapped ventricle) is the ventricle's wall lying farther out
+        // than the atlas's, a ventricle wider than the atlas's (enlarged, or its wall placed
+        // wrong), not lost tissue; a wall torn open leaves a wedge running away from the
+        // lumen, which touches it only at its mouth.
+        const bool alongVentricle =
+            length >= params.bandElongation * 2 * thickness &&
+            cv::countNonZero(rim & ventricleGlass(roi)) >
+                params.alongOutlineShare * std::max(1.0, double(cv::countNonZero(rim)));
         // Glass shows through lost tissue; a gap at a level clearly above the glass is dim tissue
         // (a pale fibre tract, unstained white matter) that the tissue mask left out.
         double levelShare = 0, levelNoiseUnits = 0;
@@ -1310,6 +1331,7 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const AtlasExp
         // A crack narrows to a thread; its length runs to the thread's end.
         d.lengthPx = d.kind == DamageKind::Tear ? crackLengthOf(labels, i, bounds) : length;
         d.openShare = openShare;
+        d.alongVentricle = alongVentricle;
         d.thicknessPx = 2 * thickness;
         d.levelShare = levelShare;
         d.levelNoiseUnits = levelNoiseUnits;

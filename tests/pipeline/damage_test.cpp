@@ -815,6 +815,42 @@ TEST(Damage, ASlitAlongTheMidlineIsTheFissureButAWiderGapThereIsJudged) {
     EXPECT_EQ(unknown.size(), 4u) << "no midline, nothing removed";
 }
 
+TEST(Damage, AVentricleWiderThanTheAtlasIsABandAlongItsLumenNotATear) {
+    // The atlas: an ellipse of tissue with a ventricle on the midline (x = 300), 10 px wide. The
+    // section's ventricle is 16 px wider to the left (a band of glass about 13 px wide beyond the
+    // slack, along its left wall); a wedge torn out of its right wall runs away from it.
+    const cv::Size size(600, 400);
+    const cv::Mat brain = ellipseMask(size, {300, 200}, {250, 160});
+    cv::Mat ventricle = cv::Mat::zeros(size, CV_8U);
+    cv::rectangle(ventricle, cv::Rect(295, 120, 10, 120), cv::Scalar(255), cv::FILLED);
+    const AtlasExpectation expected{brain & ~ventricle, brain, {}};
+    cv::Mat tissue = brain.clone();
+    cv::rectangle(tissue, cv::Rect(279, 118, 26, 124), cv::Scalar(0), cv::FILLED);
+    cv::fillPoly(tissue, std::vector<std::vector<cv::Point>>{{{303, 150}, {400, 160}, {303, 170}}},
+                 cv::Scalar(0));
+    const DamageParams p;
+    std::vector<DamageRegion> regions = tissueDamage(tissue, expected, 500, p);
+    int bands = 0, wedges = 0;
+    for (const DamageRegion& r : regions) {
+        if (r.alongVentricle)
+            ++bands;
+        else if (r.polygon[0].x > 305)
+            ++wedges;
+    }
+    EXPECT_EQ(bands, 1) << "the wider ventricle's left side";
+    EXPECT_EQ(wedges, 1) << "the wedge touches the lumen only at its mouth";
+    // On the midline the bands go; the wedge stays.
+    std::vector<DamageRegion> onMidline = regions;
+    dropAlongMidline(onMidline, Midline{{300, 0}, {300, 400}}, 15, 3);
+    ASSERT_EQ(onMidline.size(), std::size_t(wedges));
+    EXPECT_FALSE(onMidline[0].alongVentricle);
+    // A ventricle band far from the midline is judged as any gap (the mirror rule and the
+    // series decide there).
+    std::vector<DamageRegion> farAway = regions;
+    dropAlongMidline(farAway, Midline{{100, 0}, {100, 400}}, 15, 3);
+    EXPECT_EQ(farAway.size(), regions.size());
+}
+
 TEST(Damage, ABiteTheWarpFollowedIsAGapAgainstTheAffineAtADeepConcavity) {
     // The atlas under the affine: the whole ellipse. The section lost a bite from its right
     // edge, and the final map bent the atlas onto the cut, so against it nothing is missing.

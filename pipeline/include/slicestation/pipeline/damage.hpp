@@ -28,7 +28,12 @@ struct DamageRegion {
     double share = 0;                 ///< area / area of the section's tissue
     double lengthPx = 0;              ///< longest extent (a tear's depth)
     double openShare = 0;             ///< gaps: share of the rim on the glass outside the section
-    double thicknessPx = 0;           ///< gaps: twice the largest inscribed radius
+    /// Gaps: a band along a ventricle's lumen (over DamageParams::alongOutlineShare of the rim on
+    /// the glass the section shows in the mapped ventricle, within the slack, and at least
+    /// bandElongation times longer than thick): the ventricle's wall lying farther out than the
+    /// atlas's (dropAlongMidline leaves such bands out where they reach the midline).
+    bool alongVentricle = false;
+    double thicknessPx = 0; ///< gaps: twice the largest inscribed radius
     /// Gaps, where the grey image is known: the median grey level inside the gap above the
     /// glass outside the section, as a share of the span from the glass to the median tissue
     /// (0 = glass, 1 = typical tissue), and in units of the glass noise (robust spread of the
@@ -239,7 +244,10 @@ cv::Mat polygonMask(const std::vector<cv::Point>& poly, cv::Rect box);
 /// `ringPx` of it and its principal axis within 20 degrees of it, as thinCracks leaves out
 /// lines there. A slit on the midline is the longitudinal fissure (or the third ventricle)
 /// opened, and its mirror image is itself, so the mirror test cannot judge it; a wider gap (a
-/// ventricle torn open along the midline) is judged as any other. Nothing is removed when the
+/// ventricle torn open along the midline) is judged as any other. Also removes, whatever their
+/// thickness, the bands along a ventricle's lumen (DamageRegion::alongVentricle) that reach
+/// within `ringPx` of the midline: the midline's ventricles (the third, the lateral ones beside
+/// the septum) wider than the atlas's, each its own mirror image. Nothing is removed when the
 /// midline is unknown (a == b).
 void dropAlongMidline(std::vector<DamageRegion>& regions, const Midline& midline, double ringPx,
                       double maxThicknessPx);
