@@ -353,6 +353,29 @@ cv::Mat concavityExclusion(const std::vector<Concavity>& concavities, cv::Size s
 }
 
 namespace {
+/// A gap: glass where the atlas expects tissue (Tear, Missing), not a piece or a fold.
+bool isGap(const DamageRegion& d) {
+    return d.kind == DamageKind::Tear || d.kind == DamageKind::Missing;
+}
+
+/// Whether a polygon reaches within `ringPx` of the midline's line or crosses it (its vertices'
+/// signed distances to the line span [-ringPx, ringPx] or more). False when the midline is
+/// unknown (a == b).
+bool reachesMidline(const std::vector<cv::Point2f>& polygon, const Midline& midline,
+                    double ringPx) {
+    const cv::Point2f along = midline.b - midline.a;
+    const double length = std::hypot(along.x, along.y);
+    if (length <= 0 || polygon.empty())
+        return false;
+    double lo = std::numeric_limits<double>::max(), hi = -lo;
+    for (const cv::Point2f& p : polygon) {
+        const double side = along.cross(p - midline.a) / length;
+        lo = std::min(lo, side);
+        hi = std::max(hi, side);
+    }
+    return lo <= ringPx && hi >= -ringPx;
+}
+
 /// Whether a region (CV_8U, its top-left at `offset`) runs along the expected midline: at least
 /// 70% of its pixels within `ringPx` of it and its principal axis within 20 degrees of it.
 bool alongMidline(const cv::Mat& region, cv::Point offset, const Midline& midline, int ringPx) {
@@ -809,15 +832,11 @@ void dropAlongMidline(std::vector<DamageRegion>& regions, const Midline& midline
     if (midline.a == midline.b)
         return;
     const int ring = std::max(1, static_cast<int>(std::lround(ringPx)));
-    const cv::Point2f dir = midline.b - midline.a;
-    const double dirLength = std::hypot(dir.x, dir.y);
     std::erase_if(regions, [&](const DamageRegion& d) {
-        if ((d.kind != DamageKind::Tear && d.kind != DamageKind::Missing) || d.polygon.size() < 3)
+        if (!isGap(d) || d.polygon.size() < 3)
             return false;
-        if (d.alongVentricle && dirLength > 0)
-            for (const cv::Point2f& p : d.polygon)
-                if (std::abs(dir.cross(p - midline.a)) / dirLength <= ring)
-                    return true;
+        if (d.alongVentricle && reachesMidline(d.polygon, midline, ring))
+            return true;
         if (d.thicknessPx > maxThicknessPx)
             return false;
         const std::vector<cv::Point> poly = pixelPolygon(d.polygon, 1.0);
@@ -1283,8 +1302,8 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const AtlasExp
         cv::Mat rim = dilateEllipse(
             region, cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * r + 5, 2 * r + 5)));
         rim &= ~region;
-        const double openShare =
-            cv::countNonZero(rim & outside(roi)) / std::max(1.0, double(cv::countNonZero(rim)));
+        const double rimArea = std::max(1.0, double(cv::countNonZero(rim)));
+        const double openShare = cv::countNonZero(rim & outside(roi)) / rimArea;
         cv::Mat dist;
         cv::distanceTransform(region, dist, cv::DIST_L2, 3);
         double thickness = 0;
@@ -1305,8 +1324,7 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const AtlasExp
         // lumen, which touches it only at its mouth.
         const bool alongVentricle =
             length >= params.bandElongation * 2 * thickness &&
-            cv::countNonZero(rim & ventricleGlass(roi)) >
-                params.alongOutlineShare * std::max(1.0, double(cv::countNonZero(rim)));
+            cv::countNonZero(rim & ventricleGlass(roi)) > params.alongOutlineShare * rimArea;
         // Glass shows through lost tissue; a gap at a level clearly above the glass is dim tissue
         // (a pale fibre tract, unstained white matter) that the tissue mask left out.
         double levelShare = 0, levelNoiseUnits = 0;
@@ -1517,9 +1535,6 @@ std::vector<DamageRegion> followedGaps(std::vector<DamageRegion> againstAffine,
         return out;
     CV_Assert(damagedOutline.type() == CV_8U);
     const cv::Size size = damagedOutline.size();
-    const auto isGap = [](const DamageRegion& d) {
-        return d.kind == DamageKind::Tear || d.kind == DamageKind::Missing;
-    };
     cv::Mat foundGaps = cv::Mat::zeros(size, CV_8U);
     for (const DamageRegion& d : found)
         if (const std::vector<cv::Point> poly = pixelPolygon(d.polygon, 1.0);
@@ -1529,20 +1544,9 @@ std::vector<DamageRegion> followedGaps(std::vector<DamageRegion> againstAffine,
     for (DamageRegion& d : againstAffine) {
         // Only a gap along the outline: the outline pull and the warps follow the outline, not
         // a hole inside the tissue, which the final map's own gap pass judges.
-        if (!isGap(d) || d.openShare <= params.alongOutlineShare)
+        if (!isGap(d) || d.openShare <= params.alongOutlineShare ||
+            reachesMidline(d.polygon, midline, midlineRingPx))
             continue;
-        if (midline.a != midline.b) {
-            const cv::Point2f along = midline.b - midline.a;
-            const double length = cv::norm(along);
-            double lo = std::numeric_limits<double>::max(), hi = -lo;
-            for (const cv::Point2f& p : d.polygon) {
-                const double side = along.cross(p - midline.a) / length;
-                lo = std::min(lo, side);
-                hi = std::max(hi, side);
-            }
-            if (lo <= midlineRingPx && hi >= -midlineRingPx)
-                continue;
-        }
         const std::vector<cv::Point> poly = pixelPolygon(d.polygon, 1.0);
         const cv::Rect box = poly.size() < 3 ? cv::Rect() : cv::boundingRect(poly) & frame;
         if (box.area() <= 0)
@@ -1624,7 +1628,7 @@ void markMisfit(std::vector<DamageRegion>& regions, const cv::Mat& tissueMask,
         }
     const cv::Mat inVentricle = excess & grownBrain;
     for (DamageRegion& d : regions) {
-        if (d.kind != DamageKind::Tear && d.kind != DamageKind::Missing)
+        if (!isGap(d))
             continue;
         const std::vector<cv::Point> poly = inMasks(d);
         if (poly.size() < 3)

@@ -1141,12 +1141,20 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
 
     if (options.detectDamage) {
         // Beyond the paper: tissue the atlas expects but the section lacks, and detached pieces.
+        // What the mapped atlas (labels seen in the working frame) expects: its brain, the brain
+        // without ventricles, and the parts apart across fissures.
+        const auto expectationOf = [&](const cv::Mat& labelsSeen) {
+            AtlasExpectation e;
+            e.brain = labelsSeen != 0;
+            e.tissue = e.brain & ~(partMap(labelsSeen, {options.ventricleIds}) != 0);
+            if (options.separateParts.size() > 1)
+                e.parts = partMap(labelsSeen, options.separateParts);
+            return e;
+        };
         const cv::Mat seen = reg.warpedLabels(atlasLabels, reg.workingGrey.size());
-        const cv::Mat expectedBrain = seen != 0;
-        const cv::Mat ventricles = partMap(seen, {options.ventricleIds}) != 0;
-        AtlasExpectation expected{expectedBrain & ~ventricles, expectedBrain, cv::Mat()};
-        if (options.separateParts.size() > 1)
-            expected.parts = partMap(seen, options.separateParts);
+        const AtlasExpectation expected = expectationOf(seen);
+        const cv::Mat& expectedBrain = expected.brain;
+        const cv::Mat ventricles = expectedBrain & ~expected.tissue;
         // Small pieces set aside as debris where the atlas expects brain are tissue there (a
         // lobe cut apart), not glass.
         const cv::Mat sectionTissue =
@@ -1164,12 +1172,8 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         AtlasExpectation expectedAffine;
         if (lookForBites)
             underAffine([&] {
-                const cv::Mat seenA = reg.warpedLabels(atlasLabels, reg.workingGrey.size());
-                const cv::Mat brainA = seenA != 0;
-                expectedAffine.brain = brainA;
-                expectedAffine.tissue = brainA & ~(partMap(seenA, {options.ventricleIds}) != 0);
-                if (options.separateParts.size() > 1)
-                    expectedAffine.parts = partMap(seenA, options.separateParts);
+                expectedAffine =
+                    expectationOf(reg.warpedLabels(atlasLabels, reg.workingGrey.size()));
             });
         // Gaps, fold bands and the gaps against the affine do not depend on each other: side by
         // side.
