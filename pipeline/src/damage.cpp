@@ -835,7 +835,7 @@ void dropAlongMidline(std::vector<DamageRegion>& regions, const Midline& midline
     std::erase_if(regions, [&](const DamageRegion& d) {
         if (!isGap(d) || d.polygon.size() < 3)
             return false;
-        if (d.alongVentricle && reachesMidline(d.polygon, midline, ring))
+        if ((d.alongVentricle || d.atCut) && reachesMidline(d.polygon, midline, ring))
             return true;
         if (d.thicknessPx > maxThicknessPx)
             return false;
@@ -1212,7 +1212,8 @@ double crackLength(const cv::Mat& region, const GapThreads& threads) {
 
 std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const AtlasExpectation& expected,
                                        double brainWidthPx, const DamageParams& params,
-                                       const cv::Mat& knownFragments, const cv::Mat& grey) {
+                                       const cv::Mat& knownFragments, const cv::Mat& grey,
+                                       const cv::Mat& cutOutline) {
     const cv::Mat& expectedTissue = expected.tissue;
     const cv::Mat& expectedBrain = expected.brain;
     CV_Assert(tissueMask.type() == CV_8U && expectedTissue.size() == tissueMask.size() &&
@@ -1309,14 +1310,23 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const AtlasExp
         double thickness = 0;
         cv::minMaxLoc(dist, nullptr, &thickness);
         const bool alongOutline = openShare > params.alongOutlineShare;
-        if (alongOutline && 2 * thickness < params.shallowFrac * brainWidthPx)
-            continue;
+        // Where the section's own outline shows a cut (a deep asymmetric concavity, Algorithm
+        // 2's damage candidates: `cutOutline`), the outline is not in doubt: a gap lying there
+        // is a piece lost from the edge however shallow, and is not an outline that did not
+        // bend (the section's outline turns in there, it does not run parallel). Only the
+        // registration slack, already taken off, applies.
+        const bool atCut = params.bitesAtCuts && !cutOutline.empty() &&
+                           cv::countNonZero(region & cutOutline(roi)) >= 0.5 * area;
+        const bool shallow = alongOutline && 2 * thickness < params.shallowFrac * brainWidthPx;
         // A long band along the outline, tissue along one side and glass along the other, is
         // an atlas outline lying parallel outside the section's own, a fit that did not bend
         // that far, not lost tissue: a piece lost from the edge leaves a bite about as deep as
         // it is wide, and a lobe lost whole leaves a gap with glass all round.
-        if (alongOutline && openShare < 0.75 && length >= params.bandElongation * 2 * thickness)
+        const bool band =
+            alongOutline && openShare < 0.75 && length >= params.bandElongation * 2 * thickness;
+        if ((shallow || band) && !atCut)
             continue;
+        const bool biteAtCut = shallow || band;
         // The same inside: a long band along a ventricle's lumen (much of its rim on the glass
         // the section shows in the mapped ventricle) is the ventricle's wall lying farther out
         // than the atlas's, a ventricle wider than the atlas's (enlarged, or its wall placed
@@ -1341,11 +1351,22 @@ std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const AtlasExp
             betweenParts(region, tissueParts(roi), ringPx, params.fissurePurity))
             continue;
         DamageRegion d;
-        d.kind = length / std::max(meanWidth, 1e-9) >= params.tearElongation ? DamageKind::Tear
-                                                                             : DamageKind::Missing;
+        // A bite kept at a cut is tissue missing from the edge: its evidence is its area (a
+        // tear's length is for a crack running into the tissue), and the slack band between it
+        // and the expected outline was lost with it.
+        d.kind = length / std::max(meanWidth, 1e-9) >= params.tearElongation && !biteAtCut
+                     ? DamageKind::Tear
+                     : DamageKind::Missing;
+        d.atCut = biteAtCut;
         d.polygon = polygonOf(region, roi.tl());
         d.areaPx = area;
-        d.share = area / tissueArea;
+        if (biteAtCut) {
+            const cv::Mat lost =
+                dilateEllipse(region, disc) & expectedTissue(roi) & ~tissueMask(roi);
+            d.polygon = polygonOf(lost, roi.tl());
+            d.areaPx = cv::countNonZero(lost);
+        }
+        d.share = d.areaPx / tissueArea;
         // A crack narrows to a thread; its length runs to the thread's end.
         d.lengthPx = d.kind == DamageKind::Tear ? crackLengthOf(labels, i, bounds) : length;
         d.openShare = openShare;

@@ -1181,13 +1181,13 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         runTasks(lookForBites ? 3 : 2, [&](int task) {
             if (task == 0)
                 regions = tissueDamage(sectionTissue, expected, brainWidth, options.damage,
-                                       fragments, reg.workingGrey);
+                                       fragments, reg.workingGrey, damagedOutline);
             else if (task == 1)
                 folds = foldBands(reg.workingGrey, sectionTissue, expected.tissue, seen, brainWidth,
                                   options.damage);
             else
                 affineGaps = tissueDamage(sectionTissue, expectedAffine, brainWidth, options.damage,
-                                          fragments, reg.workingGrey);
+                                          fragments, reg.workingGrey, damagedOutline);
         });
         // The atlas midline (the brain's centroid column), into the image by the affine: the
         // longitudinal fissure and the third ventricle lie along it.

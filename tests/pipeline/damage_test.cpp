@@ -898,6 +898,49 @@ TEST(Damage, ABiteTheWarpFollowedIsAGapAgainstTheAffineAtADeepConcavity) {
     EXPECT_TRUE(followedGaps(againstAffine, found, damagedOutline, midline, 15, off).empty());
 }
 
+TEST(Damage, AShallowBiteAtACutIsMissingTissueNotSlack) {
+    // A wide shallow piece lost from the right edge: 20 px deep (under shallowFrac of the width
+    // once the slack is taken off) and about seven times as long, so both the slack rule and
+    // the band rule take it for an outline that did not fit, unless the outline shows the cut.
+    const cv::Size size(600, 400);
+    const cv::Mat atlas = ellipseMask(size, {300, 200}, {250, 160});
+    const cv::Mat tissue = atlas & ~ellipseMask(size, {560, 200}, {30, 70});
+    const double trueArea = cv::countNonZero(atlas & ~tissue);
+    const AtlasExpectation expected{atlas, atlas, {}};
+    const DamageParams p;
+    EXPECT_TRUE(tissueDamage(tissue, expected, 500, p).empty()) << "no cut: slack";
+    // Where Algorithm 2 found the outline cut (painted here; concavityExclusion in the
+    // registration).
+    cv::Mat cut = cv::Mat::zeros(size, CV_8U);
+    cv::circle(cut, {545, 200}, 80, cv::Scalar(255), cv::FILLED);
+    std::vector<DamageRegion> regions = tissueDamage(tissue, expected, 500, p, {}, {}, cut);
+    ASSERT_EQ(regions.size(), 1u);
+    const DamageRegion& bite = regions[0];
+    EXPECT_TRUE(bite.atCut);
+    EXPECT_EQ(bite.kind, DamageKind::Missing) << "a piece lost from the edge, not a tear";
+    EXPECT_LT(bite.thicknessPx, p.shallowFrac * 500);
+    // Measured up to the expected outline: the slack band went with the piece.
+    EXPECT_GT(bite.areaPx, 0.8 * trueArea);
+    EXPECT_LT(bite.areaPx, 1.1 * trueArea);
+    std::vector<DamageRegion> decided = regions;
+    EXPECT_EQ(decideDamage(decided, 500, p).verdict, DamageVerdict::Damaged);
+    // A cut elsewhere on the outline says nothing of this stretch.
+    cv::Mat elsewhere = cv::Mat::zeros(size, CV_8U);
+    cv::circle(elsewhere, {55, 200}, 80, cv::Scalar(255), cv::FILLED);
+    EXPECT_TRUE(tissueDamage(tissue, expected, 500, p, {}, {}, elsewhere).empty());
+    // Off: slack, as before.
+    DamageParams off = p;
+    off.bitesAtCuts = false;
+    EXPECT_TRUE(tissueDamage(tissue, expected, 500, off, {}, {}, cut).empty());
+    // On the midline such a notch is the cleft between the hemispheres.
+    std::vector<DamageRegion> onMidline = regions;
+    dropAlongMidline(onMidline, Midline{{540, 0}, {540, 400}}, 15, 3);
+    EXPECT_TRUE(onMidline.empty());
+    std::vector<DamageRegion> awayFromIt = regions;
+    dropAlongMidline(awayFromIt, Midline{{300, 0}, {300, 400}}, 15, 3);
+    EXPECT_EQ(awayFromIt.size(), 1u);
+}
+
 TEST(Damage, TrustedDamageDecidesWhateverMisfitLiesBesideIt) {
     const MisfitScene scene;
     const DamageParams p;

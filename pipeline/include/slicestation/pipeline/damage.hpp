@@ -71,6 +71,11 @@ struct DamageRegion {
     /// the edge whose cut the outline pull and the warps bent the atlas onto
     /// (DamageParams::followedBites; its mirror and misfit are judged under the affine too).
     bool followed = false;
+    /// A gap along the outline the slack or band rule (DamageParams::shallowFrac,
+    /// bandElongation) would have left out, kept because it lies at a cut: a deep asymmetric
+    /// concavity of the section's own outline (DamageParams::bitesAtCuts). Always Missing, its
+    /// area taken up to the expected outline (the slack band was lost with it).
+    bool atCut = false;
 };
 
 /// Lengths are fractions of the brain width (the OBB's major extent of the section), so the rule
@@ -170,6 +175,12 @@ struct DamageParams {
     /// the final map; the affine, fitted with the deep concavities left out (paper Algorithm 2),
     /// cannot bend into it (docs/damage.md, "Bites the warp followed").
     bool followedBites = true;
+    /// Bites at a cut: where the section's own outline is a deep asymmetric concavity (paper
+    /// Algorithm 2's damage candidates, given to tissueDamage as `cutOutline`), a gap along the
+    /// outline is lost tissue however shallow or long: the slack (shallowFrac) and band
+    /// (bandElongation) rules, for an outline that is faint or did not fit, do not apply there
+    /// (DamageRegion::atCut; docs/damage.md, "Bites at a cut").
+    bool bitesAtCuts = true;
     /// The section is flagged when its damage score reaches this (a station setting; 0.5 is the
     /// documented decision line of damagedShare and deepTearFrac).
     double flagScore = 0.5;
@@ -247,8 +258,9 @@ cv::Mat polygonMask(const std::vector<cv::Point>& poly, cv::Rect box);
 /// ventricle torn open along the midline) is judged as any other. Also removes, whatever their
 /// thickness, the bands along a ventricle's lumen (DamageRegion::alongVentricle) that reach
 /// within `ringPx` of the midline: the midline's ventricles (the third, the lateral ones beside
-/// the septum) wider than the atlas's, each its own mirror image. Nothing is removed when the
-/// midline is unknown (a == b).
+/// the septum) wider than the atlas's, each its own mirror image; and the bites kept at a cut
+/// (DamageRegion::atCut) that reach that ring: a notch on the midline is the cleft between the
+/// hemispheres, as for followedGaps. Nothing is removed when the midline is unknown (a == b).
 void dropAlongMidline(std::vector<DamageRegion>& regions, const Midline& midline, double ringPx,
                       double maxThicknessPx);
 
@@ -260,10 +272,14 @@ void dropAlongMidline(std::vector<DamageRegion>& regions, const Midline& midline
 /// `knownFragments` (CV_8U or empty): pieces already found detached (see extraPieces); a piece
 /// mostly on them is a fragment wherever it lies. `grey` (CV_32F, tissue bright, or empty): the
 /// section, for the thin dark end of a crack (darkValleys), which counts to a tear's length.
+/// `cutOutline` (CV_8U or empty): where the section's outline is a deep asymmetric concavity
+/// (concavityExclusion); a gap at least half on it is a bite however shallow
+/// (DamageParams::bitesAtCuts).
 std::vector<DamageRegion> tissueDamage(const cv::Mat& tissueMask, const AtlasExpectation& expected,
                                        double brainWidthPx, const DamageParams& params,
                                        const cv::Mat& knownFragments = cv::Mat(),
-                                       const cv::Mat& grey = cv::Mat());
+                                       const cv::Mat& grey = cv::Mat(),
+                                       const cv::Mat& cutOutline = cv::Mat());
 
 /// Bites the final map followed (DamageParams::followedBites): of `againstAffine` (tissueDamage
 /// against the ICP affine alone), the gaps (Tear, Missing) along the outline, over
