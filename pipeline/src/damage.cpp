@@ -247,6 +247,8 @@ std::string_view toString(DamageKind kind) noexcept {
         return "fold";
     case DamageKind::Fragment:
         return "fragment";
+    case DamageKind::Chatter:
+        return "chatter";
     }
     return "unknown";
 }

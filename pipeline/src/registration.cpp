@@ -2,6 +2,7 @@
 
 #include "side_by_side.hpp"
 #include "slicestation/pipeline/affine.hpp"
+#include "slicestation/pipeline/chatter.hpp"
 #include "slicestation/pipeline/icp.hpp"
 #include "slicestation/pipeline/intensity_affine.hpp"
 #include "slicestation/pipeline/intensity_warp.hpp"
@@ -1175,17 +1176,18 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
                 expectedAffine =
                     expectationOf(reg.warpedLabels(atlasLabels, reg.workingGrey.size()));
             });
-        // Gaps, fold bands and the gaps against the affine do not depend on each other: side by
-        // side.
-        std::vector<DamageRegion> regions, folds, affineGaps;
+        // Gaps, fold bands and knife chatter, and the gaps against the affine, do not depend on
+        // each other: side by side.
+        std::vector<DamageRegion> regions, folds, affineGaps, chatter;
         runTasks(lookForBites ? 3 : 2, [&](int task) {
             if (task == 0)
                 regions = tissueDamage(sectionTissue, expected, brainWidth, options.damage,
                                        fragments, reg.workingGrey, damagedOutline);
-            else if (task == 1)
+            else if (task == 1) {
                 folds = foldBands(reg.workingGrey, sectionTissue, expected.tissue, seen, brainWidth,
                                   options.damage);
-            else
+                chatter = chatterBands(reg.workingGrey, sectionTissue, brainWidth, options.damage);
+            } else
                 affineGaps = tissueDamage(sectionTissue, expectedAffine, brainWidth, options.damage,
                                           fragments, reg.workingGrey, damagedOutline);
         });
@@ -1209,6 +1211,7 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         const double s = reg.workingScale;
         toFullPixels(regions, s);
         toFullPixels(followed, s);
+        toFullPixels(chatter, s);
         // Gaps no wider than a crack along it are that fissure, as for the cracks below.
         dropAlongMidline(regions, midline, options.damage.fissureRingFrac * brainWidth / s,
                          options.damage.crackMaxWidthPx / crackScale);
@@ -1273,6 +1276,9 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
             for (DamageRegion& d : followed)
                 regions.push_back(std::move(d));
         }
+        // Knife chatter is no gap: neither the mirror nor the misfit judges it.
+        for (DamageRegion& d : chatter)
+            regions.push_back(std::move(d));
         const DamageDecision decision = decideDamage(regions, brainWidth / s, options.damage);
         reg.damageScore = decision.score;
         reg.damageVerdict = decision.verdict;

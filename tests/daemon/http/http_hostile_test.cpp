@@ -19,6 +19,7 @@
 #include <poll.h>
 #include <sys/socket.h>
 
+#include <algorithm>
 #include <atomic>
 #include <chrono>
 #include <cstring>
@@ -409,8 +410,15 @@ TEST_F(HttpHostileTest, SlowAndIdleClientsDoNotHoldTheWorkers) {
         took.push_back(std::chrono::duration<double>(Clock::now() - t0).count());
         std::this_thread::sleep_for(50ms); // the normal client's pace
     }
+    // Held by a slow one, a request would wait for its cut-off (5 s). Each request stays well
+    // under that, and the typical one is answered at once: on a loaded 2-core machine one
+    // request in twenty has been seen to take about a second (the scheduler, not a held
+    // worker), so the median carries the tight bound.
+    std::vector<double> sorted = took;
+    std::sort(sorted.begin(), sorted.end());
+    EXPECT_LT(sorted[sorted.size() / 2], 0.5 * latencyBoundS()) << "the median request";
     for (std::size_t i = 0; i < took.size(); ++i)
-        EXPECT_LT(took[i], 0.5 * latencyBoundS()) << "request " << i;
+        EXPECT_LT(took[i], 2.5 * latencyBoundS()) << "request " << i;
     // The slow ones are still cut off after the head's 5 s, the silent ones after 5 s idle.
     const auto until =
         Clock::now() + 10s +

@@ -4,6 +4,7 @@
 
 #include <opencv2/core.hpp>
 
+#include <array>
 #include <cstdint>
 #include <string>
 #include <string_view>
@@ -11,7 +12,7 @@
 
 namespace slicestation::pipeline {
 
-enum class DamageKind { Tear, Missing, Fragment, Fold };
+enum class DamageKind { Tear, Missing, Fragment, Fold, Chatter };
 std::string_view toString(DamageKind kind) noexcept;
 
 /// What a section is, for the technician: clean; damaged (re-mount it); or "check the
@@ -144,6 +145,22 @@ struct DamageParams {
     /// the span from glass to tissue (a valley as deep as a thread's). Not fitted
     /// (docs/damage.md, "A crack followed where it narrows"). 0: no piece is collected.
     double crackPieceFrac = 0.025;
+    /// Knife chatter (chatterBands): the thickness swinging in parallel bands. A tile's
+    /// strongest period within these fractions of the brain width (the generator's chatter has
+    /// 1-2.5%, here with margin both ways; a real knife's period depends on its speed and how it
+    /// vibrates, and one much finer than 0.8% of a mouse brain, under some 80 um, is not looked
+    /// for),
+    std::array<double, 2> chatterPeriodFrac{0.008, 0.03};
+    /// its swing at least this (0.1: the thickness 10% above and below its mean; the level is
+    /// relative to a Gaussian mean over chatterLevelFrac of the width, tiles chatterTileFrac wide),
+    double chatterSwing = 0.1;
+    double chatterLevelFrac = 0.03;
+    double chatterTileFrac = 0.12;
+    /// and at least this many such tiles (overlapping by half) sharing the one frequency, 0: off;
+    int chatterTiles = 8;
+    /// and they at least this share of all the tiles that swing as much: the knife has one
+    /// period and direction, tissue's texture at the same scale scatters over every direction.
+    double chatterDominance = 0.5;
     /// Folds (foldBands): the band along the edge at least this many times as far above the
     /// glass as the same region behind it; 2 is tissue doubled, 1 none, 1.5 half way.
     double foldRatio = 1.5;
