@@ -1755,14 +1755,16 @@ std::string_view toString(DamageVerdict verdict) noexcept {
 std::string damageSummary(const std::vector<DamageRegion>& regions) {
     if (regions.empty())
         return "no damage found";
-    double share[4] = {0, 0, 0, 0};
-    int count[4] = {0, 0, 0, 0};
+    // Every kind, in the order of DamageKind (Chatter is the last).
+    constexpr int kinds = static_cast<int>(DamageKind::Chatter) + 1;
+    std::array<double, kinds> share{};
+    std::array<int, kinds> count{};
     for (const DamageRegion& r : regions) {
-        share[static_cast<int>(r.kind)] += r.share;
-        ++count[static_cast<int>(r.kind)];
+        share[static_cast<std::size_t>(r.kind)] += r.share;
+        ++count[static_cast<std::size_t>(r.kind)];
     }
     std::string s;
-    for (int k = 0; k < 4; ++k) {
+    for (std::size_t k = 0; k < share.size(); ++k) {
         if (!count[k])
             continue;
         char buf[96];

@@ -56,6 +56,7 @@ TEST(Chatter, ParallelBandsOfThicknessAcrossAStripAreChatter) {
     cv::fillPoly(region, std::vector<std::vector<cv::Point>>{poly}, cv::Scalar(255));
     const cv::Moments m = cv::moments(region, true);
     EXPECT_NEAR(m.m10 / m.m00, 275, 40);
+    EXPECT_NE(damageSummary(found).find("1 chatter"), std::string::npos) << damageSummary(found);
     // Flagged on its own.
     std::vector<DamageRegion> decided = found;
     EXPECT_EQ(decideDamage(decided, 500, p).verdict, DamageVerdict::Damaged);

@@ -20,8 +20,10 @@ namespace slicestation::pipeline {
 /// Hann-windowed DFT) is its peak, and the peak's amplitude its swing (0.1: the thickness
 /// swinging by 10% about its mean). Tiles whose swing reaches DamageParams::chatterSwing and
 /// whose peaks are one frequency (within one DFT bin, either sign) form one pattern; the largest
-/// pattern of at least DamageParams::chatterTiles tiles is chatter, reported as one Chatter
-/// region over those tiles' tissue. Empty when none (or chatterTiles is 0).
+/// pattern of at least DamageParams::chatterTiles tiles, and at least
+/// DamageParams::chatterDominance of all the tiles that swing as much, is chatter: one Chatter
+/// region, the hull of those tiles' tissue (areaPx, share: the tiles' tissue; levelShare: their
+/// mean swing; thicknessPx: the period in px). Empty when none (or chatterTiles is 0).
 /// `grey`: CV_32F, tissue bright; `tissueMask`: CV_8U of its size.
 std::vector<DamageRegion> chatterBands(const cv::Mat& grey, const cv::Mat& tissueMask,
                                        double brainWidthPx, const DamageParams& params);
