@@ -1,10 +1,12 @@
 #include "slicestation/pipeline/chatter.hpp"
 
+#include "slicestation/pipeline/mask_ops.hpp"
+
 #include <opencv2/imgproc.hpp>
 
 #include <algorithm>
 #include <cmath>
-#include <cstdio>
+#include <cstdint>
 #include <cstdlib>
 
 namespace slicestation::pipeline {
@@ -32,28 +34,26 @@ std::vector<DamageRegion> chatterBands(const cv::Mat& grey, const cv::Mat& tissu
     const double tissueArea = cv::countNonZero(tissueMask);
     if (params.chatterTiles <= 0 || brainWidthPx <= 0 || tissueArea <= 0)
         return out;
-    // The level relative to the local mean of the tissue: the swing, whatever the stain. The
-    // mean is smooth: taken on the image reduced to a quarter of sigma per pixel, then brought
-    // back once.
+    // The level relative to the local mean of the tissue (a quarter of sigma per pixel of its
+    // reduced copy): the swing, whatever the stain; taken away from the edge, where the local
+    // mean mixes in the glass, and 0 there.
     const double sigma = std::max(2.0, params.chatterLevelFrac * brainWidthPx);
-    const double reduce = std::max(1.0, sigma / 4);
-    const cv::Size small(std::max(1, cvRound(grey.cols / reduce)),
-                         std::max(1, cvRound(grey.rows / reduce)));
-    cv::Mat weight, weighted, meanW, meanG, level;
-    cv::resize(tissueMask, weight, small, 0, 0, cv::INTER_AREA);
-    weight.convertTo(weight, CV_32F, 1.0 / 255.0);
-    cv::Mat greyOnTissue = cv::Mat::zeros(grey.size(), CV_32F);
-    grey.copyTo(greyOnTissue, tissueMask);
-    cv::resize(greyOnTissue, weighted, small, 0, 0, cv::INTER_AREA);
-    cv::GaussianBlur(weighted, meanG, cv::Size(), sigma / reduce);
-    cv::GaussianBlur(weight, meanW, cv::Size(), sigma / reduce);
-    cv::resize(meanG / cv::max(meanW, 1e-6), level, grey.size(), 0, 0, cv::INTER_LINEAR);
-    cv::Mat relative = grey / cv::max(level, 1e-3) - 1.0;
-    // Away from the edge, where the local mean mixes in the glass.
+    cv::Mat weight;
+    tissueMask.convertTo(weight, CV_32F, 1.0 / 255.0);
+    const cv::Mat level =
+        weightedLocalMean(grey, weight, sigma, std::max(1, static_cast<int>(sigma / 4)));
     cv::Mat toGlass;
     cv::distanceTransform(tissueMask, toGlass, cv::DIST_L2, 3);
     const cv::Mat inner = toGlass > std::max(1.0, 0.5 * sigma);
-    relative.setTo(0, ~inner);
+    cv::Mat relative(grey.size(), CV_32F);
+    for (int y = 0; y < grey.rows; ++y) {
+        const float* g = grey.ptr<float>(y);
+        const float* l = level.ptr<float>(y);
+        const std::uint8_t* in = inner.ptr<std::uint8_t>(y);
+        float* r = relative.ptr<float>(y);
+        for (int x = 0; x < grey.cols; ++x)
+            r[x] = in[x] ? g[x] / std::max(l[x], 1e-3f) - 1.0f : 0.0f;
+    }
 
     int side = 16;
     while (side < params.chatterTileFrac * brainWidthPx)

@@ -354,11 +354,11 @@ cv::Mat concavityExclusion(const std::vector<Concavity>& concavities, cv::Size s
         mask, cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * m + 1, 2 * m + 1)));
 }
 
-namespace {
-/// A gap: glass where the atlas expects tissue (Tear, Missing), not a piece or a fold.
 bool isGap(const DamageRegion& d) {
     return d.kind == DamageKind::Tear || d.kind == DamageKind::Missing;
 }
+
+namespace {
 
 /// Whether a polygon reaches within `ringPx` of the midline's line or crosses it (its vertices'
 /// signed distances to the line span [-ringPx, ringPx] or more). False when the midline is

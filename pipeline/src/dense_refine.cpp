@@ -231,18 +231,8 @@ double minRelative(const cv::Mat& det, double ref) {
 void removeBias(cv::Mat& r, const cv::Mat& w, double sigma) {
     if (sigma <= 0)
         return;
-    // The bias is smooth: estimate it on a copy reduced 4 times, which keeps the wide blur cheap.
-    const int f = sigma >= 8 ? 4 : 1;
-    const cv::Size small((r.cols + f - 1) / f, (r.rows + f - 1) / f);
-    cv::Mat num, den;
-    cv::resize(r.mul(w), num, small, 0, 0, cv::INTER_AREA);
-    cv::resize(w, den, small, 0, 0, cv::INTER_AREA);
-    cv::GaussianBlur(num, num, cv::Size(), sigma / f, sigma / f, cv::BORDER_REPLICATE);
-    cv::GaussianBlur(den, den, cv::Size(), sigma / f, sigma / f, cv::BORDER_REPLICATE);
-    cv::Mat bias;
-    cv::divide(num, den + 1e-6, bias);
-    cv::resize(bias, bias, r.size(), 0, 0, cv::INTER_LINEAR);
-    r -= bias;
+    // The bias is smooth: estimated on a copy reduced 4 times, which keeps the wide blur cheap.
+    r -= weightedLocalMean(r, w, sigma, sigma >= 8 ? 4 : 1);
 }
 
 } // namespace

@@ -10,6 +10,22 @@
 
 namespace slicestation::pipeline {
 
+cv::Mat weightedLocalMean(const cv::Mat& values, const cv::Mat& weight, double sigma, int factor) {
+    CV_Assert(values.type() == CV_32F && weight.type() == CV_32F && values.size() == weight.size() &&
+              sigma > 0 && factor >= 1);
+    const cv::Size small((values.cols + factor - 1) / factor, (values.rows + factor - 1) / factor);
+    cv::Mat num, den;
+    cv::resize(values.mul(weight), num, small, 0, 0, cv::INTER_AREA);
+    cv::resize(weight, den, small, 0, 0, cv::INTER_AREA);
+    const double s = sigma / factor;
+    cv::GaussianBlur(num, num, cv::Size(), s, s, cv::BORDER_REPLICATE);
+    cv::GaussianBlur(den, den, cv::Size(), s, s, cv::BORDER_REPLICATE);
+    cv::Mat mean;
+    cv::divide(num, den + 1e-6, mean);
+    cv::resize(mean, mean, values.size(), 0, 0, cv::INTER_LINEAR);
+    return mean;
+}
+
 cv::Mat fillHoles(const cv::Mat& mask) {
     std::vector<std::vector<cv::Point>> contours;
     cv::findContours(mask.clone(), contours, cv::RETR_EXTERNAL, cv::CHAIN_APPROX_SIMPLE);

@@ -508,9 +508,10 @@ void dropMirroredGaps(std::vector<DamageRegion>& regions, const Registration& re
                       const cv::Mat& tissue, const cv::Mat& atlasMask, double brainWidth,
                       const DamageParams& params) {
     const cv::Moments am = cv::moments(atlasMask, true);
-    const bool anyGap = std::any_of(regions.begin(), regions.end(), [](const DamageRegion& d) {
-        return d.kind != DamageKind::Fold;
-    });
+    const auto gapOrPiece = [](const DamageRegion& d) {
+        return isGap(d) || d.kind == DamageKind::Fragment;
+    };
+    const bool anyGap = std::any_of(regions.begin(), regions.end(), gapOrPiece);
     if (am.m00 <= 0 || !anyGap)
         return;
     const double midlineX = am.m10 / am.m00;
@@ -544,7 +545,7 @@ void dropMirroredGaps(std::vector<DamageRegion>& regions, const Registration& re
     const double s = reg.workingScale;
     std::vector<DamageRegion> kept;
     for (DamageRegion& d : regions) {
-        if (d.kind != DamageKind::Fold) {
+        if (gapOrPiece(d)) {
             const std::vector<cv::Point> poly = pixelPolygon(d.polygon, s);
             // The gap in its box (the maps cut alike), not on the whole image.
             const cv::Rect box = poly.empty() ? cv::Rect()

@@ -79,6 +79,9 @@ struct DamageRegion {
     bool atCut = false;
 };
 
+/// A gap: glass where the atlas expects tissue (Tear, Missing), not a piece, a fold or chatter.
+bool isGap(const DamageRegion& d);
+
 /// Lengths are fractions of the brain width (the OBB's major extent of the section), so the rule
 /// means the same at every resolution; alpha in particular is a length, never a hop count.
 struct DamageParams {

@@ -1,5 +1,6 @@
 #pragma once
-/// Small operations on binary masks (CV_8U, non-zero = set) shared by the pipeline's steps.
+/// Small operations on binary masks (CV_8U, non-zero = set) and on images weighted by one, shared
+/// by the pipeline's steps.
 
 #include <opencv2/core.hpp>
 
@@ -29,5 +30,12 @@ float percentile(const cv::Mat& f32, double q, const cv::Mat& valid);
 /// then block column) holding one of their pixels. Row 0 of `stats` (the background) carries its
 /// area; its box is the whole mask. Returns the number of labels (components + 1).
 int labelComponents(const cv::Mat& mask, cv::Mat& labels, cv::Mat& stats);
+
+/// The local mean of `values` (CV_32F) weighted by `weight` (CV_32F, 0..1, same size): a
+/// Gaussian of `sigma` px over values times weight, divided by the same Gaussian over the weight
+/// (plus 1e-6), borders replicated. The mean is smooth, so it is taken on a copy reduced `factor`
+/// times (an integer, at least 1; the size rounded up) and brought back (bilinear). About 0 where
+/// no weight lies within reach.
+cv::Mat weightedLocalMean(const cv::Mat& values, const cv::Mat& weight, double sigma, int factor);
 
 } // namespace slicestation::pipeline
