@@ -130,10 +130,11 @@ cv::Mat segmentTissue(const cv::Mat& grey, const cv::Mat& valid, float glass,
 }
 
 /// Fits a quadratic surface to the glass (valid pixels well away from `tissue`) and subtracts
-/// it, keeping the glass at `glassLevel`. Returns false (image untouched) when too little glass
-/// is seen for a fit.
+/// it, keeping the glass at `glassLevel`, from `grey` (clipped to [0,1] again) and from `level`
+/// (its unclipped twin, not clipped). Returns false (images untouched) when too little glass is
+/// seen for a fit.
 bool flattenBackground(cv::Mat& grey, const cv::Mat& valid, const cv::Mat& tissue,
-                       float glassLevel) {
+                       float glassLevel, cv::Mat& level) {
     const int longSide = std::max(grey.rows, grey.cols);
     cv::Mat away;
     cv::dilate(tissue, away, cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(5, 5)),
@@ -162,12 +163,14 @@ bool flattenBackground(cv::Mat& grey, const cv::Mat& valid, const cv::Mat& tissu
         return false;
     for (int y = 0; y < grey.rows; ++y) {
         float* row = grey.ptr<float>(y);
+        float* unclipped = level.ptr<float>(y);
         const double v = y * sy - 1;
         for (int x = 0; x < grey.cols; ++x) {
             const double u = x * sx - 1;
             const double bg =
                 c[0] + c[1] * u + c[2] * v + c[3] * u * u + c[4] * u * v + c[5] * v * v;
             row[x] = std::clamp(float(row[x] - bg + glassLevel), 0.0f, 1.0f);
+            unclipped[x] = float(unclipped[x] - bg + glassLevel);
         }
     }
     return true;
@@ -244,24 +247,31 @@ core::Result<PreparedSection> prepareSection(const cv::Mat& image, int workingMa
     if (!(hi > lo))
         return makeError(ErrorCode::NoTissue, "no tissue found: the image is blank (no contrast)");
     grey = (grey - lo) / (hi - lo);
+    cv::Mat level = grey.clone(); // the same scale, not clipped at the percentiles
     cv::min(cv::max(grey, 0.0), 1.0, grey);
 
     // The glass is what surrounds the tissue: bright glass means brightfield, and we invert so
     // tissue is bright in both cases.
     const float glass = borderMedian(grey, valid);
     out.contrast = glass > 0.5f ? Contrast::Brightfield : Contrast::Fluorescence;
-    if (out.contrast == Contrast::Brightfield)
+    if (out.contrast == Contrast::Brightfield) {
         grey = 1.0f - grey;
+        level = 1.0f - level;
+    }
     grey.setTo(out.contrast == Contrast::Brightfield ? 1.0f - glass : glass, ~valid);
+    level.setTo(out.contrast == Contrast::Brightfield ? 1.0f - glass : glass, ~valid);
     out.grey = grey;
+    out.level = level;
 
     const float glassLevel = out.contrast == Contrast::Brightfield ? 1.0f - glass : glass;
     // Uneven illumination (vignetting) makes glass corners look like tissue: flatten the glass
     // with a smooth fit, then segment again. The fine mask is wanted of the final pass only.
     cv::Mat fineMask;
     cv::Mat mask = segmentTissue(grey, valid, glassLevel);
-    if (flattenBackground(grey, valid, mask, glassLevel))
+    if (flattenBackground(grey, valid, mask, glassLevel, level)) {
         out.grey = grey;
+        out.level = level;
+    }
     mask = segmentTissue(grey, valid, glassLevel, &fineMask);
 
     // Remove debris: keep components of at least 2% of the largest one, and smaller ones down

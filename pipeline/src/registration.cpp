@@ -1185,7 +1185,7 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
                 regions = tissueDamage(sectionTissue, expected, brainWidth, options.damage,
                                        fragments, reg.workingGrey, damagedOutline);
             else if (task == 1) {
-                folds = foldBands(reg.workingGrey, sectionTissue, expected.tissue, seen, brainWidth,
+                folds = foldBands(prepared->level, sectionTissue, expected.tissue, seen, brainWidth,
                                   options.damage);
                 chatter = chatterBands(reg.workingGrey, sectionTissue, brainWidth, options.damage);
             } else

@@ -83,3 +83,34 @@ TEST(PrepareSection, KeepsASmallSolidFragmentAndDropsThinDebrisAndFrameCutPieces
     EXPECT_EQ(m.at<std::uint8_t>(435, 790), 0) << "a piece cut by the frame is not judged";
     EXPECT_EQ(m.at<std::uint8_t>(300, 400), 255);
 }
+
+// A band of doubled tissue (a fold) thin enough to lie above the image's 99.5% level: the grey
+// clips it, the level keeps it twice as far above the glass as the tissue beside it, in
+// fluorescence (twice the light) and in brightfield (twice the light taken away).
+TEST(PrepareSection, TheLevelKeepsTheBrightestTissueTheGreyClips) {
+    for (const bool brightGlass : {false, true}) {
+        const float glass = brightGlass ? 0.9f : 0.05f, step = brightGlass ? -0.3f : 0.3f;
+        cv::Mat img(600, 800, CV_32F, cv::Scalar(glass));
+        cv::ellipse(img, {400, 300}, {250, 170}, 0, 0, 360, cv::Scalar(glass + step), cv::FILLED);
+        cv::rectangle(img, cv::Rect(300, 200, 60, 12), cv::Scalar(glass + 2 * step), cv::FILLED);
+        cv::Mat n(img.size(), CV_32F);
+        cv::RNG(5).fill(n, cv::RNG::NORMAL, 0, 0.01);
+        img += n;
+        cv::Mat img16;
+        img.convertTo(img16, CV_16U, 65535);
+        auto p = prepareSection(img16, 800);
+        ASSERT_TRUE(p.ok()) << p.error().message;
+        ASSERT_EQ(p->level.size(), p->grey.size());
+        ASSERT_EQ(p->level.type(), CV_32F);
+        const cv::Rect band(305, 202, 50, 8), beside(305, 240, 50, 8), outside(20, 20, 50, 50);
+        const auto at = [](const cv::Mat& m, const cv::Rect& r) { return cv::mean(m(r))[0]; };
+        const double levelRatio = (at(p->level, band) - at(p->level, outside)) /
+                                  (at(p->level, beside) - at(p->level, outside));
+        const double greyRatio = (at(p->grey, band) - at(p->grey, outside)) /
+                                 (at(p->grey, beside) - at(p->grey, outside));
+        EXPECT_NEAR(levelRatio, 2.0, 0.1) << (brightGlass ? "brightfield" : "fluorescence");
+        EXPECT_LT(greyRatio, 1.3) << (brightGlass ? "brightfield" : "fluorescence");
+        // Below the clip level the two agree.
+        EXPECT_NEAR(at(p->level, beside), at(p->grey, beside), 1e-3);
+    }
+}

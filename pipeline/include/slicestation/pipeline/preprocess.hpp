@@ -12,6 +12,11 @@ enum class Contrast { Fluorescence, Brightfield };
 
 struct PreparedSection {
     cv::Mat grey;       ///< CV_32F in [0,1], tissue bright whatever the stain, working resolution
+    /// `grey` before it is clipped to [0,1]: the same scale (0 and 1 are the image's 0.5% and
+    /// 99.5% levels), the same orientation and flattening, but the brightest tissue keeps what
+    /// the camera measured above the 99.5% level. For measures of how much tissue lies at a
+    /// place (a fold doubles it), which the clipping would cap at the image's brightest 0.5%.
+    cv::Mat level;
     cv::Mat tissueMask; ///< CV_8U, 255 on tissue (holes such as ventricles and tears stay 0)
     /// For damage: all that is clearly above the glass (dark tissue too, the outline slightly
     /// wider), unclosed and barely blurred so thin cracks stay open.
