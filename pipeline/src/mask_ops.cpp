@@ -11,8 +11,8 @@
 namespace slicestation::pipeline {
 
 cv::Mat weightedLocalMean(const cv::Mat& values, const cv::Mat& weight, double sigma, int factor) {
-    CV_Assert(values.type() == CV_32F && weight.type() == CV_32F && values.size() == weight.size() &&
-              sigma > 0 && factor >= 1);
+    CV_Assert(values.type() == CV_32F && weight.type() == CV_32F &&
+              values.size() == weight.size() && sigma > 0 && factor >= 1);
     const cv::Size small((values.cols + factor - 1) / factor, (values.rows + factor - 1) / factor);
     cv::Mat num, den;
     cv::resize(values.mul(weight), num, small, 0, 0, cv::INTER_AREA);

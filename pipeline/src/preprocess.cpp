@@ -133,8 +133,8 @@ cv::Mat segmentTissue(const cv::Mat& grey, const cv::Mat& valid, float glass,
 /// it, keeping the glass at `glassLevel`, from `grey` (clipped to [0,1] again) and from `level`
 /// (its unclipped twin, not clipped). Returns false (images untouched) when too little glass is
 /// seen for a fit.
-bool flattenBackground(cv::Mat& grey, const cv::Mat& valid, const cv::Mat& tissue,
-                       float glassLevel, cv::Mat& level) {
+bool flattenBackground(cv::Mat& grey, const cv::Mat& valid, const cv::Mat& tissue, float glassLevel,
+                       cv::Mat& level) {
     const int longSide = std::max(grey.rows, grey.cols);
     cv::Mat away;
     cv::dilate(tissue, away, cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(5, 5)),

@@ -11,7 +11,7 @@ namespace slicestation::pipeline {
 enum class Contrast { Fluorescence, Brightfield };
 
 struct PreparedSection {
-    cv::Mat grey;       ///< CV_32F in [0,1], tissue bright whatever the stain, working resolution
+    cv::Mat grey; ///< CV_32F in [0,1], tissue bright whatever the stain, working resolution
     /// `grey` before it is clipped to [0,1]: the same scale (0 and 1 are the image's 0.5% and
     /// 99.5% levels), the same orientation and flattening, but the brightest tissue keeps what
     /// the camera measured above the 99.5% level. For measures of how much tissue lies at a
