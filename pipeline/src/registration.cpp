@@ -1187,7 +1187,7 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
             else if (task == 1) {
                 folds = foldBands(prepared->level, sectionTissue, expected.tissue, seen, brainWidth,
                                   options.damage);
-                chatter = chatterBands(reg.workingGrey, sectionTissue, brainWidth, options.damage);
+                chatter = chatterBands(prepared->level, sectionTissue, brainWidth, options.damage);
             } else
                 affineGaps = tissueDamage(sectionTissue, expectedAffine, brainWidth, options.damage,
                                           fragments, reg.workingGrey, damagedOutline);
