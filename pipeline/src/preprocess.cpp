@@ -130,9 +130,9 @@ cv::Mat segmentTissue(const cv::Mat& grey, const cv::Mat& valid, float glass,
 }
 
 /// Fits a quadratic surface to the glass (valid pixels well away from `tissue`) and subtracts
-/// it, keeping the glass at `glassLevel`, from `grey` (clipped to [0,1] again) and from `level`
-/// (its unclipped twin, not clipped). Returns false (images untouched) when too little glass is
-/// seen for a fit.
+/// it, keeping the glass at `glassLevel`, from `grey` (clipped to [0,1] again) and from its
+/// unclipped twin `level` (left unclipped). Returns false (images untouched) when too little
+/// glass is seen for a fit.
 bool flattenBackground(cv::Mat& grey, const cv::Mat& valid, const cv::Mat& tissue, float glassLevel,
                        cv::Mat& level) {
     const int longSide = std::max(grey.rows, grey.cols);
@@ -258,20 +258,19 @@ core::Result<PreparedSection> prepareSection(const cv::Mat& image, int workingMa
         grey = 1.0f - grey;
         level = 1.0f - level;
     }
-    grey.setTo(out.contrast == Contrast::Brightfield ? 1.0f - glass : glass, ~valid);
-    level.setTo(out.contrast == Contrast::Brightfield ? 1.0f - glass : glass, ~valid);
-    out.grey = grey;
-    out.level = level;
-
     const float glassLevel = out.contrast == Contrast::Brightfield ? 1.0f - glass : glass;
+    const cv::Mat noData = ~valid;
+    grey.setTo(glassLevel, noData);
+    level.setTo(glassLevel, noData);
+
     // Uneven illumination (vignetting) makes glass corners look like tissue: flatten the glass
-    // with a smooth fit, then segment again. The fine mask is wanted of the final pass only.
+    // with a smooth fit (in place, both images; neither is touched when too little glass is seen
+    // for a fit), then segment again. The fine mask is wanted of the final pass only.
     cv::Mat fineMask;
     cv::Mat mask = segmentTissue(grey, valid, glassLevel);
-    if (flattenBackground(grey, valid, mask, glassLevel, level)) {
-        out.grey = grey;
-        out.level = level;
-    }
+    flattenBackground(grey, valid, mask, glassLevel, level);
+    out.grey = grey;
+    out.level = level;
     mask = segmentTissue(grey, valid, glassLevel, &fineMask);
 
     // Remove debris: keep components of at least 2% of the largest one, and smaller ones down
