@@ -590,12 +590,13 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
                                             options.atlasIntensity.size() != atlasLabels.size()))
         return makeError(ErrorCode::InvalidArgument,
                          "atlas intensity must be CV_32F and the size of the atlas labels");
-    // With an atlas intensity plane the dense refinement takes its own options.
-    const DenseRefineOptions& denseOptions =
+    // With an atlas intensity plane the dense refinement takes its own options (checked here,
+    // chosen once the plane is known to model the section).
+    const DenseRefineOptions& denseChecked =
         options.atlasIntensity.empty() ? options.dense : options.denseWithIntensity;
-    if (options.denseRefine && (denseOptions.gridMaxSide < 32 || denseOptions.levels.empty() ||
-                                denseOptions.fieldSigma < 0 || denseOptions.damping < 0 ||
-                                std::any_of(denseOptions.levels.begin(), denseOptions.levels.end(),
+    if (options.denseRefine && (denseChecked.gridMaxSide < 32 || denseChecked.levels.empty() ||
+                                denseChecked.fieldSigma < 0 || denseChecked.damping < 0 ||
+                                std::any_of(denseChecked.levels.begin(), denseChecked.levels.end(),
                                             [](const DenseLevel& l) {
                                                 return l.imageSigma < 0 || l.window < 1 ||
                                                        l.iterations < 0;
@@ -953,7 +954,8 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     // With an atlas intensity plane (a template-like stain), the edge-based affine is polished
     // against the plane over the tissue, damage left out (intensity_affine.hpp); kept only when
     // it explains more of the section on held-out blocks.
-    if (options.intensityAffine && !options.atlasIntensity.empty()) {
+    cv::Mat plane = options.atlasIntensity; // set aside when it is not the section's stain
+    if (options.intensityAffine && !plane.empty()) {
         const cv::Size ws = reg.workingGrey.size();
         const cv::Size gs = gridSize(ws, options.intensity.gridMaxSide);
         cv::Mat grey;
@@ -962,9 +964,8 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
             measuredArea(gs, tissueFilled, options.excludeMask, fragments, damagedOutline);
         const double sx = double(ws.width) / gs.width, sy = double(ws.height) / gs.height;
         const cv::Matx23d workingFromGrid(sx, 0, 0.5 * sx - 0.5, 0, sy, 0.5 * sy - 0.5);
-        const IntensityAffine ia =
-            refineAffineByIntensity(grey, weight, compose(reg.atlasFromWorking, workingFromGrid),
-                                    options.atlasIntensity, options.intensity);
+        const IntensityAffine ia = refineAffineByIntensity(
+            grey, weight, compose(reg.atlasFromWorking, workingFromGrid), plane, options.intensity);
         reg.quality.intensityExplainedBefore = ia.explainedBefore;
         reg.quality.intensityExplainedAfter = ia.explainedAfter;
         reg.quality.intensityAffineKept = ia.accepted;
@@ -972,7 +973,14 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
             reg.atlasFromWorking = compose(ia.atlasFromGrid, invert(workingFromGrid));
             reg.stageAffines.emplace_back("intensity", reg.atlasFromWorking);
         }
+        // A plane that does not explain most of the section is not its stain (an immunostain
+        // against the average template): the later stages run as without one.
+        if (ia.explainedAfter < options.intensity.minExplained)
+            plane = cv::Mat();
     }
+    reg.quality.intensityPlaneUsed = !plane.empty();
+    const DenseRefineOptions& denseOptions =
+        plane.empty() ? options.dense : options.denseWithIntensity;
     // Through the affine alone: the warp leaves it as it is. It also decides the outline pull.
     reg.quality.tissueOverlap = overlap(tissueFilled, atlasMask, reg.atlasFromWorking);
     timer.lap("icp");
@@ -1046,7 +1054,7 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
 
     // With an atlas intensity plane, a smooth field so that the section and the plane agree
     // inside the tissue (intensity_warp.hpp): the non-affine part the intensity affine leaves.
-    if (options.intensityWarp && !options.atlasIntensity.empty()) {
+    if (options.intensityWarp && !plane.empty()) {
         const cv::Size ws = reg.workingGrey.size();
         const cv::Size gs = gridSize(ws, options.intensityWarpOptions.gridMaxSide);
         cv::Mat grey, mx, my;
@@ -1054,8 +1062,8 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         const cv::Mat weight =
             measuredArea(gs, tissueFilled, options.excludeMask, fragments, damagedOutline);
         reg.atlasMaps(gs, mx, my);
-        const IntensityWarp iw = refineWarpByIntensity(grey, weight, mx, my, options.atlasIntensity,
-                                                       options.intensityWarpOptions);
+        const IntensityWarp iw =
+            refineWarpByIntensity(grey, weight, mx, my, plane, options.intensityWarpOptions);
         reg.quality.intensityWarpExplainedBefore = iw.explainedBefore;
         reg.quality.intensityWarpExplainedAfter = iw.explainedAfter;
         reg.quality.intensityWarpKept = iw.accepted;
@@ -1065,7 +1073,7 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     }
     // Without a plane, the same field against the fine atlas regions painted with the section's
     // own levels (any stain: each region is roughly homogeneous).
-    if (options.regionWarp && options.atlasIntensity.empty() && !options.regionLabels.empty()) {
+    if (options.regionWarp && plane.empty() && !options.regionLabels.empty()) {
         const cv::Size ws = reg.workingGrey.size();
         const cv::Size gs = gridSize(ws, options.regionWarpOptions.warp.gridMaxSide);
         cv::Mat grey, mx, my;
@@ -1095,7 +1103,7 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
             measuredArea(gs, tissueFilled, options.excludeMask, fragments, damagedOutline);
         reg.atlasMaps(gs, mx, my);
         const DenseRefinement dense =
-            refineDense(grey, weight, mx, my, atlasLabels, options.atlasIntensity, denseOptions);
+            refineDense(grey, weight, mx, my, atlasLabels, plane, denseOptions);
         reg.quality.explainedBeforeRefine = dense.explainedBefore;
         reg.quality.explainedAfterRefine = dense.explainedAfter;
         reg.quality.refined = dense.accepted;

@@ -92,10 +92,11 @@ struct RegistrationOptions {
     /// the dense refinement; kept only when it explains more of the section on held-out blocks.
     bool intensityWarp = true;
     IntensityWarpOptions intensityWarpOptions;
-    /// Without an atlas intensity plane and with regionLabels (any stain): the same field fitted
-    /// against the regions painted with the section's own median levels, re-painted before each
-    /// level (refineWarpByRegions), after the geometric stages and before the dense refinement;
-    /// kept only when it explains more of the section on held-out blocks.
+    /// Without an atlas intensity plane (or with one set aside as not the section's stain,
+    /// IntensityAffineOptions::minExplained) and with regionLabels (any stain): the same field
+    /// fitted against the regions painted with the section's own median levels, re-painted before
+    /// each level (refineWarpByRegions), after the geometric stages and before the dense
+    /// refinement; kept only when it explains more of the section on held-out blocks.
     bool regionWarp = true;
     RegionWarpOptions regionWarpOptions;
     /// The labels the region warp paints (CV_32S, the atlas labels' size), e.g. every Allen id
@@ -151,6 +152,10 @@ struct RegistrationQuality {
     /// the refined one was kept (0, 0, false when it did not run).
     double intensityExplainedBefore = 0, intensityExplainedAfter = 0;
     bool intensityAffineKept = false;
+    /// The atlas intensity plane was used past the intensity affine: it explains the stain
+    /// (IntensityAffineOptions::minExplained). False without a plane, or when it was set aside
+    /// (the later stages then run as without one).
+    bool intensityPlaneUsed = false;
     /// The intensity warp: held-out explained share before and after, whether it was kept.
     double intensityWarpExplainedBefore = 0, intensityWarpExplainedAfter = 0;
     bool intensityWarpKept = false;
