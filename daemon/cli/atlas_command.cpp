@@ -210,6 +210,7 @@ core::Result<void> useStackSlice(RegisterRequest& rq, int slice) {
         return path.error();
     rq.atlas = *path;
     rq.atlasSlice = sliceFrame(*stack, slice);
+    rq.stackRegions = stack->regions;
     if (rq.imageUmPerPx > 0 && rq.atlasUmPerPx <= 0)
         rq.atlasUmPerPx = stack->slices[size_t(slice)].umPerPx;
     return {};

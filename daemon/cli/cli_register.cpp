@@ -46,6 +46,7 @@ CommandRunner addRegisterCommand(CLI::App& app) {
         std::string points, overlay, warped, atlasTemplate;
         int slice = -1;
         int threads = 0;
+        std::string regionWarp = "on";
     };
     auto o = std::make_shared<Opts>();
     auto* reg = app.add_subcommand("register", "Register one section image to one atlas slice");
@@ -74,6 +75,10 @@ CommandRunner addRegisterCommand(CLI::App& app) {
                     "How far sections are turned on the slide at most, in degrees (the lab's "
                     "mounting rule; 180 = any way)")
         ->check(CLI::Range(0.0, 180.0));
+    reg->add_option("--region-warp", o->regionWarp,
+                    "With a stack sliced --regions all: fit the map to every region of the "
+                    "section's own contrast (on, the default) or not (off)")
+        ->check(CLI::IsMember({"on", "off"}));
     reg->add_option("--threads", o->threads,
                     "Threads the registration may use (0: one per core; results are the same "
                     "with any number)")
@@ -84,6 +89,7 @@ CommandRunner addRegisterCommand(CLI::App& app) {
         if (o->threads > 0)
             cv::setNumThreads(o->threads);
         RegisterRequest rq = o->rq;
+        rq.regionWarp = o->regionWarp == "on";
         if (!o->points.empty())
             rq.points = o->points;
         if (!o->overlay.empty())

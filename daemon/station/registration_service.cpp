@@ -2,6 +2,7 @@
 
 #include "slicestation/core/atomic_file.hpp"
 #include "slicestation/core/image_file.hpp"
+#include "slicestation/core/ontology.hpp"
 #include "slicestation/daemon/storage/atlas_stack.hpp"
 #include "slicestation/daemon/version.hpp"
 #include "slicestation/pipeline/atlas.hpp"
@@ -9,8 +10,10 @@
 
 #include <sys/resource.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <set>
 #include <sstream>
 #include <string>
 #include <utility>
@@ -74,6 +77,54 @@ core::Result<void> checkAtlasLabels(const cv::Mat& labels) {
                                      : "") +
                 "; registration needs the brain's outline");
     return {};
+}
+
+/// What the registration gets from an atlas label image (RegisterRequest::stackRegions).
+struct LabelsForRegistration {
+    cv::Mat labels;       ///< the major regions when collapsed, else the labels as given
+    cv::Mat regionLabels; ///< every id, for the region warp; empty when not collapsed
+    std::vector<std::int32_t> ventricleIds; ///< ids of regionLabels under ventricular systems
+};
+
+/// Collapses labels of every Allen id to the paper's major regions, using the stack regions'
+/// ontology paths; labels already of major regions, or ids without a path, are given as they
+/// are. \return InvalidArgument when the regions' paths do not form an ontology.
+core::Result<LabelsForRegistration> labelsForRegistration(const cv::Mat& labels,
+                                                          const std::vector<StackRegion>& regions) {
+    LabelsForRegistration out{labels, cv::Mat(), {}};
+    if (regions.empty() || labels.type() != CV_32S)
+        return out;
+    std::set<std::int32_t> major(pipeline::majorRegionIds().begin(),
+                                 pipeline::majorRegionIds().end());
+    major.insert(pipeline::kOtherRegionId);
+    std::set<std::int32_t> seen;
+    for (auto it = labels.begin<std::int32_t>(); it != labels.end<std::int32_t>(); ++it)
+        if (*it != 0)
+            seen.insert(*it);
+    if (std::all_of(seen.begin(), seen.end(), [&](std::int32_t id) { return major.count(id); }))
+        return out;
+    std::vector<core::Structure> structures;
+    for (const StackRegion& r : regions) {
+        if (r.path.empty())
+            return out; // a stack written before the paths were kept: nothing to collapse by
+        structures.push_back({r.id, r.path.size() > 1 ? r.path[r.path.size() - 2] : 0, r.name,
+                              r.acronym, r.path, r.colorRgb});
+    }
+    auto ontology = core::Ontology::create(std::move(structures));
+    if (!ontology)
+        return makeError(ontology.error().code,
+                         "the stack's regions (manifest.json) do not form an ontology: " +
+                             ontology.error().message);
+    for (std::int32_t id : seen)
+        if (!ontology->find(std::uint32_t(id)))
+            return out;
+    out.labels = pipeline::collapseLabels(labels, *ontology, pipeline::majorRegionIds(),
+                                          pipeline::kOtherRegionId);
+    out.regionLabels = labels;
+    for (std::int32_t id : seen)
+        if (ontology->isDescendantOf(std::uint32_t(id), 73))
+            out.ventricleIds.push_back(id);
+    return out;
 }
 
 core::Result<void> checkSectionSize(const cv::Mat& section) {
@@ -198,6 +249,7 @@ json resultDocument(const RegisterRequest& rq, const cv::Mat& section, const cv:
                       {"section_edges_matched", q.sectionEdgesMatched},
                       {"tissue_overlap", q.tissueOverlap},
                       {"intensity_affine_kept", q.intensityAffineKept},
+                      {"intensity_plane_used", q.intensityPlaneUsed},
                       {"intensity_warp_kept", q.intensityWarpKept},
                       {"region_warp_kept", q.regionWarpKept},
                       {"min_jacobian", q.minJacobian},
@@ -205,6 +257,18 @@ json resultDocument(const RegisterRequest& rq, const cv::Mat& section, const cv:
                       {"fold_repair_nodes", q.foldRepairNodes},
                       {"scale_atlas_px_per_image_px", q.scaleAtlasPxPerImagePx}};
     return out;
+}
+
+/// A template plane (given, or the stack slice's own): the registration's atlas intensity (it
+/// polishes the affine and, when it explains the section, drives the non-linear stages). Empty
+/// when there is none.
+core::Result<cv::Mat> atlasIntensityOf(const RegisterRequest& rq, cv::Size labelsSize) {
+    if (rq.atlasTemplate)
+        return readTemplateImage(*rq.atlasTemplate, labelsSize);
+    if (rq.atlasSlice && !rq.atlasSlice->templateFile.empty())
+        return readTemplatePlane(rq.atlasSlice->stackDir, rq.atlasSlice->index,
+                                 rq.atlasSlice->templateFile, labelsSize);
+    return cv::Mat();
 }
 
 } // namespace
@@ -238,32 +302,26 @@ core::Result<RegisteredSection> registerSectionFiles(const RegisterRequest& rq,
             return p.error();
         points = std::move(*p);
     }
-    // A template plane (given, or the stack slice's own): the registration's atlas intensity
-    // (it polishes the affine and joins the dense refinement).
-    cv::Mat atlasIntensity;
-    if (rq.atlasTemplate) {
-        auto plane = readTemplateImage(*rq.atlasTemplate, labels->size());
-        if (!plane)
-            return plane.error();
-        atlasIntensity = std::move(*plane);
-    } else if (rq.atlasSlice && !rq.atlasSlice->templateFile.empty()) {
-        auto plane = readTemplatePlane(rq.atlasSlice->stackDir, rq.atlasSlice->index,
-                                       rq.atlasSlice->templateFile, labels->size());
-        if (!plane)
-            return plane.error();
-        atlasIntensity = std::move(*plane);
-    }
+    auto atlasIntensity = atlasIntensityOf(rq, labels->size());
+    if (!atlasIntensity)
+        return atlasIntensity.error();
     const auto tLoaded = Clock::now();
     const double cpuLoaded = processCpuMs();
 
+    auto given = labelsForRegistration(*labels, rq.stackRegions);
+    if (!given)
+        return inFile(given.error(), rq.atlas, "atlas");
     pipeline::RegistrationOptions opt;
-    opt.atlasIntensity = atlasIntensity;
+    opt.atlasIntensity = *atlasIntensity;
+    opt.regionWarp = rq.regionWarp;
+    opt.regionLabels = given->regionLabels;
+    opt.regionWarpOptions.glassIds = given->ventricleIds;
     opt.imageUmPerPx = rq.imageUmPerPx;
     opt.atlasUmPerPx = rq.atlasUmPerPx;
     opt.workingMaxSide = rq.workingMaxSide;
     opt.maxTurnDeg = rq.maxTurnDeg;
     opt.progress = rq.progress;
-    auto reg = pipeline::registerSection(*section, *labels, opt);
+    auto reg = pipeline::registerSection(*section, given->labels, opt);
     if (!reg)
         return inFile(reg.error(), rq.image, "image");
     const auto tRegistered = Clock::now();

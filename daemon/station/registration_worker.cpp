@@ -154,6 +154,7 @@ RegisterRequest stationRequest(const AtlasStack& stack, int slice, std::filesyst
     if (umPerPx > 0)
         rq.atlasUmPerPx = stack.slices[static_cast<std::size_t>(slice)].umPerPx;
     rq.atlasSlice = sliceFrame(stack, slice);
+    rq.stackRegions = stack.regions;
     rq.output = base.string() + ".result.json";
     rq.overlay = base.string() + ".overlay.png";
     rq.warpedLabels = base.string() + ".labels.tif";

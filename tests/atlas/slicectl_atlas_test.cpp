@@ -237,8 +237,11 @@ TEST_F(SlicectlAtlas, RegisterUsesTheStacksTemplatePlane) {
     EXPECT_EQ(withJson.at("atlas").at("template"), "template-014.tif");
     EXPECT_FALSE(withoutJson.at("atlas").contains("template"));
     EXPECT_TRUE(withJson.at("quality").at("intensity_affine_kept").get<bool>());
-    // The intensity warp's verdict and the map's regularity are reported too; the region warp
-    // does not run without fine region labels (slicectl does not give them).
+    // The plane explains this section, so it is used past the affine; the intensity warp's
+    // verdict and the map's regularity are reported too; the region warp does not run on a stack
+    // of major regions (it needs every Allen id: `--regions all`).
+    EXPECT_TRUE(withJson.at("quality").at("intensity_plane_used").get<bool>());
+    EXPECT_FALSE(withoutJson.at("quality").at("intensity_plane_used").get<bool>());
     EXPECT_TRUE(withJson.at("quality").at("intensity_warp_kept").is_boolean());
     EXPECT_FALSE(withoutJson.at("quality").at("intensity_warp_kept").get<bool>());
     EXPECT_FALSE(withJson.at("quality").at("region_warp_kept").get<bool>());

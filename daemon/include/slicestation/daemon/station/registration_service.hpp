@@ -9,6 +9,7 @@
 /// Threading: re-entrant; blocking file I/O and a registration of about a second.
 #include "slicestation/core/result.hpp"
 #include "slicestation/daemon/export/section_export.hpp"
+#include "slicestation/daemon/storage/atlas_stack.hpp"
 #include "slicestation/pipeline/registration.hpp"
 
 #include <nlohmann/json.hpp>
@@ -50,6 +51,15 @@ struct RegisterRequest {
     /// The atlas is this slice of a stack: result.json then records the slice (index, position,
     /// frame) and, for a stack cut from a CCF volume, every point's "ccf_um".
     std::optional<AtlasSliceFrame> atlasSlice;
+    /// The regions of the stack `atlasSlice` is cut from, with their ontology paths. When the
+    /// labels hold ids below the paper's major regions (a stack sliced `--regions all`) and every
+    /// id has its path, the registration gets the labels collapsed to the major regions (its
+    /// edges, outline and damage check are made for them) and paints every id in its region warp
+    /// (pipeline::RegistrationOptions::regionLabels); results, overlays and warped labels keep
+    /// every id. Empty, or a stack of major regions: the labels are registered as they are.
+    std::vector<StackRegion> stackRegions;
+    /// The region warp (above); off: every-id labels are still collapsed for the registration.
+    bool regionWarp = true;
     /// Registration steps done of steps total (pipeline::RegistrationOptions::progress), for
     /// slicectl's bar. May be empty.
     std::function<void(int done, int total)> progress;
