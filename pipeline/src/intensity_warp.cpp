@@ -2,6 +2,7 @@
 
 #include "slicestation/pipeline/mask_ops.hpp"
 
+#include <Eigen/Cholesky>
 #include <opencv2/imgproc.hpp>
 
 #include <algorithm>
@@ -318,6 +319,46 @@ cv::Mat membrane(int nx, int ny) {
     return l;
 }
 
+/// L c for the membrane's L (both components) without the dense product: (L c)_a is the sum,
+/// over the 4-neighbours b of control a, of c_a - c_b.
+cv::Mat membraneTimes(int nx, int ny, const cv::Mat& c) {
+    const int k = nx * ny;
+    cv::Mat out(2 * k, 1, CV_64F);
+    for (int o : {0, k})
+        for (int j = 0; j < ny; ++j)
+            for (int i = 0; i < nx; ++i) {
+                const int a = j * nx + i;
+                const double ca = c.at<double>(o + a);
+                double sum = 0;
+                if (j > 0)
+                    sum += ca - c.at<double>(o + a - nx);
+                if (i > 0)
+                    sum += ca - c.at<double>(o + a - 1);
+                if (i + 1 < nx)
+                    sum += ca - c.at<double>(o + a + 1);
+                if (j + 1 < ny)
+                    sum += ca - c.at<double>(o + a + nx);
+                out.at<double>(o + a) = sum;
+            }
+    return out;
+}
+
+/// Solves a d = rhs for a symmetric positive definite `a` (CV_64F, continuous) with Eigen's
+/// blocked Cholesky: through cv::solve, Debian's reference BLAS took most of the stage's time.
+/// False when `a` is not positive definite.
+bool solvePositiveDefinite(const cv::Mat& a, const cv::Mat& rhs, cv::Mat& d) {
+    using RowMajor = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
+    CV_Assert(a.type() == CV_64F && a.isContinuous() && rhs.type() == CV_64F &&
+              rhs.isContinuous() && rhs.rows == a.rows && rhs.cols == 1);
+    const Eigen::LLT<RowMajor> llt(Eigen::Map<const RowMajor>(a.ptr<double>(), a.rows, a.cols));
+    if (llt.info() != Eigen::Success)
+        return false;
+    d.create(rhs.rows, 1, CV_64F);
+    Eigen::Map<Eigen::VectorXd>(d.ptr<double>(), d.rows) =
+        llt.solve(Eigen::Map<const Eigen::VectorXd>(rhs.ptr<double>(), rhs.rows));
+    return true;
+}
+
 /// Mean Cauchy energy of residuals `r` at scale `c` under weights `w`, times c^2 / 2 (so that
 /// its Gauss-Newton model has the IRLS weights 1 / (1 + (r/c)^2)); summed, not averaged.
 double cauchySum(const cv::Mat& r, double c, const cv::Mat& w) {
@@ -438,9 +479,9 @@ IntensityWarp refineWarpByIntensity(const cv::Mat& grey, const cv::Mat& weight, 
             const double lambda = o.stiffness * diag;
             cv::Mat a = h + lambda * lap;
             a.diag() += o.damping * diag + 1e-12;
-            const cv::Mat rhs = e - lambda * (lap * c);
+            const cv::Mat rhs = e - lambda * membraneTimes(nx, ny, c);
             cv::Mat d;
-            if (!cv::solve(a, rhs, d, cv::DECOMP_CHOLESKY))
+            if (!solvePositiveDefinite(a, rhs, d))
                 break;
             double longest = 0;
             for (int i = 0; i < k; ++i)
@@ -453,7 +494,8 @@ IntensityWarp refineWarpByIntensity(const cv::Mat& grey, const cv::Mat& weight, 
             // Penalised robust energy, with the model's fit held (as in the step's linearisation).
             const cv::Mat fittedGain = gain.clone(), fittedBias = g - r - gain.mul(tv);
             auto energy = [&](const cv::Mat& cc, const cv::Mat& res) {
-                return cauchySum(res, cs, wTrain) + 0.5 * lambda * cc.dot(lap * cc);
+                return cauchySum(res, cs, wTrain) +
+                       0.5 * lambda * cc.dot(membraneTimes(nx, ny, cc));
             };
             const double energyNow = energy(c, r);
             bool taken = false;
