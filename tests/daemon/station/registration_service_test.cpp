@@ -95,15 +95,13 @@ TEST_F(RegistrationServiceTest, AStackOfEveryRegionIsFittedToEveryRegionAndKeeps
             rq.image = image;
             rq.points = dir_ / "points.csv";
             rq.warpedLabels = dir_ / "labels.tif";
-            rq.output = dir_ / ("result-" + std::to_string(slice) + "-" + std::to_string(v) +
-                                ".json");
+            rq.output =
+                dir_ / ("result-" + std::to_string(slice) + "-" + std::to_string(v) + ".json");
             std::vector<cv::Point2d> pts;
             for (const sim::Landmark& l : gen->truth.landmarks)
                 pts.push_back(l.image);
             auto reg = registerSectionFiles(
-                rq, [&](const fs::path&) -> core::Result<std::vector<cv::Point2d>> {
-                    return pts;
-                });
+                rq, [&](const fs::path&) -> core::Result<std::vector<cv::Point2d>> { return pts; });
             ASSERT_TRUE(reg) << reg.error().message;
             const auto& q = reg->registration.quality;
             const double e = rmse(reg->registration, gen->truth.landmarks);
