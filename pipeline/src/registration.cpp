@@ -590,17 +590,16 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
                                             options.atlasIntensity.size() != atlasLabels.size()))
         return makeError(ErrorCode::InvalidArgument,
                          "atlas intensity must be CV_32F and the size of the atlas labels");
-    // With an atlas intensity plane the dense refinement takes its own options (checked here,
-    // chosen once the plane is known to model the section).
-    const DenseRefineOptions& denseChecked =
-        options.atlasIntensity.empty() ? options.dense : options.denseWithIntensity;
-    if (options.denseRefine && (denseChecked.gridMaxSide < 32 || denseChecked.levels.empty() ||
-                                denseChecked.fieldSigma < 0 || denseChecked.damping < 0 ||
-                                std::any_of(denseChecked.levels.begin(), denseChecked.levels.end(),
-                                            [](const DenseLevel& l) {
-                                                return l.imageSigma < 0 || l.window < 1 ||
-                                                       l.iterations < 0;
-                                            })))
+    // With an atlas intensity plane the dense refinement takes its own options, and those
+    // without one when the plane is set aside as not the section's stain: both are checked.
+    const auto badDense = [](const DenseRefineOptions& d) {
+        return d.gridMaxSide < 32 || d.levels.empty() || d.fieldSigma < 0 || d.damping < 0 ||
+               std::any_of(d.levels.begin(), d.levels.end(), [](const DenseLevel& l) {
+                   return l.imageSigma < 0 || l.window < 1 || l.iterations < 0;
+               });
+    };
+    if (options.denseRefine && (badDense(options.dense) || (!options.atlasIntensity.empty() &&
+                                                            badDense(options.denseWithIntensity))))
         return makeError(ErrorCode::InvalidArgument,
                          "dense refinement options: grid at least 32 px, at least one level, "
                          "windows at least 1, no negative sigma, damping or iterations");

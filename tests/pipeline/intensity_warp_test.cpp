@@ -255,3 +255,21 @@ TEST(IntensityWarp, BadIntensityWarpOptionsAreRefusedByRegisterSection) {
         EXPECT_NE(r.error().message.find("intensity warp options"), std::string::npos) << k;
     }
 }
+
+TEST(IntensityWarp, BadDenseOptionsAreRefusedWhicheverSetAPlaneMayLeadTo) {
+    // With a plane the refinement takes denseWithIntensity, or `dense` when the plane is set
+    // aside as not the section's stain: a bad setting in either is refused up front.
+    cv::Mat labels = cv::Mat::zeros(96, 96, CV_32S);
+    labels(cv::Rect(8, 8, 80, 80)).setTo(1);
+    cv::Mat section(200, 200, CV_8U, cv::Scalar(10));
+    cv::rectangle(section, cv::Rect(40, 40, 120, 120), cv::Scalar(200), cv::FILLED);
+    for (int k = 0; k < 2; ++k) {
+        RegistrationOptions o;
+        o.atlasIntensity = cv::Mat(labels.size(), CV_32F, cv::Scalar(0.5));
+        (k == 0 ? o.dense : o.denseWithIntensity).levels.clear();
+        const auto r = registerSection(section, labels, o);
+        ASSERT_FALSE(r.ok()) << k;
+        EXPECT_EQ(r.error().code, slicestation::core::ErrorCode::InvalidArgument) << k;
+        EXPECT_NE(r.error().message.find("dense refinement options"), std::string::npos) << k;
+    }
+}
