@@ -6,6 +6,7 @@
 #include <opencv2/imgproc.hpp>
 
 #include <cmath>
+#include <utility>
 #include <vector>
 
 using namespace slicestation::pipeline;
@@ -234,11 +235,21 @@ TEST(IntensityWarp, AnUndeformedSectionIsLeftAlone) {
     EXPECT_LT(moved, 0.5);
 }
 
-TEST(IntensityWarp, BadIntensityWarpOptionsAreRefusedByRegisterSection) {
+namespace {
+
+/// A square atlas and a bright square section: enough for registerSection to check its options.
+std::pair<cv::Mat, cv::Mat> squareAtlasAndSection() {
     cv::Mat labels = cv::Mat::zeros(96, 96, CV_32S);
     labels(cv::Rect(8, 8, 80, 80)).setTo(1);
     cv::Mat section(200, 200, CV_8U, cv::Scalar(10));
     cv::rectangle(section, cv::Rect(40, 40, 120, 120), cv::Scalar(200), cv::FILLED);
+    return {labels, section};
+}
+
+} // namespace
+
+TEST(IntensityWarp, BadIntensityWarpOptionsAreRefusedByRegisterSection) {
+    const auto [labels, section] = squareAtlasAndSection();
     for (int k = 0; k < 4; ++k) {
         RegistrationOptions o;
         if (k == 0)
@@ -259,10 +270,7 @@ TEST(IntensityWarp, BadIntensityWarpOptionsAreRefusedByRegisterSection) {
 TEST(IntensityWarp, BadDenseOptionsAreRefusedWhicheverSetAPlaneMayLeadTo) {
     // With a plane the refinement takes denseWithIntensity, or `dense` when the plane is set
     // aside as not the section's stain: a bad setting in either is refused up front.
-    cv::Mat labels = cv::Mat::zeros(96, 96, CV_32S);
-    labels(cv::Rect(8, 8, 80, 80)).setTo(1);
-    cv::Mat section(200, 200, CV_8U, cv::Scalar(10));
-    cv::rectangle(section, cv::Rect(40, 40, 120, 120), cv::Scalar(200), cv::FILLED);
+    const auto [labels, section] = squareAtlasAndSection();
     for (int k = 0; k < 2; ++k) {
         RegistrationOptions o;
         o.atlasIntensity = cv::Mat(labels.size(), CV_32F, cv::Scalar(0.5));
