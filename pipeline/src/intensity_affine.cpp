@@ -312,8 +312,8 @@ IntensityAffine refineAffineByIntensity(const cv::Mat& grey, const cv::Mat& weig
         }
     }
     out.explainedAfter = explained(a);
-    out.accepted = out.explainedAfter >= out.explainedBefore + o.minGain &&
-                   out.explainedAfter >= o.minExplained;
+    out.planeIsTheStain = out.explainedAfter >= o.minExplained;
+    out.accepted = out.explainedAfter >= out.explainedBefore + o.minGain && out.planeIsTheStain;
     if (out.accepted)
         out.atlasFromGrid = a;
     return out;

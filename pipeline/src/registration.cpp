@@ -974,7 +974,7 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         }
         // A plane that does not explain most of the section is not its stain (an immunostain
         // against the average template): the later stages run as without one.
-        if (ia.explainedAfter < options.intensity.minExplained)
+        if (!ia.planeIsTheStain)
             plane = cv::Mat();
     }
     reg.quality.intensityPlaneUsed = !plane.empty();

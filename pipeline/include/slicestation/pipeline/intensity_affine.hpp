@@ -45,6 +45,8 @@ struct IntensityAffineOptions {
 struct IntensityAffine {
     cv::Matx23d atlasFromGrid;                      ///< the refined affine (the start if not kept)
     double explainedBefore = 0, explainedAfter = 0; ///< held-out explained share, finest level
+    /// explainedAfter reaches IntensityAffineOptions::minExplained: the plane is the stain.
+    bool planeIsTheStain = false;
     bool accepted = false;
     int steps = 0; ///< Gauss-Newton steps taken
 };
