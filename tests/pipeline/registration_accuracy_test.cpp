@@ -81,6 +81,12 @@ const core::Result<core::Volume>& quickNii() {
     return vol;
 }
 
+/// The Allen average template (100 um), read once.
+const core::Result<core::Volume>& averageTemplate() {
+    static const auto vol = core::readNrrd(kAtlasDir / "average_template_100.nrrd");
+    return vol;
+}
+
 /// The real Allen plane (QuickNII 25 um volume), collapsed to the paper's major regions.
 cv::Mat realPlane(int ap25) {
     const auto& vol = quickNii();
@@ -831,7 +837,7 @@ TEST(RegistrationAccuracy, AnAtlasIntensityPlaneHelpsOnTemplateLikeSections) {
     if (!fs::exists(kAtlasDir / "average_template_100.nrrd") ||
         !fs::exists(kAtlasDir / "annotation_25_quicknii.nrrd"))
         GTEST_SKIP() << "../shared/atlas is absent: template-like sections not tested";
-    auto templ = core::readNrrd(kAtlasDir / "average_template_100.nrrd");
+    const auto& templ = averageTemplate();
     ASSERT_TRUE(templ.ok());
     for (int ap : {260, 300}) {
         const cv::Mat plane = realPlane(ap);
@@ -875,7 +881,7 @@ TEST(RegistrationAccuracy, ATemplatePlaneThatIsNotTheStainIsSetAside) {
     if (!fs::exists(kAtlasDir / "average_template_100.nrrd") ||
         !fs::exists(kAtlasDir / "annotation_25_quicknii.nrrd"))
         GTEST_SKIP() << "../shared/atlas is absent: template planes not tested";
-    auto templ = core::readNrrd(kAtlasDir / "average_template_100.nrrd");
+    const auto& templ = averageTemplate();
     ASSERT_TRUE(templ.ok());
     ASSERT_TRUE(ontology().ok());
     for (int ap : {220, 330}) {
@@ -923,7 +929,7 @@ TEST(RegistrationAccuracy, TheIntensityAffineAlignsTemplateLikeSections) {
     if (!fs::exists(kAtlasDir / "average_template_100.nrrd") ||
         !fs::exists(kAtlasDir / "annotation_25_quicknii.nrrd"))
         GTEST_SKIP() << "../shared/atlas is absent: template-like sections not tested";
-    auto templ = core::readNrrd(kAtlasDir / "average_template_100.nrrd");
+    const auto& templ = averageTemplate();
     ASSERT_TRUE(templ.ok());
     double sum[2][2] = {{0, 0}, {0, 0}}; // [affine only, whole][without, with the stage]
     int kept = 0, n = 0;
@@ -985,7 +991,7 @@ TEST(RegistrationAccuracy, TheIntensityWarpFollowsTemplateLikeSectionsBeyondTheA
     if (!fs::exists(kAtlasDir / "average_template_100.nrrd") ||
         !fs::exists(kAtlasDir / "annotation_25_quicknii.nrrd"))
         GTEST_SKIP() << "../shared/atlas is absent: template-like sections not tested";
-    auto templ = core::readNrrd(kAtlasDir / "average_template_100.nrrd");
+    const auto& templ = averageTemplate();
     ASSERT_TRUE(templ.ok());
     double sum[2] = {0, 0}; // without, with the stage
     int kept = 0;
