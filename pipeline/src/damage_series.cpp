@@ -71,6 +71,10 @@ AtlasDamageOutlines atlasDamageOutlines(const Registration& reg, double maxSegme
         const DamageRegion& d = reg.damage[i];
         if ((d.kind != DamageKind::Tear && d.kind != DamageKind::Missing) || d.polygon.size() < 3)
             continue;
+        if (!d.atlasOutline.empty()) {
+            out[i] = d.atlasOutline;
+            continue;
+        }
         for (const cv::Point2f& p : subdivide(d.polygon, maxSegmentPx)) {
             const cv::Point2d a = reg.atlasFromImage(cv::Point2d(p.x, p.y));
             out[i].emplace_back(float(a.x), float(a.y));

@@ -3,6 +3,7 @@
 #include "side_by_side.hpp"
 #include "slicestation/pipeline/affine.hpp"
 #include "slicestation/pipeline/chatter.hpp"
+#include "slicestation/pipeline/damage_series.hpp"
 #include "slicestation/pipeline/icp.hpp"
 #include "slicestation/pipeline/intensity_affine.hpp"
 #include "slicestation/pipeline/intensity_warp.hpp"
@@ -987,149 +988,176 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     // Non-linear: tight correspondences become Dirichlet conditions of Laplace's equation; a few
     // rounds let the warp bring in matches the affine left outside the thresholds.
     const double finalDist = atlasH / 60;
-    if (options.nonLinear && (options.edgeWarpAfterIntensity || !reg.quality.intensityAffineKept)) {
-        LaplaceOptions lo;
-        lo.cellPx = std::max(2.0, std::max(reg.workingGrey.cols, reg.workingGrey.rows) / 200.0);
-        // Point-to-line targets: an edge only says where the boundary is across it, so the
-        // warp is pulled across edges and Laplace's equation carries the rest.
-        const std::vector<std::pair<double, double>> rounds{
-            {atlasH / 30, 8}, {atlasH / 40, 6}, {atlasH / 50, 5}, {finalDist, 5}};
-        // A section far from its plane's shape (parts shifted apart, the bulbs' or hind
-        // brain's outline changing fast along the cutting axis) keeps a misfit outline that no
-        // edge pair reaches, and the misfit reads as missing tissue. Then the tissue outline
-        // (outside the damaged concavities) is also paired with the atlas outline, one boundary
-        // each, so further away than edges among edges.
-        const bool pullOutline = reg.quality.tissueOverlap < options.outlinePullBelowOverlap;
-        // The tissue outline outside the damaged concavities: the outline pull's and the
-        // smooth stage's pairs.
-        EdgePoints outline;
-        for (size_t i = 0; (pullOutline || options.smoothWarp) && i < imgOuter.size(); ++i) {
-            const cv::Point p(std::clamp(cvRound(imgOuter.points[i].x), 0, mei.cols - 1),
-                              std::clamp(cvRound(imgOuter.points[i].y), 0, mei.rows - 1));
-            if (!damagedOutline.empty() && damagedOutline.at<std::uint8_t>(p))
-                continue;
-            outline.points.push_back(imgOuter.points[i]);
-            outline.normals.push_back(imgOuter.normals[i]);
+    // The non-linear stages (edge warps, intensity or region warp, dense refinement, fold
+    // repair) on the affine, with or without the smooth stage; `timed` laps each step.
+    const auto nonLinearStages = [&](Registration& r, bool smooth, bool timed) {
+        const auto lap = [&](const char* name) {
+            if (timed)
+                timer.lap(name);
+        };
+        // The field stages' inputs: the section, its measured area and the map on a grid of
+        // `maxSide`.
+        struct GridInputs {
+            cv::Size ws, gs;
+            cv::Mat grey, weight, mx, my;
+        };
+        const auto gridInputs = [&](int maxSide) {
+            GridInputs g;
+            g.ws = r.workingGrey.size();
+            g.gs = gridSize(g.ws, maxSide);
+            cv::resize(r.workingGrey, g.grey, g.gs, 0, 0, cv::INTER_AREA);
+            g.weight =
+                measuredArea(g.gs, tissueFilled, options.excludeMask, fragments, damagedOutline);
+            r.atlasMaps(g.gs, g.mx, g.my);
+            return g;
+        };
+        // An intensity or region warp's held-out shares into the quality; its field into the
+        // map when kept.
+        const auto keepField = [&](const IntensityWarp& w, cv::Size ws, double& before,
+                                   double& after, bool& kept) {
+            before = w.explainedBefore;
+            after = w.explainedAfter;
+            kept = w.accepted;
+            if (w.accepted)
+                r.warp = addToWarp(r.warp, ws, w.ux, w.uy);
+        };
+        if (options.nonLinear &&
+            (options.edgeWarpAfterIntensity || !r.quality.intensityAffineKept)) {
+            LaplaceOptions lo;
+            lo.cellPx = std::max(2.0, std::max(r.workingGrey.cols, r.workingGrey.rows) / 200.0);
+            // Point-to-line targets: an edge only says where the boundary is across it, so the
+            // warp is pulled across edges and Laplace's equation carries the rest.
+            const std::vector<std::pair<double, double>> rounds{
+                {atlasH / 30, 8}, {atlasH / 40, 6}, {atlasH / 50, 5}, {finalDist, 5}};
+            // A section far from its plane's shape (parts shifted apart, the bulbs' or hind
+            // brain's outline changing fast along the cutting axis) keeps a misfit outline that no
+            // edge pair reaches, and the misfit reads as missing tissue. Then the tissue outline
+            // (outside the damaged concavities) is also paired with the atlas outline, one boundary
+            // each, so further away than edges among edges.
+            const bool pullOutline = r.quality.tissueOverlap < options.outlinePullBelowOverlap;
+            // The tissue outline outside the damaged concavities: the outline pull's and the
+            // smooth stage's pairs.
+            EdgePoints outline;
+            for (size_t i = 0; (pullOutline || smooth) && i < imgOuter.size(); ++i) {
+                const cv::Point p(std::clamp(cvRound(imgOuter.points[i].x), 0, mei.cols - 1),
+                                  std::clamp(cvRound(imgOuter.points[i].y), 0, mei.rows - 1));
+                if (!damagedOutline.empty() && damagedOutline.at<std::uint8_t>(p))
+                    continue;
+                outline.points.push_back(imgOuter.points[i]);
+                outline.normals.push_back(imgOuter.normals[i]);
+            }
+            const double outlineReach = atlasH * options.outlinePullReach;
+            const PointGrid atlasOuterGrid(atlasOuter.points, float(outlineReach / 2));
+            // The smooth stage: a B-spline field fitted to the edges and the tissue outline
+            // (outside damaged concavities) at once; the Laplace warp then adds local corrections.
+            DisplacementField base;
+            if (smooth) {
+                const PointGrid outerGrid(atlasOuter.points, float(atlasH / 40));
+                SmoothWarpOptions so = options.smooth;
+                if (so.levels.empty())
+                    so.levels = {{atlasH / 15, 20, 3}, {atlasH / 25, 15, 3}, {atlasH / 40, 10, 3}};
+                const SmoothWarp sw =
+                    fitSmoothWarp(r.workingGrey.size(), r.atlasFromWorking,
+                                  {{&r.sectionEdges, &r.atlasEdges, &atlasGrid, 1.0},
+                                   {&outline, &atlasOuter, &outerGrid, 1.0}},
+                                  lo.cellPx, so);
+                base = sw.field;
+                r.warp = base;
+                r.quality.smoothBefore = sw.rmsBefore;
+                r.quality.smoothAfter = sw.rmsAfter;
+                r.quality.smoothMatches = sw.matches;
+            }
+            std::vector<cv::Point2d> pts, disp;
+            for (const auto& [dist, ang] : rounds) {
+                pts.clear();
+                disp.clear();
+                addWarpConditions(r.sectionEdges, r.atlasFromWorking, r.warp, r.atlasEdges,
+                                  atlasGrid, dist, ang, pts, disp);
+                if (pts.size() < 12)
+                    break;
+                if (pullOutline)
+                    addWarpConditions(outline, r.atlasFromWorking, r.warp, atlasOuter,
+                                      atlasOuterGrid, std::max(dist, outlineReach), 15, pts, disp);
+                // The Laplace warp interpolates what the smooth field leaves at the conditions.
+                for (size_t k = 0; k < pts.size(); ++k)
+                    disp[k] -= base.at(pts[k]);
+                r.warp = addFields(solveLaplaceWarp(r.workingGrey.size(), pts, disp, lo), base);
+            }
         }
-        const double outlineReach = atlasH * options.outlinePullReach;
-        const PointGrid atlasOuterGrid(atlasOuter.points, float(outlineReach / 2));
-        // The smooth stage: a B-spline field fitted to the edges and the tissue outline
-        // (outside damaged concavities) at once; the Laplace warp then adds local corrections.
-        DisplacementField base;
-        if (options.smoothWarp) {
-            const PointGrid outerGrid(atlasOuter.points, float(atlasH / 40));
-            SmoothWarpOptions so = options.smooth;
-            if (so.levels.empty())
-                so.levels = {{atlasH / 15, 20, 3}, {atlasH / 25, 15, 3}, {atlasH / 40, 10, 3}};
-            const SmoothWarp sw =
-                fitSmoothWarp(reg.workingGrey.size(), reg.atlasFromWorking,
-                              {{&reg.sectionEdges, &reg.atlasEdges, &atlasGrid, 1.0},
-                               {&outline, &atlasOuter, &outerGrid, 1.0}},
-                              lo.cellPx, so);
-            base = sw.field;
-            reg.warp = base;
-            reg.quality.smoothBefore = sw.rmsBefore;
-            reg.quality.smoothAfter = sw.rmsAfter;
-            reg.quality.smoothMatches = sw.matches;
+        lap("warp");
+
+        // With an atlas intensity plane, a smooth field so that the section and the plane agree
+        // inside the tissue (intensity_warp.hpp): the non-affine part the intensity affine leaves.
+        if (options.intensityWarp && !plane.empty()) {
+            const GridInputs g = gridInputs(options.intensityWarpOptions.gridMaxSide);
+            const IntensityWarp iw = refineWarpByIntensity(g.grey, g.weight, g.mx, g.my, plane,
+                                                           options.intensityWarpOptions);
+            keepField(iw, g.ws, r.quality.intensityWarpExplainedBefore,
+                      r.quality.intensityWarpExplainedAfter, r.quality.intensityWarpKept);
+            lap("iwarp");
         }
-        std::vector<cv::Point2d> pts, disp;
-        for (const auto& [dist, ang] : rounds) {
-            pts.clear();
-            disp.clear();
-            addWarpConditions(reg.sectionEdges, reg.atlasFromWorking, reg.warp, reg.atlasEdges,
-                              atlasGrid, dist, ang, pts, disp);
-            if (pts.size() < 12)
+        // Without a plane, the same field against the fine atlas regions painted with the section's
+        // own levels (any stain: each region is roughly homogeneous).
+        if (options.regionWarp && plane.empty() && !options.regionLabels.empty()) {
+            const GridInputs g = gridInputs(options.regionWarpOptions.warp.gridMaxSide);
+            const IntensityWarp rw =
+                refineWarpByRegions(g.grey, g.weight, g.mx, g.my, options.regionLabels,
+                                    options.regionWarpOptions.glassIds, options.regionWarpOptions);
+            keepField(rw, g.ws, r.quality.regionWarpExplainedBefore,
+                      r.quality.regionWarpExplainedAfter, r.quality.regionWarpKept);
+            lap("rwarp");
+        }
+
+        // Dense refinement (beyond the paper): the atlas regions are fitted to the section's own
+        // contrast inside the tissue on a reduced grid; damaged and excluded parts stay out.
+        if (options.denseRefine) {
+            const GridInputs g = gridInputs(denseOptions.gridMaxSide);
+            const DenseRefinement dense =
+                refineDense(g.grey, g.weight, g.mx, g.my, atlasLabels, plane, denseOptions);
+            r.quality.explainedBeforeRefine = dense.explainedBefore;
+            r.quality.explainedAfterRefine = dense.explainedAfter;
+            r.quality.refined = dense.accepted;
+            if (dense.accepted)
+                r.warp = addToWarp(r.warp, g.ws, dense.ux, dense.uy);
+            cv::resize(dense.confidence, r.confidence, g.ws, 0, 0, cv::INTER_LINEAR);
+            r.regionConfidence =
+                meanByLabel(dense.confidence, r.warpedLabels(atlasLabels, g.gs), g.weight);
+            lap("refine");
+        }
+        // Tissue cannot lie over itself: where the final map folds (Jacobian determinant of the
+        // opposite sign to the affine's), the field around the fold is relaxed to the harmonic
+        // interpolation of its surroundings, which moves nothing else.
+        for (int round = 0; round < options.foldRepairs; ++round) {
+            const cv::Mat j = mapJacobian(r.atlasFromWorking, r.warp);
+            if (j.empty())
                 break;
-            if (pullOutline)
-                addWarpConditions(outline, reg.atlasFromWorking, reg.warp, atlasOuter,
-                                  atlasOuterGrid, std::max(dist, outlineReach), 15, pts, disp);
-            // The Laplace warp interpolates what the smooth field leaves at the conditions.
-            for (size_t k = 0; k < pts.size(); ++k)
-                disp[k] -= base.at(pts[k]);
-            reg.warp = addFields(solveLaplaceWarp(reg.workingGrey.size(), pts, disp, lo), base);
+            cv::Mat folded = det(r.atlasFromWorking) > 0 ? j <= 0 : j >= 0;
+            if (cv::countNonZero(folded) == 0)
+                break;
+            const int k = 2 * (2 + round) + 1;
+            cv::dilate(folded, folded, cv::getStructuringElement(cv::MORPH_RECT, cv::Size(k, k)));
+            r.warp = relaxWithin(r.warp, folded);
+            ++r.quality.foldRepairs;
+            r.quality.foldRepairNodes += cv::countNonZero(folded);
         }
+        lap("fold-repair");
+    };
+    // The damage check judges the section against the map the stages give without the smooth
+    // warp (RegistrationOptions::damageWithoutSmooth); the result's map runs the stages again
+    // from the affine with the smooth field. The two maps are independent: side by side, each
+    // on its own copy (one step, "warp-both", in the timings).
+    const bool edgeWarps =
+        options.nonLinear && (options.edgeWarpAfterIntensity || !reg.quality.intensityAffineKept);
+    std::optional<DisplacementField> damageWarp;
+    if (options.smoothWarp && options.damageWithoutSmooth && options.detectDamage && edgeWarps) {
+        Registration stiff = reg;
+        stiff.confidence.release(); // each map its own
+        runTasks(2, [&](int task) { nonLinearStages(task == 0 ? stiff : reg, task == 1, false); });
+        damageWarp = std::move(stiff.warp);
+        timer.lap("warp-both");
+    } else {
+        nonLinearStages(reg, options.smoothWarp, true);
     }
-    timer.lap("warp");
-
-    // With an atlas intensity plane, a smooth field so that the section and the plane agree
-    // inside the tissue (intensity_warp.hpp): the non-affine part the intensity affine leaves.
-    if (options.intensityWarp && !plane.empty()) {
-        const cv::Size ws = reg.workingGrey.size();
-        const cv::Size gs = gridSize(ws, options.intensityWarpOptions.gridMaxSide);
-        cv::Mat grey, mx, my;
-        cv::resize(reg.workingGrey, grey, gs, 0, 0, cv::INTER_AREA);
-        const cv::Mat weight =
-            measuredArea(gs, tissueFilled, options.excludeMask, fragments, damagedOutline);
-        reg.atlasMaps(gs, mx, my);
-        const IntensityWarp iw =
-            refineWarpByIntensity(grey, weight, mx, my, plane, options.intensityWarpOptions);
-        reg.quality.intensityWarpExplainedBefore = iw.explainedBefore;
-        reg.quality.intensityWarpExplainedAfter = iw.explainedAfter;
-        reg.quality.intensityWarpKept = iw.accepted;
-        if (iw.accepted)
-            reg.warp = addToWarp(reg.warp, ws, iw.ux, iw.uy);
-        timer.lap("iwarp");
-    }
-    // Without a plane, the same field against the fine atlas regions painted with the section's
-    // own levels (any stain: each region is roughly homogeneous).
-    if (options.regionWarp && plane.empty() && !options.regionLabels.empty()) {
-        const cv::Size ws = reg.workingGrey.size();
-        const cv::Size gs = gridSize(ws, options.regionWarpOptions.warp.gridMaxSide);
-        cv::Mat grey, mx, my;
-        cv::resize(reg.workingGrey, grey, gs, 0, 0, cv::INTER_AREA);
-        const cv::Mat weight =
-            measuredArea(gs, tissueFilled, options.excludeMask, fragments, damagedOutline);
-        reg.atlasMaps(gs, mx, my);
-        const IntensityWarp rw =
-            refineWarpByRegions(grey, weight, mx, my, options.regionLabels,
-                                options.regionWarpOptions.glassIds, options.regionWarpOptions);
-        reg.quality.regionWarpExplainedBefore = rw.explainedBefore;
-        reg.quality.regionWarpExplainedAfter = rw.explainedAfter;
-        reg.quality.regionWarpKept = rw.accepted;
-        if (rw.accepted)
-            reg.warp = addToWarp(reg.warp, ws, rw.ux, rw.uy);
-        timer.lap("rwarp");
-    }
-
-    // Dense refinement (beyond the paper): the atlas regions are fitted to the section's own
-    // contrast inside the tissue on a reduced grid; damaged and excluded parts stay out.
-    if (options.denseRefine) {
-        const cv::Size ws = reg.workingGrey.size();
-        const cv::Size gs = gridSize(ws, denseOptions.gridMaxSide);
-        cv::Mat grey, mx, my;
-        cv::resize(reg.workingGrey, grey, gs, 0, 0, cv::INTER_AREA);
-        const cv::Mat weight =
-            measuredArea(gs, tissueFilled, options.excludeMask, fragments, damagedOutline);
-        reg.atlasMaps(gs, mx, my);
-        const DenseRefinement dense =
-            refineDense(grey, weight, mx, my, atlasLabels, plane, denseOptions);
-        reg.quality.explainedBeforeRefine = dense.explainedBefore;
-        reg.quality.explainedAfterRefine = dense.explainedAfter;
-        reg.quality.refined = dense.accepted;
-        if (dense.accepted)
-            reg.warp = addToWarp(reg.warp, ws, dense.ux, dense.uy);
-        cv::resize(dense.confidence, reg.confidence, ws, 0, 0, cv::INTER_LINEAR);
-        reg.regionConfidence =
-            meanByLabel(dense.confidence, reg.warpedLabels(atlasLabels, gs), weight);
-        timer.lap("refine");
-    }
-    // Tissue cannot lie over itself: where the final map folds (Jacobian determinant of the
-    // opposite sign to the affine's), the field around the fold is relaxed to the harmonic
-    // interpolation of its surroundings, which moves nothing else.
-    for (int round = 0; round < options.foldRepairs; ++round) {
-        const cv::Mat j = mapJacobian(reg.atlasFromWorking, reg.warp);
-        if (j.empty())
-            break;
-        cv::Mat folded = det(reg.atlasFromWorking) > 0 ? j <= 0 : j >= 0;
-        if (cv::countNonZero(folded) == 0)
-            break;
-        const int k = 2 * (2 + round) + 1;
-        cv::dilate(folded, folded, cv::getStructuringElement(cv::MORPH_RECT, cv::Size(k, k)));
-        reg.warp = relaxWithin(reg.warp, folded);
-        ++reg.quality.foldRepairs;
-        reg.quality.foldRepairNodes += cv::countNonZero(folded);
-    }
-    timer.lap("fold-repair");
     reg.quality.minJacobian = minJacobianRelative(reg.atlasFromWorking, reg.warp);
 
     std::vector<cv::Point2f> mp, mn;
@@ -1160,6 +1188,10 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
                 e.parts = partMap(labelsSeen, options.separateParts);
             return e;
         };
+        // Judged against the map without the smooth warp when one was kept aside; the result
+        // keeps the final map.
+        if (damageWarp)
+            std::swap(reg.warp, *damageWarp);
         const cv::Mat seen = reg.warpedLabels(atlasLabels, reg.workingGrey.size());
         const AtlasExpectation expected = expectationOf(seen);
         const cv::Mat& expectedBrain = expected.brain;
@@ -1287,6 +1319,17 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         // Knife chatter is no gap: neither the mirror nor the misfit judges it.
         for (DamageRegion& d : chatter)
             regions.push_back(std::move(d));
+        if (damageWarp) {
+            // Where the gaps lie in the atlas (the series context compares them with the
+            // neighbours'), through the map they were found against.
+            reg.damage = std::move(regions);
+            AtlasDamageOutlines outlines = atlasDamageOutlines(reg);
+            regions = std::move(reg.damage);
+            reg.damage.clear();
+            for (size_t i = 0; i < regions.size() && i < outlines.size(); ++i)
+                regions[i].atlasOutline = std::move(outlines[i]);
+            std::swap(reg.warp, *damageWarp);
+        }
         const DamageDecision decision = decideDamage(regions, brainWidth / s, options.damage);
         reg.damageScore = decision.score;
         reg.damageVerdict = decision.verdict;

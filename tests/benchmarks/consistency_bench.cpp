@@ -359,7 +359,7 @@ int main(int argc, char** argv) {
     std::vector<int> only;
     bool shiftOnly = false;
     double fieldScale = 1.0, maxTurnDeg = 180;
-    std::string smoothMode = "off";
+    std::string smoothMode = "on";
     app.add_flag("--shift-only", shiftOnly,
                  "Warps are whole-pixel shifts only (checks the benchmark: RMS near 0 expected)");
     app.add_option("--field-scale", fieldScale,
@@ -369,7 +369,8 @@ int main(int argc, char** argv) {
                    "The registration's mounting rule: sections turned at most this far (degrees; "
                    "180 = any way, the default)")
         ->check(CLI::Range(0.0, 180.0));
-    app.add_option("--smooth", smoothMode, "The registration's smooth (B-spline) warp: on | off")
+    app.add_option("--smooth", smoothMode,
+                   "The registration's smooth (B-spline) warp: on (the default) | off")
         ->check(CLI::IsMember({"on", "off"}));
     std::string regionWarpMode = "off";
     app.add_option("--region-warp", regionWarpMode,

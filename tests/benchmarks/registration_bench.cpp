@@ -463,7 +463,7 @@ int main(int argc, char** argv) {
     std::vector<int> only;
     app.add_option("--only", only,
                    "Run only these case indices of the --cases set (to look into them)");
-    std::string overlayDir, refineMode = "on", nonLinearMode = "on", smoothMode = "off";
+    std::string overlayDir, refineMode = "on", nonLinearMode = "on", smoothMode = "on";
     std::string damageLogPath;
     bool listMissed = false;
     std::string mirroredGaps = "on";
@@ -529,8 +529,9 @@ int main(int argc, char** argv) {
     // labels), and the benchmark's default figures are the product's.
     std::string regionWarpMode = "off";
     app.add_option("--region-warp", regionWarpMode,
-                   "The region warp of ours (runs only without an atlas intensity plane; not in "
-                   "slicectl or the daemon yet): on | off")
+                   "The region warp of ours (runs only without an atlas intensity plane and "
+                   "with fine labels, as slicectl and the daemon run it for a stack sliced "
+                   "--regions all; --region-labels all gives them here): on | off")
         ->check(CLI::IsMember({"on", "off"}));
     std::vector<std::string> denseSettings;
     app.add_option("--dense", denseSettings,
@@ -544,7 +545,8 @@ int main(int argc, char** argv) {
                    "Ours with its non-linear stages (Laplace warp, dense refinement): on | off "
                    "(off: the affine alone)")
         ->check(CLI::IsMember({"on", "off"}));
-    app.add_option("--smooth", smoothMode, "The smooth (B-spline) warp of ours: on | off")
+    app.add_option("--smooth", smoothMode,
+                   "The smooth (B-spline) warp of ours: on (the default, as the product) | off")
         ->check(CLI::IsMember({"on", "off"}));
     app.add_option("--refine", refineMode, "Dense refinement of ours: on | off")
         ->check(CLI::IsMember({"on", "off"}));

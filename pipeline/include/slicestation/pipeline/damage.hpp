@@ -48,6 +48,9 @@ struct DamageRegion {
     /// neighbours showing damage at the same atlas place, in [0, 1]. Anatomy persists over
     /// neighbouring sections, a tear does not: the evidence is scaled by (1 - persistence).
     double persistence = 0;
+    /// The outline in atlas px through the map the damage check judged against, when that is
+    /// not the registration's own (RegistrationOptions::damageWithoutSmooth); empty otherwise.
+    std::vector<cv::Point2f> atlasOutline;
     /// Gaps: within half the gap's length around it, the section's tissue lying where the
     /// mapped atlas expects none (outside its brain, or in a ventricle) over the glass lying
     /// where it expects tissue (at least the gap's own area), both as they are, without slack.
