@@ -84,13 +84,40 @@ void relaxOne(cv::Mat& u, const cv::Mat& fixed, const cv::Mat& isFixed, int swee
         const float avg = 0.25f * (r[jl] + r[jr] + u.ptr<float>(iu)[j] + u.ptr<float>(id)[j]);
         r[j] += wf * (avg - r[j]);
     };
+    // The same update away from the borders, on row pointers (no mirror indices to work out):
+    // the same sums in the same order, so the same bits.
+    const auto inner = [wf](const float* up, float* row, const float* down, const uchar* held,
+                            const float* value, int j) {
+        if (held[j]) {
+            row[j] = value[j];
+            return;
+        }
+        const float avg = 0.25f * (row[j - 1] + row[j + 1] + up[j] + down[j]);
+        row[j] += wf * (avg - row[j]);
+    };
     for (int s = 0; s < sweeps; ++s) {
         int i = 0;
         for (; i + 1 < rows; i += 2) {
+            // Row i and row i + 1 are interior when both their neighbours are inside the grid.
+            const bool innerA = i >= 1 && i + 1 < rows, innerB = i + 2 < rows;
+            float* ra = u.ptr<float>(i);
+            float* rb = u.ptr<float>(i + 1);
+            const float* ua = innerA ? u.ptr<float>(i - 1) : nullptr;
+            const float* db = innerB ? u.ptr<float>(i + 2) : nullptr;
+            const uchar* ha = isFixed.ptr<uchar>(i);
+            const uchar* hb = isFixed.ptr<uchar>(i + 1);
+            const float* va = fixed.ptr<float>(i);
+            const float* vb = fixed.ptr<float>(i + 1);
             update(i, 0);
             for (int j = 1; j < cols; ++j) {
-                update(i, j);
-                update(i + 1, j - 1);
+                if (innerA && j + 1 < cols)
+                    inner(ua, ra, rb, ha, va, j);
+                else
+                    update(i, j);
+                if (innerB && j - 1 >= 1)
+                    inner(ra, rb, db, hb, vb, j - 1);
+                else
+                    update(i + 1, j - 1);
             }
             update(i + 1, cols - 1);
         }
