@@ -65,20 +65,23 @@ double applySeriesContext(std::vector<DamageRegion>& regions,
     return damageScore(regions, brainWidthPx, damageParams);
 }
 
+std::vector<cv::Point2f> atlasDamageOutline(const Registration& reg, const DamageRegion& d,
+                                            double maxSegmentPx) {
+    std::vector<cv::Point2f> out;
+    if ((d.kind != DamageKind::Tear && d.kind != DamageKind::Missing) || d.polygon.size() < 3)
+        return out;
+    for (const cv::Point2f& p : subdivide(d.polygon, maxSegmentPx)) {
+        const cv::Point2d a = reg.atlasFromImage(cv::Point2d(p.x, p.y));
+        out.emplace_back(float(a.x), float(a.y));
+    }
+    return out;
+}
+
 AtlasDamageOutlines atlasDamageOutlines(const Registration& reg, double maxSegmentPx) {
     AtlasDamageOutlines out(reg.damage.size());
     for (std::size_t i = 0; i < reg.damage.size(); ++i) {
         const DamageRegion& d = reg.damage[i];
-        if ((d.kind != DamageKind::Tear && d.kind != DamageKind::Missing) || d.polygon.size() < 3)
-            continue;
-        if (!d.atlasOutline.empty()) {
-            out[i] = d.atlasOutline;
-            continue;
-        }
-        for (const cv::Point2f& p : subdivide(d.polygon, maxSegmentPx)) {
-            const cv::Point2d a = reg.atlasFromImage(cv::Point2d(p.x, p.y));
-            out[i].emplace_back(float(a.x), float(a.y));
-        }
+        out[i] = d.atlasOutline.empty() ? atlasDamageOutline(reg, d, maxSegmentPx) : d.atlasOutline;
     }
     return out;
 }

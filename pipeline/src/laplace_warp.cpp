@@ -98,8 +98,9 @@ void relaxOne(cv::Mat& u, const cv::Mat& fixed, const cv::Mat& isFixed, int swee
     for (int s = 0; s < sweeps; ++s) {
         int i = 0;
         for (; i + 1 < rows; i += 2) {
-            // Row i and row i + 1 are interior when both their neighbours are inside the grid.
-            const bool innerA = i >= 1 && i + 1 < rows, innerB = i + 2 < rows;
+            // Row i and row i + 1 are interior when both their neighbours are inside the grid
+            // (row i + 1 always is below row i).
+            const bool innerA = i >= 1, innerB = i + 2 < rows;
             float* ra = u.ptr<float>(i);
             float* rb = u.ptr<float>(i + 1);
             const float* ua = innerA ? u.ptr<float>(i - 1) : nullptr;

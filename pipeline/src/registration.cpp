@@ -990,6 +990,8 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     const double finalDist = atlasH / 60;
     // The non-linear stages (edge warps, intensity or region warp, dense refinement, fold
     // repair) on the affine, with or without the smooth stage; `timed` laps each step.
+    const bool edgeWarps =
+        options.nonLinear && (options.edgeWarpAfterIntensity || !reg.quality.intensityAffineKept);
     const auto nonLinearStages = [&](Registration& r, bool smooth, bool timed) {
         const auto lap = [&](const char* name) {
             if (timed)
@@ -1021,8 +1023,7 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
             if (w.accepted)
                 r.warp = addToWarp(r.warp, ws, w.ux, w.uy);
         };
-        if (options.nonLinear &&
-            (options.edgeWarpAfterIntensity || !r.quality.intensityAffineKept)) {
+        if (edgeWarps) {
             LaplaceOptions lo;
             lo.cellPx = std::max(2.0, std::max(r.workingGrey.cols, r.workingGrey.rows) / 200.0);
             // Point-to-line targets: an edge only says where the boundary is across it, so the
@@ -1146,8 +1147,6 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     // warp (RegistrationOptions::damageWithoutSmooth); the result's map runs the stages again
     // from the affine with the smooth field. The two maps are independent: side by side, each
     // on its own copy (one step, "warp-both", in the timings).
-    const bool edgeWarps =
-        options.nonLinear && (options.edgeWarpAfterIntensity || !reg.quality.intensityAffineKept);
     std::optional<DisplacementField> damageWarp;
     if (options.smoothWarp && options.damageWithoutSmooth && options.detectDamage && edgeWarps) {
         Registration stiff = reg;
@@ -1322,12 +1321,8 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         if (damageWarp) {
             // Where the gaps lie in the atlas (the series context compares them with the
             // neighbours'), through the map they were found against.
-            reg.damage = std::move(regions);
-            AtlasDamageOutlines outlines = atlasDamageOutlines(reg);
-            regions = std::move(reg.damage);
-            reg.damage.clear();
-            for (size_t i = 0; i < regions.size() && i < outlines.size(); ++i)
-                regions[i].atlasOutline = std::move(outlines[i]);
+            for (DamageRegion& d : regions)
+                d.atlasOutline = atlasDamageOutline(reg, d);
             std::swap(reg.warp, *damageWarp);
         }
         const DamageDecision decision = decideDamage(regions, brainWidth / s, options.damage);

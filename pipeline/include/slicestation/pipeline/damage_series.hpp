@@ -64,8 +64,13 @@ double applySeriesContext(std::vector<DamageRegion>& regions,
 /// The section's gaps (Tear, Missing) as outlines in atlas pixels, parallel to `reg.damage`
 /// (other kinds, and regions of fewer than 3 points, give an empty outline). Each outline is
 /// subdivided to `maxSegmentPx` (full-resolution px) before it is mapped through the
-/// registration (affine and warp), so a curved mapping bends it.
+/// registration (affine and warp), so a curved mapping bends it. A region that carries its
+/// `atlasOutline` (found against another map than the registration's) gives that.
 AtlasDamageOutlines atlasDamageOutlines(const Registration& reg, double maxSegmentPx = 4.0);
+/// One region's outline mapped through `reg` (its polygon subdivided to `maxSegmentPx`); empty
+/// for kinds without one (only tears and missing tissue are compared across sections).
+std::vector<cv::Point2f> atlasDamageOutline(const Registration& reg, const DamageRegion& region,
+                                            double maxSegmentPx = 4.0);
 
 /// The damage decision of a registered section again, with its series context: sets each gap's
 /// persistence among `earlier` (the outlines of the run's already registered sections, nearest
