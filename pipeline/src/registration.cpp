@@ -989,10 +989,12 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     // rounds let the warp bring in matches the affine left outside the thresholds.
     const double finalDist = atlasH / 60;
     // The non-linear stages (edge warps, intensity or region warp, dense refinement, fold
-    // repair) on the affine, with or without the smooth stage; `timed` laps each step.
+    // repair) on the affine, with or without the smooth stage; `timed` laps each step; `result`
+    // false (the damage map's chain) leaves out the dense refinement's confidence, which only the
+    // result's map keeps.
     const bool edgeWarps =
         options.nonLinear && (options.edgeWarpAfterIntensity || !reg.quality.intensityAffineKept);
-    const auto nonLinearStages = [&](Registration& r, bool smooth, bool timed) {
+    const auto nonLinearStages = [&](Registration& r, bool smooth, bool timed, bool result) {
         const auto lap = [&](const char* name) {
             if (timed)
                 timer.lap(name);
@@ -1120,9 +1122,11 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
             r.quality.refined = dense.accepted;
             if (dense.accepted)
                 r.warp = addToWarp(r.warp, g.ws, dense.ux, dense.uy);
-            cv::resize(dense.confidence, r.confidence, g.ws, 0, 0, cv::INTER_LINEAR);
-            r.regionConfidence =
-                meanByLabel(dense.confidence, r.warpedLabels(atlasLabels, g.gs), g.weight);
+            if (result) {
+                cv::resize(dense.confidence, r.confidence, g.ws, 0, 0, cv::INTER_LINEAR);
+                r.regionConfidence =
+                    meanByLabel(dense.confidence, r.warpedLabels(atlasLabels, g.gs), g.weight);
+            }
             lap("refine");
         }
         // Tissue cannot lie over itself: where the final map folds (Jacobian determinant of the
@@ -1150,12 +1154,13 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     std::optional<DisplacementField> damageWarp;
     if (options.smoothWarp && options.damageWithoutSmooth && options.detectDamage && edgeWarps) {
         Registration stiff = reg;
-        stiff.confidence.release(); // each map its own
-        runTasks(2, [&](int task) { nonLinearStages(task == 0 ? stiff : reg, task == 1, false); });
+        runTasks(2, [&](int task) {
+            nonLinearStages(task == 0 ? stiff : reg, task == 1, false, task == 1);
+        });
         damageWarp = std::move(stiff.warp);
         timer.lap("warp-both");
     } else {
-        nonLinearStages(reg, options.smoothWarp, true);
+        nonLinearStages(reg, options.smoothWarp, true, true);
     }
     reg.quality.minJacobian = minJacobianRelative(reg.atlasFromWorking, reg.warp);
 

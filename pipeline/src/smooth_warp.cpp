@@ -155,30 +155,55 @@ SmoothWarp fitSmoothWarp(cv::Size domain, const cv::Matx23d& atlasFromWorking,
                 continue;
             const double sigma = std::max(0.25, 1.4826 * median(absResidual));
             const double k = options.robustK * sigma;
+            // The normal equations: a row's 32 coefficients are the 16 B-spline weights times
+            // n.x and times n.y, so its outer product is (w w^T) times n.x^2, n.x n.y and n.y^2.
+            // Rows with the same 16 control points share one 16 x 16 block per product,
+            // scattered into the system once.
             Eigen::MatrixXd A = Eigen::MatrixXd::Zero(2 * n, 2 * n);
             Eigen::VectorXd b = Eigen::VectorXd::Zero(2 * n);
             std::array<int, 16> idx{};
             std::array<double, 16> w{};
+            struct Block {
+                std::array<int, 16> idx{};
+                Eigen::Matrix<double, 16, 16> xx = Eigen::Matrix<double, 16, 16>::Zero(),
+                                              xy = Eigen::Matrix<double, 16, 16>::Zero(),
+                                              yy = Eigen::Matrix<double, 16, 16>::Zero();
+            };
+            std::vector<int> blockOf(size_t(n), -1); // first control point -> block
+            std::vector<Block> blocks;
             double totalWeight = 0;
             for (size_t r = 0; r < rows.size(); ++r) {
                 const double e = absResidual[r] / k;
                 const double wr = rows[r].weight / (1 + e * e);
                 totalWeight += wr;
                 spline.support(rows[r].p, idx, w);
-                std::array<int, 32> col{};
-                std::array<double, 32> val{};
-                for (size_t q = 0; q < 16; ++q) {
-                    col[q] = idx[q];
-                    val[q] = w[q] * rows[r].n.x;
-                    col[16 + q] = n + idx[q];
-                    val[16 + q] = w[q] * rows[r].n.y;
+                int& slot = blockOf[size_t(idx[0])];
+                if (slot < 0) {
+                    slot = int(blocks.size());
+                    blocks.emplace_back();
+                    blocks.back().idx = idx;
                 }
-                for (size_t a = 0; a < 32; ++a) {
-                    b[col[a]] += wr * val[a] * rows[r].y;
-                    for (size_t bb = 0; bb < 32; ++bb)
-                        A(col[a], col[bb]) += wr * val[a] * val[bb];
+                Block& blk = blocks[size_t(slot)];
+                const Eigen::Map<const Eigen::Matrix<double, 16, 1>> wv(w.data());
+                const Eigen::Matrix<double, 16, 16> ww = wv * wv.transpose();
+                const double nx = rows[r].n.x, ny = rows[r].n.y;
+                blk.xx.noalias() += (wr * nx * nx) * ww;
+                blk.xy.noalias() += (wr * nx * ny) * ww;
+                blk.yy.noalias() += (wr * ny * ny) * ww;
+                for (size_t q = 0; q < 16; ++q) {
+                    b[idx[q]] += wr * w[q] * nx * rows[r].y;
+                    b[n + idx[q]] += wr * w[q] * ny * rows[r].y;
                 }
             }
+            for (const Block& blk : blocks)
+                for (int a = 0; a < 16; ++a)
+                    for (int q = 0; q < 16; ++q) {
+                        const int i = blk.idx[size_t(a)], j = blk.idx[size_t(q)];
+                        A(i, j) += blk.xx(a, q);
+                        A(i, n + j) += blk.xy(a, q);
+                        A(n + i, j) += blk.xy(a, q);
+                        A(n + i, n + j) += blk.yy(a, q);
+                    }
             const double lambda = options.stiffness * totalWeight / n;
             A.topLeftCorner(n, n) += lambda * membrane;
             A.bottomRightCorner(n, n) += lambda * membrane;
