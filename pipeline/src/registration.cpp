@@ -989,12 +989,16 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     // rounds let the warp bring in matches the affine left outside the thresholds.
     const double finalDist = atlasH / 60;
     // The non-linear stages (edge warps, intensity or region warp, dense refinement, fold
-    // repair) on the affine, with or without the smooth stage; `timed` laps each step; `result`
-    // false (the damage map's chain) leaves out the dense refinement's confidence, which only the
-    // result's map keeps.
+    // repair) on the affine, with or without the edge warps and the smooth stage; `timed` laps
+    // each step; `result` false (the damage map's chain) leaves out the dense refinement's
+    // confidence, which only the result's map keeps. Without the edge warps, when the region
+    // warp runs, the dense refinement fits the fine regions too.
+    const bool regionWarpRuns =
+        options.regionWarp && plane.empty() && !options.regionLabels.empty();
     const bool edgeWarps =
         options.nonLinear && (options.edgeWarpAfterIntensity || !reg.quality.intensityAffineKept);
-    const auto nonLinearStages = [&](Registration& r, bool smooth, bool timed, bool result) {
+    const auto nonLinearStages = [&](Registration& r, bool edges, bool smooth, bool timed,
+                                     bool result) {
         const auto lap = [&](const char* name) {
             if (timed)
                 timer.lap(name);
@@ -1025,7 +1029,7 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
             if (w.accepted)
                 r.warp = addToWarp(r.warp, ws, w.ux, w.uy);
         };
-        if (edgeWarps) {
+        if (edges) {
             LaplaceOptions lo;
             lo.cellPx = std::max(2.0, std::max(r.workingGrey.cols, r.workingGrey.rows) / 200.0);
             // Point-to-line targets: an edge only says where the boundary is across it, so the
@@ -1101,7 +1105,7 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         }
         // Without a plane, the same field against the fine atlas regions painted with the section's
         // own levels (any stain: each region is roughly homogeneous).
-        if (options.regionWarp && plane.empty() && !options.regionLabels.empty()) {
+        if (regionWarpRuns) {
             const GridInputs g = gridInputs(options.regionWarpOptions.warp.gridMaxSide);
             const IntensityWarp rw =
                 refineWarpByRegions(g.grey, g.weight, g.mx, g.my, options.regionLabels,
@@ -1115,8 +1119,9 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         // contrast inside the tissue on a reduced grid; damaged and excluded parts stay out.
         if (options.denseRefine) {
             const GridInputs g = gridInputs(denseOptions.gridMaxSide);
-            const DenseRefinement dense =
-                refineDense(g.grey, g.weight, g.mx, g.my, atlasLabels, plane, denseOptions);
+            const DenseRefinement dense = refineDense(
+                g.grey, g.weight, g.mx, g.my,
+                regionWarpRuns && !edges ? options.regionLabels : atlasLabels, plane, denseOptions);
             r.quality.explainedBeforeRefine = dense.explainedBefore;
             r.quality.explainedAfterRefine = dense.explainedAfter;
             r.quality.refined = dense.accepted;
@@ -1147,20 +1152,28 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         }
         lap("fold-repair");
     };
-    // The damage check judges the section against the map the stages give without the smooth
-    // warp (RegistrationOptions::damageWithoutSmooth); the result's map runs the stages again
-    // from the affine with the smooth field. The two maps are independent: side by side, each
-    // on its own copy (one step, "warp-both", in the timings).
+    // The result's map: with the region warp, without the edge warps unless asked
+    // (RegistrationOptions::edgeWarpWithRegions).
+    const bool resultEdges = edgeWarps && (options.edgeWarpWithRegions || !regionWarpRuns);
+    const bool resultSmooth = resultEdges && options.smoothWarp;
+    // The damage check judges the section against the map its rules were made on: the edge
+    // warps without the smooth one (RegistrationOptions::damageWithoutSmooth). When the result's
+    // map differs from it, the two run from the affine side by side, each on its own copy (one
+    // step, "warp-both", in the timings).
     std::optional<DisplacementField> damageWarp;
-    if (options.smoothWarp && options.damageWithoutSmooth && options.detectDamage && edgeWarps) {
+    if (options.detectDamage && edgeWarps &&
+        ((resultSmooth && options.damageWithoutSmooth) || !resultEdges)) {
         Registration stiff = reg;
         runTasks(2, [&](int task) {
-            nonLinearStages(task == 0 ? stiff : reg, task == 1, false, task == 1);
+            if (task == 0)
+                nonLinearStages(stiff, true, false, false, false);
+            else
+                nonLinearStages(reg, resultEdges, resultSmooth, false, true);
         });
         damageWarp = std::move(stiff.warp);
         timer.lap("warp-both");
     } else {
-        nonLinearStages(reg, options.smoothWarp, true, true);
+        nonLinearStages(reg, resultEdges, resultSmooth, true, true);
     }
     reg.quality.minJacobian = minJacobianRelative(reg.atlasFromWorking, reg.warp);
 

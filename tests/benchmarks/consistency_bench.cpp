@@ -376,6 +376,12 @@ int main(int argc, char** argv) {
     app.add_option("--region-warp", regionWarpMode,
                    "The region warp, painting every Allen id of the section's plane: on | off")
         ->check(CLI::IsMember({"on", "off"}));
+    std::string edgeWithRegions =
+        pipeline::RegistrationOptions{}.edgeWarpWithRegions ? "on" : "off";
+    app.add_option("--edge-warp-with-regions", edgeWithRegions,
+                   "RegistrationOptions::edgeWarpWithRegions: the edge warps before the region "
+                   "warp when it runs: on | off (default: the product's)")
+        ->check(CLI::IsMember({"on", "off"}));
     double crackDarkness = pipeline::DamageParams{}.crackDarkness;
     app.add_option("--crack-darkness", crackDarkness,
                    "DamageParams::crackDarkness (0: cracks must show glass, as before 2026-12-02)")
@@ -472,6 +478,7 @@ int main(int argc, char** argv) {
             ro.maxTurnDeg = maxTurnDeg;
             ro.smoothWarp = smoothMode == "on";
             ro.foldRepairs = foldRepairs;
+            ro.edgeWarpWithRegions = edgeWithRegions == "on";
             if (regionWarpMode == "on" && s.fine.type() == CV_32S &&
                 s.fine.size() == s.atlas.size()) {
                 ro.regionLabels = s.fine;

@@ -525,9 +525,16 @@ int main(int argc, char** argv) {
                    "Labels the region warp paints: all (every Allen id, when the atlas has them) "
                    "or given (the labels the registration gets)")
         ->check(CLI::IsMember({"all", "given"}));
-    // Off by default: slicectl and the daemon do not run it yet (their stacks hold collapsed
-    // labels), and the benchmark's default figures are the product's.
-    std::string regionWarpMode = "off";
+    // Off by default: the default figures are the product's with a stack of the major regions
+    // (the built-in atlas, `--regions major`); slicectl and the daemon run it for a stack sliced
+    // `--regions all`, which --region-warp on --region-labels all stands for.
+    std::string regionWarpMode = "off",
+                edgeWithRegions =
+                    pipeline::RegistrationOptions{}.edgeWarpWithRegions ? "on" : "off";
+    app.add_option("--edge-warp-with-regions", edgeWithRegions,
+                   "RegistrationOptions::edgeWarpWithRegions: the edge warps (smooth, Laplace) "
+                   "before the region warp when it runs: on | off (default: the product's)")
+        ->check(CLI::IsMember({"on", "off"}));
     app.add_option("--region-warp", regionWarpMode,
                    "The region warp of ours (runs only without an atlas intensity plane and "
                    "with fine labels, as slicectl and the daemon run it for a stack sliced "
@@ -642,6 +649,7 @@ int main(int argc, char** argv) {
         return 2;
     }
     regOptions.regionWarp = regionWarpMode == "on";
+    regOptions.edgeWarpWithRegions = edgeWithRegions == "on";
     {
         // glass= and min-region= are the region warp's own; the rest are the field's.
         std::vector<std::string> fieldSettings;

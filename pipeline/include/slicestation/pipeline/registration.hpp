@@ -104,6 +104,14 @@ struct RegistrationOptions {
     /// refinement; kept only when it explains more of the section on held-out blocks.
     bool regionWarp = true;
     RegionWarpOptions regionWarpOptions;
+    /// When the region warp runs (fine region labels, no atlas intensity plane): still run the
+    /// edge-driven warps (smooth warp, Laplace warp) before it in the result's map. Off (since
+    /// 2026-12-06): they match the section's edges, many of them borders between fine regions,
+    /// to the major regions' edges and pull those borders off; the region warp and the dense
+    /// refinement on the fine regions do the non-linear part (second family cases 0-95: 1.51 /
+    /// 1.55 -> 0.94 / 1.02 px, docs/registration.md). The damage check still judges the map
+    /// with the edge warps, the one its rules were made on.
+    bool edgeWarpWithRegions = false;
     /// The labels the region warp paints (CV_32S, the atlas labels' size), e.g. every Allen id
     /// where the atlas labels are the collapsed major regions: a stain differs between fine
     /// regions, and a major region painted at one level is a poor model of the section (it made
