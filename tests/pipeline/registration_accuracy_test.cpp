@@ -832,8 +832,9 @@ TEST(RegistrationAccuracy, WithFineRegionsTheEdgeWarpsStayOutOfTheResultButNotOu
             better += rmse[1] < rmse[0];
             ++cases;
             std::printf("AP %d%s: landmark RMSE with the edge warps %.2f, without %.2f atlas px; "
-                        "damage %s, %zu regions\n",
+                        "region warp %s; damage %s, %zu regions\n",
                         ap, torn ? " torn" : "", rmse[0], rmse[1],
+                        reg[1]->quality.regionWarpKept ? "kept" : "not kept",
                         reg[1]->damaged ? "flagged" : "clean", reg[1]->damage.size());
             EXPECT_EQ(reg[0]->damaged, reg[1]->damaged) << ap;
             EXPECT_EQ(reg[0]->damageSummary, reg[1]->damageSummary) << ap;
