@@ -376,6 +376,10 @@ int main(int argc, char** argv) {
     app.add_option("--region-warp", regionWarpMode,
                    "The region warp, painting every Allen id of the section's plane: on | off")
         ->check(CLI::IsMember({"on", "off"}));
+    std::string refineMode = "on";
+    app.add_option("--refine", refineMode,
+                   "The registration's dense refinement: on (the default) | off")
+        ->check(CLI::IsMember({"on", "off"}));
     std::string edgeWithRegions =
         pipeline::RegistrationOptions{}.edgeWarpWithRegions ? "on" : "off";
     app.add_option("--edge-warp-with-regions", edgeWithRegions,
@@ -479,6 +483,7 @@ int main(int argc, char** argv) {
             ro.smoothWarp = smoothMode == "on";
             ro.foldRepairs = foldRepairs;
             ro.edgeWarpWithRegions = edgeWithRegions == "on";
+            ro.denseRefine = refineMode == "on";
             if (regionWarpMode == "on" && s.fine.type() == CV_32S &&
                 s.fine.size() == s.atlas.size()) {
                 ro.regionLabels = s.fine;
