@@ -528,9 +528,9 @@ int main(int argc, char** argv) {
     // Off by default: the default figures are the product's with a stack of the major regions
     // (the built-in atlas, `--regions major`); slicectl and the daemon run it for a stack sliced
     // `--regions all`, which --region-warp on --region-labels all stands for.
-    std::string regionWarpMode = "off",
-                edgeWithRegions =
-                    pipeline::RegistrationOptions{}.edgeWarpWithRegions ? "on" : "off";
+    std::string regionWarpMode = "off";
+    std::string edgeWithRegions =
+        pipeline::RegistrationOptions{}.edgeWarpWithRegions ? "on" : "off";
     app.add_option("--edge-warp-with-regions", edgeWithRegions,
                    "RegistrationOptions::edgeWarpWithRegions: the edge warps (smooth, Laplace) "
                    "before the region warp when it runs: on | off (default: the product's)")
