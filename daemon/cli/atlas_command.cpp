@@ -42,11 +42,56 @@ core::Result<void> checkRange(const char* option, double value, double min, doub
     return makeError(ErrorCode::InvalidArgument, os.str());
 }
 
+/// The ids a stack's manifest lists, after collapsing the slices to the major regions when asked
+/// (each slice then keeps every id in AtlasSlice::ids, and `ventricleIds` gets the ventricles'
+/// ids among them) or with every ancestor of the ids the slices show.
+std::set<std::uint32_t> stackIds(const AtlasSliceRequest& rq, const core::Ontology& ontology,
+                                 std::vector<pipeline::AtlasSlice>& slices,
+                                 std::vector<std::int32_t>& ventricleIds) {
+    std::set<std::uint32_t> ids;
+    if (rq.regions == "major") {
+        // Results name the major regions; the registration's region warp still fits every id
+        // the section's stain shows (docs/atlas.md), so each slice keeps them in a plane of
+        // its own, and the stack the ids of its ventricles (painted as glass).
+        const int n = static_cast<int>(slices.size());
+        std::set<std::int32_t> seen;
+        for (int i = 0; i < n; ++i) {
+            report(rq, "collapsing regions", i, n);
+            auto& s = slices[static_cast<std::size_t>(i)];
+            for (auto it = s.labels.begin<int>(); it != s.labels.end<int>(); ++it)
+                if (*it != 0)
+                    seen.insert(*it);
+            s.ids = s.labels;
+            s.labels = pipeline::collapseLabels(s.ids, ontology, pipeline::majorRegionIds(),
+                                                pipeline::kOtherRegionId);
+        }
+        for (std::int32_t id : seen)
+            if (ontology.isDescendantOf(std::uint32_t(id), pipeline::kVentricularSystemsId))
+                ventricleIds.push_back(id);
+        ids.insert(pipeline::majorRegionIds().begin(), pipeline::majorRegionIds().end());
+        ids.insert(pipeline::kOtherRegionId);
+    } else {
+        for (const auto& s : slices)
+            for (auto it = s.labels.begin<int>(); it != s.labels.end<int>(); ++it)
+                if (*it != 0)
+                    ids.insert(std::uint32_t(*it));
+        // Every ancestor too, so that counts and exports can be rolled up the whole hierarchy
+        // with names (docs/results.md).
+        std::set<std::uint32_t> ancestors;
+        for (std::uint32_t id : ids)
+            if (const core::Structure* st = ontology.find(id))
+                ancestors.insert(st->path.begin(), st->path.end());
+        ids.insert(ancestors.begin(), ancestors.end());
+    }
+    return ids;
+}
+
 /// runAtlasSlice from a volume file (NRRD) and its ontology: the slices, their regions and the
 /// source description of the manifest.
 core::Result<void> sliceVolumeFile(const AtlasSliceRequest& rq,
                                    std::vector<pipeline::AtlasSlice>& slices,
-                                   std::vector<StackRegion>& regions, json& source) {
+                                   std::vector<StackRegion>& regions, json& source,
+                                   std::vector<std::int32_t>& ventricleIds) {
     if (rq.volume.empty())
         return makeError(ErrorCode::InvalidArgument, "--volume is required (or --builtin)");
     pipeline::VolumeAxes axes;
@@ -89,30 +134,7 @@ core::Result<void> sliceVolumeFile(const AtlasSliceRequest& rq,
             s.intensity = pipeline::sampleIntensity(templ->volume, axes, s.geometry,
                                                     templ->offsetUm, templ->scale);
     }
-    std::set<std::uint32_t> ids;
-    if (rq.regions == "major") {
-        const int n = static_cast<int>(slices.size());
-        for (int i = 0; i < n; ++i) {
-            report(rq, "collapsing regions", i, n);
-            auto& s = slices[static_cast<std::size_t>(i)];
-            s.labels = pipeline::collapseLabels(s.labels, ontology, pipeline::majorRegionIds(),
-                                                pipeline::kOtherRegionId);
-        }
-        ids.insert(pipeline::majorRegionIds().begin(), pipeline::majorRegionIds().end());
-        ids.insert(pipeline::kOtherRegionId);
-    } else {
-        for (const auto& s : slices)
-            for (auto it = s.labels.begin<int>(); it != s.labels.end<int>(); ++it)
-                if (*it != 0)
-                    ids.insert(std::uint32_t(*it));
-        // Every ancestor too, so that counts and exports can be rolled up the whole hierarchy
-        // with names (docs/results.md).
-        std::set<std::uint32_t> ancestors;
-        for (std::uint32_t id : ids)
-            if (const core::Structure* st = ontology.find(id))
-                ancestors.insert(st->path.begin(), st->path.end());
-        ids.insert(ancestors.begin(), ancestors.end());
-    }
+    const std::set<std::uint32_t> ids = stackIds(rq, ontology, slices, ventricleIds);
     for (std::uint32_t id : ids) {
         const core::Structure* st = ontology.find(id);
         regions.push_back(st ? StackRegion{id, st->name, st->acronym, st->colorRgb, st->path}
@@ -156,6 +178,7 @@ core::Result<json> runAtlasSlice(const AtlasSliceRequest& rq) {
     json source;
     std::vector<pipeline::AtlasSlice> slices;
     std::vector<StackRegion> regions;
+    std::vector<std::int32_t> ventricleIds;
 
     if (rq.builtin) {
         if (rq.plane != "coronal")
@@ -174,12 +197,12 @@ core::Result<json> runAtlasSlice(const AtlasSliceRequest& rq) {
                   {"interval_um", rq.intervalUm},
                   {"first_um", rq.firstUm},
                   {"length_um", kBuiltinLengthUm}};
-    } else if (auto r = sliceVolumeFile(rq, slices, regions, source); !r) {
+    } else if (auto r = sliceVolumeFile(rq, slices, regions, source, ventricleIds); !r) {
         return r.error();
     }
     source["um_per_px"] = rq.builtin ? kBuiltinUmPerPx : rq.umPerPx;
     report(rq, "writing the stack", 0, 0);
-    auto stack = writeStack(rq.output, slices, std::move(regions), source);
+    auto stack = writeStack(rq.output, slices, std::move(regions), source, std::move(ventricleIds));
     if (!stack)
         return stack.error();
     return json{{"slices", stack->slices.size()},

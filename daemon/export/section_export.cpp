@@ -212,6 +212,8 @@ AtlasSliceFrame sliceFrame(const AtlasStack& stack, int index) {
     f.ccf = stack.source.is_object() && stack.source.value("kind", "") == "volume";
     f.stackDir = stack.dir.string();
     f.templateFile = s.templateFile;
+    f.idsFile = s.idsFile;
+    f.ventricleIds = stack.ventricleIds;
     // The midline: the volume's left-right centre, else the slice's centre column (built-in
     // planes are centred on the brain's axis).
     const json& extent =

@@ -122,7 +122,7 @@ core::Result<LabelsForRegistration> labelsForRegistration(const cv::Mat& labels,
                                           pipeline::kOtherRegionId);
     out.regionLabels = labels;
     for (std::int32_t id : seen)
-        if (ontology->isDescendantOf(std::uint32_t(id), 73))
+        if (ontology->isDescendantOf(std::uint32_t(id), pipeline::kVentricularSystemsId))
             out.ventricleIds.push_back(id);
     return out;
 }
@@ -206,9 +206,13 @@ json resultDocument(const RegisterRequest& rq, const cv::Mat& section, const cv:
         out["atlas"]["stack"] = sliceFrameJson(f);
         if (!f.templateFile.empty() && !rq.atlasTemplate)
             out["atlas"]["template"] = f.templateFile;
+        if (!f.idsFile.empty() && !rq.atlasIds)
+            out["atlas"]["ids"] = f.idsFile;
     }
     if (rq.atlasTemplate)
         out["atlas"]["template"] = relativeToResult(*rq.atlasTemplate, rq);
+    if (rq.atlasIds)
+        out["atlas"]["ids"] = relativeToResult(*rq.atlasIds, rq);
     const bool ccf = rq.atlasSlice && rq.atlasSlice->ccf;
     out["damaged"] = reg.damaged;
     out["damage_score"] = reg.damageScore;
@@ -271,6 +275,52 @@ core::Result<cv::Mat> atlasIntensityOf(const RegisterRequest& rq, cv::Size label
     return cv::Mat();
 }
 
+/// The plane of every atlas id (RegisterRequest::atlasIds, else the stack slice's id plane), CV_32S
+/// of the labels' size, or an empty Mat when there is none.
+core::Result<cv::Mat> atlasIdsOf(const RegisterRequest& rq, cv::Size labelsSize) {
+    std::filesystem::path path;
+    std::string what = "atlas ids";
+    if (rq.atlasIds) {
+        path = *rq.atlasIds;
+    } else if (rq.atlasSlice && !rq.atlasSlice->idsFile.empty()) {
+        path = std::filesystem::path(rq.atlasSlice->stackDir) / rq.atlasSlice->idsFile;
+        what = "stack manifest slices[" + std::to_string(rq.atlasSlice->index) + "].ids";
+    } else {
+        return cv::Mat();
+    }
+    auto image = core::readImage(path);
+    if (!image)
+        return inFile(image.error(), path, what.c_str());
+    auto ids = pipeline::labelsFromImage(*image);
+    if (!ids)
+        return inFile(ids.error(), path, what.c_str());
+    if (ids->size() != labelsSize)
+        return makeError(ErrorCode::InvalidArgument,
+                         what + " " + path.string() + ": " + std::to_string(ids->cols) + " x " +
+                             std::to_string(ids->rows) + " px, the atlas labels are " +
+                             std::to_string(labelsSize.width) + " x " +
+                             std::to_string(labelsSize.height));
+    return ids;
+}
+
+/// The region warp's labels from the id plane (atlasIdsOf) when the labels do not hold every id
+/// themselves (a major-region stack keeps them in a plane of its own: atlas slice --regions
+/// major), with the stack's ventricle ids.
+core::Result<void> addIdPlane(const RegisterRequest& rq, cv::Size labelsSize,
+                              LabelsForRegistration& given) {
+    if (!given.regionLabels.empty())
+        return {};
+    auto ids = atlasIdsOf(rq, labelsSize);
+    if (!ids)
+        return ids.error();
+    if (!ids->empty()) {
+        given.regionLabels = *ids;
+        if (rq.atlasSlice)
+            given.ventricleIds = rq.atlasSlice->ventricleIds;
+    }
+    return {};
+}
+
 } // namespace
 
 core::Result<RegisteredSection> registerSectionFiles(const RegisterRequest& rq,
@@ -311,6 +361,8 @@ core::Result<RegisteredSection> registerSectionFiles(const RegisterRequest& rq,
     auto given = labelsForRegistration(*labels, rq.stackRegions);
     if (!given)
         return inFile(given.error(), rq.atlas, "atlas");
+    if (auto ids = addIdPlane(rq, labels->size(), *given); !ids)
+        return ids.error();
     pipeline::RegistrationOptions opt;
     opt.atlasIntensity = *atlasIntensity;
     opt.regionWarp = rq.regionWarp;

@@ -328,6 +328,9 @@ void RegistrationWorker::useTiltedPlane(SliceChoice& choice, const std::filesyst
     auto plane = series_.cutPlane(straight.positionUm, p->tiltLrDeg, p->tiltDvDeg);
     const std::filesystem::path labels = base.string() + ".plane.tif";
     const std::filesystem::path templ = base.string() + ".plane-template.tif";
+    const std::filesystem::path ids = base.string() + ".plane-ids.tif";
+    // Every id of the tilted plane when the straight slices keep theirs (a major-region stack).
+    const bool withIds = !straight.idsFile.empty();
     core::Result<void> written =
         plane ? core::writeImage(labels, plane->labels) : core::Result<void>(plane.error());
     if (written && plane->intensity.empty() != straight.templateFile.empty())
@@ -335,6 +338,8 @@ void RegistrationWorker::useTiltedPlane(SliceChoice& choice, const std::filesyst
                                   "the tilted plane's template does not match the stack's");
     if (written && !plane->intensity.empty())
         written = core::writeImage(templ, plane->intensity);
+    if (written && withIds && !plane->ids.empty())
+        written = core::writeImage(ids, plane->ids);
     if (!written) {
         choice.warning += std::string(choice.warning.empty() ? "" : "; ") +
                           "registered to the straight slice: cannot use the tilted plane: " +
@@ -344,6 +349,10 @@ void RegistrationWorker::useTiltedPlane(SliceChoice& choice, const std::filesyst
     rq.atlas = labels;
     if (!plane->intensity.empty())
         rq.atlasTemplate = templ;
+    if (withIds && !plane->ids.empty())
+        rq.atlasIds = ids;
+    else
+        rq.atlasSlice->idsFile.clear(); // the straight slice's ids are not this plane's
     rq.atlasSlice->geometry = plane->geometry;
     rq.atlasSlice->templateFile.clear();
     choice.tiltLrDeg = p->tiltLrDeg;

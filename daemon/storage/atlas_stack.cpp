@@ -37,6 +37,7 @@ json vec(const cv::Vec3d& v) {
 constexpr std::uintmax_t kMaxManifestBytes = std::uintmax_t{64} << 20;
 constexpr double kMaxCoordinateUm = 1e7; ///< positions and frame vectors: 10 m
 constexpr std::int64_t kMaxSliceSidePx = 1 << 16;
+constexpr std::size_t kMaxVentricleIds = 4096;
 
 /// A 3-vector of finite numbers within +-kMaxCoordinateUm.
 core::Result<cv::Vec3d> vecField(const FieldReader& rd, const json& obj, const std::string& path,
@@ -118,6 +119,13 @@ core::Result<StackSlice> sliceEntry(const FieldReader& rd, const json& e, size_t
         if (!t)
             return t.error();
         s.templateFile = *t;
+    }
+    // So is the plane of every id (major-region stacks cut since it was kept).
+    if (e.contains("ids")) {
+        auto ids = sliceFile(rd, e, where, "ids");
+        if (!ids)
+            return ids.error();
+        s.idsFile = *ids;
     }
     // The in-plane frame is optional (a hand-made stack may not know it).
     if (e.contains("origin_um")) {
@@ -207,10 +215,41 @@ core::Result<AtlasStack> stackFromJson(const json& j, const fs::path& manifest) 
             stack.regions.push_back(std::move(*r));
         }
     }
+    if (j.contains("ventricle_ids")) {
+        const json& v = j["ventricle_ids"];
+        if (!v.is_array() || v.size() > kMaxVentricleIds)
+            return rd.bad("ventricle_ids", "expected an array of at most " +
+                                               std::to_string(kMaxVentricleIds) + " ids");
+        for (const json& id : v) {
+            if (!id.is_number_unsigned() || id.get<std::uint64_t>() > 0x7FFFFFFFull)
+                return rd.bad("ventricle_ids", "expected ids (positive 31-bit integers), got " +
+                                                   id.dump().substr(0, 40));
+            stack.ventricleIds.push_back(id.get<std::int32_t>());
+        }
+    }
     if (j.contains("source") && !j["source"].is_object())
         return rd.bad("source", "expected an object");
     stack.source = j.value("source", json::object());
     return stack;
+}
+
+/// Writes `plane` (when not empty) as `dir`/`prefix`-NNN.tif after checking its type and size.
+/// \return its file name, "" for an empty plane; InvalidArgument naming the slice, or the file
+///         layer's error.
+core::Result<std::string> writeBesidePlane(const fs::path& dir, const char* prefix, size_t index,
+                                           const cv::Mat& plane, int type, cv::Size size,
+                                           const char* typeName) {
+    if (plane.empty())
+        return std::string();
+    if (plane.type() != type || plane.size() != size)
+        return makeError(ErrorCode::InvalidArgument, "slice " + std::to_string(index) + ": the " +
+                                                         prefix + " plane must be " + typeName +
+                                                         " of the slice's size");
+    char name[48];
+    std::snprintf(name, sizeof name, "%s-%03zu.tif", prefix, index);
+    if (auto w = core::writeImage(dir / name, plane); !w)
+        return w.error();
+    return std::string(name);
 }
 
 } // namespace
@@ -231,7 +270,8 @@ const StackRegion* findRegion(const AtlasStack& stack, std::uint32_t id) noexcep
 
 core::Result<AtlasStack> writeStack(const fs::path& dir,
                                     const std::vector<pipeline::AtlasSlice>& slices,
-                                    std::vector<StackRegion> regions, json source) {
+                                    std::vector<StackRegion> regions, json source,
+                                    std::vector<std::int32_t> ventricleIds) {
     if (slices.empty())
         return makeError(ErrorCode::InvalidArgument, "the stack has no slices");
     std::error_code ec;
@@ -248,18 +288,17 @@ core::Result<AtlasStack> writeStack(const fs::path& dir,
             return w.error();
         const pipeline::SliceGeometry& g = slices[i].geometry;
         StackSlice s{int(i), name, g.positionUm, cv::norm(g.columnUm), g};
-        if (!slices[i].intensity.empty()) {
-            if (slices[i].intensity.type() != CV_32F ||
-                slices[i].intensity.size() != slices[i].labels.size())
-                return makeError(ErrorCode::InvalidArgument,
-                                 "slice " + std::to_string(i) +
-                                     ": the template plane must be float32 of the slice's size");
-            char templateName[48];
-            std::snprintf(templateName, sizeof templateName, "template-%03zu.tif", i);
-            if (auto w = core::writeImage(dir / templateName, slices[i].intensity); !w)
-                return w.error();
-            s.templateFile = templateName;
-        }
+        // The optional planes beside the labels: the intensity (template) and every id.
+        auto template_ = writeBesidePlane(dir, "template", i, slices[i].intensity, CV_32F,
+                                          slices[i].labels.size(), "float32");
+        if (!template_)
+            return template_.error();
+        s.templateFile = *template_;
+        auto ids = writeBesidePlane(dir, "ids", i, slices[i].ids, CV_32S, slices[i].labels.size(),
+                                    "32-bit ids");
+        if (!ids)
+            return ids.error();
+        s.idsFile = *ids;
         js.push_back({{"index", s.index},
                       {"file", s.file},
                       {"position_um", s.positionUm},
@@ -272,6 +311,8 @@ core::Result<AtlasStack> writeStack(const fs::path& dir,
                       {"row_um", vec(g.rowUm)}});
         if (!s.templateFile.empty())
             js.back()["template"] = s.templateFile;
+        if (!s.idsFile.empty())
+            js.back()["ids"] = s.idsFile;
         stack.slices.push_back(std::move(s));
     }
     json jr = json::array();
@@ -285,11 +326,14 @@ core::Result<AtlasStack> writeStack(const fs::path& dir,
         jr.push_back(std::move(e));
     }
     source["frame"] = "micrometres along (AP, DV, LR) from the centre of the first voxel";
-    const json manifest = {{"slices", js}, {"regions", jr}, {"source", source}};
+    json manifest = {{"slices", js}, {"regions", jr}, {"source", source}};
+    if (!ventricleIds.empty())
+        manifest["ventricle_ids"] = ventricleIds;
     if (auto w = core::writeFileAtomically(dir / "manifest.json", manifest.dump(2) + "\n"); !w)
         return w.error();
     stack.regions = std::move(regions);
     stack.source = std::move(source);
+    stack.ventricleIds = std::move(ventricleIds);
     return stack;
 }
 

@@ -144,9 +144,13 @@ core::Result<pipeline::AtlasSlice> planeLabels(const StackVolume& v, double posi
         return labels.error();
     pipeline::AtlasSlice s;
     s.geometry = *g;
-    s.labels = v.major ? pipeline::collapseLabels(*labels, v.ontology, pipeline::majorRegionIds(),
-                                                  pipeline::kOtherRegionId)
-                       : std::move(*labels);
+    if (v.major) {
+        s.ids = *labels; // every id, for the registration's region warp (AtlasSlice::ids)
+        s.labels = pipeline::collapseLabels(*labels, v.ontology, pipeline::majorRegionIds(),
+                                            pipeline::kOtherRegionId);
+    } else {
+        s.labels = std::move(*labels);
+    }
     return s;
 }
 

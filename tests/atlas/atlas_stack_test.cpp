@@ -19,6 +19,7 @@
 #include <filesystem>
 #include <fstream>
 #include <set>
+#include <tuple>
 
 using namespace slicestation;
 using namespace slicestation::daemon;
@@ -72,6 +73,40 @@ TEST_F(AtlasStackTest, SlicesTheRealVolumeIntoAStackWithManifest) {
     auto plane = pipeline::coronalPlane(*volume, pipeline::VolumeAxes::Allen, 53);
     const cv::Mat expected = pipeline::collapseLabels(*plane, *onto, pipeline::majorRegionIds(), 8);
     EXPECT_EQ(cv::countNonZero(*labels != expected), 0);
+    // Beside it, the plane of every id (for the registration's region warp), and the ids of
+    // the ventricles among them; the builtin atlas and `--regions all` stacks have none.
+    EXPECT_EQ(stack->slices[10].idsFile, "ids-010.tif");
+    auto ids = core::readImage(dir_ / "ids-010.tif");
+    ASSERT_TRUE(ids.ok()) << ids.error().message;
+    auto idLabels = pipeline::labelsFromImage(*ids);
+    ASSERT_TRUE(idLabels.ok());
+    EXPECT_EQ(cv::countNonZero(*idLabels != *plane), 0);
+    ASSERT_FALSE(stack->ventricleIds.empty());
+    for (std::int32_t id : stack->ventricleIds)
+        EXPECT_TRUE(onto->isDescendantOf(std::uint32_t(id), pipeline::kVentricularSystemsId)) << id;
+    {
+        // Manifests come from outside: a bad id plane entry or ventricle list names itself.
+        std::ifstream in(dir_ / "manifest.json");
+        const nlohmann::json manifest = nlohmann::json::parse(in);
+        const fs::path copy = dir_ / "bad-manifest";
+        fs::create_directories(copy);
+        for (const auto& [key, value, field] :
+             {std::tuple{"ids", nlohmann::json("../ids-003.tif"), "slices[3].ids"},
+              std::tuple{"ids", nlohmann::json(7), "slices[3].ids"},
+              std::tuple{"ventricle_ids", nlohmann::json("81"), "ventricle_ids"},
+              std::tuple{"ventricle_ids", nlohmann::json({81, -1}), "ventricle_ids"}}) {
+            nlohmann::json m = manifest;
+            if (std::string(key) == "ids")
+                m["slices"][3]["ids"] = value;
+            else
+                m["ventricle_ids"] = value;
+            std::ofstream(copy / "manifest.json") << m.dump();
+            auto bad = readStack(copy);
+            ASSERT_FALSE(bad.ok()) << value.dump();
+            EXPECT_EQ(bad.error().code, core::ErrorCode::InvalidArgument);
+            EXPECT_NE(bad.error().message.find(field), std::string::npos) << bad.error().message;
+        }
+    }
     // --regions all keeps every structure id.
     rq.regions = "all";
     rq.output = dir_ / "all";
@@ -81,6 +116,8 @@ TEST_F(AtlasStackTest, SlicesTheRealVolumeIntoAStackWithManifest) {
     ASSERT_TRUE(raw.ok());
     EXPECT_EQ(cv::countNonZero(*raw != *plane), 0);
     EXPECT_GT(all->regions.size(), 200u);
+    EXPECT_TRUE(all->slices[10].idsFile.empty());
+    EXPECT_TRUE(all->ventricleIds.empty());
 }
 
 TEST_F(AtlasStackTest, BuiltinAtlasIsAStackToo) {
@@ -98,6 +135,7 @@ TEST_F(AtlasStackTest, BuiltinAtlasIsAStackToo) {
     ASSERT_TRUE(s.ok());
     EXPECT_GT(cv::countNonZero(*s), 1000);
     EXPECT_FALSE(stack->regions.empty());
+    EXPECT_TRUE(stack->slices[20].idsFile.empty());
     EXPECT_EQ(readStackSlice(*stack, 21).error().code, core::ErrorCode::OutOfRange);
 }
 

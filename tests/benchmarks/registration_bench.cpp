@@ -525,9 +525,10 @@ int main(int argc, char** argv) {
                    "Labels the region warp paints: all (every Allen id, when the atlas has them) "
                    "or given (the labels the registration gets)")
         ->check(CLI::IsMember({"all", "given"}));
-    // Off by default: the default figures are the product's with a stack of the major regions
-    // (the built-in atlas, `--regions major`); slicectl and the daemon run it for a stack sliced
-    // `--regions all`, which --region-warp on --region-labels all stands for.
+    // Off by default: the default figures are the product's with the built-in atlas or a stack
+    // of major regions cut before its slices kept every id; slicectl and the daemon run it for
+    // a stack cut from a volume (`--regions all`, and `--regions major` with its id planes),
+    // which --region-warp on --region-labels all stands for.
     std::string regionWarpMode = "off";
     std::string edgeWithRegions =
         pipeline::RegistrationOptions{}.edgeWarpWithRegions ? "on" : "off";
@@ -537,8 +538,8 @@ int main(int argc, char** argv) {
         ->check(CLI::IsMember({"on", "off"}));
     app.add_option("--region-warp", regionWarpMode,
                    "The region warp of ours (runs only without an atlas intensity plane and "
-                   "with fine labels, as slicectl and the daemon run it for a stack sliced "
-                   "--regions all; --region-labels all gives them here): on | off")
+                   "with fine labels, as slicectl and the daemon run it for a stack cut from "
+                   "a volume; --region-labels all gives them here): on | off")
         ->check(CLI::IsMember({"on", "off"}));
     std::vector<std::string> denseSettings;
     app.add_option("--dense", denseSettings,

@@ -230,6 +230,11 @@ TEST_F(TiltedPlanesTest, LaterSectionsAreRegisteredToPlanesCutAtTheFoundTilt) {
         const std::string atlasFile = result["atlas"]["file"].get<std::string>();
         EXPECT_NE(atlasFile.find(".plane.tif"), std::string::npos) << atlasFile;
         EXPECT_TRUE(fs::exists((rig_.dir / r.resultPath).parent_path() / atlasFile)) << atlasFile;
+        // So does the tilted plane of every id (the stack's slices keep theirs: major regions),
+        // which the region warp fitted.
+        const std::string idsFile = result["atlas"].value("ids", "");
+        EXPECT_NE(idsFile.find(".plane-ids.tif"), std::string::npos) << idsFile;
+        EXPECT_TRUE(fs::exists((rig_.dir / r.resultPath).parent_path() / idsFile)) << idsFile;
         // Registered well: the atlas covers the tissue as on the straight slices.
         EXPECT_GT(r.quality, 0.8);
 

@@ -38,6 +38,8 @@ const std::vector<std::uint32_t>& majorRegionIds();
 /// Where collapseLabels to majorRegionIds puts the voxels no major region claims: Allen's "Basic
 /// cell groups and regions" (8), so the brain keeps its outline (`atlas slice --regions major`).
 inline constexpr std::int32_t kOtherRegionId = 8;
+/// Allen's "ventricular systems" (one of majorRegionIds): its ids are glass in a section.
+inline constexpr std::uint32_t kVentricularSystemsId = 73;
 
 /// Replaces every id by its deepest ancestor-or-self among `regionIds` (so Epithalamus stays
 /// itself inside Thalamus); ids with no such ancestor become `otherId` (0 drops them).

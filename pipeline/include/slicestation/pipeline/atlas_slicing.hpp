@@ -118,6 +118,10 @@ struct AtlasSlice {
     /// Optional intensity plane of the same pixels (CV_32F, e.g. the Allen average template):
     /// the registration's atlas intensity. Empty = none.
     cv::Mat intensity = {};
+    /// Optional: every atlas id of the same pixels (CV_32S) when `labels` are collapsed (a
+    /// major-region stack), for the registration's region warp, which fits every region the
+    /// section's stain shows. Empty = `labels` hold the ids as the volume has them.
+    cv::Mat ids = {};
 };
 
 /// Called after each plane is cut: (planes done, planes in the plan).

@@ -17,10 +17,12 @@
 #include <opencv2/core.hpp>
 
 #include <array>
+#include <cstdint>
 #include <filesystem>
 #include <functional>
 #include <optional>
 #include <string>
+#include <vector>
 
 namespace slicestation::daemon {
 
@@ -76,6 +78,11 @@ struct AtlasSliceFrame {
     /// The slice's atlas intensity plane as the manifest names it (relative to stackDir), empty
     /// when the stack holds none: the registration service then gives it to the registration.
     std::string templateFile = {};
+    /// The slice's plane of every atlas id (StackSlice::idsFile, relative to stackDir) and the
+    /// stack's ventricle ids (AtlasStack::ventricleIds): the registration service gives them to
+    /// the region warp. Empty when the stack holds none.
+    std::string idsFile = {};
+    std::vector<std::int32_t> ventricleIds = {};
 };
 
 AtlasSliceFrame sliceFrame(const AtlasStack& stack, int index);

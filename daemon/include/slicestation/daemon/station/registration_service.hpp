@@ -58,6 +58,12 @@ struct RegisterRequest {
     /// (pipeline::RegistrationOptions::regionLabels); results, overlays and warped labels keep
     /// every id. Empty, or a stack of major regions: the labels are registered as they are.
     std::vector<StackRegion> stackRegions;
+    /// The plane of every atlas id when `atlas` holds them collapsed to the major regions (a
+    /// uint32 label image of the labels' size; e.g. a tilted plane cut from a major-region
+    /// stack's volume). Without it, a stack slice's own id plane (atlasSlice->idsFile) is. The
+    /// region warp paints these ids (the ventricles among them, atlasSlice->ventricleIds, as
+    /// glass); results keep the labels of `atlas`.
+    std::optional<std::filesystem::path> atlasIds;
     /// The region warp (above); off: every-id labels are still collapsed for the registration.
     bool regionWarp = true;
     /// Registration steps done of steps total (pipeline::RegistrationOptions::progress), for

@@ -89,7 +89,8 @@ private:
                                           const ScanSettings& settings);
     /// When the placement carries the run's tilt: the plane through `choice.slice`'s position
     /// cut at that tilt, written beside the capture (`base`.plane.tif, and
-    /// `base`.plane-template.tif when the stack has template planes), is what `rq` registers to
+    /// `base`.plane-template.tif when the stack has template planes, `base`.plane-ids.tif with
+    /// every atlas id when its slices keep them), is what `rq` registers to
     /// (its frame the tilted plane's). A plane that cannot be cut or written leaves the straight
     /// slice and says why in the choice's warning.
     void useTiltedPlane(SliceChoice& choice, const std::filesystem::path& base,

@@ -6,8 +6,11 @@
 /// ```
 /// {"slices": [{"index", "file", "position_um", "normal", "um_per_px",
 ///              "width", "height", "origin_um", "column_um", "row_um",
-///              "template" (optional: the atlas intensity plane, float32 TIFF)}...],
+///              "template" (optional: the atlas intensity plane, float32 TIFF),
+///              "ids" (optional: every atlas id of the plane, uint32 TIFF, when the labels are
+///                     collapsed to the major regions)}...],
 ///  "regions": [{"id", "name", "acronym", "color": "#RRGGBB", "path": [root, ..., id]}...],
+///  "ventricle_ids": [...] (optional: the ids of the "ids" planes under the ventricular systems),
 ///  "source": {"kind": "volume"|"builtin", "plane", "interval_um", ...}}
 /// ```
 /// Vectors are in the atlas frame: micrometres along (AP, DV, LR) from the centre of the
@@ -46,6 +49,12 @@ struct StackSlice {
     /// average template cut along the same plane), relative to the stack directory; empty =
     /// none (stacks written without --template).
     std::string templateFile = {};
+    /// The slice's plane of every atlas id (uint32 TIFF of the slice's size) when `file` holds
+    /// the ids collapsed to the major regions, relative to the stack directory: the
+    /// registration's region warp fits every region the section's stain shows while results
+    /// keep the major regions. Empty = none (`file` holds the ids as the volume has them, or a
+    /// stack written before these planes were kept).
+    std::string idsFile = {};
 };
 
 struct AtlasStack {
@@ -53,6 +62,9 @@ struct AtlasStack {
     std::vector<StackSlice> slices; ///< in index order, index == position in the vector
     std::vector<StackRegion> regions;
     nlohmann::json source;
+    /// The ids of the slices' id planes (StackSlice::idsFile) under the ventricular systems
+    /// (73): the region warp paints them as glass.
+    std::vector<std::int32_t> ventricleIds = {};
 };
 
 /// The stack's region with this id, or null (0 and ids the ontology lacks).
@@ -61,13 +73,17 @@ const StackRegion* findRegion(const AtlasStack& stack, std::uint32_t id) noexcep
 /// "#RRGGBB", as the manifest writes a region's colour.
 std::string colorHex(std::uint32_t rgb);
 
-/// Writes every slice as `slice-NNN.tif` and then `manifest.json` (atomically, last, so a
+/// Writes every slice as `slice-NNN.tif` (with `template-NNN.tif` and `ids-NNN.tif` when the
+/// slice has an intensity plane or id plane) and then `manifest.json` (atomically, last, so a
 /// reader never sees a manifest naming a missing file). Creates `dir` when needed.
-/// \return IoError / NotFound from the file layer, InvalidArgument for an empty stack.
+/// `ventricleIds`: AtlasStack::ventricleIds.
+/// \return IoError / NotFound from the file layer, InvalidArgument for an empty stack or a
+///         template or id plane not of the slice's size and type.
 [[nodiscard]] core::Result<AtlasStack> writeStack(const std::filesystem::path& dir,
                                                   const std::vector<pipeline::AtlasSlice>& slices,
                                                   std::vector<StackRegion> regions,
-                                                  nlohmann::json source);
+                                                  nlohmann::json source,
+                                                  std::vector<std::int32_t> ventricleIds = {});
 
 /// Reads `dir/manifest.json` (or the manifest file itself when given one).
 /// \return NotFound (no manifest), IoError, InvalidArgument (malformed JSON or a field missing or
