@@ -332,6 +332,10 @@ static void printDamage(const std::string& series, const std::string& name,
                               : "clean";
     std::printf("damage %-6s %-16s %-9s score %.3f", series.c_str(), name.c_str(), verdict,
                 reg.damageScore);
+    if (reg.quality.regionWarpExplainedBefore > 0) // the region warp ran (--region-warp on)
+        std::printf(" rwarp %.3f -> %.3f%s", reg.quality.regionWarpExplainedBefore,
+                    reg.quality.regionWarpExplainedAfter,
+                    reg.quality.regionWarpKept ? " kept" : "");
     const double bw = std::max(1.0, reg.brainWidthPx);
     for (const pipeline::DamageRegion& d : reg.damage) {
         // Where it lies: its box in working px (as the overlay shows it).
