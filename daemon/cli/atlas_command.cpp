@@ -239,6 +239,20 @@ core::Result<void> useStackSlice(RegisterRequest& rq, int slice) {
     return {};
 }
 
+core::Result<void> useOntology(RegisterRequest& rq, const std::filesystem::path& ontology) {
+    if (rq.atlasSlice)
+        return makeError(ErrorCode::InvalidArgument,
+                         "--ontology is for a label image: the stack's manifest names its regions");
+    auto read = core::readOntologyCsv(ontology);
+    if (!read)
+        return makeError(read.error().code,
+                         "--ontology " + ontology.string() + ": " + read.error().message);
+    rq.stackRegions.clear();
+    for (const core::Structure& st : read->structures())
+        rq.stackRegions.push_back({st.id, st.name, st.acronym, st.colorRgb, st.path});
+    return {};
+}
+
 core::Result<json> runAtlasMatch(const AtlasMatchRequest& rq) {
     using Clock = std::chrono::steady_clock;
     const auto t0 = Clock::now();

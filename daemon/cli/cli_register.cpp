@@ -43,7 +43,7 @@ int reportError(const char* command, const core::Error& e) {
 CommandRunner addRegisterCommand(CLI::App& app) {
     struct Opts {
         RegisterRequest rq;
-        std::string points, overlay, warped, atlasTemplate;
+        std::string points, overlay, warped, atlasTemplate, ontology;
         int slice = -1;
         int threads = 0;
         std::string regionWarp = "on";
@@ -58,6 +58,10 @@ CommandRunner addRegisterCommand(CLI::App& app) {
                     "Atlas intensity plane (e.g. the Allen average template cut like the labels; "
                     "one-channel float32, 8- or 16-bit, the labels' size); a stack slice's own "
                     "template is used without it");
+    reg->add_option("--ontology", o->ontology,
+                    "Allen ontology (structure_tree_safe_2017.csv) naming the ids of a label "
+                    "image of every Allen id, so that it is registered as a slice of a stack cut "
+                    "--regions all is (not with a stack: its manifest names its regions)");
     reg->add_option("--slice", o->slice, "Slice index when --atlas is a stack directory")
         ->check(CLI::Range(0, pipeline::kMaxStackSlices - 1));
     reg->add_option("--image", o->rq.image, "Section image (PNG or TIFF)")->required();
@@ -100,6 +104,9 @@ CommandRunner addRegisterCommand(CLI::App& app) {
             rq.atlasTemplate = o->atlasTemplate;
         if (auto s = useStackSlice(rq, o->slice); !s)
             return reportError("register", s.error());
+        if (!o->ontology.empty())
+            if (auto s = useOntology(rq, o->ontology); !s)
+                return reportError("register", s.error());
         auto r = [&] {
             Progress progress("register");
             progress.phase("registering " + rq.image.filename().string(),
@@ -110,6 +117,8 @@ CommandRunner addRegisterCommand(CLI::App& app) {
         }();
         if (!r)
             return reportError("register", r.error());
+        for (const auto& w : r->value("warnings", nlohmann::json::array()))
+            std::cerr << "slicectl register: warning: " << w.get<std::string>() << "\n";
         std::cout << "registered " << rq.image.string() << " -> " << rq.output.string()
                   << " (tissue overlap " << (*r)["quality"]["tissue_overlap"].get<double>() << ", "
                   << (*r)["quality"]["correspondences"].get<int>() << " correspondences, "

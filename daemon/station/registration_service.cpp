@@ -84,6 +84,9 @@ struct LabelsForRegistration {
     cv::Mat labels;       ///< the major regions when collapsed, else the labels as given
     cv::Mat regionLabels; ///< every id, for the region warp; empty when not collapsed
     std::vector<std::int32_t> ventricleIds; ///< ids of regionLabels under ventricular systems
+    /// Why the labels are registered as they are when that is worse than it could be (labels
+    /// below the major regions with nothing to collapse them by), for result.json's warnings.
+    std::string warning = {};
 };
 
 /// Collapses labels of every Allen id to the paper's major regions, using the stack regions'
@@ -92,7 +95,7 @@ struct LabelsForRegistration {
 core::Result<LabelsForRegistration> labelsForRegistration(const cv::Mat& labels,
                                                           const std::vector<StackRegion>& regions) {
     LabelsForRegistration out{labels, cv::Mat(), {}};
-    if (regions.empty() || labels.type() != CV_32S)
+    if (labels.type() != CV_32S)
         return out;
     std::set<std::int32_t> major(pipeline::majorRegionIds().begin(),
                                  pipeline::majorRegionIds().end());
@@ -103,6 +106,16 @@ core::Result<LabelsForRegistration> labelsForRegistration(const cv::Mat& labels,
             seen.insert(*it);
     if (std::all_of(seen.begin(), seen.end(), [&](std::int32_t id) { return major.count(id); }))
         return out;
+    if (regions.empty()) {
+        out.warning = "the atlas labels are not the paper's major regions and no ontology names "
+                      "them: each of the " +
+                      std::to_string(seen.size()) +
+                      " ids is registered as a region of its own, and ventricles and natural "
+                      "fissures cannot be told from missing tissue; for Allen ids give the "
+                      "ontology (slicectl register --ontology structure_tree_safe_2017.csv) or "
+                      "register to a stack (slicectl atlas slice)";
+        return out;
+    }
     std::vector<core::Structure> structures;
     for (const StackRegion& r : regions) {
         if (r.path.empty())
@@ -381,6 +394,8 @@ core::Result<RegisteredSection> registerSectionFiles(const RegisterRequest& rq,
 
     RegisteredSection out{std::move(*reg), section->size(), cv::Mat(), json()};
     out.document = resultDocument(rq, *section, *labels, out.registration, points);
+    if (!given->warning.empty())
+        out.document["warnings"] = json::array({given->warning});
     if (rq.warpedLabels) {
         out.warpedLabels = out.registration.warpedLabels(*labels, section->size());
         if (auto w = core::writeImage(*rq.warpedLabels, out.warpedLabels); !w)

@@ -573,8 +573,11 @@ int main(int argc, char** argv) {
         ->check(CLI::IsMember({"1", "2", "template", "1m", "all"}));
     app.add_option("--labels", labelsText,
                    "Atlas the registration gets: major (the 20 collapsed regions, as always) or "
-                   "all (every Allen id)")
-        ->check(CLI::IsMember({"major", "all"}));
+                   "all (every Allen id) or all-plain (every Allen id, and nothing told about "
+                   "which ids are ventricles or separate parts: a label image without its "
+                   "ontology, as slicectl register --atlas LABELS.tif gets it) or "
+                   "all-ventricles (every Allen id, told only which are ventricles)")
+        ->check(CLI::IsMember({"major", "all", "all-plain", "all-ventricles"}));
     CLI11_PARSE(app, argc, argv);
     FILE* damageLog = damageLogPath.empty() ? nullptr : std::fopen(damageLogPath.c_str(), "w");
     if (damageLog)
@@ -601,7 +604,7 @@ int main(int argc, char** argv) {
         std::cerr << "elastix needs the real atlas template; skipping elastix\n";
         useElastix = false;
     }
-    const bool allLabels = labelsText == "all";
+    const bool allLabels = labelsText.rfind("all", 0) == 0;
     if (allLabels && atlas->name != "allen-ccf-25um") {
         std::cerr << "--labels all needs the Allen atlas under --shared\n";
         return 1;
@@ -615,16 +618,18 @@ int main(int argc, char** argv) {
     regOptions.foldRepairs = foldRepairs;
     if (crackPieces == "off")
         regOptions.damage.crackPieceFrac = 0;
-    if (allLabels) {
+    if (labelsText == "all" || labelsText == "all-ventricles") {
         const pipeline::RegistrationOptions defaults;
         regOptions.ventricleIds.clear();
         for (auto& part : regOptions.separateParts)
             part.clear();
+        if (labelsText == "all-ventricles")
+            regOptions.separateParts = defaults.separateParts;
         for (const auto& st : atlas->ontology.structures()) {
             const auto id = static_cast<std::int32_t>(st.id);
             if (atlas->ontology.isDescendantOf(st.id, 73))
                 regOptions.ventricleIds.push_back(id);
-            for (size_t p = 0; p < defaults.separateParts.size(); ++p)
+            for (size_t p = 0; labelsText == "all" && p < defaults.separateParts.size(); ++p)
                 for (std::int32_t top : defaults.separateParts[p])
                     if (atlas->ontology.isDescendantOf(st.id, std::uint32_t(top)))
                         regOptions.separateParts[p].push_back(id);

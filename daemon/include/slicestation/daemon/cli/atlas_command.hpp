@@ -83,4 +83,13 @@ struct AtlasMatchRequest {
 ///         errors of readStack.
 [[nodiscard]] core::Result<void> useStackSlice(RegisterRequest& request, int slice);
 
+/// `slicectl register --atlas LABELS --ontology CSV`: a label image of Allen ids (not a stack)
+/// named by the ontology (structure_id_path), so that it is registered as a slice of a stack cut
+/// `--regions all` is (RegisterRequest::stackRegions: the major regions for the geometric stages
+/// and the damage check, every id for the region warp, the ventricles known).
+/// \return InvalidArgument (the atlas is a stack: its manifest names its regions), the errors of
+///         core::readOntologyCsv naming the file.
+[[nodiscard]] core::Result<void> useOntology(RegisterRequest& request,
+                                             const std::filesystem::path& ontology);
+
 } // namespace slicestation::daemon
