@@ -48,33 +48,28 @@ core::Result<void> checkRange(const char* option, double value, double min, doub
 std::set<std::uint32_t> stackIds(const AtlasSliceRequest& rq, const core::Ontology& ontology,
                                  std::vector<pipeline::AtlasSlice>& slices,
                                  std::vector<std::int32_t>& ventricleIds) {
+    std::set<std::int32_t> seen;
+    for (const auto& s : slices)
+        pipeline::collectIds(s.labels, seen);
     std::set<std::uint32_t> ids;
     if (rq.regions == "major") {
         // Results name the major regions; the registration's region warp still fits every id
         // the section's stain shows (docs/atlas.md), so each slice keeps them in a plane of
         // its own, and the stack the ids of its ventricles (painted as glass).
         const int n = static_cast<int>(slices.size());
-        std::set<std::int32_t> seen;
         for (int i = 0; i < n; ++i) {
             report(rq, "collapsing regions", i, n);
             auto& s = slices[static_cast<std::size_t>(i)];
-            for (auto it = s.labels.begin<int>(); it != s.labels.end<int>(); ++it)
-                if (*it != 0)
-                    seen.insert(*it);
             s.ids = s.labels;
             s.labels = pipeline::collapseLabels(s.ids, ontology, pipeline::majorRegionIds(),
                                                 pipeline::kOtherRegionId);
         }
-        for (std::int32_t id : seen)
-            if (ontology.isDescendantOf(std::uint32_t(id), pipeline::kVentricularSystemsId))
-                ventricleIds.push_back(id);
+        ventricleIds = pipeline::idsUnder(seen, ontology, pipeline::kVentricularSystemsId);
         ids.insert(pipeline::majorRegionIds().begin(), pipeline::majorRegionIds().end());
         ids.insert(pipeline::kOtherRegionId);
     } else {
-        for (const auto& s : slices)
-            for (auto it = s.labels.begin<int>(); it != s.labels.end<int>(); ++it)
-                if (*it != 0)
-                    ids.insert(std::uint32_t(*it));
+        for (std::int32_t id : seen)
+            ids.insert(std::uint32_t(id));
         // Every ancestor too, so that counts and exports can be rolled up the whole hierarchy
         // with names (docs/results.md).
         std::set<std::uint32_t> ancestors;

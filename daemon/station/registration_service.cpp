@@ -101,9 +101,7 @@ core::Result<LabelsForRegistration> labelsForRegistration(const cv::Mat& labels,
                                  pipeline::majorRegionIds().end());
     major.insert(pipeline::kOtherRegionId);
     std::set<std::int32_t> seen;
-    for (auto it = labels.begin<std::int32_t>(); it != labels.end<std::int32_t>(); ++it)
-        if (*it != 0)
-            seen.insert(*it);
+    pipeline::collectIds(labels, seen);
     if (std::all_of(seen.begin(), seen.end(), [&](std::int32_t id) { return major.count(id); }))
         return out;
     if (regions.empty()) {
@@ -134,9 +132,7 @@ core::Result<LabelsForRegistration> labelsForRegistration(const cv::Mat& labels,
     out.labels = pipeline::collapseLabels(labels, *ontology, pipeline::majorRegionIds(),
                                           pipeline::kOtherRegionId);
     out.regionLabels = labels;
-    for (std::int32_t id : seen)
-        if (ontology->isDescendantOf(std::uint32_t(id), pipeline::kVentricularSystemsId))
-            out.ventricleIds.push_back(id);
+    out.ventricleIds = pipeline::idsUnder(seen, *ontology, pipeline::kVentricularSystemsId);
     return out;
 }
 

@@ -330,7 +330,7 @@ void RegistrationWorker::useTiltedPlane(SliceChoice& choice, const std::filesyst
     const std::filesystem::path templ = base.string() + ".plane-template.tif";
     const std::filesystem::path ids = base.string() + ".plane-ids.tif";
     // Every id of the tilted plane when the straight slices keep theirs (a major-region stack).
-    const bool withIds = !straight.idsFile.empty();
+    const bool withIds = plane && !straight.idsFile.empty() && !plane->ids.empty();
     core::Result<void> written =
         plane ? core::writeImage(labels, plane->labels) : core::Result<void>(plane.error());
     if (written && plane->intensity.empty() != straight.templateFile.empty())
@@ -338,7 +338,7 @@ void RegistrationWorker::useTiltedPlane(SliceChoice& choice, const std::filesyst
                                   "the tilted plane's template does not match the stack's");
     if (written && !plane->intensity.empty())
         written = core::writeImage(templ, plane->intensity);
-    if (written && withIds && !plane->ids.empty())
+    if (written && withIds)
         written = core::writeImage(ids, plane->ids);
     if (!written) {
         choice.warning += std::string(choice.warning.empty() ? "" : "; ") +
@@ -349,7 +349,7 @@ void RegistrationWorker::useTiltedPlane(SliceChoice& choice, const std::filesyst
     rq.atlas = labels;
     if (!plane->intensity.empty())
         rq.atlasTemplate = templ;
-    if (withIds && !plane->ids.empty())
+    if (withIds)
         rq.atlasIds = ids;
     else
         rq.atlasSlice->idsFile.clear(); // the straight slice's ids are not this plane's

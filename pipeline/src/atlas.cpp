@@ -89,6 +89,22 @@ const std::vector<std::uint32_t>& majorRegionIds() {
     return ids;
 }
 
+void collectIds(const cv::Mat& labels, std::set<std::int32_t>& ids) {
+    CV_Assert(labels.type() == CV_32S);
+    for (auto it = labels.begin<std::int32_t>(); it != labels.end<std::int32_t>(); ++it)
+        if (*it != 0)
+            ids.insert(*it);
+}
+
+std::vector<std::int32_t> idsUnder(const std::set<std::int32_t>& ids,
+                                   const core::Ontology& ontology, std::uint32_t ancestorId) {
+    std::vector<std::int32_t> out;
+    for (std::int32_t id : ids)
+        if (ontology.isDescendantOf(std::uint32_t(id), ancestorId))
+            out.push_back(id);
+    return out;
+}
+
 cv::Mat collapseLabels(const cv::Mat& labels, const core::Ontology& ontology,
                        const std::vector<std::uint32_t>& regionIds, std::int32_t otherId) {
     CV_Assert(labels.type() == CV_32S);

@@ -4,6 +4,8 @@
 
 #include <filesystem>
 #include <fstream>
+#include <set>
+#include <vector>
 
 using namespace slicestation;
 using namespace slicestation::pipeline;
@@ -73,5 +75,15 @@ TEST(CollapseLabels, DeepestListedAncestorWins) {
     EXPECT_EQ(c.at<int>(0, 2), 549);
     EXPECT_EQ(c.at<int>(0, 3), 7);
     EXPECT_EQ(c.at<int>(0, 4), 7); // unknown id
+
+    // The ids a plane shows (0 left out, each once) and those under an ancestor, itself
+    // included; unknown ids lie under nothing.
+    std::set<std::int32_t> ids;
+    collectIds(labels, ids);
+    collectIds((cv::Mat_<int>(1, 3) << 958, 10, 0), ids);
+    EXPECT_EQ(ids, (std::set<std::int32_t>{10, 11, 12, 958, 99999}));
+    EXPECT_EQ(idsUnder(ids, *onto, 958), (std::vector<std::int32_t>{10, 958}));
+    EXPECT_EQ(idsUnder(ids, *onto, 549), (std::vector<std::int32_t>{10, 11, 958}));
+    EXPECT_TRUE(idsUnder(ids, *onto, 4242).empty());
     std::filesystem::remove_all(dir);
 }

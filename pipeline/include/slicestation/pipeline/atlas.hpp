@@ -9,6 +9,7 @@
 #include <opencv2/core.hpp>
 
 #include <cstdint>
+#include <set>
 #include <vector>
 
 namespace slicestation::pipeline {
@@ -40,6 +41,13 @@ const std::vector<std::uint32_t>& majorRegionIds();
 inline constexpr std::int32_t kOtherRegionId = 8;
 /// Allen's "ventricular systems" (one of majorRegionIds): its ids are glass in a section.
 inline constexpr std::uint32_t kVentricularSystemsId = 73;
+
+/// Adds the ids of `labels` (CV_32S; 0, outside the brain, left out) to `ids`.
+void collectIds(const cv::Mat& labels, std::set<std::int32_t>& ids);
+
+/// The ids of `ids` that are `ancestorId` or lie below it in `ontology`, in increasing order.
+std::vector<std::int32_t> idsUnder(const std::set<std::int32_t>& ids,
+                                   const core::Ontology& ontology, std::uint32_t ancestorId);
 
 /// Replaces every id by its deepest ancestor-or-self among `regionIds` (so Epithalamus stays
 /// itself inside Thalamus); ids with no such ancestor become `otherId` (0 drops them).
