@@ -265,6 +265,7 @@ json resultDocument(const RegisterRequest& rq, const cv::Mat& section, const cv:
                       {"intensity_plane_used", q.intensityPlaneUsed},
                       {"intensity_warp_kept", q.intensityWarpKept},
                       {"region_warp_kept", q.regionWarpKept},
+                      {"region_warp_left_out", q.regionWarpLeftOut},
                       {"min_jacobian", q.minJacobian},
                       {"fold_repairs", q.foldRepairs},
                       {"fold_repair_nodes", q.foldRepairNodes},

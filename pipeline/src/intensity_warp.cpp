@@ -9,6 +9,7 @@
 #include <array>
 #include <cmath>
 #include <unordered_map>
+#include <unordered_set>
 
 namespace slicestation::pipeline {
 namespace {
@@ -541,17 +542,26 @@ IntensityWarp refineWarpByIntensity(const cv::Mat& grey, const cv::Mat& weight, 
     return out;
 }
 
+namespace {
+
+/// The labels of `atlasLabels` (CV_32S) seen at every grid pixel under the map (CV_32S).
+cv::Mat labelsUnderMap(const cv::Mat& atlasLabels, const cv::Mat& mapX, const cv::Mat& mapY) {
+    // remap has no 32S support; labels go through as float bit patterns untouched by NEAREST.
+    const cv::Mat asFloat(atlasLabels.size(), CV_32F, atlasLabels.data, atlasLabels.step);
+    cv::Mat seenF;
+    cv::remap(asFloat, seenF, mapX, mapY, cv::INTER_NEAREST, cv::BORDER_CONSTANT, cv::Scalar(0));
+    return cv::Mat(seenF.size(), CV_32S, seenF.data, seenF.step).clone();
+}
+
+} // namespace
+
 cv::Mat paintRegions(const cv::Mat& grey, const cv::Mat& weight, const cv::Mat& mapX,
                      const cv::Mat& mapY, const cv::Mat& atlasLabels,
                      const std::vector<std::int32_t>& glassIds, const RegionWarpOptions& o) {
     CV_Assert(grey.type() == CV_32F && atlasLabels.type() == CV_32S && !atlasLabels.empty());
     CV_Assert(weight.size() == grey.size() && mapX.size() == grey.size() &&
               mapY.size() == grey.size() && mapX.type() == CV_32F && mapY.type() == CV_32F);
-    // remap has no 32S support; labels go through as float bit patterns untouched by NEAREST.
-    const cv::Mat asFloat(atlasLabels.size(), CV_32F, atlasLabels.data, atlasLabels.step);
-    cv::Mat seenF;
-    cv::remap(asFloat, seenF, mapX, mapY, cv::INTER_NEAREST, cv::BORDER_CONSTANT, cv::Scalar(0));
-    const cv::Mat seen(seenF.size(), CV_32S, seenF.data, seenF.step);
+    const cv::Mat seen = labelsUnderMap(atlasLabels, mapX, mapY);
     cv::Mat counts;
     weight.convertTo(counts, CV_32F);
     std::unordered_map<std::int32_t, std::vector<float>> values;
@@ -609,6 +619,74 @@ cv::Mat paintRegions(const cv::Mat& grey, const cv::Mat& weight, const cv::Mat& 
     return plane;
 }
 
+namespace {
+
+/// Regions whose grey spreads inside far more than the regions' typical spread (see
+/// RegionWarpOptions::maxInnerSpread), under the map.
+std::unordered_set<std::int32_t> gradedRegions(const cv::Mat& grey, const cv::Mat& weight,
+                                               const cv::Mat& seen, const RegionWarpOptions& o) {
+    std::unordered_set<std::int32_t> out;
+    if (o.maxInnerSpread <= 0)
+        return out;
+    constexpr int kInset = 2;
+    std::unordered_map<std::int32_t, std::vector<float>> values;
+    for (int y = kInset; y + kInset < grey.rows; ++y)
+        for (int x = kInset; x + kInset < grey.cols; ++x) {
+            const std::int32_t l = seen.at<std::int32_t>(y, x);
+            if (l == 0 || weight.at<std::uint8_t>(y, x) == 0)
+                continue;
+            if (seen.at<std::int32_t>(y - kInset, x) != l ||
+                seen.at<std::int32_t>(y + kInset, x) != l ||
+                seen.at<std::int32_t>(y, x - kInset) != l ||
+                seen.at<std::int32_t>(y, x + kInset) != l)
+                continue;
+            values[l].push_back(grey.at<float>(y, x));
+        }
+    auto median = [](std::vector<float>& v) {
+        std::nth_element(v.begin(), v.begin() + std::ptrdiff_t(v.size() / 2), v.end());
+        return v[v.size() / 2];
+    };
+    std::vector<std::pair<std::int32_t, float>> spreads;
+    for (auto& [label, v] : values) {
+        if (v.size() < size_t(std::max(1, o.minRegionPx)))
+            continue;
+        const float m = median(v);
+        for (float& g : v)
+            g = std::abs(g - m);
+        const float s = median(v);
+        spreads.emplace_back(label, s);
+    }
+    if (spreads.size() < 3)
+        return out;
+    std::vector<float> all;
+    for (const auto& s : spreads)
+        all.push_back(s.second);
+    const float typical = median(all);
+    for (const auto& [label, s] : spreads)
+        if (s > o.maxInnerSpread * typical)
+            out.insert(label);
+    return out;
+}
+
+/// `weight` without the grid pixels the map sends into `left` regions.
+cv::Mat withoutRegions(const cv::Mat& weight, const cv::Mat& atlasLabels, const cv::Mat& mapX,
+                       const cv::Mat& mapY, const std::unordered_set<std::int32_t>& left) {
+    if (left.empty())
+        return weight;
+    const cv::Mat seen = labelsUnderMap(atlasLabels, mapX, mapY);
+    cv::Mat out = weight.clone();
+    for (int y = 0; y < out.rows; ++y) {
+        const std::int32_t* l = seen.ptr<std::int32_t>(y);
+        std::uint8_t* w = out.ptr<std::uint8_t>(y);
+        for (int x = 0; x < out.cols; ++x)
+            if (left.count(l[x]))
+                w[x] = 0;
+    }
+    return out;
+}
+
+} // namespace
+
 IntensityWarp refineWarpByRegions(const cv::Mat& grey, const cv::Mat& weight, const cv::Mat& mapX,
                                   const cv::Mat& mapY, const cv::Mat& atlasLabels,
                                   const std::vector<std::int32_t>& glassIds,
@@ -629,14 +707,19 @@ IntensityWarp refineWarpByRegions(const cv::Mat& grey, const cv::Mat& weight, co
     // The held-out explained share of a map against its own painting, at the finest level.
     IntensityWarpOptions judge = o.warp;
     judge.levels = {{o.warp.levels.back().imageSigma, o.warp.levels.back().spacingGridPx, 0}};
+    const std::unordered_set<std::int32_t> graded =
+        gradedRegions(grey, paintWeight, labelsUnderMap(atlasLabels, mapX, mapY), o);
     auto heldOut = [&](const cv::Mat& mx, const cv::Mat& my) {
         const cv::Mat plane = paintRegions(grey, paintWeight, mx, my, atlasLabels, glassIds, o);
-        return refineWarpByIntensity(grey, weight, mx, my, plane, judge);
+        return refineWarpByIntensity(grey, withoutRegions(weight, atlasLabels, mx, my, graded), mx,
+                                     my, plane, judge);
     };
     const IntensityWarp start = heldOut(mapX, mapY);
     IntensityWarp out;
     out.ux = cv::Mat::zeros(gs, CV_32F);
     out.uy = cv::Mat::zeros(gs, CV_32F);
+    out.leftOut.assign(graded.begin(), graded.end());
+    std::sort(out.leftOut.begin(), out.leftOut.end());
     out.explainedBefore = out.explainedAfter = start.explainedBefore;
     out.minJacobian = start.minJacobian;
     if (cv::countNonZero(weight) < 64)
@@ -650,7 +733,8 @@ IntensityWarp refineWarpByRegions(const cv::Mat& grey, const cv::Mat& weight, co
         IntensityWarpOptions one = o.warp;
         one.levels = {level};
         one.holdOutBlockPx = o.warp.holdOutBlockPx;
-        const IntensityWarp step = refineWarpByIntensity(grey, weight, mx, my, plane, one);
+        const IntensityWarp step = refineWarpByIntensity(
+            grey, withoutRegions(weight, atlasLabels, mx, my, graded), mx, my, plane, one);
         // Within a level the painting is fixed: a level that explains less of its own painting
         // on the held-out blocks adds nothing.
         if (!step.accepted)

@@ -1112,6 +1112,7 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
                                     options.regionWarpOptions.glassIds, options.regionWarpOptions);
             keepField(rw, g.ws, r.quality.regionWarpExplainedBefore,
                       r.quality.regionWarpExplainedAfter, r.quality.regionWarpKept);
+            r.quality.regionWarpLeftOut = rw.leftOut;
             lap("rwarp");
         }
 

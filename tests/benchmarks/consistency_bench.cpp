@@ -380,6 +380,12 @@ int main(int argc, char** argv) {
     app.add_option("--region-warp", regionWarpMode,
                    "The region warp, painting every Allen id of the section's plane: on | off")
         ->check(CLI::IsMember({"on", "off"}));
+    double rwarpMaxSpread = pipeline::RegionWarpOptions{}.maxInnerSpread;
+    app.add_option(
+           "--rwarp-max-spread", rwarpMaxSpread,
+           "RegionWarpOptions::maxInnerSpread: regions spread inside beyond this many times "
+           "the typical region are left out of the region warp's fit (0: none)")
+        ->check(CLI::Range(0.0, 100.0));
     std::string refineMode = "on";
     app.add_option("--refine", refineMode,
                    "The registration's dense refinement: on (the default) | off")
@@ -493,6 +499,7 @@ int main(int argc, char** argv) {
                 ro.regionLabels = s.fine;
                 ro.regionWarpOptions.glassIds = s.ventricles;
             }
+            ro.regionWarpOptions.maxInnerSpread = rwarpMaxSpread;
             ro.damage.crackDarkness = crackDarkness;
             ro.damage.leaveOutMirroredGaps = mirroredGaps == "on";
             ro.damage.foldFromCrease = foldCrease == "on";

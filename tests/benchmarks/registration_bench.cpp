@@ -665,6 +665,8 @@ int main(int argc, char** argv) {
                 regOptions.regionWarpOptions.glassLike = std::stoi(kv.substr(6)) != 0;
             else if (kv.rfind("min-region=", 0) == 0)
                 regOptions.regionWarpOptions.minRegionPx = std::stoi(kv.substr(11));
+            else if (kv.rfind("max-spread=", 0) == 0)
+                regOptions.regionWarpOptions.maxInnerSpread = std::stod(kv.substr(11));
             else
                 fieldSettings.push_back(kv);
         }

@@ -64,6 +64,9 @@ struct IntensityWarp {
     double minJacobian = 1;
     bool accepted = false;
     int steps = 0; ///< Gauss-Newton steps taken
+    /// The region warp: the regions left out of its fit (RegionWarpOptions::maxInnerSpread),
+    /// ascending.
+    std::vector<std::int32_t> leftOut;
 };
 
 /// Refines the map `mapX`, `mapY` (CV_32F, grid size: the atlas position of every grid pixel)
@@ -92,7 +95,15 @@ struct RegionWarpOptions {
         o.levels = {{4.0, 64, 8}, {2.0, 32, 8}, {1.0, 16, 8}};
         return o;
     }();
-    int minRegionPx = 8;   ///< grid px a region needs to get its own level
+    int minRegionPx = 8; ///< grid px a region needs to get its own level
+    /// A region whose grey spreads inside (median absolute deviation over its interior, 2 grid
+    /// px from its borders, under the start map) more than this many times the median of the
+    /// regions' spreads is left out of the fit (0: none left out): one level describes a
+    /// region stained evenly (its spread is the tissue's texture), not one with strong contrast
+    /// inside it (the olfactory bulb's layers, a stain graded like the average template), whose
+    /// inner contrast would otherwise be read as misplaced borders. Chosen on the second family's
+    /// cases 0-95 and the template family's 0-47 (docs/registration.md).
+    double maxInnerSpread = 2.0;
     bool glassLike = true; ///< paint `glassIds` at the glass band's level
     /// The ventricles' ids in RegistrationOptions::regionLabels.
     std::vector<std::int32_t> glassIds;

@@ -176,6 +176,9 @@ struct RegistrationQuality {
     /// after, whether it was kept.
     double regionWarpExplainedBefore = 0, regionWarpExplainedAfter = 0;
     bool regionWarpKept = false;
+    /// The atlas ids the region warp left out of its fit (stained with strong contrast inside;
+    /// RegionWarpOptions::maxInnerSpread), ascending; empty when it did not run.
+    std::vector<std::int32_t> regionWarpLeftOut;
     /// The smooth stage: RMS point-to-line distance (atlas px) of its first matches before and
     /// after the fitted field, and how many matches its last iteration had (0 = not run).
     double smoothBefore = 0, smoothAfter = 0;
