@@ -151,6 +151,10 @@ TEST_F(RegistrationServiceTest, AStackOfEveryRegionIsFittedToEveryRegionAndKeeps
             EXPECT_GT(fine, brain / 2) << slice;
             EXPECT_EQ(reg->document.at("quality").at("region_warp_kept").get<bool>(),
                       q.regionWarpKept);
+            EXPECT_EQ(reg->document.at("quality")
+                          .at("region_warp_left_out")
+                          .get<std::vector<std::int32_t>>(),
+                      q.regionWarpLeftOut);
         }
     }
     // Measured (gcc, RelWithDebInfo): 3.89 -> 3.82 and 3.26 -> 2.87 px, both kept; over the
