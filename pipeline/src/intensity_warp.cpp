@@ -553,15 +553,17 @@ cv::Mat labelsUnderMap(const cv::Mat& atlasLabels, const cv::Mat& mapX, const cv
     return cv::Mat(seenF.size(), CV_32S, seenF.data, seenF.step).clone();
 }
 
-} // namespace
+/// The median of `v` (not empty), reordering it.
+float medianInPlace(std::vector<float>& v) {
+    std::nth_element(v.begin(), v.begin() + std::ptrdiff_t(v.size() / 2), v.end());
+    return v[v.size() / 2];
+}
 
-cv::Mat paintRegions(const cv::Mat& grey, const cv::Mat& weight, const cv::Mat& mapX,
-                     const cv::Mat& mapY, const cv::Mat& atlasLabels,
-                     const std::vector<std::int32_t>& glassIds, const RegionWarpOptions& o) {
-    CV_Assert(grey.type() == CV_32F && atlasLabels.type() == CV_32S && !atlasLabels.empty());
-    CV_Assert(weight.size() == grey.size() && mapX.size() == grey.size() &&
-              mapY.size() == grey.size() && mapX.type() == CV_32F && mapY.type() == CV_32F);
-    const cv::Mat seen = labelsUnderMap(atlasLabels, mapX, mapY);
+/// paintRegions with the labels each grid pixel sees under the map already looked up (`seen`,
+/// labelsUnderMap).
+cv::Mat paintSeen(const cv::Mat& grey, const cv::Mat& weight, const cv::Mat& seen,
+                  const cv::Mat& atlasLabels, const std::vector<std::int32_t>& glassIds,
+                  const RegionWarpOptions& o) {
     cv::Mat counts;
     weight.convertTo(counts, CV_32F);
     std::unordered_map<std::int32_t, std::vector<float>> values;
@@ -578,17 +580,13 @@ cv::Mat paintRegions(const cv::Mat& grey, const cv::Mat& weight, const cv::Mat& 
                 tissue.push_back(g[x]);
         }
     }
-    auto median = [](std::vector<float>& v) {
-        std::nth_element(v.begin(), v.begin() + std::ptrdiff_t(v.size() / 2), v.end());
-        return v[v.size() / 2];
-    };
-    const float tissueLevel = tissue.empty() ? 1.0f : median(tissue);
+    const float tissueLevel = tissue.empty() ? 1.0f : medianInPlace(tissue);
     const size_t minPx = size_t(std::max(1, o.minRegionPx));
     auto glassIt = values.find(0);
     // Without a glass band the glass is taken as the darkest tenth of what is measured.
     float glassLevel = 0;
     if (glassIt != values.end() && glassIt->second.size() >= minPx) {
-        glassLevel = median(glassIt->second);
+        glassLevel = medianInPlace(glassIt->second);
     } else if (!tissue.empty()) {
         std::nth_element(tissue.begin(), tissue.begin() + std::ptrdiff_t(tissue.size() / 10),
                          tissue.end());
@@ -596,7 +594,7 @@ cv::Mat paintRegions(const cv::Mat& grey, const cv::Mat& weight, const cv::Mat& 
     }
     std::unordered_map<std::int32_t, float> level;
     for (auto& [label, v] : values)
-        level[label] = v.size() >= minPx ? median(v) : tissueLevel;
+        level[label] = v.size() >= minPx ? medianInPlace(v) : tissueLevel;
     level[0] = glassLevel;
     if (o.glassLike)
         for (std::int32_t id : glassIds)
@@ -619,8 +617,6 @@ cv::Mat paintRegions(const cv::Mat& grey, const cv::Mat& weight, const cv::Mat& 
     return plane;
 }
 
-namespace {
-
 /// Regions whose grey spreads inside far more than the regions' typical spread (see
 /// RegionWarpOptions::maxInnerSpread), under the map.
 std::unordered_set<std::int32_t> gradedRegions(const cv::Mat& grey, const cv::Mat& weight,
@@ -642,38 +638,32 @@ std::unordered_set<std::int32_t> gradedRegions(const cv::Mat& grey, const cv::Ma
                 continue;
             values[l].push_back(grey.at<float>(y, x));
         }
-    auto median = [](std::vector<float>& v) {
-        std::nth_element(v.begin(), v.begin() + std::ptrdiff_t(v.size() / 2), v.end());
-        return v[v.size() / 2];
-    };
     std::vector<std::pair<std::int32_t, float>> spreads;
     for (auto& [label, v] : values) {
         if (v.size() < size_t(std::max(1, o.minRegionPx)))
             continue;
-        const float m = median(v);
+        const float m = medianInPlace(v);
         for (float& g : v)
             g = std::abs(g - m);
-        const float s = median(v);
-        spreads.emplace_back(label, s);
+        spreads.emplace_back(label, medianInPlace(v));
     }
     if (spreads.size() < 3)
         return out;
     std::vector<float> all;
     for (const auto& s : spreads)
         all.push_back(s.second);
-    const float typical = median(all);
+    const float typical = medianInPlace(all);
     for (const auto& [label, s] : spreads)
         if (s > o.maxInnerSpread * typical)
             out.insert(label);
     return out;
 }
 
-/// `weight` without the grid pixels the map sends into `left` regions.
-cv::Mat withoutRegions(const cv::Mat& weight, const cv::Mat& atlasLabels, const cv::Mat& mapX,
-                       const cv::Mat& mapY, const std::unordered_set<std::int32_t>& left) {
+/// `weight` without the grid pixels that see (`seen`, labelsUnderMap) a `left` region.
+cv::Mat withoutRegions(const cv::Mat& weight, const cv::Mat& seen,
+                       const std::unordered_set<std::int32_t>& left) {
     if (left.empty())
         return weight;
-    const cv::Mat seen = labelsUnderMap(atlasLabels, mapX, mapY);
     cv::Mat out = weight.clone();
     for (int y = 0; y < out.rows; ++y) {
         const std::int32_t* l = seen.ptr<std::int32_t>(y);
@@ -686,6 +676,16 @@ cv::Mat withoutRegions(const cv::Mat& weight, const cv::Mat& atlasLabels, const 
 }
 
 } // namespace
+
+cv::Mat paintRegions(const cv::Mat& grey, const cv::Mat& weight, const cv::Mat& mapX,
+                     const cv::Mat& mapY, const cv::Mat& atlasLabels,
+                     const std::vector<std::int32_t>& glassIds, const RegionWarpOptions& o) {
+    CV_Assert(grey.type() == CV_32F && atlasLabels.type() == CV_32S && !atlasLabels.empty());
+    CV_Assert(weight.size() == grey.size() && mapX.size() == grey.size() &&
+              mapY.size() == grey.size() && mapX.type() == CV_32F && mapY.type() == CV_32F);
+    return paintSeen(grey, weight, labelsUnderMap(atlasLabels, mapX, mapY), atlasLabels, glassIds,
+                     o);
+}
 
 IntensityWarp refineWarpByRegions(const cv::Mat& grey, const cv::Mat& weight, const cv::Mat& mapX,
                                   const cv::Mat& mapY, const cv::Mat& atlasLabels,
@@ -704,17 +704,21 @@ IntensityWarp refineWarpByRegions(const cv::Mat& grey, const cv::Mat& weight, co
                 if ((x / o.warp.holdOutBlockPx + y / o.warp.holdOutBlockPx) % 2)
                     p[x] = 0;
         }
-    // The held-out explained share of a map against its own painting, at the finest level.
+    // The held-out explained share of a map against its own painting, at the finest level (the
+    // judgement `fit` below makes with no steps).
     IntensityWarpOptions judge = o.warp;
     judge.levels = {{o.warp.levels.back().imageSigma, o.warp.levels.back().spacingGridPx, 0}};
-    const std::unordered_set<std::int32_t> graded =
-        gradedRegions(grey, paintWeight, labelsUnderMap(atlasLabels, mapX, mapY), o);
-    auto heldOut = [&](const cv::Mat& mx, const cv::Mat& my) {
-        const cv::Mat plane = paintRegions(grey, paintWeight, mx, my, atlasLabels, glassIds, o);
-        return refineWarpByIntensity(grey, withoutRegions(weight, atlasLabels, mx, my, graded), mx,
-                                     my, plane, judge);
+    const cv::Mat startSeen = labelsUnderMap(atlasLabels, mapX, mapY);
+    const std::unordered_set<std::int32_t> graded = gradedRegions(grey, paintWeight, startSeen, o);
+    // What a level fits against under a map: the painting, and the weight without the regions
+    // left out. `options` holds the level(s).
+    auto fit = [&](const cv::Mat& mx, const cv::Mat& my, const cv::Mat& seen,
+                   const IntensityWarpOptions& options) {
+        const cv::Mat plane = paintSeen(grey, paintWeight, seen, atlasLabels, glassIds, o);
+        return refineWarpByIntensity(grey, withoutRegions(weight, seen, graded), mx, my, plane,
+                                     options);
     };
-    const IntensityWarp start = heldOut(mapX, mapY);
+    const IntensityWarp start = fit(mapX, mapY, startSeen, judge);
     IntensityWarp out;
     out.ux = cv::Mat::zeros(gs, CV_32F);
     out.uy = cv::Mat::zeros(gs, CV_32F);
@@ -729,12 +733,10 @@ IntensityWarp refineWarpByRegions(const cv::Mat& grey, const cv::Mat& weight, co
     int steps = 0;
     for (const IntensityWarpLevel& level : o.warp.levels) {
         const cv::Mat mx = mapX + ux, my = mapY + uy;
-        const cv::Mat plane = paintRegions(grey, paintWeight, mx, my, atlasLabels, glassIds, o);
         IntensityWarpOptions one = o.warp;
         one.levels = {level};
         one.holdOutBlockPx = o.warp.holdOutBlockPx;
-        const IntensityWarp step = refineWarpByIntensity(
-            grey, withoutRegions(weight, atlasLabels, mx, my, graded), mx, my, plane, one);
+        const IntensityWarp step = fit(mx, my, labelsUnderMap(atlasLabels, mx, my), one);
         // Within a level the painting is fixed: a level that explains less of its own painting
         // on the held-out blocks adds nothing.
         if (!step.accepted)
@@ -747,7 +749,8 @@ IntensityWarp refineWarpByRegions(const cv::Mat& grey, const cv::Mat& weight, co
     out.steps = steps;
     if (steps == 0)
         return out;
-    const IntensityWarp end = heldOut(mapX + ux, mapY + uy);
+    const cv::Mat endX = mapX + ux, endY = mapY + uy;
+    const IntensityWarp end = fit(endX, endY, labelsUnderMap(atlasLabels, endX, endY), judge);
     out.explainedAfter = end.explainedBefore;
     out.accepted = out.explainedAfter >= out.explainedBefore + o.warp.minGain;
     if (out.accepted) {

@@ -212,6 +212,12 @@ bool haveRealSeries() {
            fs::exists(kAtlasDir / "annotation_50.nrrd");
 }
 
+/// The average template and the 25 um QuickNII annotation, for template-stained sections.
+bool haveTemplateAtlas() {
+    return fs::exists(kAtlasDir / "average_template_100.nrrd") &&
+           fs::exists(kAtlasDir / "annotation_25_quicknii.nrrd");
+}
+
 } // namespace
 
 TEST(RegistrationAccuracy, BuiltInAtlasCleanSections) {
@@ -973,8 +979,7 @@ TEST(RegistrationAccuracy, AnAtlasIntensityPlaneHelpsOnTemplateLikeSections) {
     // Sections that look like the Allen average template (the template plane seen through the
     // generator's known map, mild noise): with the template plane as the atlas intensity the
     // dense refinement must bring the landmarks clearly closer than the geometric stages alone.
-    if (!fs::exists(kAtlasDir / "average_template_100.nrrd") ||
-        !fs::exists(kAtlasDir / "annotation_25_quicknii.nrrd"))
+    if (!haveTemplateAtlas())
         GTEST_SKIP() << "../shared/atlas is absent: template-like sections not tested";
     const auto& templ = averageTemplate();
     ASSERT_TRUE(templ.ok());
@@ -1017,8 +1022,7 @@ TEST(RegistrationAccuracy, TheRegionWarpLeavesOutARegionWithLayersInside) {
     // olfactory bulb is one id (507) that the template shows in layers; painted at one level,
     // its layers read as misplaced borders. Left out of the fit (RegionWarpOptions::
     // maxInnerSpread), the registration is closer to the landmarks than with it in.
-    if (!fs::exists(kAtlasDir / "average_template_100.nrrd") ||
-        !fs::exists(kAtlasDir / "annotation_25_quicknii.nrrd"))
+    if (!haveTemplateAtlas())
         GTEST_SKIP() << "../shared/atlas is absent: template planes not tested";
     const auto& templ = averageTemplate();
     ASSERT_TRUE(templ.ok());
@@ -1064,8 +1068,7 @@ TEST(RegistrationAccuracy, ATemplatePlaneThatIsNotTheStainIsSetAside) {
     // cases 0-47: 2.54 / 2.96 px without the plane, 6.39 / 11.23 and 9 gross with it). Now the
     // plane explains too little of the section (at most 0.57 measured, minExplained 0.65), so
     // the registration is the one without a plane, to the bit; a template-like section keeps it.
-    if (!fs::exists(kAtlasDir / "average_template_100.nrrd") ||
-        !fs::exists(kAtlasDir / "annotation_25_quicknii.nrrd"))
+    if (!haveTemplateAtlas())
         GTEST_SKIP() << "../shared/atlas is absent: template planes not tested";
     const auto& templ = averageTemplate();
     ASSERT_TRUE(templ.ok());
@@ -1112,8 +1115,7 @@ TEST(RegistrationAccuracy, TheIntensityAffineAlignsTemplateLikeSections) {
     // stain's soft edges leave the edge-based affine off; with the template plane as the atlas
     // intensity the intensity affine must bring the landmarks clearly closer, on the affine
     // alone and on the whole registration.
-    if (!fs::exists(kAtlasDir / "average_template_100.nrrd") ||
-        !fs::exists(kAtlasDir / "annotation_25_quicknii.nrrd"))
+    if (!haveTemplateAtlas())
         GTEST_SKIP() << "../shared/atlas is absent: template-like sections not tested";
     const auto& templ = averageTemplate();
     ASSERT_TRUE(templ.ok());
@@ -1174,8 +1176,7 @@ TEST(RegistrationAccuracy, TheIntensityWarpFollowsTemplateLikeSectionsBeyondTheA
     // Template-like sections (as above) deformed three times more than the benchmark's first
     // family (4.5% of the tissue width): with the template plane, the intensity warp must take
     // the whole registration clearly closer than the pipeline without it, and never fold.
-    if (!fs::exists(kAtlasDir / "average_template_100.nrrd") ||
-        !fs::exists(kAtlasDir / "annotation_25_quicknii.nrrd"))
+    if (!haveTemplateAtlas())
         GTEST_SKIP() << "../shared/atlas is absent: template-like sections not tested";
     const auto& templ = averageTemplate();
     ASSERT_TRUE(templ.ok());
