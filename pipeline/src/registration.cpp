@@ -1118,11 +1118,20 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
 
         // Dense refinement (beyond the paper): the atlas regions are fitted to the section's own
         // contrast inside the tissue on a reduced grid; damaged and excluded parts stay out.
+        // After the region warp in the result's map it only measures (the confidence): the
+        // region warp has fitted the same regions with a richer model, and moving the map again
+        // made it no better (RegistrationOptions::refineAfterRegionWarp).
         if (options.denseRefine) {
             const GridInputs g = gridInputs(denseOptions.gridMaxSide);
-            const DenseRefinement dense = refineDense(
-                g.grey, g.weight, g.mx, g.my,
-                regionWarpRuns && !edges ? options.regionLabels : atlasLabels, plane, denseOptions);
+            const bool measureOnly = regionWarpRuns && !edges && !options.refineAfterRegionWarp;
+            DenseRefineOptions measure = denseOptions;
+            if (measureOnly)
+                for (DenseLevel& level : measure.levels)
+                    level.iterations = 0;
+            const DenseRefinement dense =
+                refineDense(g.grey, g.weight, g.mx, g.my,
+                            regionWarpRuns && !edges ? options.regionLabels : atlasLabels, plane,
+                            measureOnly ? measure : denseOptions);
             r.quality.explainedBeforeRefine = dense.explainedBefore;
             r.quality.explainedAfterRefine = dense.explainedAfter;
             r.quality.refined = dense.accepted;

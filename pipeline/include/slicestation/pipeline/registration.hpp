@@ -112,6 +112,14 @@ struct RegistrationOptions {
     /// 1.55 -> 0.94 / 1.02 px, docs/registration.md). The damage check still judges the map
     /// with the edge warps, the one its rules were made on.
     bool edgeWarpWithRegions = false;
+    /// When the region warp runs without the edge warps in the result's map: the dense
+    /// refinement after it still moves that map. Off (since 2026-12-06, fifth session): it only
+    /// measures there (the confidence map; no step), because after the region warp, which fits
+    /// the same fine regions with a local gain and a smooth field, its steps made no family
+    /// better (family 2 cases 0-95 0.99 / 1.03 -> 0.99 / 1.01 px without them, family 1 the
+    /// same, 1m 1.33 / 1.47 -> 1.28 / 1.45, template 0-47 3.13 / 3.17 -> 3.02 / 3.09;
+    /// docs/registration.md). The damage check's map keeps the refinement.
+    bool refineAfterRegionWarp = false;
     /// The labels the region warp paints (CV_32S, the atlas labels' size), e.g. every Allen id
     /// where the atlas labels are the collapsed major regions: a stain differs between fine
     /// regions, and a major region painted at one level is a poor model of the section (it made
