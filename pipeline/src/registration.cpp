@@ -992,7 +992,8 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     // repair) on the affine, with or without the edge warps and the smooth stage; `timed` laps
     // each step; `result` false (the damage map's chain) leaves out the dense refinement's
     // confidence, which only the result's map keeps. Without the edge warps, when the region
-    // warp runs, the dense refinement fits the fine regions too.
+    // warp runs, the dense refinement measures the fine regions (and by default only measures:
+    // RegistrationOptions::refineAfterRegionWarp).
     const bool regionWarpRuns =
         options.regionWarp && plane.empty() && !options.regionLabels.empty();
     const bool edgeWarps =
