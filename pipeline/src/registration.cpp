@@ -1124,15 +1124,14 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         // made it no better (RegistrationOptions::refineAfterRegionWarp).
         if (options.denseRefine) {
             const GridInputs g = gridInputs(denseOptions.gridMaxSide);
-            const bool measureOnly = regionWarpRuns && !edges && !options.refineAfterRegionWarp;
-            DenseRefineOptions measure = denseOptions;
-            if (measureOnly)
-                for (DenseLevel& level : measure.levels)
-                    level.iterations = 0;
+            DenseRefineOptions refineOptions = denseOptions;
+            if (regionWarpRuns && !edges && !options.refineAfterRegionWarp)
+                for (DenseLevel& level : refineOptions.levels)
+                    level.iterations = 0; // measure only
             const DenseRefinement dense =
                 refineDense(g.grey, g.weight, g.mx, g.my,
                             regionWarpRuns && !edges ? options.regionLabels : atlasLabels, plane,
-                            measureOnly ? measure : denseOptions);
+                            refineOptions);
             r.quality.explainedBeforeRefine = dense.explainedBefore;
             r.quality.explainedAfterRefine = dense.explainedAfter;
             r.quality.refined = dense.accepted;
