@@ -2,8 +2,10 @@
 # Installs what is needed, builds, and runs every test (all labels), twice:
 #   build/        the release build (gcc), every test;
 #   build-check/  the checking build (clang, AddressSanitizer + UndefinedBehaviorSanitizer +
-#                 LeakSanitizer on everything), every test again, and each fuzz target (label
-#                 fuzz) replaying its committed corpus and fuzzing for SLST_FUZZ_SECONDS (30).
+#                 LeakSanitizer on everything), every test again but the accuracy figures (label
+#                 accuracy: seven of them, one per path, run there too) and the benchmarks' smoke
+#                 tests, and each fuzz target (label fuzz) replaying its committed corpus and
+#                 fuzzing for SLST_FUZZ_SECONDS (30).
 # Before the tests, scripts/check-format.sh checks that every C++ file follows .clang-format and
 # scripts/check-daemon-size.py that no daemon/ file exceeds 600 lines nor any function 100.
 # CI runs exactly this. SLST_TEST_CHECKING=0 skips the checking build (a quicker local run).
@@ -27,4 +29,17 @@ export UBSAN_OPTIONS="print_stacktrace=1:halt_on_error=1:suppressions=$here/test
 # The daemon runs several times slower under the sanitizers: the process tests' deadlines stretch.
 export SLST_TEST_TIME_SCALE=4
 cd "$here/build-check"
-ctest --output-on-failure -j "$(nproc)" --timeout 1800
+ctest --output-on-failure -j "$(nproc)" --timeout 1800 -LE accuracy
+# The accuracy tests check figures, which the release build has checked; under the sanitizers
+# one per path runs: real atlas planes clean and damaged, the region warp, the template-like
+# intensity warp, the damage kinds, the real torn sections, and the plane finder (docs/testing.md).
+sentinels=(
+    'RegistrationAccuracy\.RealAtlasPlanesCleanAndDamaged'
+    'RegistrationAccuracy\.TheRegionWarpFollowsAnyStainBeyondTheGeometricStages'
+    'RegistrationAccuracy\.TheIntensityWarpFollowsTemplateLikeSectionsBeyondTheAffine'
+    'DamageGroundTruth\.EachKindIsFlaggedLocatedAndKeptOutOfTheFit'
+    'DamageRealSeries\.TornSectionsAreFlaggedAndCleanOnesAreNot'
+    'AtlasMatching\.FindsThePlaneOfGeneratedSections'
+    'AtlasMatching\.BadInputsAreErrors')
+pattern="^($(IFS='|'; echo "${sentinels[*]}"))\$"
+ctest --output-on-failure -j "$(nproc)" --timeout 1800 -L accuracy -R "$pattern" --no-tests=error
