@@ -42,4 +42,10 @@ sentinels=(
     'AtlasMatching\.FindsThePlaneOfGeneratedSections'
     'AtlasMatching\.BadInputsAreErrors')
 pattern="^($(IFS='|'; echo "${sentinels[*]}"))\$"
-ctest --output-on-failure -j "$(nproc)" --timeout 1800 -L accuracy -R "$pattern" --no-tests=error
+# A renamed test would drop out of the list silently: each name must match one test.
+found=$(ctest -N -L accuracy -R "$pattern" | sed -n 's/^Total Tests: //p')
+if [ "$found" != "${#sentinels[@]}" ]; then
+    echo "scripts/test.sh: ${found:-0} of the ${#sentinels[@]} accuracy tests named for the checking build exist" >&2
+    exit 1
+fi
+ctest --output-on-failure -j "$(nproc)" --timeout 1800 -L accuracy -R "$pattern"
