@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Installs what is needed, builds, and runs every test (all labels), twice:
+# Installs what is needed, builds, and runs every test (all labels), then the sanitizers' share again:
 #   build/        the release build (gcc), every test;
 #   build-check/  the checking build (clang, AddressSanitizer + UndefinedBehaviorSanitizer +
 #                 LeakSanitizer on everything), every test again but the accuracy figures (label
