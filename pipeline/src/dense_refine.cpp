@@ -335,8 +335,11 @@ DenseRefinement refineDense(const cv::Mat& grey, const cv::Mat& weight, const cv
 
     cv::Mat ux = out.ux.clone(), uy = out.uy.clone();
     double minRel = minRelative(det0, refDet);
+    bool moved = false; // a step was taken: the field differs from the one measured before
     cv::Mat smooth, jw, gx, gy, r, wr, pxx, pxy, pyy, bx, by, dux, duy, cand1, cand2;
     for (const DenseLevel& level : o.levels) {
+        if (level.iterations <= 0)
+            continue; // measuring only (RegistrationOptions::refineAfterRegionWarp)
         cv::GaussianBlur(grey, smooth, cv::Size(), level.imageSigma, level.imageSigma,
                          cv::BORDER_REPLICATE);
         Painted painted;
@@ -476,6 +479,7 @@ DenseRefinement refineDense(const cv::Mat& grey, const cv::Mat& weight, const cv
                     uy = cand2.clone();
                     minRel = m;
                     taken = true;
+                    moved = true;
                 } else {
                     dux *= 0.5;
                     duy *= 0.5;
@@ -484,7 +488,8 @@ DenseRefinement refineDense(const cv::Mat& grey, const cv::Mat& weight, const cv
         }
     }
 
-    const cv::Mat r2After = residualSq(ux, uy);
+    // Without a step the field is the one measured before: its residuals are r2Before.
+    const cv::Mat r2After = moved ? residualSq(ux, uy) : r2Before;
     out.explainedAfter = 1 - weightedMean(r2After, wTest) / testVar;
     out.accepted = out.explainedAfter >= out.explainedBefore + o.minGain;
     if (out.accepted) {

@@ -1124,14 +1124,15 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         // made it no better (RegistrationOptions::refineAfterRegionWarp).
         if (options.denseRefine) {
             const GridInputs g = gridInputs(denseOptions.gridMaxSide);
+            // After the region warp, against the fine regions it fitted.
+            const bool onFineRegions = regionWarpRuns && !edges;
             DenseRefineOptions refineOptions = denseOptions;
-            if (regionWarpRuns && !edges && !options.refineAfterRegionWarp)
+            if (onFineRegions && !options.refineAfterRegionWarp)
                 for (DenseLevel& level : refineOptions.levels)
                     level.iterations = 0; // measure only
-            const DenseRefinement dense =
-                refineDense(g.grey, g.weight, g.mx, g.my,
-                            regionWarpRuns && !edges ? options.regionLabels : atlasLabels, plane,
-                            refineOptions);
+            const DenseRefinement dense = refineDense(
+                g.grey, g.weight, g.mx, g.my, onFineRegions ? options.regionLabels : atlasLabels,
+                plane, refineOptions);
             r.quality.explainedBeforeRefine = dense.explainedBefore;
             r.quality.explainedAfterRefine = dense.explainedAfter;
             r.quality.refined = dense.accepted;
