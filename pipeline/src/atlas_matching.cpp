@@ -396,20 +396,31 @@ core::Result<SectionMatch> matchSection(const SectionFeatures& sec,
     const double rs = mirrored ? st(1, 0) + st(0, 1) : st(1, 0) - st(0, 1);
     const double norm = std::max(std::hypot(rc, rs), 1e-12);
     const double cosT = rc / norm, sinT = rs / norm;
+    const auto seedInit = [&](int i) {
+        const SliceFeatures& sl = slices[size_t(i)];
+        const double k = scaleFor(sl);
+        // Rotation, or reflection across the line at angle theta/2 when mirrored.
+        const cv::Matx22d L = mirrored ? cv::Matx22d(k * cosT, k * sinT, k * sinT, -k * cosT)
+                                       : cv::Matx22d(k * cosT, -k * sinT, k * sinT, k * cosT);
+        const cv::Vec2d c = cv::Vec2d(sl.box.centre.x, sl.box.centre.y) -
+                            L * cv::Vec2d(sec.box.centre.x, sec.box.centre.y);
+        return cv::Matx23d(L(0, 0), L(0, 1), c[0], L(1, 0), L(1, 1), c[1]);
+    };
+    // Whether an alignment is turned (or reflected) more than 45 degrees from the seed's.
+    const auto turnedFromSeed = [&](const cv::Matx23d& t) {
+        if ((det(t) < 0) != mirrored)
+            return true;
+        const double c = mirrored ? t(0, 0) - t(1, 1) : t(0, 0) + t(1, 1);
+        const double s = mirrored ? t(1, 0) + t(0, 1) : t(1, 0) - t(0, 1);
+        const double n = std::max(std::hypot(c, s), 1e-12);
+        return (c / n) * cosT + (s / n) * sinT < std::cos(kPi / 4);
+    };
     std::vector<MatchCandidate> all;
     for (int i = options.first; i <= last; ++i) {
         if (!usable(i))
             continue;
         if (!done[size_t(i)]) {
-            const SliceFeatures& sl = slices[size_t(i)];
-            const double k = scaleFor(sl);
-            // Rotation, or reflection across the line at angle theta/2 when mirrored.
-            const cv::Matx22d L = mirrored ? cv::Matx22d(k * cosT, k * sinT, k * sinT, -k * cosT)
-                                           : cv::Matx22d(k * cosT, -k * sinT, k * sinT, k * cosT);
-            const cv::Vec2d c = cv::Vec2d(sl.box.centre.x, sl.box.centre.y) -
-                                L * cv::Vec2d(sec.box.centre.x, sec.box.centre.y);
-            byIndex[size_t(i)] =
-                align(i, {cv::Matx23d(L(0, 0), L(0, 1), c[0], L(1, 0), L(1, 1), c[1])});
+            byIndex[size_t(i)] = align(i, {seedInit(i)});
             stepDone();
         }
         all.push_back(byIndex[size_t(i)]);
@@ -462,7 +473,18 @@ core::Result<SectionMatch> matchSection(const SectionFeatures& sec,
     for (size_t k = 0; k < all.size(); ++k) {
         if (!chosen[k])
             continue;
+        const bool turned = turnedFromSeed(all[k].sliceFromSection);
         refine(all[k]);
+        // A slice that tried its own placements may have taken another way up than the seed:
+        // the outline of a roundish level (the olfactory bulbs) fits nearly as well turned over,
+        // and its overlap chose. The section has one orientation; such a slice is scored the
+        // seed's way up too, and the better score kept (the full score, not the overlap again).
+        if (turned) {
+            MatchCandidate seedWay = align(all[k].index, {seedInit(all[k].index)});
+            refine(seedWay);
+            if (seedWay.score > all[k].score)
+                all[k] = seedWay;
+        }
         scored.push_back(all[k]);
         stepDone();
     }

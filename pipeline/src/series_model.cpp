@@ -354,14 +354,17 @@ core::Result<SeriesFit> fitSeries(const std::vector<SeriesObservation>& obs,
     // Order among the on-line sections: the longest run of increasing slots is the cutting
     // order; the rest broke it. Neighbours whose slots are exchanged are a swap.
     // The sections around a swap stay regular: the one before takes the slot before both, or
-    // the one after the slot after both.
+    // the one after the slot after both. And the pair itself steps back by about a spacing
+    // (each lies where the other belongs): a step back of less than half a spacing is nearer
+    // to two sections on one place (a wrong match) than to an exchange.
     for (size_t a = 0; a + 1 < online.size(); ++a) {
         const size_t k = online[a], k2 = online[a + 1];
         const int hi = fit.sections[k].slot, lo = fit.sections[k2].slot;
         const bool regularBefore = a > 0 && fit.sections[online[a - 1]].slot == lo - 1;
         const bool regularAfter =
             a + 2 < online.size() && fit.sections[online[a + 2]].slot == hi + 1;
-        if (k2 == k + 1 && hi == lo + 1 && (regularBefore || regularAfter)) {
+        const bool stepsBack = obs[k2].positionUm - obs[k].positionUm <= -0.5 * std::abs(best.s);
+        if (k2 == k + 1 && hi == lo + 1 && (regularBefore || regularAfter) && stepsBack) {
             fit.sections[k].anomaly = SeriesAnomaly::Swapped;
             fit.sections[k2].anomaly = SeriesAnomaly::Swapped;
         }

@@ -54,6 +54,31 @@ TEST(SeriesModel, FitsACleanSeries) {
     }
 }
 
+// A swap is two sections mounted in each other's place: the pair steps back by about a spacing.
+// Two neighbours 0.3 spacing either side of the middle between their slots have exchanged slots
+// too (each is nearer the other's), but a step back of 0.4 spacing is one of them matched wrong
+// (the gerbi series' sections 20 and 21 looked like this), not an exchange.
+TEST(SeriesModel, ASwapStepsBackByAboutASpacing) {
+    auto obs = series(range(20), 2000, 300, 0, 1);
+    obs[9].positionUm = 2000 + 300 * 9.7;
+    obs[10].positionUm = 2000 + 300 * 9.3;
+    SeriesModelOptions o;
+    o.intervalUm = 300;
+    auto near = fitSeries(obs, o);
+    ASSERT_TRUE(near.ok()) << near.error().message;
+    EXPECT_EQ(near->sections[9].slot, 10);
+    EXPECT_EQ(near->sections[10].slot, 9);
+    EXPECT_NE(near->sections[9].anomaly, SeriesAnomaly::Swapped);
+    EXPECT_NE(near->sections[10].anomaly, SeriesAnomaly::Swapped);
+    // Exchanged in full, they are a swap.
+    obs[9].positionUm = 2000 + 300 * 10.1;
+    obs[10].positionUm = 2000 + 300 * 8.9;
+    auto swapped = fitSeries(obs, o);
+    ASSERT_TRUE(swapped.ok());
+    EXPECT_EQ(swapped->sections[9].anomaly, SeriesAnomaly::Swapped);
+    EXPECT_EQ(swapped->sections[10].anomaly, SeriesAnomaly::Swapped);
+}
+
 TEST(SeriesModel, ReportsSkipSwapAndWrongMatch) {
     // Slot 6 lost, slots 11 and 12 swapped, and section 16's match 2.5 spacings off the line
     // (half way between two slots: a wrong match, not a section from another slot) with a third
