@@ -1,6 +1,7 @@
 #include "slicestation/pipeline/dense_refine.hpp"
 
 #include "slicestation/pipeline/mask_ops.hpp"
+#include "stage_measures.hpp"
 
 #include <opencv2/imgproc.hpp>
 
@@ -40,17 +41,6 @@ LabelIndex indexLabels(const cv::Mat& labels) {
         }
     }
     return li;
-}
-
-/// Local area ratio of a map (atlas px^2 per grid px^2): the Jacobian determinant by central
-/// differences.
-cv::Mat jacobianDet(const cv::Mat& ax, const cv::Mat& ay) {
-    cv::Mat xx, xy, yx, yy;
-    cv::Sobel(ax, xx, CV_32F, 1, 0, 1, 0.5, 0, cv::BORDER_REPLICATE);
-    cv::Sobel(ax, xy, CV_32F, 0, 1, 1, 0.5, 0, cv::BORDER_REPLICATE);
-    cv::Sobel(ay, yx, CV_32F, 1, 0, 1, 0.5, 0, cv::BORDER_REPLICATE);
-    cv::Sobel(ay, yy, CV_32F, 0, 1, 1, 0.5, 0, cv::BORDER_REPLICATE);
-    return xx.mul(yy) - xy.mul(yx);
 }
 
 /// The atlas painted with one stain level per region (plus b x the atlas intensity), on an atlas
@@ -213,12 +203,6 @@ StainFit fitStain(const cv::Mat& grey, const cv::Mat& idx, const cv::Mat& ax, co
     return f;
 }
 
-/// Weighted mean of `v` (CV_32F) with weights `w` (CV_32F).
-double weightedMean(const cv::Mat& v, const cv::Mat& w) {
-    const double sw = cv::sum(w)[0];
-    return sw > 0 ? v.dot(w) / sw : 0.0;
-}
-
 /// Smallest value of `det` / `ref` (`ref` non-zero, of either sign).
 double minRelative(const cv::Mat& det, double ref) {
     double lo = 0, hi = 0;
@@ -297,15 +281,7 @@ DenseRefinement refineDense(const cv::Mat& grey, const cv::Mat& weight, const cv
                      cv::BORDER_REPLICATE);
     // Held out: the field is fitted on half the pixels (a checkerboard of blocks) and judged on
     // the other half, so that a field that only fits the texture and noise is not kept.
-    cv::Mat wTrain = w.clone(), wTest = w.clone();
-    if (o.holdOutBlockPx > 0) {
-        for (int y = 0; y < gs.height; ++y) {
-            float* a = wTrain.ptr<float>(y);
-            float* b = wTest.ptr<float>(y);
-            for (int x = 0; x < gs.width; ++x)
-                ((x / o.holdOutBlockPx + y / o.holdOutBlockPx) % 2 ? a : b)[x] = 0;
-        }
-    }
+    const auto [wTrain, wTest] = heldOutWeights(w, o.holdOutBlockPx);
     const double meanI = weightedMean(finestSmooth, w);
     cv::Mat centred = finestSmooth - meanI;
     const double totalVar = std::max(1e-12, weightedMean(centred.mul(centred), w));

@@ -2,6 +2,7 @@
 
 #include "slicestation/pipeline/affine.hpp"
 #include "slicestation/pipeline/mask_ops.hpp"
+#include "stage_measures.hpp"
 
 #include <opencv2/imgproc.hpp>
 
@@ -170,11 +171,6 @@ private:
     cv::Mat mx_, my_, tv_, gx_, gy_;
 };
 
-double weightedMean(const cv::Mat& v, const cv::Mat& w) {
-    const double sw = cv::sum(w)[0];
-    return sw > 0 ? v.dot(w) / sw : 0.0;
-}
-
 /// Mean Cauchy energy of residuals `r` at scale `c` under weights `w`.
 double cauchyEnergy(const cv::Mat& r, double c, const cv::Mat& w) {
     cv::Mat e = r * (1.0 / c);
@@ -199,14 +195,7 @@ IntensityAffine refineAffineByIntensity(const cv::Mat& grey, const cv::Mat& weig
     cv::Mat w;
     weight.convertTo(w, CV_32F, 1.0 / 255);
     cv::threshold(w, w, 0, 1, cv::THRESH_BINARY);
-    cv::Mat wTrain = w.clone(), wTest = w.clone();
-    if (o.holdOutBlockPx > 0)
-        for (int y = 0; y < gs.height; ++y) {
-            float* a = wTrain.ptr<float>(y);
-            float* b = wTest.ptr<float>(y);
-            for (int x = 0; x < gs.width; ++x)
-                ((x / o.holdOutBlockPx + y / o.holdOutBlockPx) % 2 ? a : b)[x] = 0;
-        }
+    const auto [wTrain, wTest] = heldOutWeights(w, o.holdOutBlockPx);
     const cv::Moments m = cv::moments(weight != 0, true);
     Frame frame;
     frame.cx = m.m10 / m.m00;

@@ -1,6 +1,7 @@
 #include "slicestation/pipeline/intensity_warp.hpp"
 
 #include "slicestation/pipeline/mask_ops.hpp"
+#include "stage_measures.hpp"
 
 #include <Eigen/Cholesky>
 #include <opencv2/imgproc.hpp>
@@ -17,20 +18,6 @@ namespace {
 constexpr int kGainTerms = 6; // 1, x, y, x^2, xy, y^2
 constexpr int kBiasTerms = 3; // 1, x, y
 constexpr int kTerms = kGainTerms + kBiasTerms;
-
-double weightedMean(const cv::Mat& v, const cv::Mat& w) {
-    const double sw = cv::sum(w)[0];
-    return sw > 0 ? v.dot(w) / sw : 0.0;
-}
-
-cv::Mat jacobianDet(const cv::Mat& ax, const cv::Mat& ay) {
-    cv::Mat xx, xy, yx, yy;
-    cv::Sobel(ax, xx, CV_32F, 1, 0, 1, 0.5, 0, cv::BORDER_REPLICATE);
-    cv::Sobel(ax, xy, CV_32F, 0, 1, 1, 0.5, 0, cv::BORDER_REPLICATE);
-    cv::Sobel(ay, yx, CV_32F, 1, 0, 1, 0.5, 0, cv::BORDER_REPLICATE);
-    cv::Sobel(ay, yy, CV_32F, 0, 1, 1, 0.5, 0, cv::BORDER_REPLICATE);
-    return xx.mul(yy) - xy.mul(yx);
-}
 
 /// Smallest `det` / `ref` inside the grid (the outermost pixels' one-sided differences are
 /// halved by the replicated border and are left out).
@@ -394,14 +381,7 @@ IntensityWarp refineWarpByIntensity(const cv::Mat& grey, const cv::Mat& weight, 
     cv::Mat w;
     weight.convertTo(w, CV_32F, 1.0 / 255);
     cv::threshold(w, w, 0, 1, cv::THRESH_BINARY);
-    cv::Mat wTrain = w.clone(), wTest = w.clone();
-    if (o.holdOutBlockPx > 0)
-        for (int y = 0; y < gs.height; ++y) {
-            float* a = wTrain.ptr<float>(y);
-            float* b = wTest.ptr<float>(y);
-            for (int x = 0; x < gs.width; ++x)
-                ((x / o.holdOutBlockPx + y / o.holdOutBlockPx) % 2 ? a : b)[x] = 0;
-        }
+    const auto [wTrain, wTest] = heldOutWeights(w, o.holdOutBlockPx);
     Model model(gs, o.localSigmaGridPx);
 
     auto smoothed = [](const cv::Mat& m, double sigma) {
