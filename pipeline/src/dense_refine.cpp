@@ -281,7 +281,8 @@ DenseRefinement refineDense(const cv::Mat& grey, const cv::Mat& weight, const cv
                      cv::BORDER_REPLICATE);
     // Held out: the field is fitted on half the pixels (a checkerboard of blocks) and judged on
     // the other half, so that a field that only fits the texture and noise is not kept.
-    const auto [wTrain, wTest] = heldOutWeights(w, o.holdOutBlockPx);
+    const HeldOutWeights held = heldOutWeights(w, o.holdOutBlockPx);
+    const cv::Mat &wTrain = held.train, &wTest = held.test; // named: lambdas capture them
     const double meanI = weightedMean(finestSmooth, w);
     cv::Mat centred = finestSmooth - meanI;
     const double totalVar = std::max(1e-12, weightedMean(centred.mul(centred), w));

@@ -195,7 +195,8 @@ IntensityAffine refineAffineByIntensity(const cv::Mat& grey, const cv::Mat& weig
     cv::Mat w;
     weight.convertTo(w, CV_32F, 1.0 / 255);
     cv::threshold(w, w, 0, 1, cv::THRESH_BINARY);
-    const auto [wTrain, wTest] = heldOutWeights(w, o.holdOutBlockPx);
+    const HeldOutWeights held = heldOutWeights(w, o.holdOutBlockPx);
+    const cv::Mat &wTrain = held.train, &wTest = held.test; // named: lambdas capture them
     const cv::Moments m = cv::moments(weight != 0, true);
     Frame frame;
     frame.cx = m.m10 / m.m00;

@@ -381,7 +381,8 @@ IntensityWarp refineWarpByIntensity(const cv::Mat& grey, const cv::Mat& weight, 
     cv::Mat w;
     weight.convertTo(w, CV_32F, 1.0 / 255);
     cv::threshold(w, w, 0, 1, cv::THRESH_BINARY);
-    const auto [wTrain, wTest] = heldOutWeights(w, o.holdOutBlockPx);
+    const HeldOutWeights held = heldOutWeights(w, o.holdOutBlockPx);
+    const cv::Mat &wTrain = held.train, &wTest = held.test; // named: lambdas capture them
     Model model(gs, o.localSigmaGridPx);
 
     auto smoothed = [](const cv::Mat& m, double sigma) {
