@@ -388,14 +388,19 @@ core::Result<SectionMatch> matchSection(const SectionFeatures& sec,
     }
     if (seed.overlap < 0)
         return makeError(ErrorCode::NoTissue, "no stack slice holds a brain to match");
+    // An alignment's rotation angle (of the reflection's line, doubled, when `reflected`) as its
+    // unit cosine and sine.
+    const auto turnOf = [](const cv::Matx23d& t, bool reflected) {
+        const double c = reflected ? t(0, 0) - t(1, 1) : t(0, 0) + t(1, 1);
+        const double s = reflected ? t(1, 0) + t(0, 1) : t(1, 0) - t(0, 1);
+        const double n = std::max(std::hypot(c, s), 1e-12);
+        return cv::Vec2d(c / n, s / n);
+    };
     // The seed's rotation (and reflection) as a similarity; centre on centre with each slice's
     // own scale.
-    const cv::Matx23d& st = seed.sliceFromSection;
-    const bool mirrored = det(st) < 0;
-    const double rc = mirrored ? st(0, 0) - st(1, 1) : st(0, 0) + st(1, 1);
-    const double rs = mirrored ? st(1, 0) + st(0, 1) : st(1, 0) - st(0, 1);
-    const double norm = std::max(std::hypot(rc, rs), 1e-12);
-    const double cosT = rc / norm, sinT = rs / norm;
+    const bool mirrored = det(seed.sliceFromSection) < 0;
+    const cv::Vec2d seedTurn = turnOf(seed.sliceFromSection, mirrored);
+    const double cosT = seedTurn[0], sinT = seedTurn[1];
     const auto seedInit = [&](int i) {
         const SliceFeatures& sl = slices[size_t(i)];
         const double k = scaleFor(sl);
@@ -408,12 +413,7 @@ core::Result<SectionMatch> matchSection(const SectionFeatures& sec,
     };
     // Whether an alignment is turned (or reflected) more than 45 degrees from the seed's.
     const auto turnedFromSeed = [&](const cv::Matx23d& t) {
-        if ((det(t) < 0) != mirrored)
-            return true;
-        const double c = mirrored ? t(0, 0) - t(1, 1) : t(0, 0) + t(1, 1);
-        const double s = mirrored ? t(1, 0) + t(0, 1) : t(1, 0) - t(0, 1);
-        const double n = std::max(std::hypot(c, s), 1e-12);
-        return (c / n) * cosT + (s / n) * sinT < std::cos(kPi / 4);
+        return (det(t) < 0) != mirrored || turnOf(t, mirrored).dot(seedTurn) < std::cos(kPi / 4);
     };
     std::vector<MatchCandidate> all;
     for (int i = options.first; i <= last; ++i) {
