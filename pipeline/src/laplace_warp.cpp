@@ -6,6 +6,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstddef>
 
 namespace slicestation::pipeline {
 
@@ -64,11 +65,13 @@ Level makeLevel(cv::Size domain, double cell, const std::vector<cv::Point2d>& pt
 
 /// SOR sweeps of the five-point Laplacian (Eq. 5 of the paper) with Dirichlet nodes held and
 /// mirror (Neumann) borders, in the usual row-by-row order, of one component. Each row is a
-/// chain of dependent updates; to keep the processor busy, two rows are updated at a time, the
-/// lower one a node behind (a wavefront): every node still reads exactly the values it reads in
-/// plain row order (its left and upper neighbours updated, its right and lower ones not yet), so
-/// the result is the same to the bit.
+/// chain of dependent updates (seven float operations, each waiting for the one before); to keep
+/// the processor busy, a band of kBand rows is updated at a time, each row a node behind the one
+/// above it (a wavefront), so that the band's updates at one step are independent of each other:
+/// every node still reads exactly the values it reads in plain row order (its left and upper
+/// neighbours updated, its right and lower ones not yet), so the result is the same to the bit.
 void relaxOne(cv::Mat& u, const cv::Mat& fixed, const cv::Mat& isFixed, int sweeps, double w) {
+    constexpr int kBand = 8;
     const int rows = u.rows, cols = u.cols;
     const float wf = float(w);
     const auto update = [&](int i, int j) {
@@ -84,47 +87,59 @@ void relaxOne(cv::Mat& u, const cv::Mat& fixed, const cv::Mat& isFixed, int swee
         const float avg = 0.25f * (r[jl] + r[jr] + u.ptr<float>(iu)[j] + u.ptr<float>(id)[j]);
         r[j] += wf * (avg - r[j]);
     };
-    // The same update away from the borders, on row pointers (no mirror indices to work out):
-    // the same sums in the same order, so the same bits.
-    const auto inner = [wf](const float* up, float* row, const float* down, const uchar* held,
-                            const float* value, int j) {
-        if (held[j]) {
-            row[j] = value[j];
-            return;
-        }
-        const float avg = 0.25f * (row[j - 1] + row[j + 1] + up[j] + down[j]);
-        row[j] += wf * (avg - row[j]);
-    };
     for (int s = 0; s < sweeps; ++s) {
-        int i = 0;
-        for (; i + 1 < rows; i += 2) {
-            // Row i and row i + 1 are interior when both their neighbours are inside the grid
-            // (row i + 1 always is below row i).
-            const bool innerA = i >= 1, innerB = i + 2 < rows;
-            float* ra = u.ptr<float>(i);
-            float* rb = u.ptr<float>(i + 1);
-            const float* ua = innerA ? u.ptr<float>(i - 1) : nullptr;
-            const float* db = innerB ? u.ptr<float>(i + 2) : nullptr;
-            const uchar* ha = isFixed.ptr<uchar>(i);
-            const uchar* hb = isFixed.ptr<uchar>(i + 1);
-            const float* va = fixed.ptr<float>(i);
-            const float* vb = fixed.ptr<float>(i + 1);
-            update(i, 0);
-            for (int j = 1; j < cols; ++j) {
-                if (innerA && j + 1 < cols)
-                    inner(ua, ra, rb, ha, va, j);
-                else
-                    update(i, j);
-                if (innerB && j - 1 >= 1)
-                    inner(ra, rb, db, hb, vb, j - 1);
-                else
-                    update(i + 1, j - 1);
+        for (int i = 0, band = 1; i < rows; i += band) {
+            // The grid's first and last rows (mirror borders) on their own, the rows between
+            // in bands.
+            band = i == 0 || i == rows - 1 ? 1 : std::min(kBand, rows - 1 - i);
+            // A band's rows are interior (both neighbour rows inside the grid) unless it is the
+            // first or last row. Row r's node t - r is a diagonal step (one row down, one node
+            // left) from row r - 1's; away from the grid's edges a node is updated on strides,
+            // without mirror indices.
+            const bool interior = i >= 1 && i + band + 1 <= rows;
+            const auto us = std::ptrdiff_t(u.step1()), vs = std::ptrdiff_t(fixed.step1()),
+                       hs = std::ptrdiff_t(isFixed.step1());
+            float* const x0 = u.ptr<float>(i);
+            const float* const v0 = fixed.ptr<float>(i);
+            const uchar* const h0 = isFixed.ptr<uchar>(i);
+            const auto inner = [&](float* x, const float* v, const uchar* h) {
+                if (*h) {
+                    *x = *v;
+                    return;
+                }
+                const float avg = 0.25f * (x[-1] + x[1] + x[-us] + x[us]);
+                *x += wf * (avg - *x);
+            };
+            // Step t updates node t - r of row r; at the steps from `first` to `last` every row
+            // of the band is at an interior column (1 .. cols - 2).
+            const int first = band, last = cols - 2;
+            const auto edgeStep = [&](int t) {
+                for (int r = 0; r < band; ++r) {
+                    const int j = t - r;
+                    if (interior && j >= 1 && j + 1 < cols)
+                        inner(x0 + r * us + j, v0 + r * vs + j, h0 + r * hs + j);
+                    else if (j >= 0 && j < cols)
+                        update(i + r, j);
+                }
+            };
+            int t = 0;
+            if (!interior || first > last) {
+                for (; t < cols + band - 1; ++t)
+                    edgeStep(t);
+                continue;
             }
-            update(i + 1, cols - 1);
+            for (; t < first; ++t)
+                edgeStep(t);
+            for (; t <= last; ++t) {
+                float* x = x0 + t;
+                const float* v = v0 + t;
+                const uchar* h = h0 + t;
+                for (int r = 0; r < band; ++r, x += us - 1, v += vs - 1, h += hs - 1)
+                    inner(x, v, h);
+            }
+            for (; t < cols + band - 1; ++t)
+                edgeStep(t);
         }
-        for (; i < rows; ++i)
-            for (int j = 0; j < cols; ++j)
-                update(i, j);
     }
 }
 

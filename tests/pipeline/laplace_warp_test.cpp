@@ -104,8 +104,11 @@ TEST(LaplaceWarp, RelaxWithinUndoesAFoldAndMovesNothingElse) {
 TEST(LaplaceWarp, TheSweepsGiveWhatPlainRowOrderGivesToTheBit) {
     // One level only (coarsestNodes above the grid), nodes 1 px apart, conditions on nodes:
     // the solver's wavefront sweeps must give the plain row-by-row Gauss-Seidel SOR's values
-    // exactly, whatever the grid's row count left over by the wavefront's blocks.
-    for (const cv::Size domain : {cv::Size(97, 70), cv::Size(64, 71), cv::Size(5, 3)}) {
+    // exactly, whatever the grid's row count left over by the wavefront's bands of rows and
+    // whether a band's rows are longer or shorter than the band is tall.
+    for (const cv::Size domain :
+         {cv::Size(97, 70), cv::Size(64, 71), cv::Size(5, 3), cv::Size(40, 18), cv::Size(9, 2),
+          cv::Size(12, 11), cv::Size(3, 30)}) {
         cv::RNG rng(static_cast<std::uint64_t>(domain.area()));
         cv::Mat fixed = cv::Mat::zeros(domain, CV_8U);
         cv::Mat fx = cv::Mat::zeros(domain, CV_32F), fy = cv::Mat::zeros(domain, CV_32F);
