@@ -74,18 +74,19 @@ private:
     std::vector<int> wordCount_, blockCount_;
 };
 
-/// Ranks of `v` (ties in any order) and the values in rank order.
+/// Ranks of `v` (ties in any order: tied ranks hold equal values, so an order statistic's value
+/// does not depend on it) and the values in rank order. The values are sorted with their indices
+/// beside them (no indirection in the comparisons).
 void rankValues(const std::vector<double>& v, std::vector<int>& rank, std::vector<double>& sorted) {
-    std::vector<int> order(v.size());
+    std::vector<std::pair<double, int>> order(v.size());
     for (size_t i = 0; i < v.size(); ++i)
-        order[i] = int(i);
-    std::sort(order.begin(), order.end(),
-              [&](int a, int b) { return v[size_t(a)] < v[size_t(b)]; });
+        order[i] = {v[i], int(i)};
+    std::sort(order.begin(), order.end());
     rank.resize(v.size());
     sorted.resize(v.size());
     for (size_t r = 0; r < order.size(); ++r) {
-        rank[size_t(order[r])] = int(r);
-        sorted[r] = v[size_t(order[r])];
+        rank[size_t(order[r].second)] = int(r);
+        sorted[r] = order[r].first;
     }
 }
 
@@ -114,11 +115,14 @@ std::vector<char> consistentWithNeighbours(const std::vector<cv::Point2f>& at,
         y0 = std::min(y0, p.y);
     }
     const double cell = std::max(distance / 4, 1e-3);
-    std::vector<std::pair<std::pair<long, long>, int>> visit(n);
+    // One key per match: the cell row, then the column (negated in odd rows), then the match.
+    std::vector<std::pair<std::uint64_t, int>> visit(n);
     for (size_t k = 0; k < n; ++k) {
-        const long cy = long(std::floor((at[k].y - y0) / cell));
-        const long cx = long(std::floor((at[k].x - x0) / cell));
-        visit[k] = {{cy, cy % 2 ? -cx : cx}, int(k)};
+        const auto cy = std::int64_t(std::floor((at[k].y - y0) / cell));
+        const auto cx = std::int64_t(std::floor((at[k].x - x0) / cell));
+        const std::int64_t along = cy % 2 ? -cx : cx;
+        visit[k] = {(std::uint64_t(cy) << 32) + std::uint64_t(along + (std::int64_t(1) << 31)),
+                    int(k)};
     }
     std::sort(visit.begin(), visit.end());
     std::vector<char> keep(n, 0);
