@@ -121,14 +121,24 @@ SmoothWarp fitSmoothWarp(cv::Size domain, const cv::Matx23d& atlasFromWorking,
     std::vector<Row> firstRows;
     bool first = true;
     std::vector<cv::Point2f> mapped, normals;
+    // Atlas px per working px, for the thinning's cells.
+    const double atlasPerWorking = std::sqrt(std::abs(det(atlasFromWorking)));
+    std::vector<EdgePoints> thinned(pairings.size());
     for (const SmoothWarpLevel& level : options.levels) {
+        for (size_t k = 0; k < pairings.size(); ++k)
+            if (pairings[k].source && options.thinning > 0 && atlasPerWorking > 0)
+                thinned[k] =
+                    thinEdgePoints(*pairings[k].source,
+                                   float(options.thinning * level.distance / atlasPerWorking));
         for (int it = 0; it < level.iterations; ++it) {
             std::vector<Row> rows;
             std::vector<double> absResidual;
-            for (const SmoothWarpPairing& pairing : pairings) {
+            for (size_t k = 0; k < pairings.size(); ++k) {
+                const SmoothWarpPairing& pairing = pairings[k];
                 if (!pairing.source || !pairing.target || !pairing.targetGrid)
                     continue;
-                const EdgePoints& src = *pairing.source;
+                const EdgePoints& src =
+                    options.thinning > 0 && atlasPerWorking > 0 ? thinned[k] : *pairing.source;
                 mapped.clear();
                 normals.clear();
                 for (size_t i = 0; i < src.size(); ++i) {

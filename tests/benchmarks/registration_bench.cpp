@@ -363,6 +363,8 @@ bool applySmoothSettings(const std::vector<std::string>& settings, pipeline::Smo
             o.stiffness = v;
         else if (key == "robust-k")
             o.robustK = v;
+        else if (key == "thinning")
+            o.thinning = v;
         else
             return false;
         return true;
@@ -487,9 +489,10 @@ int main(int argc, char** argv) {
         ->check(CLI::IsMember({"on", "off"}));
     bool diagnoseErrors = false;
     std::vector<std::string> smoothSettings;
-    app.add_option("--smooth-opt", smoothSettings,
-                   "Smooth warp options as key=value (spacing, stiffness, robust-k), for choosing "
-                   "them");
+    app.add_option(
+        "--smooth-opt", smoothSettings,
+        "Smooth warp options as key=value (spacing, stiffness, robust-k, thinning), for choosing "
+        "them");
     std::string templateIntensity = "off";
     app.add_option("--template-intensity", templateIntensity,
                    "Give ours the nearest 100 um average-template plane (elastix's moving image, "

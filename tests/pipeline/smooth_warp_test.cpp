@@ -42,6 +42,26 @@ cv::Point2d bend(cv::Point2d p) {
             -3.0 * std::sin(p.x / 1000 * CV_PI) + 1.5 * std::sin(p.y / 700 * 2 * CV_PI)};
 }
 
+/// The curves as a section, at half scale and shifted into the atlas frame, and the atlas edges
+/// they are matched to: the section points through that affine and the bend.
+struct BentSection {
+    EdgePoints src = curves();
+    cv::Matx23d affine{0.5, 0, 20, 0, 0.5, 10};
+    EdgePoints target;
+    PointGrid grid{{}, 10.0f};
+    BentSection() {
+        for (size_t i = 0; i < src.size(); ++i) {
+            const cv::Point2d p(src.points[i]);
+            target.points.emplace_back(apply(affine, p) + bend(p));
+            target.normals.push_back(src.normals[i]);
+        }
+        grid = PointGrid(target.points, 10.0f);
+    }
+    SmoothWarp fit(const SmoothWarpOptions& o) const {
+        return fitSmoothWarp({1000, 700}, affine, {{&src, &target, &grid, 1.0}}, 5.0, o);
+    }
+};
+
 double rmsError(const EdgePoints& src, const cv::Matx23d& affine, const DisplacementField& f) {
     double ss = 0;
     for (const cv::Point2f& q : src.points) {
@@ -56,31 +76,41 @@ double rmsError(const EdgePoints& src, const cv::Matx23d& affine, const Displace
 } // namespace
 
 TEST(SmoothWarp, RecoversASmoothDeformationOfEdgesFromPointToLineMatches) {
-    const EdgePoints src = curves();
     // The atlas frame: the section scaled by 0.5 and shifted; the targets are the deformed
     // section points, densely resampled so point-to-line matches exist.
-    const cv::Matx23d affine(0.5, 0, 20, 0, 0.5, 10);
-    EdgePoints target;
-    for (size_t i = 0; i < src.size(); ++i) {
-        const cv::Point2d p(src.points[i]);
-        target.points.emplace_back(apply(affine, p) + bend(p));
-        target.normals.push_back(src.normals[i]);
-    }
-    const PointGrid grid(target.points, 10.0f);
+    const BentSection b;
     SmoothWarpOptions o;
     o.levels = {{12, 20, 3}, {6, 15, 3}, {3, 10, 3}};
-    const SmoothWarp sw = fitSmoothWarp({1000, 700}, affine, {{&src, &target, &grid, 1.0}}, 5.0, o);
+    const SmoothWarp sw = b.fit(o);
     ASSERT_FALSE(sw.field.empty());
-    const double before = rmsError(src, affine, DisplacementField());
-    const double after = rmsError(src, affine, sw.field);
+    const double before = rmsError(b.src, b.affine, DisplacementField());
+    const double after = rmsError(b.src, b.affine, sw.field);
     EXPECT_GT(before, 2.0);
     // The default stiffness recovers most of it; a softer membrane follows the matches closer.
     EXPECT_LT(after, 0.5 * before) << "before " << before << " after " << after;
     EXPECT_LT(sw.rmsAfter, sw.rmsBefore);
     o.stiffness = 0.002;
-    const SmoothWarp soft =
-        fitSmoothWarp({1000, 700}, affine, {{&src, &target, &grid, 1.0}}, 5.0, o);
-    EXPECT_LT(rmsError(src, affine, soft.field), 0.3 * before);
+    EXPECT_LT(rmsError(b.src, b.affine, b.fit(o).field), 0.3 * before);
+}
+
+TEST(SmoothWarp, ALevelSteersWithItsPointsThinnedToAnEighthOfItsReach) {
+    // One loose level (12 atlas px, the section at half scale): thinned to a point per 3 section
+    // px the curves (1.6 - 2.5 px apart) give fewer matches, and the field still recovers the
+    // bend as well as with every point.
+    const BentSection b;
+    SmoothWarpOptions o;
+    o.levels = {{12, 20, 3}};
+    o.thinning = 0;
+    const SmoothWarp every = b.fit(o);
+    o.thinning = 0.125;
+    const SmoothWarp thinned = b.fit(o);
+    EXPECT_LT(thinned.matches, 0.8 * every.matches);
+    EXPECT_GT(thinned.matches, 0.3 * every.matches);
+    const double before = rmsError(b.src, b.affine, DisplacementField());
+    const double withEvery = rmsError(b.src, b.affine, every.field);
+    const double withThinned = rmsError(b.src, b.affine, thinned.field);
+    EXPECT_LT(withEvery, 0.5 * before);
+    EXPECT_LT(withThinned, withEvery + 0.1 * before) << withEvery << " " << withThinned;
 }
 
 TEST(SmoothWarp, StaysZeroWithoutMatchesAndAddsFields) {

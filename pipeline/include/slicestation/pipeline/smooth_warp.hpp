@@ -48,6 +48,11 @@ struct SmoothWarpOptions {
     double robustK = 2.0;
     std::vector<SmoothWarpLevel> levels; ///< loosest first; empty = no field
     int minMatches = 30;                 ///< fewer matches in an iteration leave the field as it is
+    /// At each level the section points are thinned to one per cell of this fraction of the
+    /// level's reach (atlas px; 0 = every point), as the ICP thins its levels (a point every
+    /// reach / 8): a loose level is steered as well by fewer points, and its neighbour searches
+    /// stay short.
+    double thinning = 0.125;
 };
 
 struct SmoothWarp {
