@@ -87,6 +87,9 @@ void relaxOne(cv::Mat& u, const cv::Mat& fixed, const cv::Mat& isFixed, int swee
         const float avg = 0.25f * (r[jl] + r[jr] + u.ptr<float>(iu)[j] + u.ptr<float>(id)[j]);
         r[j] += wf * (avg - r[j]);
     };
+    // Row strides, in elements.
+    const auto us = std::ptrdiff_t(u.step1()), vs = std::ptrdiff_t(fixed.step1()),
+               hs = std::ptrdiff_t(isFixed.step1());
     for (int s = 0; s < sweeps; ++s) {
         for (int i = 0, band = 1; i < rows; i += band) {
             // The grid's first and last rows (mirror borders) on their own, the rows between
@@ -97,8 +100,6 @@ void relaxOne(cv::Mat& u, const cv::Mat& fixed, const cv::Mat& isFixed, int swee
             // left) from row r - 1's; away from the grid's edges a node is updated on strides,
             // without mirror indices.
             const bool interior = i >= 1 && i + band + 1 <= rows;
-            const auto us = std::ptrdiff_t(u.step1()), vs = std::ptrdiff_t(fixed.step1()),
-                       hs = std::ptrdiff_t(isFixed.step1());
             float* const x0 = u.ptr<float>(i);
             const float* const v0 = fixed.ptr<float>(i);
             const uchar* const h0 = isFixed.ptr<uchar>(i);

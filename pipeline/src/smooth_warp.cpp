@@ -123,10 +123,11 @@ SmoothWarp fitSmoothWarp(cv::Size domain, const cv::Matx23d& atlasFromWorking,
     std::vector<cv::Point2f> mapped, normals;
     // Atlas px per working px, for the thinning's cells.
     const double atlasPerWorking = std::sqrt(std::abs(det(atlasFromWorking)));
+    const bool thin = options.thinning > 0 && atlasPerWorking > 0;
     std::vector<EdgePoints> thinned(pairings.size());
     for (const SmoothWarpLevel& level : options.levels) {
         for (size_t k = 0; k < pairings.size(); ++k)
-            if (pairings[k].source && options.thinning > 0 && atlasPerWorking > 0)
+            if (thin && pairings[k].source)
                 thinned[k] =
                     thinEdgePoints(*pairings[k].source,
                                    float(options.thinning * level.distance / atlasPerWorking));
@@ -137,8 +138,7 @@ SmoothWarp fitSmoothWarp(cv::Size domain, const cv::Matx23d& atlasFromWorking,
                 const SmoothWarpPairing& pairing = pairings[k];
                 if (!pairing.source || !pairing.target || !pairing.targetGrid)
                     continue;
-                const EdgePoints& src =
-                    options.thinning > 0 && atlasPerWorking > 0 ? thinned[k] : *pairing.source;
+                const EdgePoints& src = thin ? thinned[k] : *pairing.source;
                 mapped.clear();
                 normals.clear();
                 for (size_t i = 0; i < src.size(); ++i) {
