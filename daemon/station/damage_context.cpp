@@ -16,9 +16,10 @@ nlohmann::json atlasOutlinesJson(const pipeline::AtlasDamageOutlines& outlines) 
     return out;
 }
 
-pipeline::AtlasDamageOutlines atlasOutlinesFromResult(const nlohmann::json& result) {
+pipeline::AtlasDamageOutlines atlasOutlinesFromResult(const nlohmann::json& result,
+                                                      const char* key) {
     pipeline::AtlasDamageOutlines out;
-    const auto it = result.find("damage_atlas");
+    const auto it = result.find(key);
     if (it == result.end() || !it->is_array())
         return out;
     for (const nlohmann::json& p : *it) {
@@ -32,9 +33,9 @@ pipeline::AtlasDamageOutlines atlasOutlinesFromResult(const nlohmann::json& resu
     return out;
 }
 
-std::vector<pipeline::AtlasDamageOutlines>
-earlierDamageOutlines(Journal& journal, std::int64_t runId, std::int64_t sectionId, int window) {
-    std::vector<pipeline::AtlasDamageOutlines> out;
+std::vector<pipeline::SectionShown> earlierDamageOutlines(Journal& journal, std::int64_t runId,
+                                                          std::int64_t sectionId, int window) {
+    std::vector<pipeline::SectionShown> out;
     auto sections = journal.sections(runId);
     if (!sections)
         return out;
@@ -47,13 +48,15 @@ earlierDamageOutlines(Journal& journal, std::int64_t runId, std::int64_t section
         auto regs = journal.registrations((*sections)[k - 1].id);
         if (!regs || regs->empty())
             continue;
-        out.push_back(atlasOutlinesFromResult(regs->back().result));
+        const nlohmann::json& result = regs->back().result;
+        out.push_back(
+            {atlasOutlinesFromResult(result), atlasOutlinesFromResult(result, "glass_atlas")});
     }
     return out;
 }
 
 void judgeWithSeriesContext(RegisteredSection& section,
-                            const std::vector<pipeline::AtlasDamageOutlines>& earlier,
+                            const std::vector<pipeline::SectionShown>& earlier,
                             const pipeline::SeriesContextParams& params) {
     pipeline::Registration& reg = section.registration;
     nlohmann::json& doc = section.document;
@@ -69,6 +72,7 @@ void judgeWithSeriesContext(RegisteredSection& section,
         regions[i]["persistence"] = reg.damage[i].persistence;
     }
     doc["damage_atlas"] = atlasOutlinesJson(pipeline::atlasDamageOutlines(reg));
+    doc["glass_atlas"] = atlasOutlinesJson(reg.glassAtlas);
     doc["damage_context"] = {
         {"earlier_sections",
          std::min<std::size_t>(earlier.size(), static_cast<std::size_t>(params.window))},

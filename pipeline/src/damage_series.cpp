@@ -1,5 +1,7 @@
 #include "slicestation/pipeline/damage_series.hpp"
 
+#include "slicestation/pipeline/mask_ops.hpp"
+
 #include <opencv2/imgproc.hpp>
 
 #include <algorithm>
@@ -86,14 +88,59 @@ AtlasDamageOutlines atlasDamageOutlines(const Registration& reg, double maxSegme
     return out;
 }
 
-DamageDecision judgeInSeries(Registration& reg, const std::vector<AtlasDamageOutlines>& earlier,
+cv::Mat glassWhereTissueIsExpected(const cv::Mat& tissue, const cv::Mat& expectedTissue,
+                                   int slackPx) {
+    CV_Assert(tissue.type() == CV_8U && expectedTissue.type() == CV_8U &&
+              tissue.size() == expectedTissue.size() && slackPx >= 0);
+    cv::Mat inner;
+    cv::erode(
+        expectedTissue, inner,
+        cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * slackPx + 1, 2 * slackPx + 1)));
+    return fillHoles(tissue) & ~tissue & inner;
+}
+
+std::vector<std::vector<cv::Point2f>> glassOutlines(const Registration& reg, const cv::Mat& glass,
+                                                    double minAreaPx, double maxSegmentPx) {
+    CV_Assert(glass.type() == CV_8U);
+    std::vector<std::vector<cv::Point2f>> out;
+    std::vector<std::vector<cv::Point>> contours;
+    cv::findContours(glass, contours, cv::RETR_EXTERNAL, cv::CHAIN_APPROX_SIMPLE);
+    for (const std::vector<cv::Point>& c : contours) {
+        if (c.size() < 3 || cv::contourArea(c) < minAreaPx)
+            continue;
+        std::vector<cv::Point2f> full;
+        full.reserve(c.size());
+        const double s = reg.workingScale; // working px = (full px + 0.5) s - 0.5
+        for (const cv::Point& p : c)
+            full.emplace_back(float((p.x + 0.5) / s - 0.5), float((p.y + 0.5) / s - 0.5));
+        std::vector<cv::Point2f> atlas;
+        for (const cv::Point2f& p : subdivide(full, maxSegmentPx)) {
+            const cv::Point2d a = reg.atlasFromImage(cv::Point2d(p.x, p.y));
+            atlas.emplace_back(float(a.x), float(a.y));
+        }
+        out.push_back(std::move(atlas));
+    }
+    return out;
+}
+
+SectionShown shownInSeries(const Registration& reg, double maxSegmentPx) {
+    return {atlasDamageOutlines(reg, maxSegmentPx), reg.glassAtlas};
+}
+
+DamageDecision judgeInSeries(Registration& reg, const std::vector<SectionShown>& earlier,
                              const DamageParams& damageParams, const SeriesContextParams& params) {
     const std::size_t n = std::min(earlier.size(), std::size_t(std::max(0, params.window)));
-    const std::vector<AtlasDamageOutlines> used(earlier.begin(),
-                                                earlier.begin() + std::ptrdiff_t(n));
+    std::vector<AtlasDamageOutlines> gaps, gapsAndGlass;
+    for (std::size_t k = 0; k < n; ++k) {
+        gaps.push_back(earlier[k].gaps);
+        gapsAndGlass.push_back(earlier[k].gaps);
+        gapsAndGlass.back().insert(gapsAndGlass.back().end(), earlier[k].glass.begin(),
+                                   earlier[k].glass.end());
+    }
     const AtlasDamageOutlines mine = atlasDamageOutlines(reg);
     for (std::size_t i = 0; i < reg.damage.size(); ++i)
-        reg.damage[i].persistence = persistenceAmong(mine[i], used, params);
+        reg.damage[i].persistence =
+            persistenceAmong(mine[i], reg.damage[i].alongVentricle ? gapsAndGlass : gaps, params);
     const double brainWidthPx = reg.brainWidthPx;
     const DamageDecision decision = decideDamage(reg.damage, brainWidthPx, damageParams);
     reg.damageScore = decision.score;

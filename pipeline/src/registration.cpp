@@ -1347,6 +1347,16 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         // Knife chatter is no gap: neither the mirror nor the misfit judges it.
         for (DamageRegion& d : chatter)
             regions.push_back(std::move(d));
+        // The glass inside the tissue where the atlas expects tissue (the expected tissue eroded
+        // by the registration slack, as tissueDamage takes it), whatever the rules made of it,
+        // in atlas px through the map the gaps were found against (the series context:
+        // glassOutlines); pieces as small as the smallest gap looked at.
+        reg.glassAtlas = glassOutlines(
+            reg,
+            glassWhereTissueIsExpected(
+                sectionTissue, expected.tissue,
+                std::max(1, static_cast<int>(std::lround(options.damage.slackFrac * brainWidth)))),
+            options.damage.minRegionShare / 4 * std::max(1, cv::countNonZero(sectionTissue)));
         if (damageWarp) {
             // Where the gaps lie in the atlas (the series context compares them with the
             // neighbours'), through the map they were found against.

@@ -264,9 +264,9 @@ struct JudgedSection {
 
 static void printSeriesContext(const std::string& series, const std::vector<JudgedSection>& run,
                                const pipeline::SeriesContextParams& params) {
-    std::vector<pipeline::AtlasDamageOutlines> outlines;
+    std::vector<pipeline::SectionShown> outlines;
     for (const JudgedSection& s : run) {
-        outlines.push_back(pipeline::atlasDamageOutlines(s.reg));
+        outlines.push_back(pipeline::shownInSeries(s.reg));
         if (s.atlasSize != run.front().atlasSize)
             std::printf("series %s: %s's atlas is %dx%d, not %dx%d: atlas px do not compare\n",
                         series.c_str(), s.name.c_str(), s.atlasSize.width, s.atlasSize.height,
@@ -278,7 +278,7 @@ static void printSeriesContext(const std::string& series, const std::vector<Judg
     std::printf("series context %s (window %d earlier, slack %.1f atlas px, same place %.2f):\n",
                 series.c_str(), params.window, params.slackAtlasPx, params.samePlaceShare);
     for (std::size_t i = 0; i < run.size(); ++i) {
-        std::vector<pipeline::AtlasDamageOutlines> earlier, around;
+        std::vector<pipeline::SectionShown> earlier, around;
         for (std::size_t k = 1; k <= std::size_t(params.window) && k <= i; ++k)
             earlier.push_back(outlines[i - k]);
         if (i > 0)

@@ -7,6 +7,7 @@
 #include "slicestation/core/nrrd.hpp"
 #include "slicestation/pipeline/atlas.hpp"
 #include "slicestation/pipeline/damage.hpp"
+#include "slicestation/pipeline/damage_series.hpp"
 #include "slicestation/pipeline/mask_ops.hpp"
 #include "slicestation/pipeline/overlay.hpp"
 #include "slicestation/pipeline/preprocess.hpp"
@@ -219,6 +220,54 @@ void printTable(const std::vector<Row>& rows) {
                 "and max landmark error; worst = largest max; gross = max over 25 px or no "
                 "result; med s = median seconds per section, ours in process, elastix as "
                 "processes)\n");
+}
+
+/// --series-run: the flags of a family's cases alone and judged live in the run, each with what
+/// the two sections before it show (pipeline::shownInSeries, judgeInSeries), as the station
+/// judges them. `sections` in case order; a family's run is its own.
+template <typename Section> void printSeriesRun(const std::vector<Section>& sections) {
+    const pipeline::SeriesContextParams params;
+    const pipeline::DamageParams dp;
+    std::printf("\nseries run (case i on plane i; live context: %d earlier sections):\n",
+                params.window);
+    // Per family: [damaged, clean][total, alone, live with gaps only, live with gaps and glass]
+    std::map<std::string, std::array<std::array<int, 4>, 2>> counts;
+    std::vector<std::string> order;
+    const auto flagged = [](const pipeline::Registration& r) {
+        return r.damageVerdict == pipeline::DamageVerdict::Damaged;
+    };
+    for (std::size_t i = 0; i < sections.size(); ++i) {
+        const Section& s = sections[i];
+        if (!counts.count(s.family))
+            order.push_back(s.family);
+        auto& c = counts[s.family][s.truth ? 0 : 1];
+        std::vector<pipeline::SectionShown> gaps, shown;
+        for (std::size_t k = i; k > 0 && shown.size() < std::size_t(params.window) &&
+                                sections[k - 1].family == s.family;
+             --k) {
+            shown.push_back(pipeline::shownInSeries(sections[k - 1].reg));
+            gaps.push_back({shown.back().gaps, {}});
+        }
+        pipeline::Registration byGaps = s.reg, live = s.reg;
+        pipeline::judgeInSeries(byGaps, gaps, dp, params);
+        pipeline::judgeInSeries(live, shown, dp, params);
+        const bool judged[3] = {flagged(s.reg), flagged(byGaps), flagged(live)};
+        ++c[0];
+        for (int j = 0; j < 3; ++j)
+            c[std::size_t(j + 1)] += judged[j];
+        if (judged[0] != judged[1] || judged[0] != judged[2])
+            std::printf("  %s case %d (%s): alone %.3f, live with the gaps %.3f, with gaps and "
+                        "glass %.3f\n",
+                        s.family.c_str(), s.index, s.truth ? "damaged" : "clean", s.reg.damageScore,
+                        byGaps.damageScore, live.damageScore);
+    }
+    for (const std::string& f : order) {
+        const auto& c = counts[f];
+        std::printf("series run %-8s damaged caught alone / live with the earlier gaps / with "
+                    "gaps and glass: %d / %d / %d of %d; clean flagged %d / %d / %d of %d\n",
+                    f.c_str(), c[0][1], c[0][2], c[0][3], c[0][0], c[1][1], c[1][2], c[1][3],
+                    c[1][0]);
+    }
 }
 
 /// Fills `polygon` (pixel coordinates, rounded) into `mask` with 255.
@@ -564,6 +613,12 @@ int main(int argc, char** argv) {
     app.add_option("--damage-log", damageLogPath,
                    "Write a row per reported damage region (its measures, the registration's "
                    "confidence around it and how much of it is painted damage) here");
+    bool seriesRun = false;
+    app.add_flag("--series-run", seriesRun,
+                 "Damage in a run (issue 18, item 5): each family's cases cut from neighbouring "
+                 "planes in order (case i on loaded plane i, the planes spread evenly over the "
+                 "AP range), then judged again with the series context as the station does "
+                 "(the gaps and glass of the two earlier sections); prints flags alone and live");
     app.add_flag("--list-missed", listMissed,
                  "Print each true damage region no reported region overlaps (a tenth of it)");
     app.add_option("--overlays", overlayDir,
@@ -722,9 +777,20 @@ int main(int argc, char** argv) {
         csv.open(csvPath);
         csv << "family,case,method,damaged,stain,rmse,median,max,seconds,failed\n";
     }
+    if (seriesRun)
+        for (auto& c : all)
+            c.plane = c.index % planeCount;
+    // --series-run: each case's registration and truth, in case order per family.
+    struct RunSection {
+        std::string family;
+        int index = 0;
+        bool truth = false;
+        pipeline::Registration reg;
+    };
+    std::vector<RunSection> run;
     std::vector<Row> rows;
     std::map<std::string, std::vector<DamageRow>> damageRows;
-    for (const auto& c : all) {
+    for (auto& c : all) {
         if (!only.empty() && std::find(only.begin(), only.end(), c.index) == only.end())
             continue;
         const std::string family = bench::familyName(c.family);
@@ -808,6 +874,8 @@ int main(int argc, char** argv) {
                                 reg->damaged ? "flagged" : "not flagged");
             }
             damageRows[family].push_back(d);
+            if (seriesRun)
+                run.push_back({family, c.index, d.truth, *reg});
             if (damageLog) {
                 cv::Mat truthAll = cv::Mat::zeros(gen->image.size(), CV_8U);
                 for (const auto& t : gen->truth.damage)
@@ -929,6 +997,8 @@ int main(int argc, char** argv) {
         }
     }
     printTable(rows);
+    if (seriesRun)
+        printSeriesRun(run);
     std::map<std::string, std::pair<double, int>> nonAffine;
     for (const auto& r : rows)
         if (r.method == "ours") {

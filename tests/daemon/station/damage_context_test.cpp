@@ -32,13 +32,16 @@ protected:
         JournalDirTest::TearDown();
     }
     /// Journals a registration of `sectionId` whose result keeps `outlines`.
-    void registered(std::int64_t sectionId, const pipeline::AtlasDamageOutlines& outlines) {
+    void registered(std::int64_t sectionId, const pipeline::AtlasDamageOutlines& outlines,
+                    const pipeline::AtlasDamageOutlines& glass = {}) {
         RegistrationRecord r;
         r.captureId = journal_->captures(sectionId)->back().id;
         r.damageScore = 0;
         r.flagScore = 0.5;
         r.damageVerdict = "clean";
         r.result = {{"damage_atlas", atlasOutlinesJson(outlines)}};
+        if (!glass.empty())
+            r.result["glass_atlas"] = atlasOutlinesJson(glass);
         ASSERT_TRUE(journal_->recordRegistration(r));
     }
     std::unique_ptr<Journal> journal_;
@@ -74,8 +77,9 @@ TEST_F(DamageContextTest, TheEarlierSectionsAreReadBackNearestFirstSkippingUnreg
     registered(ids[1], {square(20, 0, 4)});
     const auto forFourth = earlierDamageOutlines(*journal_, runId, ids[3], 2);
     ASSERT_EQ(forFourth.size(), 2u);
-    EXPECT_EQ(forFourth[0], (pipeline::AtlasDamageOutlines{square(20, 0, 4)}));
-    EXPECT_EQ(forFourth[1], (pipeline::AtlasDamageOutlines{square(0, 0, 4)}));
+    EXPECT_EQ(forFourth[0].gaps, (pipeline::AtlasDamageOutlines{square(20, 0, 4)}));
+    EXPECT_EQ(forFourth[1].gaps, (pipeline::AtlasDamageOutlines{square(0, 0, 4)}));
+    EXPECT_TRUE(forFourth[0].glass.empty()) << "journalled before the glass was kept: none";
     // At most the window; nothing before the first section; a section after the ones asked
     // about plays no part.
     registered(ids[4], {square(30, 0, 4)});
@@ -83,11 +87,26 @@ TEST_F(DamageContextTest, TheEarlierSectionsAreReadBackNearestFirstSkippingUnreg
     EXPECT_TRUE(earlierDamageOutlines(*journal_, runId, ids[0], 2).empty());
     const auto forSecond = earlierDamageOutlines(*journal_, runId, ids[1], 2);
     ASSERT_EQ(forSecond.size(), 1u);
-    EXPECT_EQ(forSecond[0], (pipeline::AtlasDamageOutlines{square(0, 0, 4)}));
+    EXPECT_EQ(forSecond[0].gaps, (pipeline::AtlasDamageOutlines{square(0, 0, 4)}));
     // A journal opened again (a restart) gives the same context.
     journal_.reset();
     auto reopened = Journal::open(file());
     ASSERT_TRUE(reopened);
     journal_ = std::move(*reopened);
     EXPECT_EQ(earlierDamageOutlines(*journal_, runId, ids[3], 2), forFourth);
+}
+
+TEST_F(DamageContextTest, AnEarlierSectionShowsItsGapsAndItsGlass) {
+    const auto [runId, ids] = testing_journal::runWithCaptures(*journal_, 2);
+    // The earlier section: one gap and two holes of glass it did not take for gaps.
+    registered(ids[0], {square(0, 0, 4)}, {square(50, 50, 8), square(70, 10, 6)});
+    const auto forSecond = earlierDamageOutlines(*journal_, runId, ids[1], 2);
+    ASSERT_EQ(forSecond.size(), 1u);
+    EXPECT_EQ(forSecond[0].gaps, (pipeline::AtlasDamageOutlines{square(0, 0, 4)}));
+    EXPECT_EQ(forSecond[0].glass,
+              (pipeline::AtlasDamageOutlines{square(50, 50, 8), square(70, 10, 6)}));
+    const nlohmann::json doc = {{"glass_atlas", atlasOutlinesJson({square(1, 2, 3)})}};
+    EXPECT_EQ(atlasOutlinesFromResult(doc, "glass_atlas"),
+              (pipeline::AtlasDamageOutlines{square(1, 2, 3)}));
+    EXPECT_TRUE(atlasOutlinesFromResult(doc).empty()) << "no gaps in it";
 }

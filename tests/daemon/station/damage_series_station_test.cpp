@@ -94,10 +94,14 @@ TEST_F(StationTest, AGapPersistingOverNeighboursIsNotFlaggedWhileAOneOffTearIs) 
     EXPECT_EQ(contextOf(tear).value("verdict_alone", ""), "damaged");
     EXPECT_EQ(contextOf(tear).value("earlier_sections", -1), 2);
     EXPECT_EQ((*sections)[4].state, SectionState::Damaged);
-    // Every registration keeps its gaps in atlas px for the sections after it.
-    for (const auto& d : docs)
+    // Every registration keeps its gaps, and the glass inside its tissue, in atlas px for the
+    // sections after it.
+    for (const auto& d : docs) {
         EXPECT_EQ(d.value("damage_atlas", nlohmann::json::array()).size(),
                   d["damage_regions"].size());
+        ASSERT_TRUE(d.contains("glass_atlas"));
+        EXPECT_TRUE(d["glass_atlas"].is_array());
+    }
     // Damaged alerts: the first and the tear (the second, at half its context, may be too);
     // never the third, the fourth or the clean sixth.
     bool tearAlerted = false;

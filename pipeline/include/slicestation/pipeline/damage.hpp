@@ -32,7 +32,8 @@ struct DamageRegion {
     /// Gaps: a band along a ventricle's lumen (over DamageParams::alongOutlineShare of the rim on
     /// the glass the section shows in the mapped ventricle, within the slack, and at least
     /// bandElongation times longer than thick): the ventricle's wall lying farther out than the
-    /// atlas's (dropAlongMidline leaves such bands out where they reach the midline).
+    /// atlas's (dropAlongMidline leaves such bands out where they reach the midline; the series
+    /// context counts the earlier sections' glass at their place, judgeInSeries).
     bool alongVentricle = false;
     double thicknessPx = 0; ///< gaps: twice the largest inscribed radius
     /// Gaps, where the grey image is known: the median grey level inside the gap above the

@@ -72,11 +72,44 @@ AtlasDamageOutlines atlasDamageOutlines(const Registration& reg, double maxSegme
 std::vector<cv::Point2f> atlasDamageOutline(const Registration& reg, const DamageRegion& region,
                                             double maxSegmentPx = 4.0);
 
+/// The glass inside `tissue` (CV_8U: its closed holes) where `expectedTissue` (CV_8U, the
+/// atlas's tissue in the section frame, ventricles left out) expects tissue beyond `slackPx`
+/// (eroded by a disc of that radius, as tissueDamage takes the registration slack): a ventricle
+/// wider than the atlas's, a tear; not a ventricle the atlas has, nor a cut open to the outside.
+cv::Mat glassWhereTissueIsExpected(const cv::Mat& tissue, const cv::Mat& expectedTissue,
+                                   int slackPx);
+
+/// The outlines of the pieces of `glass` (CV_8U, at the working size of `reg`:
+/// Registration::workingScale) of at least `minAreaPx` working px, taken to full-resolution px,
+/// subdivided to `maxSegmentPx` and mapped through `reg` into atlas px. The registration passes
+/// glassWhereTissueIsExpected (Registration::glassAtlas).
+std::vector<std::vector<cv::Point2f>> glassOutlines(const Registration& reg, const cv::Mat& glass,
+                                                    double minAreaPx, double maxSegmentPx = 4.0);
+
+/// What a registered section shows the sections after it in the series context (atlas px).
+struct SectionShown {
+    AtlasDamageOutlines gaps; ///< its gaps (atlasDamageOutlines)
+    AtlasDamageOutlines
+        glass; ///< its glass where its atlas expects tissue (Registration::glassAtlas)
+    bool operator==(const SectionShown&) const = default;
+};
+
+/// The section's gaps and glass for the sections after it (`maxSegmentPx` as for
+/// atlasDamageOutlines).
+SectionShown shownInSeries(const Registration& reg, double maxSegmentPx = 4.0);
+
 /// The damage decision of a registered section again, with its series context: sets each gap's
-/// persistence among `earlier` (the outlines of the run's already registered sections, nearest
-/// first; at most params.window are used), then decideDamage, and updates reg.damageScore,
-/// damageVerdict and damaged. \return the decision.
-DamageDecision judgeInSeries(Registration& reg, const std::vector<AtlasDamageOutlines>& earlier,
+/// persistence among `earlier` (what the run's already registered sections show, nearest first;
+/// at most params.window are used), then decideDamage, and updates reg.damageScore,
+/// damageVerdict and damaged. A gap counts the earlier sections' gaps at its place; a band along
+/// a ventricle's lumen (DamageRegion::alongVentricle: the section's ventricle wider than the
+/// atlas's, or its wall torn along its length) also counts their glass where their atlas expects
+/// tissue, whatever their own rules made of it: a ventricle wider than the atlas's over several
+/// sections is anatomy carried through, though one section's rules left it out (as a band
+/// reaching the midline, or by its twin) and the next's did not. A wedge torn away from a lumen
+/// is no band and is not excused by a neighbour's wide ventricle; a ventricle no wider than the
+/// atlas's shows no such glass. \return the decision.
+DamageDecision judgeInSeries(Registration& reg, const std::vector<SectionShown>& earlier,
                              const DamageParams& damageParams, const SeriesContextParams& params);
 
 } // namespace slicestation::pipeline

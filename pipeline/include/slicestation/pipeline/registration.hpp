@@ -232,6 +232,13 @@ struct Registration {
     double brainWidthPx = 0;          ///< the section's OBB major extent, full-resolution px
     std::string damageSummary;
     std::vector<Concavity> concavities; ///< deep outline concavities (working px), for diagnosis
+    /// The glass the section shows inside its tissue (its closed holes) where the atlas expects
+    /// tissue (beyond the registration slack): a ventricle wider than the atlas's, a tear.
+    /// Outlines in atlas px through the map the damage was judged against: the series context
+    /// counts a neighbour's such glass at the place of a band along a ventricle's lumen as
+    /// anatomy carried through, whether or not that neighbour took it for a gap
+    /// (damage_series.hpp, judgeInSeries).
+    std::vector<std::vector<cv::Point2f>> glassAtlas;
 
     /// Working coordinates of a full-resolution pixel.
     cv::Point2d workingFromImage(cv::Point2d imagePx) const;
