@@ -250,8 +250,9 @@ static char truthOf(const std::string& series, int number) {
     return 'c';
 }
 
-/// Series context (issue 18, item 5): each section judged again with the damage outlines (gaps,
-/// atlas px) of the sections registered before it in this run, as the station does live (the
+/// Series context (issue 18, item 5): each section judged again with what the sections
+/// registered before it in this run show (their gaps, and their glass where their atlas expects
+/// tissue, atlas px: pipeline::shownInSeries), as the station does live (the
 /// `window` nearest earlier ones), and, for comparison only, with one section on either side
 /// (what waiting for the next section would give). The slices of one series share the atlas
 /// pixel grid (checked: every section's atlas has the same size), so atlas px compare places.

@@ -619,6 +619,13 @@ int main(int argc, char** argv) {
                  "planes in order (case i on loaded plane i, the planes spread evenly over the "
                  "AP range), then judged again with the series context as the station does "
                  "(the gaps and glass of the two earlier sections); prints flags alone and live");
+    std::string seriesAnatomy = "family";
+    app.add_option("--series-anatomy", seriesAnatomy,
+                   "With --series-run: family (each case's own anatomy models) or ventricles "
+                   "(every first-generator case's ventricles grown by 0.014 of the tissue width, "
+                   "the middle of family 1m's range, no fissure opened: one brain with enlarged "
+                   "ventricles throughout the run)")
+        ->check(CLI::IsMember({"family", "ventricles"}));
     app.add_flag("--list-missed", listMissed,
                  "Print each true damage region no reported region overlaps (a tenth of it)");
     app.add_option("--overlays", overlayDir,
@@ -778,8 +785,13 @@ int main(int argc, char** argv) {
         csv << "family,case,method,damaged,stain,rmse,median,max,seconds,failed\n";
     }
     if (seriesRun)
-        for (auto& c : all)
+        for (auto& c : all) {
             c.plane = c.index % planeCount;
+            if (seriesAnatomy == "ventricles" && bench::firstGenerator(c.family)) {
+                c.options.anatomy.ventricleGrowthFrac = 0.014;
+                c.options.anatomy.fissureOpenFrac = 0;
+            }
+        }
     // --series-run: each case's registration and truth, in case order per family.
     struct RunSection {
         std::string family;
