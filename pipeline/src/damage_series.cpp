@@ -19,6 +19,19 @@ std::vector<cv::Point> shifted(const std::vector<cv::Point2f>& polygon, cv::Poin
     return out;
 }
 
+/// An outline in full-resolution px, subdivided to `maxSegmentPx` so that a curved map bends it,
+/// mapped through `reg` (affine and warp) into atlas px.
+std::vector<cv::Point2f> outlineInAtlas(const Registration& reg,
+                                        const std::vector<cv::Point2f>& outline,
+                                        double maxSegmentPx) {
+    std::vector<cv::Point2f> out;
+    for (const cv::Point2f& p : subdivide(outline, maxSegmentPx)) {
+        const cv::Point2d a = reg.atlasFromImage(cv::Point2d(p.x, p.y));
+        out.emplace_back(float(a.x), float(a.y));
+    }
+    return out;
+}
+
 } // namespace
 
 double persistenceAmong(const std::vector<cv::Point2f>& region,
@@ -69,14 +82,9 @@ double applySeriesContext(std::vector<DamageRegion>& regions,
 
 std::vector<cv::Point2f> atlasDamageOutline(const Registration& reg, const DamageRegion& d,
                                             double maxSegmentPx) {
-    std::vector<cv::Point2f> out;
     if ((d.kind != DamageKind::Tear && d.kind != DamageKind::Missing) || d.polygon.size() < 3)
-        return out;
-    for (const cv::Point2f& p : subdivide(d.polygon, maxSegmentPx)) {
-        const cv::Point2d a = reg.atlasFromImage(cv::Point2d(p.x, p.y));
-        out.emplace_back(float(a.x), float(a.y));
-    }
-    return out;
+        return {};
+    return outlineInAtlas(reg, d.polygon, maxSegmentPx);
 }
 
 AtlasDamageOutlines atlasDamageOutlines(const Registration& reg, double maxSegmentPx) {
@@ -105,20 +113,15 @@ std::vector<std::vector<cv::Point2f>> glassOutlines(const Registration& reg, con
     std::vector<std::vector<cv::Point2f>> out;
     std::vector<std::vector<cv::Point>> contours;
     cv::findContours(glass, contours, cv::RETR_EXTERNAL, cv::CHAIN_APPROX_SIMPLE);
+    const double s = reg.workingScale; // working px = (full px + 0.5) s - 0.5
     for (const std::vector<cv::Point>& c : contours) {
         if (c.size() < 3 || cv::contourArea(c) < minAreaPx)
             continue;
         std::vector<cv::Point2f> full;
         full.reserve(c.size());
-        const double s = reg.workingScale; // working px = (full px + 0.5) s - 0.5
         for (const cv::Point& p : c)
             full.emplace_back(float((p.x + 0.5) / s - 0.5), float((p.y + 0.5) / s - 0.5));
-        std::vector<cv::Point2f> atlas;
-        for (const cv::Point2f& p : subdivide(full, maxSegmentPx)) {
-            const cv::Point2d a = reg.atlasFromImage(cv::Point2d(p.x, p.y));
-            atlas.emplace_back(float(a.x), float(a.y));
-        }
-        out.push_back(std::move(atlas));
+        out.push_back(outlineInAtlas(reg, full, maxSegmentPx));
     }
     return out;
 }
