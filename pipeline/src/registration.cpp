@@ -93,6 +93,21 @@ private:
 /// Two placements whose section box ends lie this close (atlas px) are the same placement.
 constexpr double kSamePlaceAtlasPx = 2.0;
 
+/// A close placement whose edge agreement trails the leading one's by more than this after the
+/// full ICP's third level is not run through the finest level: over the first family's 48 cases
+/// the finest level moved a placement's agreement by at most 0.04, so it cannot catch up (see
+/// docs/registration.md, "The finest ICP level for the leading placements only").
+constexpr double kTrailingAgreement = 0.1;
+
+/// Only placements whose overlap after the outline ICP is within this of the best one's are
+/// polished by the overlap search (chosen on the first family, where no result moved; as above).
+constexpr double kPolishBehind = 0.1;
+
+/// SOR sweeps per level of the Laplace warp's rounds before the last (the last keeps
+/// LaplaceOptions' 40): their fields only choose the next round's matches, whose reach is several
+/// atlas px (docs/registration.md as above).
+constexpr int kLaplaceSweepsBeforeLastRound = 20;
+
 /// IoU of the section's (filled) tissue and the atlas brain mapped into the working frame.
 double overlap(const cv::Mat& tissueFilled, const cv::Mat& atlasMask, const cv::Matx23d& t) {
     cv::Mat mapped;
@@ -782,7 +797,7 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
             crackGrey = reg.contrast == Contrast::Brightfield ? cv::Mat(-*full) : *full;
         }
     };
-    // Each starting placement is refined on its own, side by side with the others, with the
+    // Each starting placement is refined on the outlines, side by side with the others, with the
     // section's edges (task 0) and with the cracks' grey image (task 1).
     placed.resize(inits.size());
     runTasks(int(inits.size()) + 2, [&](int task) {
@@ -799,13 +814,32 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         const IcpResult r = multiLevelIcp(imgOuter, atlasOuter, init, coarse, 6, scaleGuess);
         // The refinement can wander off on an odd outline; the placement it started from stays
         // in the running, and the overlap search polishes whichever is better.
-        const cv::Matx23d start =
-            scorer(r.targetFromSource) >= scorer(init) ? r.targetFromSource : init;
-        double score = 0;
-        const cv::Matx23d t =
-            refineByOverlap(scorer, start, imgBox.centre, 2 * imgBox.halfMajor, score);
-        placed[size_t(task - 2)] = {init, t, score};
+        const double fromIcp = scorer(r.targetFromSource), fromInit = scorer(init);
+        placed[size_t(task - 2)] = {init, fromIcp >= fromInit ? r.targetFromSource : init,
+                                    std::max(fromIcp, fromInit)};
     });
+    // The overlap search polishes the placements that start near the best one (among those the
+    // lab's mounting rule allows, when any does; the rule is applied below); one that starts
+    // further behind keeps its start and its overlap, and so cannot be chosen or be a close call.
+    {
+        const auto turned = [&](const Placed& p) {
+            return options.maxTurnDeg < 180 && std::abs(turnDegrees(p.t)) > options.maxTurnDeg;
+        };
+        const bool anyAllowed =
+            std::any_of(placed.begin(), placed.end(), [&](const Placed& p) { return !turned(p); });
+        double lead = 0;
+        for (const Placed& p : placed)
+            if (!anyAllowed || !turned(p))
+                lead = std::max(lead, p.overlap);
+        std::vector<size_t> polish;
+        for (size_t k = 0; k < placed.size(); ++k)
+            if (placed[k].overlap >= lead - kPolishBehind)
+                polish.push_back(k);
+        runTasks(int(polish.size()), [&](int i) {
+            Placed& p = placed[polish[size_t(i)]];
+            p.t = refineByOverlap(scorer, p.t, imgBox.centre, 2 * imgBox.halfMajor, p.overlap);
+        });
+    }
     if (!nearFragments.empty())
         mei.setTo(0, nearFragments);
     std::sort(placed.begin(), placed.end(),
@@ -876,17 +910,6 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     // section: 10, 8, 6, 4 degrees and H/10 .. H/80.
     const std::vector<IcpLevel> fine{
         {10, atlasH / 10}, {8, atlasH / 20}, {6, atlasH / 40}, {4, atlasH / 80}};
-    // The full ICP from the best placement and from each close one (within 0.05 of its
-    // overlap), side by side; which of them is kept is settled in order below.
-    size_t close = 1;
-    while (close < placed.size() && placed[close].overlap >= placed.front().overlap - 0.05)
-        ++close;
-    std::vector<IcpResult> fromPlaced(close);
-    runTasks(int(close), [&](int k) {
-        fromPlaced[size_t(k)] = multiLevelIcp(reg.sectionEdges, reg.atlasEdges, placed[size_t(k)].t,
-                                              fine, 8, scaleGuess);
-    });
-    IcpResult affine = std::move(fromPlaced.front());
     // An outline alone can fit nearly as well upside down (a roundish section, a piece missing):
     // close calls are settled by how well the internal edges agree after the full ICP.
     auto edgeAgreement = [&](const cv::Matx23d& t) {
@@ -896,6 +919,39 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
             mapped.emplace_back(apply(t, p));
         return shareMatched(mapped, atlasGrid, atlasH / 80);
     };
+    // The full ICP from the best placement and from each close one (within 0.05 of its
+    // overlap), side by side, level by level; before the finest level (the most points and
+    // iterations) the close ones whose edge agreement already trails are dropped; which of the
+    // rest is kept is settled in order below.
+    size_t close = 1;
+    while (close < placed.size() && placed[close].overlap >= placed.front().overlap - 0.05)
+        ++close;
+    std::vector<IcpResult> fromPlaced(close);
+    std::vector<size_t> running(close);
+    for (size_t k = 0; k < close; ++k) {
+        fromPlaced[k].targetFromSource = placed[k].t;
+        running[k] = k;
+    }
+    for (size_t level = 0; level < fine.size(); ++level) {
+        if (level + 1 == fine.size() && running.size() > 1) {
+            std::vector<double> a(running.size());
+            for (size_t i = 0; i < running.size(); ++i)
+                a[i] = edgeAgreement(fromPlaced[running[i]].targetFromSource);
+            const double lead = *std::max_element(a.begin(), a.end());
+            std::vector<size_t> kept;
+            for (size_t i = 0; i < running.size(); ++i)
+                if (a[i] >= lead - kTrailingAgreement)
+                    kept.push_back(running[i]);
+            running = std::move(kept);
+        }
+        runTasks(int(running.size()), [&](int i) {
+            IcpResult& r = fromPlaced[running[size_t(i)]];
+            r = multiLevelIcp(reg.sectionEdges, reg.atlasEdges, r.targetFromSource, {fine[level]},
+                              8, scaleGuess);
+        });
+    }
+    IcpResult affine = std::move(fromPlaced[running.front()]);
+    best = placed[running.front()].t;
     // A near tie of the edge agreement (within 0.02) is settled by how well the atlas regions,
     // each painted at one fitted level, explain the section's own contrast under each affine
     // (the dense measure, on a 128 px copy): a tie that floating-point differences between
@@ -930,7 +986,8 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     };
     double agreement = edgeAgreement(affine.targetFromSource);
     double fitOfBest = std::numeric_limits<double>::quiet_NaN();
-    for (size_t k = 1; k < close; ++k) {
+    for (size_t i = 1; i < running.size(); ++i) {
+        const size_t k = running[i];
         IcpResult& other = fromPlaced[k];
         const double a = edgeAgreement(other.targetFromSource);
         bool better = a > agreement + kTieMargin;
@@ -1076,7 +1133,8 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
                 r.quality.smoothMatches = sw.matches;
             }
             std::vector<cv::Point2d> pts, disp;
-            for (const auto& [dist, ang] : rounds) {
+            for (size_t round = 0; round < rounds.size(); ++round) {
+                const auto [dist, ang] = rounds[round];
                 pts.clear();
                 disp.clear();
                 addWarpConditions(r.sectionEdges, r.atlasFromWorking, r.warp, r.atlasEdges,
@@ -1089,7 +1147,12 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
                 // The Laplace warp interpolates what the smooth field leaves at the conditions.
                 for (size_t k = 0; k < pts.size(); ++k)
                     disp[k] -= base.at(pts[k]);
-                r.warp = addFields(solveLaplaceWarp(r.workingGrey.size(), pts, disp, lo), base);
+                // The rounds before the last only choose the next round's matches: their
+                // solution needs fewer sweeps than the field that is kept.
+                LaplaceOptions lr = lo;
+                if (round + 1 < rounds.size())
+                    lr.sweepsPerLevel = kLaplaceSweepsBeforeLastRound;
+                r.warp = addFields(solveLaplaceWarp(r.workingGrey.size(), pts, disp, lr), base);
             }
         }
         lap("warp");
