@@ -952,10 +952,15 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     }
     IcpResult affine = std::move(fromPlaced[running.front()]);
     best = placed[running.front()].t;
-    // A near tie of the edge agreement (within 0.02) is settled by how well the atlas regions,
-    // each painted at one fitted level, explain the section's own contrast under each affine
-    // (the dense measure, on a 128 px copy): a tie that floating-point differences between
-    // compilers could flip is decided by a second, independent measure instead.
+    // A near tie of the edge agreement (within 0.02) is settled by the outline first: the
+    // placement whose polished overlap with the atlas brain is higher by more than the same
+    // margin wins (a section upside down fits its own outline worse, and the region fit below
+    // can prefer it on real tissue with tile seams and uneven stain: docs/registration.md,
+    // "Near ties settled by the outline first"). Overlaps within the margin too are settled by
+    // how well the atlas regions, each painted at one fitted level, explain the section's own
+    // contrast under each affine (the dense measure, on a 128 px copy): a tie that
+    // floating-point differences between compilers could flip is decided by a second,
+    // independent measure instead.
     constexpr double kTieMargin = 0.02;
     cv::Mat tieGrey, tieWeight;
     auto regionFit = [&](const cv::Matx23d& t) {
@@ -986,6 +991,7 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     };
     double agreement = edgeAgreement(affine.targetFromSource);
     double fitOfBest = std::numeric_limits<double>::quiet_NaN();
+    double overlapOfBest = placed[running.front()].overlap;
     for (size_t i = 1; i < running.size(); ++i) {
         const size_t k = running[i];
         IcpResult& other = fromPlaced[k];
@@ -993,16 +999,21 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         bool better = a > agreement + kTieMargin;
         double fit = std::numeric_limits<double>::quiet_NaN();
         if (!better && a > agreement - kTieMargin) {
-            if (std::isnan(fitOfBest))
-                fitOfBest = regionFit(affine.targetFromSource);
-            fit = regionFit(other.targetFromSource);
-            better = fit > fitOfBest;
+            if (std::abs(placed[k].overlap - overlapOfBest) > kTieMargin) {
+                better = placed[k].overlap > overlapOfBest;
+            } else {
+                if (std::isnan(fitOfBest))
+                    fitOfBest = regionFit(affine.targetFromSource);
+                fit = regionFit(other.targetFromSource);
+                better = fit > fitOfBest;
+            }
         }
         if (better) {
             agreement = a;
             affine = std::move(other);
             best = placed[k].t;
             fitOfBest = fit;
+            overlapOfBest = placed[k].overlap;
         }
     }
     reg.atlasFromWorking = affine.targetFromSource;
