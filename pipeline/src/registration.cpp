@@ -818,18 +818,18 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         placed[size_t(task - 2)] = {init, fromIcp >= fromInit ? r.targetFromSource : init,
                                     std::max(fromIcp, fromInit)};
     });
+    // The lab's mounting rule: a placement turned further than it allows.
+    const auto turnedTooFar = [&](const Placed& p) {
+        return options.maxTurnDeg < 180 && std::abs(turnDegrees(p.t)) > options.maxTurnDeg;
+    };
     // The overlap search polishes the placements that start near the best one (among those the
-    // lab's mounting rule allows, when any does; the rule is applied below); one that starts
-    // further behind keeps its start and its overlap, and so cannot be chosen or be a close call.
+    // mounting rule allows, when any does; the rule is applied below); one that starts further
+    // behind keeps its start and its overlap, and so cannot be chosen or be a close call.
     {
-        const auto turned = [&](const Placed& p) {
-            return options.maxTurnDeg < 180 && std::abs(turnDegrees(p.t)) > options.maxTurnDeg;
-        };
-        const bool anyAllowed =
-            std::any_of(placed.begin(), placed.end(), [&](const Placed& p) { return !turned(p); });
+        const bool anyAllowed = !std::all_of(placed.begin(), placed.end(), turnedTooFar);
         double lead = 0;
         for (const Placed& p : placed)
-            if (!anyAllowed || !turned(p))
+            if (!anyAllowed || !turnedTooFar(p))
                 lead = std::max(lead, p.overlap);
         std::vector<size_t> polish;
         for (size_t k = 0; k < placed.size(); ++k)
@@ -844,15 +844,9 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         mei.setTo(0, nearFragments);
     std::sort(placed.begin(), placed.end(),
               [](const Placed& a, const Placed& b) { return a.overlap > b.overlap; });
-    if (options.maxTurnDeg < 180) {
-        // The lab's mounting rule: placements turned further than it allows are dropped,
-        // unless none is within it.
-        const auto turned = [&](const Placed& p) {
-            return std::abs(turnDegrees(p.t)) > options.maxTurnDeg;
-        };
-        if (!std::all_of(placed.begin(), placed.end(), turned))
-            placed.erase(std::remove_if(placed.begin(), placed.end(), turned), placed.end());
-    }
+    // Placements the mounting rule does not allow are dropped, unless none is allowed.
+    if (!std::all_of(placed.begin(), placed.end(), turnedTooFar))
+        placed.erase(std::remove_if(placed.begin(), placed.end(), turnedTooFar), placed.end());
     // Starts that the outline search brought to the same place (the section box's four ends
     // within kSamePlaceAtlasPx of a better placement's) are one placement: the full ICP from
     // each would end in the same basin, so only the better one is kept as a close call.
@@ -875,7 +869,7 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         placed = std::move(distinct);
     }
     const cv::Matx23d bestInit = placed.front().init;
-    cv::Matx23d best = placed.front().t;
+    const cv::Matx23d best = placed.front().t;
     reg.stageAffines.emplace_back("obb", bestInit);
     reg.stageAffines.emplace_back("outline", best);
     timer.lap("initialise");
@@ -951,7 +945,6 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         });
     }
     IcpResult affine = std::move(fromPlaced[running.front()]);
-    best = placed[running.front()].t;
     // A near tie of the edge agreement (within 0.02) is settled by the outline first: the
     // placement whose polished overlap with the atlas brain is higher by more than the same
     // margin wins (a section upside down fits its own outline worse, and the region fit below
@@ -991,7 +984,7 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     };
     double agreement = edgeAgreement(affine.targetFromSource);
     double fitOfBest = std::numeric_limits<double>::quiet_NaN();
-    double overlapOfBest = placed[running.front()].overlap;
+    size_t chosen = running.front(); // the placement `affine` came from
     for (size_t i = 1; i < running.size(); ++i) {
         const size_t k = running[i];
         IcpResult& other = fromPlaced[k];
@@ -999,8 +992,8 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         bool better = a > agreement + kTieMargin;
         double fit = std::numeric_limits<double>::quiet_NaN();
         if (!better && a > agreement - kTieMargin) {
-            if (std::abs(placed[k].overlap - overlapOfBest) > kTieMargin) {
-                better = placed[k].overlap > overlapOfBest;
+            if (std::abs(placed[k].overlap - placed[chosen].overlap) > kTieMargin) {
+                better = placed[k].overlap > placed[chosen].overlap;
             } else {
                 if (std::isnan(fitOfBest))
                     fitOfBest = regionFit(affine.targetFromSource);
@@ -1011,9 +1004,8 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         if (better) {
             agreement = a;
             affine = std::move(other);
-            best = placed[k].t;
+            chosen = k;
             fitOfBest = fit;
-            overlapOfBest = placed[k].overlap;
         }
     }
     reg.atlasFromWorking = affine.targetFromSource;

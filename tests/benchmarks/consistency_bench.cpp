@@ -463,23 +463,11 @@ int main(int argc, char** argv) {
                 }
                 writeOverlay(*reg1, "warp" + std::to_string(k));
                 // A dense grid of tissue points of the warped image (about 150 per side).
-                const int step = std::max(2, std::max(w.size.width, w.size.height) / 150);
-                double wsq = 0, wmax = 0;
-                long wn = 0;
-                for (int y = 0; y < w.size.height; y += step)
-                    for (int x = 0; x < w.size.width; x += step) {
-                        const cv::Point2d p = w(cv::Point2d(x, y));
-                        const int px = int(std::lround(p.x)), py = int(std::lround(p.y));
-                        if (px < 0 || py < 0 || px >= tissue.cols || py >= tissue.rows)
-                            continue;
-                        if (!tissue.at<std::uint8_t>(py, px))
-                            continue;
-                        const double d = cv::norm(reg1->atlasFromImage({double(x), double(y)}) -
-                                                  reg0->atlasFromImage(p));
-                        wsq += d * d;
-                        wmax = std::max(wmax, d);
-                        ++wn;
-                    }
+                const testing_warp::WarpDifference diff = testing_warp::differenceOverTissue(
+                    w, tissue, [&](cv::Point2d q) { return reg1->atlasFromImage(q); },
+                    [&](cv::Point2d p) { return reg0->atlasFromImage(p); });
+                const double wsq = diff.sumSq, wmax = diff.max;
+                const long wn = diff.points;
                 if (wn == 0)
                     continue;
                 const double rms = std::sqrt(wsq / double(wn));

@@ -8,6 +8,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdint>
 #include <random>
 #include <vector>
 
@@ -111,6 +112,35 @@ inline cv::Mat applyWarp(const cv::Mat& image, const Warp& w) {
             my.at<float>(y, x) = float(p.y);
         }
     cv::remap(image, out, mx, my, cv::INTER_LINEAR, cv::BORDER_CONSTANT, glassOf(image));
+    return out;
+}
+
+/// How far two mappings of one section disagree under a known warp: over a grid of the warped
+/// image (about 150 points per side) whose points `w` takes into `tissue` (CV_8U, the original's
+/// pixels), the distance between `mapNew(q)` and `mapOld(w(q))`.
+struct WarpDifference {
+    double sumSq = 0, max = 0;
+    long points = 0;
+    double rms() const { return points > 0 ? std::sqrt(sumSq / double(points)) : 0.0; }
+};
+
+template <class MapNew, class MapOld>
+WarpDifference differenceOverTissue(const Warp& w, const cv::Mat& tissue, MapNew mapNew,
+                                    MapOld mapOld) {
+    WarpDifference out;
+    const int step = std::max(2, std::max(w.size.width, w.size.height) / 150);
+    for (int y = 0; y < w.size.height; y += step)
+        for (int x = 0; x < w.size.width; x += step) {
+            const cv::Point2d p = w(cv::Point2d(x, y));
+            const int px = int(std::lround(p.x)), py = int(std::lround(p.y));
+            if (px < 0 || py < 0 || px >= tissue.cols || py >= tissue.rows ||
+                !tissue.at<std::uint8_t>(py, px))
+                continue;
+            const double d = cv::norm(mapNew(cv::Point2d(x, y)) - mapOld(p));
+            out.sumSq += d * d;
+            out.max = std::max(out.max, d);
+            ++out.points;
+        }
     return out;
 }
 
