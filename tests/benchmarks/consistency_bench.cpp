@@ -271,6 +271,14 @@ int main(int argc, char** argv) {
     std::string smoothMode = "on";
     app.add_flag("--shift-only", shiftOnly,
                  "Warps are whole-pixel shifts only (checks the benchmark: RMS near 0 expected)");
+    bool sameFrame = false;
+    app.add_flag("--same-frame", sameFrame,
+                 "With --shift-only: shifts of up to 4% each way inside the image's own frame "
+                 "instead of into a 15% larger one");
+    bool stages = false;
+    app.add_flag("--stages", stages,
+                 "Also the difference of each affine stage's map (obb, outline, icp, intensity) "
+                 "per series: median over the (section, warp) pairs that are not gross");
     app.add_option("--field-scale", fieldScale,
                    "Scale of the warps' smooth field (1 = 1% of the longer side, s.d.; 0 = none)")
         ->check(CLI::Range(0.0, 10.0));
@@ -373,6 +381,8 @@ int main(int argc, char** argv) {
         int failed = 0;
         int warpsDone = 0, grossWarps = 0; ///< gross: a warp's RMS over 25 px (a flip or jump)
         std::vector<double> warpRms;       ///< every (section, warp) RMS that is not gross
+        /// --stages: stage name -> the RMS of that affine stage's map for every pair not gross
+        std::vector<std::pair<std::string, std::vector<double>>> stageRms;
     };
     std::vector<SeriesResult> results;
     for (const std::string series : {"mouse", "gerbi"}) {
@@ -449,7 +459,7 @@ int main(int argc, char** argv) {
             double sq = 0, worstWarp = 0, worstPoint = 0;
             long n = 0;
             for (int k = 0; k < warps; ++k) {
-                const Warp w = randomWarp(rng, s.image.size(), shiftOnly, fieldScale);
+                const Warp w = randomWarp(rng, s.image.size(), shiftOnly, fieldScale, sameFrame);
                 const cv::Mat warped = applyWarp(s.image, w);
                 const auto t1 = std::chrono::steady_clock::now();
                 auto reg1 = pipeline::registerSection(warped, s.atlas, ro);
@@ -476,6 +486,32 @@ int main(int argc, char** argv) {
                     ++res.grossWarps;
                 else
                     res.warpRms.push_back(rms);
+                // Each affine stage's map on its own (the stages both registrations went through).
+                for (size_t st = 0; stages && rms <= 25 && st < reg1->stageAffines.size(); ++st) {
+                    const std::string& name = reg1->stageAffines[st].first;
+                    const cv::Matx23d a1 = reg1->stageAffines[st].second;
+                    const auto a0 =
+                        std::find_if(reg0->stageAffines.begin(), reg0->stageAffines.end(),
+                                     [&](const auto& e) { return e.first == name; });
+                    if (a0 == reg0->stageAffines.end())
+                        continue;
+                    const auto through = [](const pipeline::Registration& r, const cv::Matx23d& a,
+                                            cv::Point2d q) {
+                        const cv::Point2d x = r.workingFromImage(q);
+                        return cv::Point2d(a(0, 0) * x.x + a(0, 1) * x.y + a(0, 2),
+                                           a(1, 0) * x.x + a(1, 1) * x.y + a(1, 2));
+                    };
+                    const double stageRms =
+                        testing_warp::differenceOverTissue(
+                            w, tissue, [&](cv::Point2d q) { return through(*reg1, a1, q); },
+                            [&](cv::Point2d q) { return through(*reg0, a0->second, q); })
+                            .rms();
+                    auto slot = std::find_if(res.stageRms.begin(), res.stageRms.end(),
+                                             [&](const auto& e) { return e.first == name; });
+                    if (slot == res.stageRms.end())
+                        slot = res.stageRms.insert(res.stageRms.end(), {name, {}});
+                    slot->second.push_back(stageRms);
+                }
                 sq += wsq;
                 n += wn;
                 worstWarp = std::max(worstWarp, rms);
@@ -520,6 +556,14 @@ int main(int argc, char** argv) {
                     r.sectionRms.size(), median(r.sectionRms), mean,
                     std::sqrt(r.allSq / double(std::max(1L, r.allN))), w, r.failed, g,
                     median(r.warpRms));
+    }
+    for (const auto& r : results) {
+        if (r.stageRms.empty())
+            continue;
+        std::printf("%-6s stages, median RMS of the pairs not gross:", r.name.c_str());
+        for (const auto& [name, v] : r.stageRms)
+            std::printf(" %s %.2f (%zu)", name.c_str(), median(v), v.size());
+        std::printf(" | final %.2f (%zu)\n", median(r.warpRms), r.warpRms.size());
     }
     std::printf("(RMS difference in atlas px of 25 um between the warped section's registration "
                 "and the original's composed with the known warp, over a grid of the original's "

@@ -42,11 +42,22 @@ struct Warp {
 /// the longer side (s.d.) with features a quarter of the image across. The new image is 15%
 /// larger so the turned section stays inside.
 /// With `shiftOnly`, a whole-pixel shift into the larger image and nothing else: a check of the
-/// benchmark itself (the registration should then agree with itself almost exactly).
-inline Warp randomWarp(std::mt19937_64& rng, cv::Size size, bool shiftOnly, double fieldScale) {
+/// benchmark itself (the registration should then agree with itself almost exactly); with
+/// `sameFrame` too, a whole-pixel shift of up to 4% each way inside the image's own frame (the
+/// same image size: only where the tissue lies in the frame changes).
+inline Warp randomWarp(std::mt19937_64& rng, cv::Size size, bool shiftOnly, double fieldScale,
+                       bool sameFrame = false) {
     auto U = [&](double a, double b) { return std::uniform_real_distribution<double>(a, b)(rng); };
     Warp w;
     w.size = cv::Size(int(size.width * 1.15), int(size.height * 1.15));
+    if (shiftOnly && sameFrame) { // whole pixels, up to 4% each way, in the image's own frame
+        w.size = size;
+        w.affine = cv::Matx23d(1, 0, std::floor(U(-0.04, 0.04) * size.width), 0, 1,
+                               std::floor(U(-0.04, 0.04) * size.height));
+        w.sx = cv::Mat::zeros(w.size.height / w.step + 2, w.size.width / w.step + 2, CV_32F);
+        w.sy = w.sx.clone();
+        return w;
+    }
     if (shiftOnly) {
         w.affine = cv::Matx23d(1, 0, -std::floor(U(0, 0.15) * size.width), 0, 1,
                                -std::floor(U(0, 0.15) * size.height));
