@@ -14,6 +14,7 @@
 #include "slicestation/core/image_file.hpp"
 #include "slicestation/core/nrrd.hpp"
 #include "slicestation/core/ontology.hpp"
+#include "slicestation/pipeline/affine.hpp"
 #include "slicestation/pipeline/atlas.hpp"
 #include "slicestation/pipeline/atlas_matching.hpp"
 #include "slicestation/pipeline/atlas_slicing.hpp"
@@ -482,12 +483,13 @@ int main(int argc, char** argv) {
                     continue;
                 const double rms = std::sqrt(wsq / double(wn));
                 ++res.warpsDone;
-                if (rms > 25)
+                const bool gross = rms > 25;
+                if (gross)
                     ++res.grossWarps;
                 else
                     res.warpRms.push_back(rms);
                 // Each affine stage's map on its own (the stages both registrations went through).
-                for (size_t st = 0; stages && rms <= 25 && st < reg1->stageAffines.size(); ++st) {
+                for (size_t st = 0; stages && !gross && st < reg1->stageAffines.size(); ++st) {
                     const std::string& name = reg1->stageAffines[st].first;
                     const cv::Matx23d a1 = reg1->stageAffines[st].second;
                     const auto a0 =
@@ -495,16 +497,15 @@ int main(int argc, char** argv) {
                                      [&](const auto& e) { return e.first == name; });
                     if (a0 == reg0->stageAffines.end())
                         continue;
-                    const auto through = [](const pipeline::Registration& r, const cv::Matx23d& a,
-                                            cv::Point2d q) {
-                        const cv::Point2d x = r.workingFromImage(q);
-                        return cv::Point2d(a(0, 0) * x.x + a(0, 1) * x.y + a(0, 2),
-                                           a(1, 0) * x.x + a(1, 1) * x.y + a(1, 2));
-                    };
                     const double stageRms =
                         testing_warp::differenceOverTissue(
-                            w, tissue, [&](cv::Point2d q) { return through(*reg1, a1, q); },
-                            [&](cv::Point2d q) { return through(*reg0, a0->second, q); })
+                            w, tissue,
+                            [&](cv::Point2d q) {
+                                return pipeline::apply(a1, reg1->workingFromImage(q));
+                            },
+                            [&](cv::Point2d q) {
+                                return pipeline::apply(a0->second, reg0->workingFromImage(q));
+                            })
                             .rms();
                     auto slot = std::find_if(res.stageRms.begin(), res.stageRms.end(),
                                              [&](const auto& e) { return e.first == name; });

@@ -50,17 +50,15 @@ inline Warp randomWarp(std::mt19937_64& rng, cv::Size size, bool shiftOnly, doub
     auto U = [&](double a, double b) { return std::uniform_real_distribution<double>(a, b)(rng); };
     Warp w;
     w.size = cv::Size(int(size.width * 1.15), int(size.height * 1.15));
-    if (shiftOnly && sameFrame) { // whole pixels, up to 4% each way, in the image's own frame
-        w.size = size;
-        w.affine = cv::Matx23d(1, 0, std::floor(U(-0.04, 0.04) * size.width), 0, 1,
-                               std::floor(U(-0.04, 0.04) * size.height));
-        w.sx = cv::Mat::zeros(w.size.height / w.step + 2, w.size.width / w.step + 2, CV_32F);
-        w.sy = w.sx.clone();
-        return w;
-    }
     if (shiftOnly) {
-        w.affine = cv::Matx23d(1, 0, -std::floor(U(0, 0.15) * size.width), 0, 1,
-                               -std::floor(U(0, 0.15) * size.height));
+        if (sameFrame) { // whole pixels, up to 4% each way, in the image's own frame
+            w.size = size;
+            w.affine = cv::Matx23d(1, 0, std::floor(U(-0.04, 0.04) * size.width), 0, 1,
+                                   std::floor(U(-0.04, 0.04) * size.height));
+        } else {
+            w.affine = cv::Matx23d(1, 0, -std::floor(U(0, 0.15) * size.width), 0, 1,
+                                   -std::floor(U(0, 0.15) * size.height));
+        }
         w.sx = cv::Mat::zeros(w.size.height / w.step + 2, w.size.width / w.step + 2, CV_32F);
         w.sy = w.sx.clone();
         return w;
