@@ -161,12 +161,14 @@ struct Axis {
     int controls = 0;
 };
 
-Axis makeAxis(int pixels, double h) {
+Axis makeAxis(int pixels, double h, double origin) {
+    // The lattice starts at or before pixel 0.
+    origin -= h * std::ceil(origin / h);
     Axis a;
     a.first.resize(size_t(pixels));
     a.basis.resize(size_t(pixels));
     for (int x = 0; x < pixels; ++x) {
-        const double t = x / h;
+        const double t = (x - origin) / h;
         const int i = static_cast<int>(std::floor(t));
         const double f = t - i, g = 1 - f;
         a.first[size_t(x)] = i;
@@ -174,7 +176,7 @@ Axis makeAxis(int pixels, double h) {
                               float((-3 * f * f * f + 3 * f * f + 3 * f + 1) / 6),
                               float(f * f * f / 6)};
     }
-    a.controls = static_cast<int>(std::floor((pixels - 1) / h)) + 4;
+    a.controls = static_cast<int>(std::floor((pixels - 1 - origin) / h)) + 4;
     return a;
 }
 
@@ -368,6 +370,7 @@ IntensityWarp refineWarpByIntensity(const cv::Mat& grey, const cv::Mat& weight, 
     for (const IntensityWarpLevel& l : o.levels)
         CV_Assert(l.spacingGridPx >= 4 && l.imageSigma >= 0);
     const cv::Size gs = grey.size();
+    const cv::Point2d origin = o.anchorAtTissue ? weightCentroid(weight) : o.origin;
     IntensityWarp out;
     out.ux = cv::Mat::zeros(gs, CV_32F);
     out.uy = cv::Mat::zeros(gs, CV_32F);
@@ -381,7 +384,7 @@ IntensityWarp refineWarpByIntensity(const cv::Mat& grey, const cv::Mat& weight, 
     cv::Mat w;
     weight.convertTo(w, CV_32F, 1.0 / 255);
     cv::threshold(w, w, 0, 1, cv::THRESH_BINARY);
-    const HeldOutWeights held = heldOutWeights(w, o.holdOutBlockPx);
+    const HeldOutWeights held = heldOutWeights(w, o.holdOutBlockPx, origin);
     const cv::Mat &wTrain = held.train, &wTest = held.test; // named: lambdas capture them
     Model model(gs, o.localSigmaGridPx);
 
@@ -424,8 +427,8 @@ IntensityWarp refineWarpByIntensity(const cv::Mat& grey, const cv::Mat& weight, 
         cv::Mat px, py;
         cv::Sobel(plane, px, CV_32F, 1, 0, 1, 0.5, 0, cv::BORDER_REPLICATE);
         cv::Sobel(plane, py, CV_32F, 0, 1, 1, 0.5, 0, cv::BORDER_REPLICATE);
-        const Axis axX = makeAxis(gs.width, level.spacingGridPx);
-        const Axis axY = makeAxis(gs.height, level.spacingGridPx);
+        const Axis axX = makeAxis(gs.width, level.spacingGridPx, origin.x);
+        const Axis axY = makeAxis(gs.height, level.spacingGridPx, origin.y);
         const int nx = axX.controls, ny = axY.controls, k = nx * ny;
         const cv::Mat lap = membrane(nx, ny);
         cv::Mat c = cv::Mat::zeros(2 * k, 1, CV_64F);
@@ -515,10 +518,27 @@ IntensityWarp refineWarpByIntensity(const cv::Mat& grey, const cv::Mat& weight, 
     }
     out.explainedAfter = explained(baseX, baseY);
     out.accepted = out.explainedAfter >= out.explainedBefore + o.minGain;
-    if (out.accepted) {
-        out.ux = baseX;
-        out.uy = baseY;
-        out.minJacobian = minRel;
+    if (!out.accepted)
+        return out;
+    out.ux = baseX;
+    out.uy = baseY;
+    out.minJacobian = minRel;
+    if (o.holdOutBlockPx > 0 && o.refitOnAll) {
+        // Judged on the held-out blocks, the field kept is fitted on every pixel: the fitting
+        // blocks alone are half the data, and which half depends on the checkerboard.
+        IntensityWarpOptions all = o;
+        all.holdOutBlockPx = 0;
+        all.refitOnAll = false;
+        all.anchorAtTissue = false;
+        all.origin = origin;
+        const IntensityWarp refit =
+            refineWarpByIntensity(grey, weight, mapX, mapY, atlasIntensity, all);
+        if (refit.accepted) {
+            out.ux = refit.ux;
+            out.uy = refit.uy;
+            out.minJacobian = refit.minJacobian;
+            out.steps += refit.steps;
+        }
     }
     return out;
 }
@@ -675,6 +695,11 @@ IntensityWarp refineWarpByRegions(const cv::Mat& grey, const cv::Mat& weight, co
     CV_Assert(atlasLabels.type() == CV_32S && !atlasLabels.empty());
     CV_Assert(!o.warp.levels.empty());
     const cv::Size gs = grey.size();
+    // One lattice and checkerboard for every fit below (the weights they get differ).
+    IntensityWarpOptions warp = o.warp;
+    warp.origin = warp.anchorAtTissue ? weightCentroid(weight) : warp.origin;
+    warp.anchorAtTissue = false;
+    warp.refitOnAll = false; // the levels are judged and fitted again together, below
     // The regions' levels come from the fitting blocks only, so that the held-out check below
     // judges each map on pixels its painting did not see.
     cv::Mat paintWeight = weight.clone();
@@ -682,24 +707,24 @@ IntensityWarp refineWarpByRegions(const cv::Mat& grey, const cv::Mat& weight, co
         for (int y = 0; y < gs.height; ++y) {
             std::uint8_t* p = paintWeight.ptr<std::uint8_t>(y);
             for (int x = 0; x < gs.width; ++x)
-                if ((x / o.warp.holdOutBlockPx + y / o.warp.holdOutBlockPx) % 2)
+                if (heldOutBlock(x, y, o.warp.holdOutBlockPx, warp.origin))
                     p[x] = 0;
         }
     // The held-out explained share of a map against its own painting, at the finest level (the
     // judgement `fit` below makes with no steps).
-    IntensityWarpOptions judge = o.warp;
+    IntensityWarpOptions judge = warp;
     judge.levels = {{o.warp.levels.back().imageSigma, o.warp.levels.back().spacingGridPx, 0}};
     const cv::Mat startSeen = labelsUnderMap(atlasLabels, mapX, mapY);
     const std::unordered_set<std::int32_t> graded = gradedRegions(grey, paintWeight, startSeen, o);
-    // What a level fits against under a map: the painting, and the weight without the regions
-    // left out. `options` holds the level(s).
+    // What a level fits against under a map: the painting (from `painted` pixels), and the
+    // weight without the regions left out. `options` holds the level(s).
     auto fit = [&](const cv::Mat& mx, const cv::Mat& my, const cv::Mat& seen,
-                   const IntensityWarpOptions& options) {
-        const cv::Mat plane = paintSeen(grey, paintWeight, seen, atlasLabels, glassIds, o);
+                   const cv::Mat& painted, const IntensityWarpOptions& options) {
+        const cv::Mat plane = paintSeen(grey, painted, seen, atlasLabels, glassIds, o);
         return refineWarpByIntensity(grey, withoutRegions(weight, seen, graded), mx, my, plane,
                                      options);
     };
-    const IntensityWarp start = fit(mapX, mapY, startSeen, judge);
+    const IntensityWarp start = fit(mapX, mapY, startSeen, paintWeight, judge);
     IntensityWarp out;
     out.ux = cv::Mat::zeros(gs, CV_32F);
     out.uy = cv::Mat::zeros(gs, CV_32F);
@@ -709,36 +734,58 @@ IntensityWarp refineWarpByRegions(const cv::Mat& grey, const cv::Mat& weight, co
     out.minJacobian = start.minJacobian;
     if (cv::countNonZero(weight) < 64)
         return out;
-    cv::Mat ux = out.ux.clone(), uy = out.uy.clone();
-    double minJacobian = start.minJacobian;
-    int steps = 0;
-    for (const IntensityWarpLevel& level : o.warp.levels) {
-        const cv::Mat mx = mapX + ux, my = mapY + uy;
-        IntensityWarpOptions one = o.warp;
-        one.levels = {level};
-        one.holdOutBlockPx = o.warp.holdOutBlockPx;
-        const IntensityWarp step = fit(mx, my, labelsUnderMap(atlasLabels, mx, my), one);
-        // Within a level the painting is fixed: a level that explains less of its own painting
-        // on the held-out blocks adds nothing.
-        if (!step.accepted)
-            continue;
-        ux += step.ux;
-        uy += step.uy;
-        minJacobian = step.minJacobian;
-        steps += step.steps;
-    }
-    out.steps = steps;
-    if (steps == 0)
+    // The levels coarse to fine, each painted under the map so far; with `painted` the fitting
+    // blocks and `holdOut` the block size, a level that explains less of its own painting on
+    // the held-out blocks adds nothing.
+    struct Fitted {
+        cv::Mat ux, uy;
+        double minJacobian = 1;
+        int steps = 0;
+    };
+    auto levels = [&](const cv::Mat& painted, int holdOut) {
+        Fitted f{cv::Mat::zeros(gs, CV_32F), cv::Mat::zeros(gs, CV_32F), start.minJacobian, 0};
+        for (const IntensityWarpLevel& level : o.warp.levels) {
+            const cv::Mat mx = mapX + f.ux, my = mapY + f.uy;
+            IntensityWarpOptions one = warp;
+            one.levels = {level};
+            one.holdOutBlockPx = holdOut;
+            const IntensityWarp step =
+                fit(mx, my, labelsUnderMap(atlasLabels, mx, my), painted, one);
+            if (!step.accepted)
+                continue;
+            f.ux += step.ux;
+            f.uy += step.uy;
+            f.minJacobian = step.minJacobian;
+            f.steps += step.steps;
+        }
+        return f;
+    };
+    const Fitted held = levels(paintWeight, o.warp.holdOutBlockPx);
+    out.steps = held.steps;
+    if (held.steps == 0)
         return out;
-    const cv::Mat endX = mapX + ux, endY = mapY + uy;
-    const IntensityWarp end = fit(endX, endY, labelsUnderMap(atlasLabels, endX, endY), judge);
+    const cv::Mat endX = mapX + held.ux, endY = mapY + held.uy;
+    const IntensityWarp end =
+        fit(endX, endY, labelsUnderMap(atlasLabels, endX, endY), paintWeight, judge);
     out.explainedAfter = end.explainedBefore;
     out.accepted = out.explainedAfter >= out.explainedBefore + o.warp.minGain;
-    if (out.accepted) {
-        out.ux = ux;
-        out.uy = uy;
-        out.minJacobian = minJacobian;
+    if (!out.accepted)
+        return out;
+    if (o.warp.holdOutBlockPx > 0 && o.warp.refitOnAll) {
+        // Judged on the held-out blocks, the field kept is fitted on every pixel (each level
+        // painted from all of them).
+        const Fitted all = levels(weight, 0);
+        if (all.steps > 0) {
+            out.ux = all.ux;
+            out.uy = all.uy;
+            out.minJacobian = all.minJacobian;
+            out.steps += all.steps;
+            return out;
+        }
     }
+    out.ux = held.ux;
+    out.uy = held.uy;
+    out.minJacobian = held.minJacobian;
     return out;
 }
 

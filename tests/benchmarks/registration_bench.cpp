@@ -486,6 +486,10 @@ bool applyIntensityWarpSettings(const std::vector<std::string>& settings,
             o.minGain = v;
         else if (key == "hold-out")
             o.holdOutBlockPx = int(v);
+        else if (key == "refit")
+            o.refitOnAll = v != 0;
+        else if (key == "anchor")
+            o.anchorAtTissue = v != 0;
         else
             return false;
         return true;
@@ -562,8 +566,8 @@ int main(int argc, char** argv) {
     std::vector<std::string> iwarpSettings;
     app.add_option("--iwarp-opt", iwarpSettings,
                    "Intensity warp options as key=value (grid, levels, coarsest, iterations, "
-                   "stiffness, damping, robust-k, step, local, min-gain, hold-out), for choosing "
-                   "them");
+                   "stiffness, damping, robust-k, step, local, min-gain, hold-out, refit 0/1, "
+                   "anchor 0/1), for choosing them");
     std::string intensityWarpMode = "on";
     app.add_option("--intensity-warp", intensityWarpMode,
                    "The intensity warp of ours (runs only with an atlas intensity plane): on | off")

@@ -15,7 +15,8 @@
 /// penalised robust energy drops and the map's local area ratio stays above minJacobian (where
 /// the start map is below it already, within foldSlack of the start's). The
 /// field is fitted on a checkerboard of blocks and kept only if the share of the section's
-/// variance the model explains on the other blocks rises by minGain.
+/// variance the model explains on the other blocks rises by minGain; the field kept is then
+/// fitted again on every pixel. Lattice and blocks start at the tissue's centroid.
 ///
 /// Pure computation; no I/O, no threads, no logging.
 
@@ -54,6 +55,15 @@ struct IntensityWarpOptions {
     double localSigmaGridPx = 16;
     double minGain = 0.002; ///< held-out explained share must rise by at least this (absolute)
     int holdOutBlockPx = 8; ///< checkerboard block size (grid px); 0 = fit and judge on all
+    /// Once the held-out blocks have judged the field worth keeping, the field kept is fitted
+    /// again on every pixel of the measured area (off: the field of the fitting blocks is kept,
+    /// half the pixels).
+    bool refitOnAll = true;
+    /// The control lattice and the checkerboard start at the measured area's centroid, so that
+    /// they move with the tissue and a section shifted in its frame gets the same field, shifted
+    /// (off: they start at `origin`).
+    bool anchorAtTissue = true;
+    cv::Point2d origin{0, 0}; ///< grid px; where lattice and blocks start without the anchor
 };
 
 struct IntensityWarp {
