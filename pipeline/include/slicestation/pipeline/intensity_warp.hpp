@@ -68,7 +68,9 @@ struct IntensityWarpOptions {
 
 struct IntensityWarp {
     cv::Mat ux, uy; ///< CV_32F, grid size: atlas px to add to the map; zero if not kept
-    double explainedBefore = 0, explainedAfter = 0; ///< held-out explained share, finest level
+    /// Held-out explained share at the finest level, before and after the field fitted on the
+    /// fitting blocks (the judgement; the field kept is then fitted on every pixel, refitOnAll).
+    double explainedBefore = 0, explainedAfter = 0;
     /// Smallest Jacobian determinant of the map (with the field when kept) relative to its
     /// median over the measured area, over the whole grid (<= 0 would be a fold).
     double minJacobian = 1;
@@ -94,8 +96,10 @@ IntensityWarp refineWarpByIntensity(const cv::Mat& grey, const cv::Mat& weight, 
 /// `minRegionPx` grid px take the tissue's median; `glassIds`, e.g. ventricles, and the outside
 /// take the glass band's median when `glassIds` are painted as glass); the level's field is then
 /// fitted as by refineWarpByIntensity. It is kept only if the held-out explained share, each map
-/// judged against its own painting, rises by `minGain`. Minimising the local model's residual
-/// against such a painting is the within-region variance criterion with a local gain and bias.
+/// judged against its own painting, rises by `minGain`; the levels are then fitted again on every
+/// pixel, each painted from all of them (IntensityWarpOptions::refitOnAll). Minimising the local
+/// model's residual against such a painting is the within-region variance criterion with a local
+/// gain and bias.
 struct RegionWarpOptions {
     /// The field's levels, model and regularisation: the intensity warp's, with three levels
     /// (control points 64, 32, 16 grid px apart at sigmas 4, 2, 1; chosen on the second
