@@ -370,7 +370,7 @@ IntensityWarp refineWarpByIntensity(const cv::Mat& grey, const cv::Mat& weight, 
     for (const IntensityWarpLevel& l : o.levels)
         CV_Assert(l.spacingGridPx >= 4 && l.imageSigma >= 0);
     const cv::Size gs = grey.size();
-    const cv::Point2d origin = o.anchorAtTissue ? weightCentroid(weight) : o.origin;
+    const cv::Point2d origin = o.origin ? *o.origin : weightCentroid(weight);
     IntensityWarp out;
     out.ux = cv::Mat::zeros(gs, CV_32F);
     out.uy = cv::Mat::zeros(gs, CV_32F);
@@ -529,7 +529,6 @@ IntensityWarp refineWarpByIntensity(const cv::Mat& grey, const cv::Mat& weight, 
         IntensityWarpOptions all = o;
         all.holdOutBlockPx = 0;
         all.refitOnAll = false;
-        all.anchorAtTissue = false;
         all.origin = origin;
         const IntensityWarp refit =
             refineWarpByIntensity(grey, weight, mapX, mapY, atlasIntensity, all);
@@ -697,8 +696,8 @@ IntensityWarp refineWarpByRegions(const cv::Mat& grey, const cv::Mat& weight, co
     const cv::Size gs = grey.size();
     // One lattice and checkerboard for every fit below (the weights they get differ).
     IntensityWarpOptions warp = o.warp;
-    warp.origin = warp.anchorAtTissue ? weightCentroid(weight) : warp.origin;
-    warp.anchorAtTissue = false;
+    if (!warp.origin)
+        warp.origin = weightCentroid(weight);
     warp.refitOnAll = false; // the levels are judged and fitted again together, below
     // The regions' levels come from the fitting blocks only, so that the held-out check below
     // judges each map on pixels its painting did not see.
@@ -707,7 +706,7 @@ IntensityWarp refineWarpByRegions(const cv::Mat& grey, const cv::Mat& weight, co
         for (int y = 0; y < gs.height; ++y) {
             std::uint8_t* p = paintWeight.ptr<std::uint8_t>(y);
             for (int x = 0; x < gs.width; ++x)
-                if (heldOutBlock(x, y, o.warp.holdOutBlockPx, warp.origin))
+                if (heldOutBlock(x, y, o.warp.holdOutBlockPx, *warp.origin))
                     p[x] = 0;
         }
     // The held-out explained share of a map against its own painting, at the finest level (the

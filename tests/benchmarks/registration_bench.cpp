@@ -488,8 +488,8 @@ bool applyIntensityWarpSettings(const std::vector<std::string>& settings,
             o.holdOutBlockPx = int(v);
         else if (key == "refit")
             o.refitOnAll = v != 0;
-        else if (key == "anchor")
-            o.anchorAtTissue = v != 0;
+        else if (key == "anchor") // 0: lattice and blocks at the grid's corner, as before
+            o.origin = v != 0 ? std::nullopt : std::optional<cv::Point2d>(cv::Point2d(0, 0));
         else
             return false;
         return true;

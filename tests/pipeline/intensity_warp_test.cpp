@@ -364,7 +364,7 @@ TEST(RegionWarp, ASectionShiftedInItsFrameGetsTheSameFieldShifted) {
     // The same section 5 and 11 grid px further right and 3 and 6 px lower (neither a multiple
     // of the 8 px checkerboard nor of the lattice): the field must move with it. Measured: 0.004
     // - 0.005 px. With the lattice and the held-out blocks started at the frame's corner and the
-    // field of the fitting blocks kept (anchorAtTissue and refitOnAll off, as before
+    // field of the fitting blocks kept (origin {0, 0} and refitOnAll off, as before
     // 2026-12-07), 0.084 and 0.108 px; with the refit alone 0.018 and 0.036 (docs/registration.md,
     // "The region and intensity warps move with the tissue").
     const RegionToy r = makeRegionToy(5.5);

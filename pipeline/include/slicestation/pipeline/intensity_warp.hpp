@@ -23,6 +23,7 @@
 #include <opencv2/core.hpp>
 
 #include <cstdint>
+#include <optional>
 #include <vector>
 
 namespace slicestation::pipeline {
@@ -59,11 +60,10 @@ struct IntensityWarpOptions {
     /// again on every pixel of the measured area (off: the field of the fitting blocks is kept,
     /// half the pixels).
     bool refitOnAll = true;
-    /// The control lattice and the checkerboard start at the measured area's centroid, so that
-    /// they move with the tissue and a section shifted in its frame gets the same field, shifted
-    /// (off: they start at `origin`).
-    bool anchorAtTissue = true;
-    cv::Point2d origin{0, 0}; ///< grid px; where lattice and blocks start without the anchor
+    /// Where the control lattice and the checkerboard start (grid px). Unset: at the measured
+    /// area's centroid, so that they move with the tissue and a section shifted in its frame
+    /// gets the same field, shifted.
+    std::optional<cv::Point2d> origin;
 };
 
 struct IntensityWarp {
