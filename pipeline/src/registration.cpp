@@ -905,7 +905,7 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
     const std::vector<IcpLevel> fine{
         {10, atlasH / 10}, {8, atlasH / 20}, {6, atlasH / 40}, {4, atlasH / 80}};
     // An outline alone can fit nearly as well upside down (a roundish section, a piece missing):
-    // close calls are settled by how well the internal edges agree after the full ICP.
+    // close calls are settled after the full ICP by the internal edges and the outline together.
     auto edgeAgreement = [&](const cv::Matx23d& t) {
         std::vector<cv::Point2f> mapped;
         mapped.reserve(reg.sectionEdges.size());
@@ -945,16 +945,21 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         });
     }
     IcpResult affine = std::move(fromPlaced[running.front()]);
-    // A near tie of the edge agreement (within 0.02) is settled by the outline first: the
-    // placement whose polished overlap with the atlas brain is higher by more than the same
-    // margin wins (a section upside down fits its own outline worse, and the region fit below
-    // can prefer it on real tissue with tile seams and uneven stain: docs/registration.md,
-    // "Near ties settled by the outline first"). Overlaps within the margin too are settled by
-    // how well the atlas regions, each painted at one fitted level, explain the section's own
+    // Which of the close placements is kept: the one that leaves the least unexplained, by the
+    // product of what the section's edges leave unmatched (1 - edge agreement) and what the
+    // outline leaves outside the atlas brain (1 - polished overlap). Each measure counts by its
+    // relative change, so the outline, whose misfit is a few per cent of the brain and grows by
+    // a third or more upside down, is heard beside the edges, which on real tissue (texture,
+    // tile seams) match the atlas about as well either way up (docs/registration.md, "Which
+    // way up: the least misfit of outline and edges"). Products within 1% are a tie, settled
+    // by how well the atlas regions, each painted at one fitted level, explain the section's own
     // contrast under each affine (the dense measure, on a 128 px copy): a tie that
     // floating-point differences between compilers could flip is decided by a second,
     // independent measure instead.
-    constexpr double kTieMargin = 0.02;
+    constexpr double kMisfitTie = 0.01; // in the log of the product
+    const auto misfit = [](double agreement, double overlap) {
+        return std::log(std::max(1e-9, 1 - agreement)) + std::log(std::max(1e-9, 1 - overlap));
+    };
     cv::Mat tieGrey, tieWeight;
     auto regionFit = [&](const cv::Matx23d& t) {
         const cv::Size ws = reg.workingGrey.size();
@@ -989,17 +994,15 @@ core::Result<Registration> registerSection(const cv::Mat& section, const cv::Mat
         const size_t k = running[i];
         IcpResult& other = fromPlaced[k];
         const double a = edgeAgreement(other.targetFromSource);
-        bool better = a > agreement + kTieMargin;
+        const double gain =
+            misfit(agreement, placed[chosen].overlap) - misfit(a, placed[k].overlap);
+        bool better = gain > kMisfitTie;
         double fit = std::numeric_limits<double>::quiet_NaN();
-        if (!better && a > agreement - kTieMargin) {
-            if (std::abs(placed[k].overlap - placed[chosen].overlap) > kTieMargin) {
-                better = placed[k].overlap > placed[chosen].overlap;
-            } else {
-                if (std::isnan(fitOfBest))
-                    fitOfBest = regionFit(affine.targetFromSource);
-                fit = regionFit(other.targetFromSource);
-                better = fit > fitOfBest;
-            }
+        if (std::abs(gain) <= kMisfitTie) {
+            if (std::isnan(fitOfBest))
+                fitOfBest = regionFit(affine.targetFromSource);
+            fit = regionFit(other.targetFromSource);
+            better = fit > fitOfBest;
         }
         if (better) {
             agreement = a;

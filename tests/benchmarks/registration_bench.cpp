@@ -623,6 +623,11 @@ int main(int argc, char** argv) {
                  "planes in order (case i on loaded plane i, the planes spread evenly over the "
                  "AP range), then judged again with the series context as the station does "
                  "(the gaps and glass of the two earlier sections); prints flags alone and live");
+    double maxRotationDeg = -1;
+    app.add_option("--max-rotation", maxRotationDeg,
+                   "Sections turned uniformly within +-this many degrees (180: any way up; "
+                   "default: each generator's own range, 20 or 25)")
+        ->check(CLI::Range(0.0, 180.0));
     std::string seriesAnatomy = "family";
     app.add_option("--series-anatomy", seriesAnatomy,
                    "With --series-run: family (each case's own anatomy models) or ventricles "
@@ -788,6 +793,11 @@ int main(int argc, char** argv) {
         csv.open(csvPath);
         csv << "family,case,method,damaged,stain,rmse,median,max,seconds,failed\n";
     }
+    if (maxRotationDeg >= 0)
+        for (auto& c : all) {
+            c.options.maxRotationDeg = maxRotationDeg;
+            c.optionsB.maxRotationDeg = maxRotationDeg;
+        }
     if (seriesRun)
         for (auto& c : all) {
             c.plane = c.index % planeCount;
