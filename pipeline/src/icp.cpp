@@ -167,7 +167,7 @@ std::vector<char> consistentWithNeighbours(const std::vector<cv::Point2f>& at,
                     const int mid = count / 2;
                     const double dx = disp[size_t(k)].x - sortedX[size_t(countX.kth(mid))];
                     const double dy = disp[size_t(k)].y - sortedY[size_t(countY.kth(mid))];
-                    keep[size_t(k)] = std::hypot(dx, dy) <= 0.5 * distance;
+                    keep[size_t(k)] = dx * dx + dy * dy <= 0.25 * distance * distance;
                 }
             }
         },
