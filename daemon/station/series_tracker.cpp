@@ -84,6 +84,18 @@ SeriesPlacement SeriesTracker::wordOn(std::size_t entry) const {
     return p;
 }
 
+std::vector<int> SeriesTracker::plannedSlices(std::size_t planIndex) const {
+    std::vector<int> out;
+    const std::optional<int>& planned =
+        planIndex < planSlices_.size() ? planSlices_[planIndex] : std::nullopt;
+    if (!planned)
+        return out;
+    for (int s = *planned - 1; s <= *planned + 1; ++s)
+        if (s >= 0 && s < static_cast<int>(stack_.slices.size()))
+            out.push_back(s);
+    return out;
+}
+
 std::optional<int> SeriesTracker::expectedSlice(std::size_t entry) const {
     const Entry& e = entries_[entry];
     const std::optional<int>& planned = planSlices_[e.planIndex];
@@ -150,7 +162,7 @@ core::Result<SeriesTracker::Placement> SeriesTracker::place(const RunRecord& run
                 continue;
             auto cap = journal_.capture(regs->front().captureId);
             auto f = cap ? featuresOf(*cap) : core::Result<pipeline::SectionFeatures>(cap.error());
-            if (!f || !matcher_->add(*f))
+            if (!f || !matcher_->add(*f, plannedSlices(k)))
                 continue; // a section that cannot be matched again is left out, as it was then
             entries_.push_back({planOrder_[k], k, regs->front().id, regs->front().atlasSlice,
                                 regs->front().matchedSlice.value_or(0), true, std::move(*f)});
@@ -179,7 +191,7 @@ core::Result<SeriesTracker::Placement> SeriesTracker::place(const RunRecord& run
             applyTilt(out);
         return out;
     }
-    auto m = matcher_->add(*features);
+    auto m = matcher_->add(*features, plannedSlices(planIndex));
     if (!m)
         return m.error();
     out.matchedSlice = m->index;

@@ -444,6 +444,10 @@ core::Result<SectionMatch> matchSection(const SectionFeatures& sec,
                 chosen[order[k] + 1] = true;
         }
     }
+    for (const int s : options.alsoScore)
+        for (size_t k = 0; k < all.size(); ++k)
+            if (all[k].index == s)
+                chosen[k] = true;
     cv::Mat inner;
     cv::erode(sec.tissue, inner, cv::getStructuringElement(cv::MORPH_RECT, cv::Size(3, 3)));
     // Paper section 3.2.3: ICP with normals on every edge, tightening; here only to the level

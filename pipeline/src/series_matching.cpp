@@ -61,12 +61,14 @@ core::Result<void> SeriesMatcher::refit() {
     return {};
 }
 
-core::Result<SectionMatch> SeriesMatcher::add(const SectionFeatures& section) {
+core::Result<SectionMatch> SeriesMatcher::add(const SectionFeatures& section,
+                                              const std::vector<int>& alsoScore) {
     const auto t0 = Clock::now();
     const int n = int(matches_.size());
     const int lastSlice = options_.match.last < 0 ? int(slices_->size()) - 1 : options_.match.last;
     SeriesSearch search;
     MatchOptions o = options_.match;
+    o.alsoScore.insert(o.alsoScore.end(), alsoScore.begin(), alsoScore.end());
     const double spacing = std::abs(fit_.spacingUm);
     if (n >= options_.fullSearchSections && n > 0 && spacing > 0 && fit_.inliers >= 2) {
         search.predictedUm = fit_.predictUm(n);
@@ -94,7 +96,9 @@ core::Result<SectionMatch> SeriesMatcher::add(const SectionFeatures& section) {
         for (const SectionMatch& p : matches_)
             scores.push_back(p.score);
         if (m->score < options_.fallbackScoreRatio * medianOf(scores)) {
-            auto whole = matchSection(section, *slices_, options_.match);
+            MatchOptions wo = options_.match;
+            wo.alsoScore.insert(wo.alsoScore.end(), alsoScore.begin(), alsoScore.end());
+            auto whole = matchSection(section, *slices_, wo);
             if (whole && whole->score > options_.fallbackGain * m->score) {
                 m = std::move(whole);
                 search.fellBack = true;

@@ -14,6 +14,7 @@
 #include <opencv2/core.hpp>
 #include <opencv2/imgproc.hpp>
 
+#include <algorithm>
 #include <cmath>
 #include <filesystem>
 #include <fstream>
@@ -103,6 +104,42 @@ TEST(AtlasMatching, FindsThePlaneOfGeneratedSections) {
         EXPECT_GE(far->index, 35);
         EXPECT_LT(far->score, m->score);
     }
+}
+
+// MatchOptions::alsoScore (docs/atlas.md, "Open work"): the slices the plan predicts are scored
+// beside the overlap shortlist, so that a search whose shortlist misses them (the demo's s02 on
+// the slowly changing built-in atlas) cannot place the section elsewhere for want of scoring
+// them. With a shortlist of one slice, the asked slices are among the scored candidates; asked
+// at the truth, the answer is no further from it than without them.
+TEST(AtlasMatching, TheSlicesThePlanPredictsAreScoredBesideTheShortlist) {
+    double workUm = 0;
+    const auto stack = builtinStack(workUm);
+    sim::GeneratorOptions go;
+    go.seed = 5;
+    go.imageSize = {900, 660};
+    const double pos = 3300;
+    auto gen = sim::generateSection(sim::builtinAtlasPlane(pos / kLengthUm), go);
+    ASSERT_TRUE(gen.ok()) << gen.error().message;
+    const auto& a = gen->truth.affineAtlasFromImage;
+    const double imageUm = std::sqrt(std::abs(a(0, 0) * a(1, 1) - a(0, 1) * a(1, 0))) * kUmPerPx;
+    auto sec = sectionFeatures(gen->image, imageUm, workUm);
+    ASSERT_TRUE(sec.ok()) << sec.error().message;
+    MatchOptions narrow;
+    narrow.shortlist = 1;
+    auto alone = matchSection(*sec, stack, narrow);
+    ASSERT_TRUE(alone.ok()) << alone.error().message;
+    const int truth = int(std::lround(pos / kIntervalUm));
+    MatchOptions asked = narrow;
+    asked.alsoScore = {truth - 1, truth, truth + 1, 1000}; // an index past the stack is ignored
+    auto hinted = matchSection(*sec, stack, asked);
+    ASSERT_TRUE(hinted.ok()) << hinted.error().message;
+    for (const int s : {truth - 1, truth, truth + 1})
+        EXPECT_TRUE(std::any_of(hinted->candidates.begin(), hinted->candidates.end(),
+                                [&](const MatchCandidate& c) { return c.index == s; }))
+            << "slice " << s << " was not scored";
+    EXPECT_GE(hinted->score, alone->score);
+    EXPECT_LE(std::abs(hinted->positionUm - pos), std::abs(alone->positionUm - pos) + 1e-6);
+    EXPECT_LE(std::abs(hinted->positionUm - pos), kIntervalUm);
 }
 
 TEST(AtlasMatching, BadInputsAreErrors) {

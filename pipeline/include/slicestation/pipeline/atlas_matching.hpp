@@ -65,9 +65,14 @@ struct SectionFeatures {
                                                             int unknownScaleMaxSide = 256);
 
 struct MatchOptions {
-    int first = 0;            ///< first slice index searched
-    int last = -1;            ///< last slice index searched, -1 = the last slice
-    int shortlist = 14;       ///< slices, by tissue overlap, that get the edge alignment and score
+    int first = 0;      ///< first slice index searched
+    int last = -1;      ///< last slice index searched, -1 = the last slice
+    int shortlist = 14; ///< slices, by tissue overlap, that get the edge alignment and score
+    /// Slices scored beside the shortlist whatever their overlap (in [first, last]): those the
+    /// cutting plan or the series model predicts, so that a section where the plan is right is
+    /// never placed elsewhere for want of being scored (the whole-stack search on an atlas whose
+    /// outline changes slowly may leave them off the overlap shortlist).
+    std::vector<int> alsoScore;
     bool allowMirror = false; ///< also try mirrored placements (section mounted face down)
     /// Tilt is estimated from the positions the two halves of the section match best, when the
     /// stack is at most this far apart (micrometres); 0 disables it.

@@ -123,10 +123,12 @@ public:
     /// `slices` must outlive the matcher.
     SeriesMatcher(const std::vector<SliceFeatures>& slices, SeriesMatchOptions options);
 
-    /// Matches the next section and refits the model.
+    /// Matches the next section and refits the model; `alsoScore`: slices scored beside the
+    /// search's shortlist (MatchOptions::alsoScore; the plan's slice for this section).
     /// \return the errors of matchSection (NoTissue...) and fitSeries; a failed section is not
     ///         added.
-    [[nodiscard]] core::Result<SectionMatch> add(const SectionFeatures& section);
+    [[nodiscard]] core::Result<SectionMatch> add(const SectionFeatures& section,
+                                                 const std::vector<int>& alsoScore = {});
 
     /// Each flagged section (off the line, skip, swap, out of order, duplicate) is matched again
     /// around the slot that would make the run regular (after its on-line predecessor, before

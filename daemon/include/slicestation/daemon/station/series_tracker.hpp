@@ -144,6 +144,9 @@ private:
     void applyTilt(Placement& out) const;
     bool tiltApplies() const;
     std::optional<int> expectedSlice(std::size_t entry) const;
+    /// The plan's slice for the section at `planIndex` and its two neighbours (those in the
+    /// stack), scored by the live match beside its shortlist; empty without a planned slice.
+    std::vector<int> plannedSlices(std::size_t planIndex) const;
     void finishRun();
     /// The features of the model's sections, in the matcher's order (its matches' order).
     std::vector<pipeline::SectionFeatures> modelFeatures() const;
