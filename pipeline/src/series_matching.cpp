@@ -67,8 +67,10 @@ core::Result<SectionMatch> SeriesMatcher::add(const SectionFeatures& section,
     const int n = int(matches_.size());
     const int lastSlice = options_.match.last < 0 ? int(slices_->size()) - 1 : options_.match.last;
     SeriesSearch search;
-    MatchOptions o = options_.match;
-    o.alsoScore.insert(o.alsoScore.end(), alsoScore.begin(), alsoScore.end());
+    // The whole stack's search, with the slices asked for; windowed below once the model predicts.
+    MatchOptions whole = options_.match;
+    whole.alsoScore.insert(whole.alsoScore.end(), alsoScore.begin(), alsoScore.end());
+    MatchOptions o = whole;
     const double spacing = std::abs(fit_.spacingUm);
     if (n >= options_.fullSearchSections && n > 0 && spacing > 0 && fit_.inliers >= 2) {
         search.predictedUm = fit_.predictUm(n);
@@ -96,11 +98,9 @@ core::Result<SectionMatch> SeriesMatcher::add(const SectionFeatures& section,
         for (const SectionMatch& p : matches_)
             scores.push_back(p.score);
         if (m->score < options_.fallbackScoreRatio * medianOf(scores)) {
-            MatchOptions wo = options_.match;
-            wo.alsoScore.insert(wo.alsoScore.end(), alsoScore.begin(), alsoScore.end());
-            auto whole = matchSection(section, *slices_, wo);
-            if (whole && whole->score > options_.fallbackGain * m->score) {
-                m = std::move(whole);
+            auto all = matchSection(section, *slices_, whole);
+            if (all && all->score > options_.fallbackGain * m->score) {
+                m = std::move(all);
                 search.fellBack = true;
             }
         }

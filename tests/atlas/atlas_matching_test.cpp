@@ -106,11 +106,12 @@ TEST(AtlasMatching, FindsThePlaneOfGeneratedSections) {
     }
 }
 
-// MatchOptions::alsoScore (docs/atlas.md, "Open work"): the slices the plan predicts are scored
-// beside the overlap shortlist, so that a search whose shortlist misses them (the demo's s02 on
-// the slowly changing built-in atlas) cannot place the section elsewhere for want of scoring
-// them. With a shortlist of one slice, the asked slices are among the scored candidates; asked
-// at the truth, the answer is no further from it than without them.
+// MatchOptions::alsoScore (docs/atlas.md, "The plan's slices are scored in the live match"): the
+// slices the plan predicts are scored beside the overlap shortlist, so that a search whose
+// shortlist misses them (the demo's s02 on the slowly changing built-in atlas) cannot place the
+// section elsewhere for want of scoring them. With a shortlist of one slice, the asked slices are
+// among the scored candidates; asked at the truth, the answer is no further from it than without
+// them.
 TEST(AtlasMatching, TheSlicesThePlanPredictsAreScoredBesideTheShortlist) {
     double workUm = 0;
     const auto stack = builtinStack(workUm);
