@@ -35,10 +35,7 @@ CameraResult openLibcamera(const CameraConfig& config, StagePosition) {
     drivers::LibcameraCameraConfig c;
     c.cameraId = config.cameraId;
     c.settleFrames = config.settleFrames;
-    auto cam = drivers::LibcameraCamera::create(c);
-    if (!cam)
-        return cam.error();
-    return std::unique_ptr<hw::Camera>(std::move(cam).value());
+    return drivers::openLibcameraCamera(c); // loads the libcamera driver now
 }
 
 /// The simulated camera over its virtual slide, behind FaultyCamera when faults are asked.

@@ -566,3 +566,18 @@ core::Result<hw::Frame> LibcameraCamera::capture(std::chrono::milliseconds timeo
 }
 
 } // namespace slicestation::drivers
+
+/// The module's one entry point (openLibcameraCamera in libcamera_loader.cpp looks it up).
+extern "C" const slicestation::drivers::LibcameraDriver* slst_libcamera_driver() {
+    using namespace slicestation;
+    static const drivers::LibcameraDriver driver{
+        drivers::LibcameraDriver::kAbi,
+        [](const drivers::LibcameraCameraConfig& c) -> core::Result<std::unique_ptr<hw::Camera>> {
+            auto cam = drivers::LibcameraCamera::create(c);
+            if (!cam)
+                return cam.error();
+            return std::unique_ptr<hw::Camera>(std::move(cam).value());
+        },
+        &drivers::LibcameraCamera::listCameras};
+    return &driver;
+}

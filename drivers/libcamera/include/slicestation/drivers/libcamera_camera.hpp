@@ -20,6 +20,12 @@
 /// (configure, allocation, mmap), Disconnected. capture: Timeout, Disconnected, IoError (a
 /// frame with an error status), Cancelled (stop()).
 /// Tested here only through the no-camera path (no camera on the build machine).
+///
+/// Loading: this class lives in its own shared library, libslst_libcamera.so, which the
+/// station's programs load on first use through openLibcameraCamera / listLibcameraCameras
+/// below (docs/hardware.md, "The libcamera driver is loaded when used"): libcamera and what it
+/// brings (lttng-ust, gnutls, libdw, libudev) cost every process about 10 ms to load and
+/// start, and only a station with a libcamera camera needs them.
 
 #include "slicestation/core/camera.hpp"
 
@@ -60,5 +66,24 @@ private:
     explicit LibcameraCamera(std::unique_ptr<Impl> impl);
     std::unique_ptr<Impl> impl_;
 };
+
+/// What libslst_libcamera.so exports, as `slst_libcamera_driver()`: the two entry points, and
+/// the layout's version (the module must come from the same build as the program).
+struct LibcameraDriver {
+    static constexpr int kAbi = 1;
+    int abi = kAbi;
+    core::Result<std::unique_ptr<hw::Camera>> (*open)(const LibcameraCameraConfig&) = nullptr;
+    core::Result<std::vector<std::string>> (*list)() = nullptr;
+};
+
+/// LibcameraCamera::create through the module, loaded on the first call of either function
+/// (and kept: the cameras' code lives in it). The module is looked for in
+/// $SLICESTATION_DRIVER_DIR only when that is set, else next to the running program, then in
+/// the build tree's drivers/ folder.
+/// \return Unsupported when the module cannot be loaded (the paths tried and the loader's
+///         reason in the message), else what LibcameraCamera::create returns.
+core::Result<std::unique_ptr<hw::Camera>> openLibcameraCamera(const LibcameraCameraConfig& config);
+/// LibcameraCamera::listCameras through the module (see openLibcameraCamera).
+core::Result<std::vector<std::string>> listLibcameraCameras();
 
 } // namespace slicestation::drivers
