@@ -121,8 +121,17 @@ private:
         // A wide window's moments are smooth: blurred on a copy reduced 4 times (when the
         // window is at least 8 px) and brought back bilinearly, a tenth of the full blur's cost.
         const int f = s >= 8 ? 4 : 1;
-        auto blur = [s, f](const cv::Mat& in) {
-            return reducedGaussianBlur(in, s, f, cv::BORDER_REPLICATE);
+        const cv::Size small((size_.width + f - 1) / f, (size_.height + f - 1) / f);
+        auto blur = [s, f, small, this](const cv::Mat& in) {
+            cv::Mat out;
+            if (f == 1) {
+                cv::GaussianBlur(in, out, cv::Size(), s, s, cv::BORDER_REPLICATE);
+                return out;
+            }
+            cv::resize(in, out, small, 0, 0, cv::INTER_AREA);
+            cv::GaussianBlur(out, out, cv::Size(), s / f, s / f, cv::BORDER_REPLICATE);
+            cv::resize(out, out, size_, 0, 0, cv::INTER_LINEAR);
+            return out;
         };
         const cv::Mat wt = w.mul(t), wg = w.mul(g);
         cv::Mat sw = blur(w), st = blur(wt), sg = blur(wg), stt = blur(wt.mul(t)),

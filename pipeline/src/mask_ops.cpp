@@ -26,20 +26,6 @@ cv::Mat weightedLocalMean(const cv::Mat& values, const cv::Mat& weight, double s
     return mean;
 }
 
-cv::Mat reducedGaussianBlur(const cv::Mat& image, double sigma, int factor, int border) {
-    CV_Assert(image.type() == CV_32F && sigma > 0 && factor >= 1);
-    cv::Mat out;
-    if (factor == 1) {
-        cv::GaussianBlur(image, out, cv::Size(), sigma, sigma, border);
-        return out;
-    }
-    const cv::Size small((image.cols + factor - 1) / factor, (image.rows + factor - 1) / factor);
-    cv::resize(image, out, small, 0, 0, cv::INTER_AREA);
-    cv::GaussianBlur(out, out, cv::Size(), sigma / factor, sigma / factor, border);
-    cv::resize(out, out, image.size(), 0, 0, cv::INTER_LINEAR);
-    return out;
-}
-
 cv::Mat fillHoles(const cv::Mat& mask) {
     std::vector<std::vector<cv::Point>> contours;
     cv::findContours(mask.clone(), contours, cv::RETR_EXTERNAL, cv::CHAIN_APPROX_SIMPLE);

@@ -73,15 +73,11 @@ float ringDeviation(const cv::Mat& image, const cv::Mat& valid, float glass) {
 cv::Mat segmentTissue(const cv::Mat& grey, const cv::Mat& valid, float glass,
                       cv::Mat* fine = nullptr) {
     const int longSide = std::max(grey.rows, grey.cols);
-    // The three blurs side by side (the sharp one only for the fine mask). The heavy one only
-    // says where tissue is and how noisy the glass is at that blur: it is taken on a copy
-    // reduced up to sigma / 2 times (at most 4), a fifth of the full blur's cost at 1024 px.
-    const double heavySigma = std::max(2.0, longSide / 150.0);
-    const int heavyFactor = std::clamp(int(heavySigma / 2), 1, 4);
+    // The three blurs side by side (the sharp one only for the fine mask).
     cv::Mat heavy, light, sharp;
     runTasks(fine ? 3 : 2, [&](int k) {
         if (k == 0)
-            heavy = reducedGaussianBlur(grey, heavySigma, heavyFactor, cv::BORDER_REFLECT_101);
+            cv::GaussianBlur(grey, heavy, cv::Size(), std::max(2.0, longSide / 150.0));
         else if (k == 1)
             cv::GaussianBlur(grey, light, cv::Size(), std::max(1.0, longSide / 500.0));
         else

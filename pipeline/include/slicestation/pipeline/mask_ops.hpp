@@ -38,11 +38,4 @@ int labelComponents(const cv::Mat& mask, cv::Mat& labels, cv::Mat& stats);
 /// no weight lies within reach.
 cv::Mat weightedLocalMean(const cv::Mat& values, const cv::Mat& weight, double sigma, int factor);
 
-/// A wide Gaussian blur of `image` (CV_32F) taken on a copy reduced `factor` times (an integer,
-/// at least 1; INTER_AREA, the size rounded up), blurred by sigma / factor there with `border`,
-/// and brought back to the image's size (bilinear). A blur of sigma px keeps nothing finer than
-/// about sigma px, so a factor up to sigma / 2 loses nothing it would keep, at a fraction of
-/// the cost (the full blur's kernel grows with sigma). Factor 1 is cv::GaussianBlur itself.
-cv::Mat reducedGaussianBlur(const cv::Mat& image, double sigma, int factor, int border);
-
 } // namespace slicestation::pipeline
