@@ -38,14 +38,6 @@ PointGrid::PointGrid(const std::vector<cv::Point2f>& points, float cellSize)
         sorted_[k] = points_[size_t(order_[k])];
 }
 
-int PointGrid::cellX(float x) const {
-    return std::clamp(static_cast<int>(std::floor((x - x0_) / cell_)), 0, cols_ - 1);
-}
-
-int PointGrid::cellY(float y) const {
-    return std::clamp(static_cast<int>(std::floor((y - y0_) / cell_)), 0, rows_ - 1);
-}
-
 int PointGrid::nearest(cv::Point2f p, float radius) const {
     int best = -1;
     float bestD2 = std::numeric_limits<float>::max();

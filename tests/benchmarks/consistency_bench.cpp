@@ -369,10 +369,11 @@ int main(int argc, char** argv) {
     std::ofstream csv;
     if (!csvPath.empty()) {
         csv.open(csvPath);
-        csv << "series,section,warp,rms,max,points,seconds_original,seconds_warped\n";
+        csv << "series,section,warp,rms,max,points,seconds_original,seconds_warped,overlap_original,"
+               "overlap_warped,verdict_original,verdict_warped,score_original,score_warped\n";
     }
-    std::printf("%-6s %-16s %5s %8s %8s %8s %8s\n", "series", "section", "warps", "RMS", "worst",
-                "max", "overlap");
+    std::printf("%-6s %-16s %5s %8s %8s %8s %8s  %s\n", "series", "section", "warps", "RMS", "worst",
+                "max", "overlap", "damage: eye, original's verdict, warped copies flagged");
     struct SeriesResult {
         std::string name;
         std::vector<double> sectionRms;
@@ -384,6 +385,10 @@ int main(int argc, char** argv) {
         std::vector<double> warpRms;       ///< every (section, warp) RMS that is not gross
         /// --stages: stage name -> the RMS of that affine stage's map for every pair not gross
         std::vector<std::pair<std::string, std::vector<double>>> stageRms;
+        /// Damage verdicts by the series' eye judgement (0 torn, 1 clean, 2 unclear): originals
+        /// [0] and warped copies [1] judged, flagged DAMAGED, CHECK_REG; warped copies whose
+        /// verdict is the original's.
+        int judged[3][2] = {}, flagged[3][2] = {}, checkReg[3][2] = {}, same[3] = {};
     };
     std::vector<SeriesResult> results;
     for (const std::string series : {"mouse", "gerbi"}) {
@@ -459,6 +464,16 @@ int main(int argc, char** argv) {
             cv::resize(reg0->workingTissueMask, tissue, s.image.size(), 0, 0, cv::INTER_NEAREST);
             double sq = 0, worstWarp = 0, worstPoint = 0;
             long n = 0;
+            int copiesFlagged = 0;
+            const char eye = truthOf(series, int(si) + 1);
+            const int cls = eye == 'T' ? 0 : eye == 'c' ? 1 : 2;
+            const auto tally = [&](const pipeline::Registration& r, int which) {
+                ++res.judged[cls][which];
+                res.flagged[cls][which] += r.damageVerdict == pipeline::DamageVerdict::Damaged;
+                res.checkReg[cls][which] +=
+                    r.damageVerdict == pipeline::DamageVerdict::CheckRegistration;
+            };
+            tally(*reg0, 0);
             for (int k = 0; k < warps; ++k) {
                 const Warp w = randomWarp(rng, s.image.size(), shiftOnly, fieldScale, sameFrame);
                 const cv::Mat warped = applyWarp(s.image, w);
@@ -473,6 +488,9 @@ int main(int argc, char** argv) {
                     continue;
                 }
                 writeOverlay(*reg1, "warp" + std::to_string(k));
+                tally(*reg1, 1);
+                copiesFlagged += reg1->damageVerdict == pipeline::DamageVerdict::Damaged;
+                res.same[cls] += reg1->damageVerdict == reg0->damageVerdict;
                 // A dense grid of tissue points of the warped image (about 150 per side).
                 const testing_warp::WarpDifference diff = testing_warp::differenceOverTissue(
                     w, tissue, [&](cv::Point2d q) { return reg1->atlasFromImage(q); },
@@ -519,7 +537,11 @@ int main(int argc, char** argv) {
                 worstPoint = std::max(worstPoint, wmax);
                 if (csv)
                     csv << series << ',' << s.name << ',' << k << ',' << rms << ',' << wmax << ','
-                        << wn << ',' << sec0 << ',' << sec1 << '\n';
+                        << wn << ',' << sec0 << ',' << sec1 << ',' << reg0->quality.tissueOverlap
+                        << ',' << reg1->quality.tissueOverlap << ','
+                        << verdictText(reg0->damageVerdict) << ','
+                        << verdictText(reg1->damageVerdict) << ',' << reg0->damageScore << ','
+                        << reg1->damageScore << '\n';
             }
             if (n == 0)
                 continue;
@@ -528,8 +550,10 @@ int main(int argc, char** argv) {
             res.sectionNames.push_back(s.name);
             res.allSq += sq;
             res.allN += n;
-            std::printf("%-6s %-16s %5d %8.2f %8.2f %8.2f %8.2f\n", series.c_str(), s.name.c_str(),
-                        warps, rms, worstWarp, worstPoint, reg0->quality.tissueOverlap);
+            std::printf("%-6s %-16s %5d %8.2f %8.2f %8.2f %8.2f  %c %-9s %d\n", series.c_str(),
+                        s.name.c_str(), warps, rms, worstWarp, worstPoint,
+                        reg0->quality.tissueOverlap, eye, verdictText(reg0->damageVerdict),
+                        copiesFlagged);
             std::fflush(stdout);
         }
         if (damageOnly && !judged.empty())
@@ -557,6 +581,24 @@ int main(int argc, char** argv) {
                     r.sectionRms.size(), median(r.sectionRms), mean,
                     std::sqrt(r.allSq / double(std::max(1L, r.allN))), w, r.failed, g,
                     median(r.warpRms));
+    }
+    // The damage check on the same tissue under known warps: a verdict a technician can trust
+    // does not change when the section is mounted a little differently.
+    std::printf("\ndamage verdicts, originals and their warped copies (the same tissue under a "
+                "known warp; flagged = DAMAGED, check = CHECK_REG):\n");
+    for (const auto& r : results) {
+        static const char* kClass[3] = {"torn", "clean", "unclear"};
+        for (int c = 0; c < 3; ++c) {
+            if (r.judged[c][0] == 0)
+                continue;
+            std::printf("%-6s %-8s originals flagged %2d / check %2d of %2d | warped copies "
+                        "flagged %3d / check %3d of %3d (%.1f%% flagged) | same verdict as the "
+                        "original %3d of %3d\n",
+                        r.name.c_str(), kClass[c], r.flagged[c][0], r.checkReg[c][0],
+                        r.judged[c][0], r.flagged[c][1], r.checkReg[c][1], r.judged[c][1],
+                        100.0 * r.flagged[c][1] / std::max(1, r.judged[c][1]), r.same[c],
+                        r.judged[c][1]);
+        }
     }
     for (const auto& r : results) {
         if (r.stageRms.empty())
