@@ -310,6 +310,11 @@ int main(int argc, char** argv) {
                    "RegistrationOptions::edgeWarpWithRegions: the edge warps before the region "
                    "warp when it runs: on | off (default: the product's)")
         ->check(CLI::IsMember({"on", "off"}));
+    double pullBelow = pipeline::RegistrationOptions{}.outlinePullBelowOverlap;
+    app.add_option("--pull-below", pullBelow,
+                   "RegistrationOptions::outlinePullBelowOverlap: the outline pull's gate on the "
+                   "affine's tissue overlap")
+        ->check(CLI::Range(0.0, 2.0));
     double crackDarkness = pipeline::DamageParams{}.crackDarkness;
     app.add_option("--crack-darkness", crackDarkness,
                    "DamageParams::crackDarkness (0: cracks must show glass, as before 2026-12-02)")
@@ -424,6 +429,7 @@ int main(int argc, char** argv) {
             }
             ro.regionWarpOptions.maxInnerSpread = rwarpMaxSpread;
             ro.damage.crackDarkness = crackDarkness;
+            ro.outlinePullBelowOverlap = pullBelow;
             ro.damage.leaveOutMirroredGaps = mirroredGaps == "on";
             ro.damage.foldFromCrease = foldCrease == "on";
             if (crackPieces == "off")
