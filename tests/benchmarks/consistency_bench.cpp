@@ -374,9 +374,9 @@ int main(int argc, char** argv) {
     std::ofstream csv;
     if (!csvPath.empty()) {
         csv.open(csvPath);
-        csv << "series,section,warp,rms,max,points,seconds_original,seconds_warped,overlap_"
-               "original,"
-               "overlap_warped,verdict_original,verdict_warped,score_original,score_warped\n";
+        csv << "series,section,warp,rms,max,points,seconds_original,seconds_warped,"
+               "overlap_original,overlap_warped,verdict_original,verdict_warped,"
+               "score_original,score_warped\n";
     }
     std::printf("%-6s %-16s %5s %8s %8s %8s %8s  %s\n", "series", "section", "warps", "RMS",
                 "worst", "max", "overlap",

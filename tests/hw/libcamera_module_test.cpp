@@ -14,12 +14,13 @@ namespace {
 
 using core::ErrorCode;
 
-/// Whether a file whose name contains `name` is mapped into this process.
+/// Whether a file whose name begins with `name` is mapped into this process ("libcamera.so"
+/// is libcamera itself, not the driver module libslst_libcamera.so).
 bool mapped(const std::string& name) {
     std::ifstream maps("/proc/self/maps");
     std::string line;
     while (std::getline(maps, line))
-        if (line.find(name) != std::string::npos)
+        if (line.find("/" + name) != std::string::npos)
             return true;
     return false;
 }
